@@ -1,0 +1,1 @@
+"""Sensor sources (serial, USB, camera, replay, simulated) and the robot-side streaming client."""

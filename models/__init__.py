@@ -1,0 +1,1 @@
+"""Datasets, tactile and visual features, networks, training, evaluation, export, prediction."""

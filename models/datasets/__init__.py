@@ -1,0 +1,1 @@
+"""Dataset format, validation and the builders for each source (HaTT–TexNet, synthetic, recordings)."""

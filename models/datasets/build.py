@@ -1,0 +1,49 @@
+"""Build a dataset directory from a source: `hapticlink dataset build --source NAME --out DIR`."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Callable, Iterable
+
+from tqdm import tqdm
+
+
+def run_jobs(fn: Callable, jobs: list, workers: int | None, desc: str) -> Iterable:
+    """fn over jobs with a progress bar, in worker processes when there is more than one job and worker."""
+    workers = min(workers or os.cpu_count() or 1, len(jobs))
+    bar = tqdm(total=len(jobs), desc=desc, unit="texture", disable=len(jobs) < 4)
+    try:
+        if workers <= 1:
+            for job in jobs:
+                yield fn(job)
+                bar.update()
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for result in pool.map(fn, jobs):
+                    yield result
+                    bar.update()
+    finally:
+        bar.close()
+
+
+def build(source: str, out: str | Path, path: str | Path | None = None, **options) -> Path:
+    """Dispatch to the source's builder. Options are source-specific (see each builder)."""
+    if source == "hatt-texnet":
+        from models.datasets.hatt import build_hatt
+
+        if path is None:
+            raise ValueError("--source hatt-texnet needs --path (e.g. ../shared/data/hatt-texnet)")
+        return build_hatt(path, out, **options)
+    if source == "synthetic":
+        from models.datasets.synthetic import build_synthetic
+
+        return build_synthetic(out, **options)
+    if source == "recordings":
+        from models.datasets.recordings import build_recordings
+
+        if path is None:
+            raise ValueError("--source recordings needs --path to the folder of recordings")
+        return build_recordings(path, out, **options)
+    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, synthetic or recordings")

@@ -1,0 +1,1 @@
+"""Leave-one-texture-out evaluation: data assembly, estimators, metrics, the fold runner."""

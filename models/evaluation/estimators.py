@@ -1,0 +1,297 @@
+"""Estimators evaluated by leave-one-texture-out: each fits on training textures only.
+
+Everything learnt from data — standardisation, PCA, hyper-parameters picked by
+inner cross-validation, early stopping — is fit inside `fit`, on the textures
+it is given, so a held-out texture can never leak into its own prediction.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Literal
+
+import numpy as np
+
+from models.evaluation.data import TextureData
+
+Modality = Literal["none", "tactile", "visual", "both"]
+
+
+class Estimator(ABC):
+    """fit(training textures) → predict(textures) → (T, 4) bipolar ratings."""
+
+    name: str = "estimator"
+    modality: Modality = "none"
+
+    @abstractmethod
+    def fit(self, data: TextureData, seed: int) -> "Estimator": ...
+
+    @abstractmethod
+    def predict(self, data: TextureData) -> np.ndarray: ...
+
+    def n_params(self) -> int:
+        return 0
+
+    def fit_info(self) -> dict:
+        """What the fit chose (hyper-parameters, epochs): reported per fold."""
+        return {}
+
+
+# ---- texture-level design matrices --------------------------------------------------------------
+def tactile_summary(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> np.ndarray:
+    """(T, F·len(stats)): per-texture statistics of its window features."""
+    funcs = {"mean": np.mean, "std": np.std}
+    return np.stack([np.concatenate([funcs[s](w, axis=0) for s in stats]) for w in data.tactile]).astype(np.float64)
+
+
+def visual_matrix(data: TextureData) -> np.ndarray:
+    """(T, D): the original view (view 0) of each texture's image."""
+    if data.visual is None:
+        raise ValueError("this estimator needs visual features, but the data has none")
+    return data.visual[:, 0, :].astype(np.float64)
+
+
+class Standardizer:
+    """Column standardisation fit on training rows; constant columns pass through unscaled."""
+
+    def fit(self, X: np.ndarray) -> "Standardizer":
+        self.mean = X.mean(axis=0)
+        std = X.std(axis=0)
+        self.std = np.where(std > 1e-12, std, 1.0)
+        return self
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        return (X - self.mean) / self.std
+
+
+class TextureFeatures:
+    """Builds the standardised design matrix of a modality; blocks are weighted so each
+    modality carries equal total variance in a fusion (otherwise the larger block dominates)."""
+
+    def __init__(self, modality: Modality, tactile_stats: tuple[str, ...] = ("mean",)):
+        if modality not in ("tactile", "visual", "both"):
+            raise ValueError(f"modality must be tactile, visual or both, got {modality!r}")
+        self.modality = modality
+        self.tactile_stats = tactile_stats
+
+    def _blocks(self, data: TextureData) -> list[np.ndarray]:
+        blocks = []
+        if self.modality in ("visual", "both"):
+            blocks.append(visual_matrix(data))
+        if self.modality in ("tactile", "both"):
+            blocks.append(tactile_summary(data, self.tactile_stats))
+        return blocks
+
+    def fit_transform(self, data: TextureData) -> np.ndarray:
+        blocks = self._blocks(data)
+        self.scalers = [Standardizer().fit(b) for b in blocks]
+        return self._combine(blocks)
+
+    def transform(self, data: TextureData) -> np.ndarray:
+        return self._combine(self._blocks(data))
+
+    def _combine(self, blocks: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([s.transform(b) / np.sqrt(b.shape[1]) for s, b in zip(self.scalers, blocks)], axis=1)
+
+
+def _targets(data: TextureData) -> np.ndarray:
+    if data.targets is None:
+        raise ValueError("fit needs rated textures (targets), got none")
+    return data.targets.astype(np.float64)
+
+
+# ---- estimators ---------------------------------------------------------------------------------
+class MeanEstimator(Estimator):
+    """Predict-the-mean: the training textures' mean rating for every texture."""
+
+    name = "mean"
+
+    def fit(self, data: TextureData, seed: int) -> "MeanEstimator":
+        self.mean = _targets(data).mean(axis=0)
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        return np.tile(self.mean, (len(data), 1))
+
+    def n_params(self) -> int:
+        return 4
+
+
+class RidgeEstimator(Estimator):
+    """Ridge regression on texture-level features; α by efficient leave-one-out over the training textures."""
+
+    def __init__(self, modality: Modality, alphas: np.ndarray | None = None, tactile_stats: tuple[str, ...] = ("mean",)):
+        self.modality = modality
+        self.name = f"ridge-{modality}"
+        self.features = TextureFeatures(modality, tactile_stats)
+        self.alphas = np.logspace(-3, 4, 29) if alphas is None else np.asarray(alphas)
+
+    def fit(self, data: TextureData, seed: int) -> "RidgeEstimator":
+        X = self.features.fit_transform(data)
+        y = _targets(data)
+        self.y_mean = y.mean(axis=0)
+        yc = y - self.y_mean
+        # LOO residuals of ridge in closed form via the SVD of X (n ≪ d here).
+        u, s, vt = np.linalg.svd(X, full_matrices=False)
+        uty = u.T @ yc
+        best = (np.inf, None)
+        for a in self.alphas:
+            d = s**2 / (s**2 + a)
+            hat_diag = np.sum(u**2 * d, axis=1)
+            resid = (yc - u @ (d[:, None] * uty)) / (1 - hat_diag)[:, None]
+            loss = float(np.mean(resid**2))
+            if loss < best[0]:
+                best = (loss, a)
+        self.alpha = float(best[1])
+        self.coef = vt.T @ ((s / (s**2 + self.alpha))[:, None] * uty)
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        return self.features.transform(data) @ self.coef + self.y_mean
+
+    def n_params(self) -> int:
+        return int(self.coef.size + self.y_mean.size)
+
+    def fit_info(self) -> dict:
+        return {"alpha": self.alpha}
+
+
+class KNNEstimator(Estimator):
+    """k-nearest textures (distance-weighted); k chosen by leave-one-out over the training textures."""
+
+    def __init__(self, modality: Modality, ks: tuple[int, ...] = (1, 3, 5, 7, 10)):
+        self.modality = modality
+        self.name = f"knn-{modality}"
+        self.features = TextureFeatures(modality)
+        self.ks = ks
+
+    @staticmethod
+    def _weighted(dist: np.ndarray, y: np.ndarray, k: int) -> np.ndarray:
+        order = np.argsort(dist, axis=1)[:, :k]
+        d = np.take_along_axis(dist, order, axis=1)
+        w = 1.0 / (d + 1e-9)
+        return np.einsum("nk,nkj->nj", w, y[order]) / w.sum(axis=1, keepdims=True)
+
+    def fit(self, data: TextureData, seed: int) -> "KNNEstimator":
+        self.X = self.features.fit_transform(data)
+        self.y = _targets(data)
+        dist = np.linalg.norm(self.X[:, None] - self.X[None], axis=2)
+        np.fill_diagonal(dist, np.inf)
+        losses = {k: float(np.mean(np.abs(self._weighted(dist, self.y, k) - self.y))) for k in self.ks if k < len(self.y)}
+        self.k = min(losses, key=losses.get)
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        X = self.features.transform(data)
+        dist = np.linalg.norm(X[:, None] - self.X[None], axis=2)
+        return self._weighted(dist, self.y, self.k)
+
+    def n_params(self) -> int:
+        return int(self.X.size + self.y.size)
+
+    def fit_info(self) -> dict:
+        return {"k": self.k}
+
+
+class SVREstimator(Estimator):
+    """RBF support-vector regression per attribute on texture-level features; C by inner 5-fold CV."""
+
+    def __init__(self, modality: Modality, Cs: tuple[float, ...] = (0.3, 1.0, 3.0, 10.0)):
+        self.modality = modality
+        self.name = f"svr-{modality}"
+        self.features = TextureFeatures(modality)
+        self.Cs = Cs
+
+    def fit(self, data: TextureData, seed: int) -> "SVREstimator":
+        from sklearn.model_selection import KFold
+        from sklearn.svm import SVR
+
+        X = self.features.fit_transform(data)
+        y = _targets(data)
+        self.y_mean, self.y_std = y.mean(axis=0), y.std(axis=0) + 1e-9
+        ys = (y - self.y_mean) / self.y_std
+        folds = list(KFold(5, shuffle=True, random_state=seed).split(X))
+        self.models, self.chosen = [], []
+        for j in range(ys.shape[1]):
+            scores = {}
+            for C in self.Cs:
+                err = 0.0
+                for tr, va in folds:
+                    m = SVR(C=C, epsilon=0.1, gamma="scale").fit(X[tr], ys[tr, j])
+                    err += float(np.sum(np.abs(m.predict(X[va]) - ys[va, j])))
+                scores[C] = err
+            C = min(scores, key=scores.get)
+            self.chosen.append(C)
+            self.models.append(SVR(C=C, epsilon=0.1, gamma="scale").fit(X, ys[:, j]))
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        X = self.features.transform(data)
+        return np.stack([m.predict(X) for m in self.models], axis=1) * self.y_std + self.y_mean
+
+    def n_params(self) -> int:
+        return int(sum(m.support_vectors_.size + m.dual_coef_.size for m in self.models))
+
+    def fit_info(self) -> dict:
+        return {"C": self.chosen}
+
+
+class WindowSVREstimator(Estimator):
+    """The paper's Tactile SVM: RBF SVR per attribute on individual MFCC windows (each labelled
+    with its texture's mean rating); a texture's prediction averages its windows. At most
+    `max_windows` windows per training texture keep the O(n²) kernel tractable."""
+
+    name = "svr-tactile-windows"
+    modality: Modality = "tactile"
+
+    def __init__(self, C: float = 1.0, max_windows: int = 20):
+        self.C = C
+        self.max_windows = max_windows
+
+    def fit(self, data: TextureData, seed: int) -> "WindowSVREstimator":
+        from sklearn.svm import SVR
+
+        rng = np.random.default_rng(seed)
+        rows, ys = [], []
+        for w, y in zip(data.tactile, _targets(data)):
+            take = rng.permutation(len(w))[: self.max_windows]
+            rows.append(w[take])
+            ys.append(np.tile(y, (len(take), 1)))
+        X, Y = np.concatenate(rows).astype(np.float64), np.concatenate(ys)
+        self.scaler = Standardizer().fit(X)
+        Xs = self.scaler.transform(X)
+        self.y_mean, self.y_std = Y.mean(axis=0), Y.std(axis=0) + 1e-9
+        Ys = (Y - self.y_mean) / self.y_std
+        self.models = [SVR(C=self.C, epsilon=0.1, gamma="scale").fit(Xs, Ys[:, j]) for j in range(4)]
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        out = []
+        for w in data.tactile:
+            Xs = self.scaler.transform(w.astype(np.float64))
+            out.append(np.stack([m.predict(Xs) for m in self.models], axis=1).mean(axis=0))
+        return np.array(out) * self.y_std + self.y_mean
+
+    def n_params(self) -> int:
+        return int(sum(m.support_vectors_.size + m.dual_coef_.size for m in self.models))
+
+
+class ShuffledLabels(Estimator):
+    """Control: the wrapped estimator trained on training targets permuted across textures.
+    If the evaluation leaks nothing, its error stays at predict-the-mean level."""
+
+    def __init__(self, inner: Estimator):
+        self.inner = inner
+        self.name = f"shuffled-{inner.name}"
+        self.modality = inner.modality
+
+    def fit(self, data: TextureData, seed: int) -> "ShuffledLabels":
+        perm = np.random.default_rng(seed + 7919).permutation(len(data))
+        self.inner.fit(data.with_targets(_targets(data)[perm]), seed)
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        return self.inner.predict(data)
+
+    def n_params(self) -> int:
+        return self.inner.n_params()

@@ -1,0 +1,98 @@
+"""`hapticlink evaluate`: LOOCV of one model over seeds → results.json and figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models.evaluation.data import TextureData
+from models.evaluation.loocv import LoocvRun, loocv
+from models.evaluation.metrics import error_table, group_errors
+from models.evaluation.registry import EstimatorSpec
+from texture_library.attributes import ATTRIBUTES
+
+
+def hardware() -> dict:
+    info = {"platform": platform.platform(), "python": platform.python_version(), "cpu_count": os.cpu_count(),
+            "processor": platform.processor() or platform.machine()}
+    try:
+        import torch
+
+        info["torch"] = torch.__version__
+        info["torch_threads"] = torch.get_num_threads()
+    except ImportError:
+        pass
+    return info
+
+
+def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
+    """Seed-averaged metrics (mean ± std over seeds) and the seed-averaged predictions."""
+    per_seed = []
+    for run in runs:
+        e = error_table(run.predictions, data.targets)
+        per_seed.append({"seed": run.seed, "mae": e["mae"], "rmse": e["rmse"], "wall_s": run.wall_s,
+                         "fold_seconds_median": float(np.median(run.fold_seconds))})
+    keys = list(ATTRIBUTES) + ["mean"]
+
+    def agg(metric: str, fn) -> dict:
+        return {k: float(fn([s[metric][k] for s in per_seed])) for k in keys}
+
+    mean_pred = np.mean([r.predictions for r in runs], axis=0)
+    return {
+        "mae": agg("mae", np.mean),
+        "rmse": agg("rmse", np.mean),
+        "mae_std": agg("mae", np.std),
+        "rmse_std": agg("rmse", np.std),
+        "per_seed": per_seed,
+        "ensemble_of_seeds": error_table(mean_pred, data.targets),
+        "predictions": {t: dict(zip(ATTRIBUTES, map(float, p))) for t, p in zip(data.textures, mean_pred)},
+        "truth": {t: dict(zip(ATTRIBUTES, map(float, y))) for t, y in zip(data.textures, data.targets)},
+        "group_mae": group_errors(mean_pred, data.targets, data.groups),
+        "fold_info": [r.fold_info for r in runs],
+    }
+
+
+def evaluate(
+    data: TextureData,
+    spec: EstimatorSpec,
+    out: str | Path,
+    *,
+    seeds: tuple[int, ...] = (0, 1, 2),
+    workers: int | None = None,
+    backend: str = "process",
+    progress: bool = True,
+    figures: bool = True,
+) -> dict:
+    """LOOCV for every seed; writes out/results.json (+ figures) and returns the results dict."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    runs = [loocv(data, spec, seed=s, workers=workers, backend=backend, progress=progress) for s in seeds]
+    results = {
+        "dataset": data.meta.get("dataset"),
+        "model": spec.name,
+        "options": spec.options,
+        "modality": spec.build().modality,
+        "n_textures": len(data),
+        "seeds": list(seeds),
+        "scale": "0-100 (bipolar error / 2)",
+        **summarize_runs(data, runs),
+        "n_params": runs[0].n_params,
+        "wall_s": time.perf_counter() - t0,
+        "hardware": hardware(),
+        "features": {k: v for k, v in data.meta.items() if k != "tactile_config"},
+        "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[0].endswith("hapticlink") else None,
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    if figures:
+        from models.report.figures import results_figures
+
+        results_figures(results, out)
+    return results

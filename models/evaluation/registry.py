@@ -1,0 +1,56 @@
+"""Estimators by name, so folds in other processes (or on a Ray cluster) can rebuild them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from models.evaluation.estimators import (
+    Estimator,
+    KNNEstimator,
+    MeanEstimator,
+    RidgeEstimator,
+    ShuffledLabels,
+    SVREstimator,
+    WindowSVREstimator,
+)
+
+CLASSICAL = {
+    "mean": lambda **kw: MeanEstimator(),
+    "svr-tactile-windows": lambda **kw: WindowSVREstimator(**kw),
+    **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
+    **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}": (lambda m: lambda **kw: SVREstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
+}
+SHUFFLED_PREFIX = "shuffled-"
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """A picklable recipe for an estimator: registry name plus keyword options."""
+
+    name: str
+    options: dict = field(default_factory=dict)
+
+    def build(self) -> Estimator:
+        return build_estimator(self.name, **self.options)
+
+
+def names() -> list[str]:
+    from models.nets.registry import NAMES as NET_NAMES
+
+    return sorted(CLASSICAL) + list(NET_NAMES)
+
+
+def build_estimator(name: str, **options) -> Estimator:
+    """`shuffled-<name>` wraps <name> in the shuffled-label control."""
+    if name.startswith(SHUFFLED_PREFIX):
+        return ShuffledLabels(build_estimator(name[len(SHUFFLED_PREFIX):], **options))
+    if name in CLASSICAL:
+        return CLASSICAL[name](**options)
+    from models.nets.registry import NAMES as NET_NAMES
+
+    if name in NET_NAMES:
+        from models.evaluation.net_estimator import NetEstimator
+
+        return NetEstimator(name, **options)
+    raise ValueError(f"unknown model {name!r}; known: {', '.join(names())}")

@@ -1,0 +1,108 @@
+"""Compute and cache a dataset's features: tactile windows per recording, visual vectors per image view.
+
+Caches live in DIR/features/ and are keyed by the feature configuration's hash
+and a fingerprint of the dataset header, so a changed config or a rebuilt
+dataset never reuses stale features.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.datasets.build import run_jobs
+from models.datasets.format import Dataset
+from models.tactile.config import TactileConfig
+from models.tactile.features import recording_features
+
+
+@dataclass(frozen=True)
+class TactileTable:
+    """Per-window tactile features of a dataset.
+
+    X: (n_windows, n_features) float32; texture: (n_windows,) index into `textures`;
+    recording: (n_windows,) recording index within its texture; t_start: (n_windows,) s.
+    """
+
+    X: np.ndarray
+    texture: np.ndarray
+    recording: np.ndarray
+    t_start: np.ndarray
+    textures: list[str]
+    config: TactileConfig
+
+
+@dataclass(frozen=True)
+class VisualTable:
+    """Visual feature vectors: X (n_textures, n_views, dim) float32, in `textures` order."""
+
+    X: np.ndarray
+    textures: list[str]
+    backbone: str
+    backbone_dim: int
+    config_hash: str
+
+
+def dataset_fingerprint(ds: Dataset) -> str:
+    """Changes whenever the dataset is rebuilt differently (header content)."""
+    return hashlib.sha256(json.dumps(ds.header, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _crop_s(ds: Dataset) -> float:
+    return float(ds.header.get("build", {}).get("crop_s", 0.0))
+
+
+def _tactile_job(job: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    ds = Dataset(job["root"])
+    cfg = TactileConfig(**job["config"])
+    out = []
+    for rec in ds.recordings(job["texture"]):
+        crop = job["crop_s"]
+        feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop)
+        out.append((feats, t0))
+    return out
+
+
+def tactile_table(root: str | Path, config: TactileConfig | None = None, *, workers: int | None = None) -> TactileTable:
+    """Tactile features of every texture's recordings (cached)."""
+    ds = Dataset(root)
+    cfg = config or TactileConfig()
+    textures = ds.texture_ids()
+    cache = ds.features_dir / f"tactile-{cfg.hash()}-{dataset_fingerprint(ds)}.npz"
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            if list(z["textures"]) == textures:
+                return TactileTable(z["X"], z["texture"], z["recording"], z["t_start"], textures, cfg)
+    jobs = [{"root": str(ds.root), "texture": t, "config": cfg.to_dict(), "crop_s": _crop_s(ds)} for t in textures]
+    X, tex, rec, ts = [], [], [], []
+    for i, per_recording in enumerate(run_jobs(_tactile_job, jobs, workers, "tactile features")):
+        for k, (feats, t0) in enumerate(per_recording):
+            X.append(feats)
+            tex.append(np.full(len(feats), i))
+            rec.append(np.full(len(feats), k))
+            ts.append(t0)
+    table = TactileTable(
+        np.concatenate(X).astype(np.float32), np.concatenate(tex), np.concatenate(rec), np.concatenate(ts), textures, cfg
+    )
+    ds.features_dir.mkdir(exist_ok=True)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, X=table.X, texture=table.texture, recording=table.recording, t_start=table.t_start,
+             textures=np.array(textures), config=np.array(json.dumps(cfg.to_dict())))
+    tmp.replace(cache)
+    return table
+
+
+def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True) -> str:
+    """Fill the feature caches of a dataset; returns a one-line summary."""
+    t = tactile_table(root, workers=workers)
+    summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
+    if visual:
+        from models.visual_table import visual_table
+
+        v = visual_table(root)
+        summary += f"; visual {v.X.shape[0]} textures × {v.X.shape[1]} views × {v.X.shape[2]} ({v.backbone})"
+    return summary

@@ -1,0 +1,102 @@
+"""Per-window tactile features: THE function training and serving both call.
+
+window_features(accel, speed, force, config), per window:
+  1. DFT321 folds the high-passed 3-axis acceleration into one signal;
+  2. the configured feature set of that signal:
+       "mfcc" → (n_frames × n_mfcc) MFCC, frame-major (mfcc_f00_c00, mfcc_f00_c01, …), 520 values;
+       "dwt"  → per-band DWT statistics (models.tactile.dwt), 18 values;
+       "dft"  → log band-mean DFT magnitudes (models.tactile.dft), 32 values;
+  3. then min, max, mean of speed (mm/s) and of normal force (N): 6 values.
+Returned as float32, columns named by ``config.feature_names``.
+
+recording_features runs the streaming TactilePreprocessor over a whole recording (one
+block, then ``flush`` since the recording's end is known; the same code serving runs block by
+block) and applies window_features.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from models.datasets.recording import Recording
+from models.tactile.config import TactileConfig
+from models.tactile.dft import dft_features
+from models.tactile.dft321 import dft321
+from models.tactile.dwt import dwt_features
+from models.tactile.mfcc import mfcc
+from models.tactile.preprocess import TactilePreprocessor
+
+#: windows per block inside window_features (keeps temporaries in cache; results equal up to float32 rounding)
+CHUNK = 64
+
+
+def _check(name: str, x: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
+    x = np.asarray(x)
+    if x.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be real numbers, got dtype {x.dtype}")
+    if x.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, x.shape, strict=True)):
+        want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} has {int(np.count_nonzero(~np.isfinite(x)))} NaN or Inf value(s)")
+    return x.astype(np.float64, copy=False)
+
+
+def speed_force_stats(speed: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """(n, L) mm/s and (n, L) N → (n, 6): speed min, max, mean, force min, max, mean."""
+    both = np.stack([speed, force], axis=1)  # (n, 2, L)
+    stats = np.stack([both.min(axis=2), both.max(axis=2), both.mean(axis=2)], axis=2)  # (n, 2, 3)
+    return stats.reshape(-1, 6)
+
+
+def window_features(accel: np.ndarray, speed: np.ndarray, force: np.ndarray, config: TactileConfig) -> np.ndarray:
+    """Features of n windows. accel: (n, L, 3) m/s²; speed: (n, L) mm/s; force: (n, L) N;
+    L = config.window_length → (n, config.n_features) float32."""
+    L = config.window_length
+    accel = _check("accel", accel, (None, L, 3))
+    n = accel.shape[0]
+    speed = _check("speed", speed, (n, L))
+    force = _check("force", force, (n, L))
+    out = np.empty((n, config.n_features), dtype=np.float32)
+    for lo in range(0, n, CHUNK):  # blocks of windows keep the temporaries in cache
+        hi = min(n, lo + CHUNK)
+        folded = dft321(accel[lo:hi])  # (m, L)
+        if config.feature_set == "mfcc":
+            out[lo:hi, : config.n_tactile] = mfcc(folded, config).reshape(hi - lo, -1)
+        elif config.feature_set == "dwt":
+            out[lo:hi, : config.n_tactile] = dwt_features(folded, config)
+        else:
+            out[lo:hi, : config.n_tactile] = dft_features(folded, config)
+    out[:, config.n_tactile :] = speed_force_stats(speed, force)
+    return out
+
+
+def recording_features(
+    recording: Recording, config: TactileConfig, skip_s: float = 0.0, stop_s: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Features of every window of a recording → (features (n_win, n_features) float32, t_start (n_win,) s).
+
+    Windows start at skip_s + i·hop_s and must end by stop_s (s from the recording start;
+    None = its end). ValueError if no complete window fits.
+    """
+    if not isinstance(recording, Recording):
+        raise ValueError(f"recording must be a models.datasets.recording.Recording, got {type(recording).__name__}")
+    if stop_s is not None and not (math.isfinite(stop_s) and stop_s > skip_s):
+        raise ValueError(f"stop_s must be a finite time > skip_s = {skip_s} s, got {stop_s!r}")
+    pre = TactilePreprocessor(config, skip_s=skip_s, max_buffer_s=None)
+    pre.push(accel=recording.accel, force=recording.force, speed=recording.speed, position=recording.position)
+    pre.flush()  # the recording ends here: its last samples are known
+    batch = pre.take()
+    keep = np.ones(len(batch), dtype=bool)
+    if stop_s is not None:
+        keep = batch.t_start_s + config.window_s <= stop_s + 0.5 / config.rate_hz
+    if not keep.any():
+        end = recording.duration_s if stop_s is None else min(stop_s, recording.duration_s)
+        raise ValueError(
+            f"recording: {max(0.0, end - skip_s):g} s between skip_s={skip_s:g} s and {end:g} s holds no "
+            f"complete {config.window_s:g} s window"
+        )
+    feats = window_features(batch.accel[keep], batch.speed[keep], batch.force[keep], config)
+    return feats, batch.t_start_s[keep]

@@ -1,0 +1,75 @@
+"""Visual feature configuration: patching, GLCM and backbone choice, as one hashable value.
+
+Imports no torch: the service builds this object too.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0"]
+
+# Fields that say *where* something is on this machine, not *what* is computed.
+# The weights themselves are identified by the backbone's weights fingerprint,
+# so a model trained on one machine still matches a service on another.
+_LOCATION_FIELDS = frozenset({"resnet50_weights"})
+
+
+class VisualConfig(BaseModel):
+    """How an image becomes a visual feature vector.
+
+    patch_size       side of each square patch, pixels (the backbones' 224 input)
+    grid             patches per side; grid × grid overlapping patches cover the image
+    glcm_levels      grey levels of the co-occurrence matrix (levels² features)
+    glcm_distances   pixel offsets of the co-occurrence pairs
+    glcm_angles_deg  directions of the pairs, degrees (0 = to the right)
+    backbone         "auto": ResNet-50 if its ImageNet weights are found, else EfficientNet-Lite0
+    resnet50_weights path of a torchvision ResNet-50 checkpoint (else torch's hub cache is searched)
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    patch_size: int = Field(224, ge=32)
+    grid: int = Field(7, ge=1)
+    glcm_levels: int = Field(16, ge=2, le=256)
+    glcm_distances: tuple[int, ...] = (1,)
+    glcm_angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
+    backbone: BackboneChoice = "auto"
+    resnet50_weights: str | None = None
+
+    @field_validator("glcm_distances")
+    @classmethod
+    def _distances_positive(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+        if not value or any(d < 1 for d in value):
+            raise ValueError(f"glcm_distances must be a non-empty tuple of positive ints, got {value}")
+        return value
+
+    @field_validator("glcm_angles_deg")
+    @classmethod
+    def _angles_nonempty(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if not value:
+            raise ValueError("glcm_angles_deg must not be empty")
+        return value
+
+    @property
+    def n_patches(self) -> int:
+        """Number of patches per image (grid²)."""
+        return self.grid * self.grid
+
+    @property
+    def glcm_dim(self) -> int:
+        """Length of the flattened GLCM feature (levels²)."""
+        return self.glcm_levels * self.glcm_levels
+
+    def canonical_json(self) -> str:
+        """Sorted, whitespace-free JSON of the fields that define the computation."""
+        data = self.model_dump(mode="json", exclude=set(_LOCATION_FIELDS))
+        return json.dumps(data, sort_keys=True, separators=(",", ":"))
+
+    def hash(self) -> str:
+        """First 16 hex digits of the sha256 of `canonical_json()`."""
+        return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()[:16]

@@ -1,0 +1,161 @@
+"""An image's visual feature vector: backbone features averaged over its patches ⊕ its GLCM.
+
+Torch-free: works with any embedder that has `name`, `dim`, `fingerprint` and
+`embed()` — the torch `Backbone` in training, `OnnxBackbone` in the service.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from models.visual.augment import IDENTITY_VIEW, apply_view, view_params
+from models.visual.cache import FeatureCache, cache_key
+from models.visual.config import VisualConfig
+from models.visual.glcm import glcm_features
+from models.visual.image import ImageSource, load_image
+from models.visual.patches import extract_patches
+
+PROGRESS_THRESHOLD = 8  # views; below this a progress bar is noise
+
+
+class PatchEmbedder(Protocol):
+    """What `visual_features` needs of a backbone."""
+
+    name: str
+    dim: int
+    fingerprint: str
+
+    def embed(self, patches: np.ndarray) -> np.ndarray:
+        """(n, 224, 224) float in [0, 1] → (n, dim) float32."""
+        ...
+
+
+@dataclass(frozen=True)
+class VisualFeatures:
+    """Feature arrays with what produced them.
+
+    values               (..., backbone_dim + glcm_dim) float32; the first backbone_dim
+                         columns are backbone features, the rest the flattened GLCM
+    backbone             backbone name ("resnet50" | "efficientnet_lite0")
+    backbone_dim         2048 | 1280
+    glcm_dim             levels² (256)
+    config_hash          VisualConfig.hash()
+    weights_fingerprint  the backbone weights' fingerprint
+    views                view parameters along the views axis, if there is one
+    """
+
+    values: np.ndarray
+    backbone: str
+    backbone_dim: int
+    glcm_dim: int
+    config_hash: str
+    weights_fingerprint: str
+    views: tuple[Mapping[str, Any], ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        if self.values.shape[-1] != self.backbone_dim + self.glcm_dim:
+            raise ValueError(
+                f"values last axis is {self.values.shape[-1]}, expected backbone_dim + glcm_dim = "
+                f"{self.backbone_dim + self.glcm_dim}"
+            )
+
+    @property
+    def dim(self) -> int:
+        """Total feature length."""
+        return self.backbone_dim + self.glcm_dim
+
+    @property
+    def backbone_part(self) -> np.ndarray:
+        """(..., backbone_dim) view of the backbone features."""
+        return self.values[..., : self.backbone_dim]
+
+    @property
+    def glcm_part(self) -> np.ndarray:
+        """(..., glcm_dim) view of the GLCM features."""
+        return self.values[..., self.backbone_dim :]
+
+    def metadata(self) -> dict[str, str]:
+        """String metadata to store beside the arrays (and in model files)."""
+        return {
+            "visual.backbone": self.backbone,
+            "visual.backbone_dim": str(self.backbone_dim),
+            "visual.glcm_dim": str(self.glcm_dim),
+            "visual.dim": str(self.dim),
+            "visual.config_hash": self.config_hash,
+            "visual.weights_fingerprint": self.weights_fingerprint,
+        }
+
+
+def visual_features(
+    img: np.ndarray,
+    config: VisualConfig,
+    backbone: PatchEmbedder,
+    cache: FeatureCache | None = None,
+    view: Mapping[str, Any] | None = None,
+) -> np.ndarray:
+    """Feature vector of one view of one image.
+
+    img      (H, W) float in [0, 1], H, W ≥ config.patch_size — the original image;
+             `view` (default: identity) is applied here so the cache key names the original
+    returns  (backbone.dim + config.glcm_dim,) float32: mean over the grid² patches of
+             the backbone features, then the flattened GLCM of the view
+    """
+    params = dict(IDENTITY_VIEW if view is None else view)
+    key = None
+    if cache is not None:
+        key = cache_key(img, params, config.hash(), backbone.name, backbone.fingerprint)
+        hit = cache.get(key)
+        if hit is not None and hit.shape == (backbone.dim + config.glcm_dim,):
+            return hit.astype(np.float32, copy=False)
+    seen = apply_view(img, params)
+    patches = extract_patches(seen, config.patch_size, config.grid)
+    embedded = backbone.embed(patches)
+    if embedded.shape != (patches.shape[0], backbone.dim):
+        raise ValueError(f"backbone {backbone.name!r} returned {embedded.shape}, expected ({patches.shape[0]}, {backbone.dim})")
+    texture = glcm_features(seen, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg)
+    values = np.concatenate([embedded.mean(axis=0, dtype=np.float64).astype(np.float32), texture])
+    if cache is not None and key is not None:
+        cache.put(key, values)
+    return values
+
+
+def batch_visual_features(
+    images: Sequence[ImageSource],
+    config: VisualConfig,
+    backbone: PatchEmbedder,
+    *,
+    n_views: int = 1,
+    seed: int = 0,
+    cache: FeatureCache | None = None,
+    progress: bool | None = None,
+) -> VisualFeatures:
+    """Features of `n_views` views (`augment.view_params(n_views, seed)`) of every image.
+
+    images    paths, bytes, PIL images or arrays (see image.load_image)
+    progress  show a tqdm bar; None: only when there are ≥ PROGRESS_THRESHOLD views in all
+    returns   VisualFeatures with values (len(images), n_views, backbone.dim + config.glcm_dim)
+    """
+    views = view_params(n_views, seed)
+    total = len(images) * n_views
+    show = total >= PROGRESS_THRESHOLD if progress is None else progress
+    values = np.empty((len(images), n_views, backbone.dim + config.glcm_dim), dtype=np.float32)
+    with tqdm(total=total, desc=f"visual features ({backbone.name})", unit="view", disable=not show) as bar:
+        for i, source in enumerate(images):
+            img = load_image(source, min_size=config.patch_size)
+            for j, params in enumerate(views):
+                values[i, j] = visual_features(img, config, backbone, cache, params)
+                bar.update(1)
+    return VisualFeatures(
+        values=values,
+        backbone=backbone.name,
+        backbone_dim=backbone.dim,
+        glcm_dim=config.glcm_dim,
+        config_hash=config.hash(),
+        weights_fingerprint=backbone.fingerprint,
+        views=tuple(views),
+    )

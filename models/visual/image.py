@@ -1,0 +1,109 @@
+"""Images in → grayscale float arrays in [0, 1] out.
+
+Accepts a path, encoded bytes, a Pillow image or a numpy array (camera frames),
+so the dataset builders and the service share one conversion.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+ImageSource = str | Path | bytes | bytearray | Image.Image | np.ndarray
+
+# ITU-R 601-2 luma, the weights Pillow's convert("L") uses, so a frame given as
+# an RGB array and the same frame given as a PNG convert identically.
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float64)
+
+_SIXTEEN_BIT_MODES = frozenset({"I;16", "I;16B", "I;16L", "I;16N", "I"})
+
+
+def load_image(source: ImageSource, *, min_size: int = 224) -> np.ndarray:
+    """Decode `source` to a grayscale image.
+
+    source    path or bytes of any Pillow-readable file, a PIL image, or an array
+              (H, W) / (H, W, 3|4) of uint8, uint16, or float in [0, 1]
+    min_size  smallest allowed height and width, pixels (one patch must fit)
+    returns   (H, W) float32 in [0, 1]
+    """
+    if isinstance(source, np.ndarray):
+        gray = array_to_gray(source)
+    else:
+        gray = pil_to_gray(_open(source))
+    check_size(gray, min_size)
+    return gray
+
+
+def _open(source: str | Path | bytes | bytearray | Image.Image) -> Image.Image:
+    if isinstance(source, Image.Image):
+        return source
+    if isinstance(source, (bytes, bytearray)):
+        stream, label = io.BytesIO(bytes(source)), f"{len(source)} bytes"
+    elif isinstance(source, (str, Path)):
+        path = Path(source)
+        if not path.is_file():
+            raise ValueError(f"source {str(path)!r} is not a file")
+        stream, label = path, repr(str(path))
+    else:
+        raise ValueError(f"source must be a path, bytes, PIL image or numpy array, got {type(source).__name__}")
+    try:
+        image = Image.open(stream)
+        image.load()  # decode now, so a truncated file fails here and not later
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise ValueError(f"source {label} is not a readable image: {exc}") from exc
+    return image
+
+
+def pil_to_gray(image: Image.Image) -> np.ndarray:
+    """(H, W) float32 in [0, 1] from a Pillow image of any mode; 16-bit stays 16-bit."""
+    if image.mode in _SIXTEEN_BIT_MODES:
+        # Pillow opens 16-bit grayscale PNGs as "I;16" or "I"; keep the precision.
+        values = np.asarray(image, dtype=np.float64)
+        return np.clip(values / 65535.0, 0.0, 1.0).astype(np.float32)
+    if image.mode == "F":
+        return array_to_gray(np.asarray(image, dtype=np.float32))
+    if image.mode != "L":
+        # Alpha is dropped: a texture photo's transparency says nothing about the surface.
+        image = image.convert("L")
+    return (np.asarray(image, dtype=np.float32) / 255.0).astype(np.float32)
+
+
+def array_to_gray(array: np.ndarray) -> np.ndarray:
+    """(H, W) float32 in [0, 1] from an (H, W) or (H, W, 3|4) uint8/uint16/float array."""
+    if array.ndim == 3 and array.shape[2] in (3, 4):
+        channels = array[..., :3]
+        gray = _scale(channels, "array") @ _LUMA
+    elif array.ndim == 2:
+        gray = _scale(array, "array")
+    else:
+        raise ValueError(f"array must have shape (H, W) or (H, W, 3|4), got {array.shape}")
+    return gray.astype(np.float32)
+
+
+def _scale(values: np.ndarray, name: str) -> np.ndarray:
+    if values.dtype == np.uint8:
+        return values.astype(np.float64) / 255.0
+    if values.dtype == np.uint16:
+        return values.astype(np.float64) / 65535.0
+    if np.issubdtype(values.dtype, np.floating):
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{name} has non-finite values")
+        lo, hi = float(values.min()), float(values.max())
+        if lo < 0.0 or hi > 1.0:
+            raise ValueError(f"{name} of floats must lie in [0, 1], got [{lo:g}, {hi:g}]")
+        return values.astype(np.float64)
+    raise ValueError(f"{name} dtype must be uint8, uint16 or float, got {values.dtype}")
+
+
+def check_size(gray: np.ndarray, min_size: int) -> None:
+    """Raise ValueError unless `gray` is (H, W) with H, W ≥ min_size."""
+    if gray.ndim != 2:
+        raise ValueError(f"image must be 2-D (H, W), got shape {gray.shape}")
+    height, width = gray.shape
+    if min(height, width) < min_size:
+        raise ValueError(
+            f"image is {width}×{height} pixels; need at least {min_size}×{min_size} for {min_size}-pixel patches"
+        )

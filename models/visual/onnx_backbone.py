@@ -1,0 +1,183 @@
+"""The visual backbone as an ONNX file: export (torch, training side) and `OnnxBackbone` (onnxruntime, serving side).
+
+Importing this module does not import torch: the service runs `OnnxBackbone`
+without it. Only `export_backbone_onnx` imports torch and onnx, inside the call.
+
+The graph takes the same input as `Backbone.embed` — "patches", (batch, 224, 224)
+float32 grayscale in [0, 1] — and returns "features", (batch, dim) float32;
+RGB replication and normalisation are inside it. metadata_props:
+    hapticlink.visual.backbone             "resnet50" | "efficientnet_lite0"
+    hapticlink.visual.dim                  feature length
+    hapticlink.visual.weights_fingerprint  16 hex digits of the weights
+    hapticlink.visual.config_hash          VisualConfig.hash() it was exported for
+    hapticlink.visual.input_size           patch side, pixels
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import onnxruntime as ort
+
+from models.visual.patches import check_patch_batch
+
+if TYPE_CHECKING:  # annotations only; never imported at run time here
+    from models.visual.backbone import Backbone
+
+INPUT_NAME = "patches"
+OUTPUT_NAME = "features"
+META_PREFIX = "hapticlink.visual."
+META_KEYS = ("backbone", "dim", "weights_fingerprint", "config_hash", "input_size")
+DEFAULT_OPSET = 18  # the dynamo exporter's native opset: no version conversion step
+DEFAULT_BATCH_SIZE = 16
+
+
+def export_backbone_onnx(
+    backbone: Backbone,
+    path: str | Path,
+    *,
+    config_hash: str,
+    opset: int = DEFAULT_OPSET,
+    dynamo: bool = True,
+) -> Path:
+    """Write `backbone` (patch batch → pooled features) to `path` as ONNX with a dynamic batch axis.
+
+    dynamo  True: torch.export-based exporter (torch's supported path, offline, needs onnxscript);
+            False: the legacy TorchScript exporter (faster to run, deprecated in torch ≥ 2.9).
+    returns the written path
+    """
+    import onnx
+    import torch
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    example = torch.rand(2, backbone.input_size, backbone.input_size, generator=torch.Generator().manual_seed(0))
+    encoder = backbone.encoder.eval()
+    with _quiet_exporter():
+        if dynamo:
+            torch.onnx.export(
+                encoder,
+                (example,),
+                str(out),
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+                opset_version=opset,
+                dynamo=True,
+                dynamic_shapes={INPUT_NAME: {0: torch.export.Dim("batch")}},
+                external_data=False,  # one self-contained file to ship
+                verbose=False,
+            )
+        else:
+            torch.onnx.export(
+                encoder,
+                (example,),
+                str(out),
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+                opset_version=opset,
+                dynamo=False,
+                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            )
+    model = onnx.load(str(out))
+    meta = backbone_metadata(backbone.name, backbone.dim, backbone.fingerprint, config_hash, backbone.input_size)
+    existing = {p.key: p for p in model.metadata_props}
+    for key, value in meta.items():
+        prop = existing.get(key) or model.metadata_props.add()
+        prop.key, prop.value = key, value
+    onnx.save(model, str(out))
+    return out
+
+
+def backbone_metadata(name: str, dim: int, fingerprint: str, config_hash: str, input_size: int) -> dict[str, str]:
+    """The metadata_props an exported backbone carries, keyed with META_PREFIX."""
+    values = {
+        "backbone": name,
+        "dim": str(dim),
+        "weights_fingerprint": fingerprint,
+        "config_hash": config_hash,
+        "input_size": str(input_size),
+    }
+    return {META_PREFIX + key: value for key, value in values.items()}
+
+
+@contextlib.contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    # The exporter logs a warning per missing torchvision op and emits deprecation
+    # chatter; none of it concerns this graph. Errors still raise.
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+class OnnxBackbone:
+    """An exported backbone run by onnxruntime on the CPU; same API as `backbone.Backbone`.
+
+    path                  .onnx written by `export_backbone_onnx`
+    intra_op_threads      onnxruntime intra-op threads (None: onnxruntime's default, all cores)
+    batch_size            patches per run
+    expected_config_hash  if given, refuse a file exported for another VisualConfig
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        intra_op_threads: int | None = None,
+        batch_size: int = DEFAULT_BATCH_SIZE,
+        expected_config_hash: str | None = None,
+    ) -> None:
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
+        if intra_op_threads is not None and intra_op_threads < 1:
+            raise ValueError(f"intra_op_threads must be ≥ 1 or None, got {intra_op_threads}")
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ValueError(f"path {str(self.path)!r} is not a file")
+        options = ort.SessionOptions()
+        if intra_op_threads is not None:
+            options.intra_op_num_threads = intra_op_threads
+        try:
+            self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime's load errors (Fail, InvalidProtobuf, …) subclass only Exception
+            raise ValueError(f"path {str(self.path)!r} is not a loadable ONNX model: {exc}") from exc
+        meta = self.session.get_modelmeta().custom_metadata_map
+        missing = [META_PREFIX + k for k in META_KEYS if META_PREFIX + k not in meta]
+        if missing:
+            raise ValueError(f"path {str(self.path)!r} is not a hapticlink visual backbone: metadata lacks {missing}")
+        self.name = meta[META_PREFIX + "backbone"]
+        self.dim = int(meta[META_PREFIX + "dim"])
+        self.fingerprint = meta[META_PREFIX + "weights_fingerprint"]
+        self.config_hash = meta[META_PREFIX + "config_hash"]
+        self.input_size = int(meta[META_PREFIX + "input_size"])
+        self.batch_size = batch_size
+        self.intra_op_threads = intra_op_threads
+        if expected_config_hash is not None and expected_config_hash != self.config_hash:
+            raise ValueError(
+                f"path {str(self.path)!r} was exported for visual config {self.config_hash}, "
+                f"expected {expected_config_hash}"
+            )
+
+    def __repr__(self) -> str:
+        return f"OnnxBackbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, path={str(self.path)!r})"
+
+    def embed(self, patches: np.ndarray) -> np.ndarray:
+        """(n, 224, 224) float in [0, 1] → (n, dim) float32, in batches of `batch_size`."""
+        batch = check_patch_batch(patches, self.input_size)
+        out = np.empty((batch.shape[0], self.dim), dtype=np.float32)
+        for start in range(0, batch.shape[0], self.batch_size):
+            chunk = batch[start : start + self.batch_size]
+            out[start : start + chunk.shape[0]] = self.session.run([OUTPUT_NAME], {INPUT_NAME: chunk})[0]
+        return out

@@ -1,0 +1,1 @@
+"""The real-time service: FastAPI app, sessions, async pipeline, broker, operator console, CLI root."""

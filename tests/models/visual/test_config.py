@@ -1,0 +1,66 @@
+import hashlib
+
+import pytest
+from pydantic import ValidationError
+
+from models.visual.config import VisualConfig
+
+
+def test_defaults_follow_the_paper():
+    config = VisualConfig()
+    assert config.patch_size == 224
+    assert config.grid == 7 and config.n_patches == 49
+    assert config.glcm_levels == 16 and config.glcm_dim == 256
+    assert config.glcm_distances == (1,)
+    assert config.glcm_angles_deg == (0.0, 45.0, 90.0, 135.0)
+    assert config.backbone == "auto" and config.resnet50_weights is None
+
+
+def test_frozen_and_extra_forbidden():
+    config = VisualConfig()
+    with pytest.raises(ValidationError):
+        config.grid = 5
+    with pytest.raises(ValidationError):
+        VisualConfig(patch_sz=224)
+
+
+def test_hash_is_sha256_of_canonical_json():
+    config = VisualConfig()
+    expected = hashlib.sha256(config.canonical_json().encode()).hexdigest()[:16]
+    assert config.hash() == expected
+    assert len(config.hash()) == 16 and int(config.hash(), 16) >= 0
+
+
+def test_hash_tracks_computation_not_location():
+    base = VisualConfig()
+    assert VisualConfig().hash() == base.hash()
+    assert VisualConfig(glcm_levels=8).hash() != base.hash()
+    assert VisualConfig(grid=5).hash() != base.hash()
+    assert VisualConfig(backbone="efficientnet_lite0").hash() != base.hash()
+    # Where the weights live differs per machine; the weights fingerprint identifies them.
+    assert VisualConfig(resnet50_weights="/somewhere/resnet50.pth").hash() == base.hash()
+    # ints and floats for angles are one configuration
+    assert VisualConfig(glcm_angles_deg=(0, 45, 90, 135)).hash() == base.hash()
+
+
+def test_json_round_trip_keeps_value_and_hash():
+    config = VisualConfig(grid=5, glcm_distances=(1, 2), resnet50_weights="w.pth")
+    again = VisualConfig.model_validate_json(config.model_dump_json())
+    assert again == config and again.hash() == config.hash()
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"glcm_distances": (0,)},
+        {"glcm_distances": ()},
+        {"glcm_angles_deg": ()},
+        {"glcm_levels": 1},
+        {"grid": 0},
+        {"patch_size": 8},
+        {"backbone": "vgg16"},
+    ],
+)
+def test_invalid_values_raise(kwargs):
+    with pytest.raises(ValueError):
+        VisualConfig(**kwargs)

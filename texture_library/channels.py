@@ -1,0 +1,58 @@
+"""Sensor channels a stroke produces: kinds, units, shapes, sample-rate limits, validation.
+
+Shared by the dataset format (models), the wire format (drivers) and the service,
+so every entry point accepts and refuses exactly the same things.
+Canonical units: acceleration m/s², force N, speed mm/s, position mm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: factor converting a value in the named unit to the canonical (first) unit of its kind
+UNIT_SCALE: dict[str, dict[str, float]] = {
+    "accel": {"m/s^2": 1.0, "g": 9.80665},
+    "force": {"N": 1.0},
+    "speed": {"mm/s": 1.0, "m/s": 1000.0},
+    "position": {"mm": 1.0, "m": 1000.0},
+}
+CHANNEL_KINDS: tuple[str, ...] = tuple(UNIT_SCALE)
+CANONICAL_UNITS = {kind: next(iter(units)) for kind, units in UNIT_SCALE.items()}
+#: accel 3 axes; force normal only or (tangential x, tangential y, normal); position along the stroke or in-plane
+CHANNEL_COLUMNS: dict[str, tuple[int, ...]] = {"accel": (3,), "force": (1, 3), "speed": (1,), "position": (1, 2)}
+MIN_RATE_HZ = 10.0
+MAX_RATE_HZ = 100_000.0
+
+
+def check_channel(kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64) -> tuple[np.ndarray, float, str]:
+    """Validate one channel: (samples as `dtype`, (n,) or (n, k), in their own units; rate; units).
+
+    ValueError names the channel and the problem: unknown kind or units, rate not a number or out of
+    [MIN_RATE_HZ, MAX_RATE_HZ], non-numeric samples, wrong shape, no samples, NaN/Inf.
+    """
+    if kind not in UNIT_SCALE:
+        raise ValueError(f"unknown channel {kind!r}; expected one of {list(CHANNEL_KINDS)}")
+    units = CANONICAL_UNITS[kind] if units is None else units
+    if units not in UNIT_SCALE[kind]:
+        raise ValueError(f"{kind}: units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
+    if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float, np.integer, np.floating)) or not math.isfinite(rate_hz):
+        raise ValueError(f"{kind}: sample rate must be a finite number, got {rate_hz!r}")
+    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"{kind}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g}")
+    arr = np.asarray(data)
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{kind}: samples must be numbers, got dtype {arr.dtype}")
+    if arr.ndim == 2 and arr.shape[1] == 1:
+        arr = arr[:, 0]
+    cols = 1 if arr.ndim == 1 else (arr.shape[1] if arr.ndim == 2 else -1)
+    if cols not in CHANNEL_COLUMNS[kind]:
+        allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in CHANNEL_COLUMNS[kind])
+        raise ValueError(f"{kind}: shape must be {allowed}, got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise ValueError(f"{kind}: no samples")
+    arr = arr.astype(dtype)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
+    return arr, float(rate_hz), str(units)

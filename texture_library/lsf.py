@@ -1,0 +1,109 @@
+"""Line spectral frequencies (LSF) ⇄ polynomial coefficients, batched.
+
+For a monic polynomial A(z) = 1 + a₁z⁻¹ + … + a_p z⁻ᵖ the symmetric and
+antisymmetric sum/difference polynomials
+    P(z) = A(z) + z^-(p+1) A(1/z),   Q(z) = A(z) − z^-(p+1) A(1/z)
+have all roots on the unit circle; their angles, interlaced in (0, π), are the
+LSFs. A is minimum phase exactly when they interlace strictly, which is why
+the HaTT renderer interpolates LSFs (a convex combination of sorted sequences
+stays sorted) rather than coefficients.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _expand(cos_terms: np.ndarray) -> np.ndarray:
+    """∏ (1 − 2cos ωᵢ z⁻¹ + z⁻²) for each row: (n, k) → (n, 2k+1)."""
+    n, k = cos_terms.shape
+    poly = np.zeros((n, 2 * k + 1))
+    poly[:, 0] = 1.0
+    for i in range(k):
+        length = 2 * i + 1
+        c = -2.0 * cos_terms[:, i : i + 1]
+        nxt = poly[:, : length + 2].copy()
+        nxt[:, 1 : length + 1] += c * poly[:, :length]
+        nxt[:, 2 : length + 2] += poly[:, :length]
+        poly[:, : length + 2] = nxt
+    return poly
+
+
+def lsf_to_poly(lsf: np.ndarray) -> np.ndarray:
+    """Monic polynomial coefficients from LSFs.
+
+    lsf: (..., p) float, radians, strictly increasing in (0, π).
+    Returns (..., p + 1) with a leading 1.
+    """
+    w = np.asarray(lsf, dtype=float)
+    if w.ndim == 0:
+        raise ValueError("lsf must have at least one axis (..., p)")
+    batch = w.shape[:-1]
+    p = w.shape[-1]
+    if p == 0:
+        return np.ones(batch + (1,))
+    if not np.all(np.isfinite(w)):
+        raise ValueError("lsf contains NaN or Inf")
+    if w.min() <= 0.0 or w.max() >= np.pi:
+        raise ValueError(f"lsf must lie strictly inside (0, π), got [{w.min():.4g}, {w.max():.4g}]")
+    flat = np.cos(w.reshape(-1, p))
+    p_poly = _expand(flat[:, 0::2])  # roots of P: ω₁, ω₃, …
+    q_poly = _expand(flat[:, 1::2])  # roots of Q: ω₂, ω₄, …
+    n = flat.shape[0]
+    if p % 2 == 0:
+        # P gets the root at z = −1, Q the root at z = +1.
+        p_full = np.zeros((n, p + 2))
+        p_full[:, :-1] += p_poly
+        p_full[:, 1:] += p_poly
+        q_full = np.zeros((n, p + 2))
+        q_full[:, :-1] += q_poly
+        q_full[:, 1:] -= q_poly
+    else:
+        # Odd order: P has (p+1)/2 pairs, Q has (p−1)/2 pairs and the roots ±1.
+        p_full = p_poly
+        q_full = np.zeros((n, p + 2))
+        q_full[:, :-2] += q_poly
+        q_full[:, 2:] -= q_poly
+    a = 0.5 * (p_full + q_full)[:, : p + 1]
+    return a.reshape(batch + (p + 1,))
+
+
+def poly_to_lsf(a: np.ndarray) -> np.ndarray:
+    """LSFs of one monic minimum-phase polynomial a: (p + 1,) → (p,) radians, sorted."""
+    a = np.asarray(a, dtype=float)
+    if a.ndim != 1 or a.size < 1:
+        raise ValueError(f"a must be 1-D (p + 1,), got shape {a.shape}")
+    if not np.isclose(a[0], 1.0):
+        raise ValueError(f"a must be monic (a[0] == 1), got a[0] = {a[0]:g}")
+    p = a.size - 1
+    if p == 0:
+        return np.zeros(0)
+    if np.any(np.abs(np.roots(a)) >= 1.0):
+        raise ValueError("a is not minimum phase (a root lies on or outside the unit circle)")
+    ext = np.concatenate([a, [0.0]])
+    rev = ext[::-1]
+    angles = []
+    for poly in (ext + rev, ext - rev):
+        ang = np.angle(np.roots(poly))
+        angles.append(ang[(ang > 1e-9) & (ang < np.pi - 1e-9)])
+    return np.sort(np.concatenate(angles))
+
+
+def poles_to_poly(freqs_hz: np.ndarray, radii: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Monic real polynomial with conjugate pole pairs at the given frequencies and radii.
+
+    freqs_hz: (k,) in (0, rate/2); radii: (k,) in [0, 1). Returns (2k + 1,).
+    """
+    freqs = np.asarray(freqs_hz, dtype=float)
+    radii = np.asarray(radii, dtype=float)
+    if freqs.shape != radii.shape or freqs.ndim != 1:
+        raise ValueError(f"freqs_hz and radii must be 1-D of equal length, got {freqs.shape} and {radii.shape}")
+    if np.any((freqs <= 0) | (freqs >= rate_hz / 2)):
+        raise ValueError(f"pole frequencies must lie in (0, {rate_hz / 2:g}) Hz")
+    if np.any((radii < 0) | (radii >= 1)):
+        raise ValueError("pole radii must lie in [0, 1)")
+    poly = np.array([1.0])
+    for f, r in zip(freqs, radii):
+        w = 2 * np.pi * f / rate_hz
+        poly = np.convolve(poly, [1.0, -2 * r * np.cos(w), r * r])
+    return poly

@@ -1,0 +1,70 @@
+"""What the tool's sensors record while it strokes a texture.
+
+The vibration model gives the acceleration along the surface normal; the tool
+also vibrates along the stroke (an independent realisation, weaker), the
+accelerometer is mounted at an arbitrary fixed orientation, feels gravity and
+adds noise. The force sensor sees the normal force and Coulomb friction
+μ·F_n against the direction of motion. Both the dataset builders and the
+simulated robot use this one function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from texture_library.synthesis import render
+from texture_library.trajectory import Trajectory
+from texture_library.vibration import VibrationModel
+
+GRAVITY = 9.80665  # m/s²
+
+
+@dataclass(frozen=True)
+class StrokeSignals:
+    """accel: (n, 3) m/s² (sensor frame); force: (n, 3) N (tangential x, tangential y, normal);
+    speed: (n,) mm/s; position: (n,) mm; all at rate_hz."""
+
+    accel: np.ndarray
+    force: np.ndarray
+    speed: np.ndarray
+    position: np.ndarray
+    rate_hz: float
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random 3×3 rotation matrix (QR of a Gaussian matrix, sign-fixed)."""
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def stroke(
+    model: VibrationModel,
+    trajectory: Trajectory,
+    rng: np.random.Generator,
+    *,
+    tangential_ratio: float = 0.5,
+    noise_std: float = 0.05,
+    force_noise_std: float = 0.01,
+    rotation: np.ndarray | None = None,
+) -> StrokeSignals:
+    """Sensor signals for one stroke of `model` along `trajectory` (rendered at the model's rate)."""
+    if abs(trajectory.rate_hz - model.rate_hz) > 1e-9:
+        raise ValueError(f"trajectory rate {trajectory.rate_hz} Hz differs from the model's {model.rate_hz} Hz")
+    normal = render(model, trajectory.speed, trajectory.force, rng)
+    along = tangential_ratio * render(model, trajectory.speed, trajectory.force, rng)
+    n = normal.size
+    # Tool frame: x along the stroke, y across it, z the surface normal.
+    tool = np.stack([along, np.zeros(n), normal], axis=1)
+    tool[:, 2] += GRAVITY
+    rot = random_rotation(rng) if rotation is None else np.asarray(rotation, float)
+    accel = tool @ rot.T + noise_std * rng.standard_normal((n, 3))
+    direction = np.sign(np.gradient(trajectory.position)) if n > 1 else np.ones(n)
+    friction = -model.mu * trajectory.force * direction
+    force = np.stack([friction, np.zeros(n), trajectory.force], axis=1)
+    force += force_noise_std * rng.standard_normal((n, 3))
+    return StrokeSignals(accel, force, trajectory.speed.copy(), trajectory.position.copy(), trajectory.rate_hz)

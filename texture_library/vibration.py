@@ -1,0 +1,158 @@
+"""Data-driven vibration models: ARMA filters over a (speed, normal force) grid.
+
+A model holds one ARMA model per grid point, stored as line spectral
+frequencies, plus the Delaunay triangles that tile the grid. Rendering at a
+(speed, force) clamps to the grid's range, finds the enclosing triangle,
+interpolates LSFs, excitation variance and gain barycentrically, turns the
+LSFs back into coefficients and filters white noise — one output sample per
+millisecond (Culbertson et al., IEEE Haptics Symposium 2014; IEEE ToH 2014).
+
+Units: speed mm/s, force N, acceleration m/s², rate 1000 Hz.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from texture_library.taps import TapSet
+
+RENDER_RATE_HZ = 1000.0
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class VibrationModel:
+    """ARMA vibration models on a Delaunay grid over (speed, force).
+
+    speeds, forces: (m,) grid points, mm/s and N.
+    triangles: (t, 3) int, 0-based indices into the grid points.
+    ar_lsf: (m, p) radians; ma_lsf: (m, q) radians (q may be 0: pure AR).
+    variance: (m,) excitation variance, (m/s²)²; gain: (m,) MA gain.
+    mu: kinetic friction coefficient; max_speed / max_force: the grid's range.
+    """
+
+    name: str
+    speeds: np.ndarray
+    forces: np.ndarray
+    triangles: np.ndarray
+    ar_lsf: np.ndarray
+    ma_lsf: np.ndarray
+    variance: np.ndarray
+    gain: np.ndarray
+    mu: float
+    max_speed: float
+    max_force: float
+    taps: TapSet | None = None
+    rate_hz: float = RENDER_RATE_HZ
+    provenance: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        m = np.asarray(self.speeds).shape[0] if np.ndim(self.speeds) == 1 else -1
+        problems = []
+        if m < 3:
+            problems.append(f"speeds must be 1-D with at least 3 grid points, got shape {np.shape(self.speeds)}")
+        else:
+            for name in ("forces", "variance", "gain"):
+                if np.shape(getattr(self, name)) != (m,):
+                    problems.append(f"{name} must have shape ({m},), got {np.shape(getattr(self, name))}")
+            for name in ("ar_lsf", "ma_lsf"):
+                arr = np.asarray(getattr(self, name))
+                if arr.ndim != 2 or arr.shape[0] != m:
+                    problems.append(f"{name} must have shape ({m}, order), got {arr.shape}")
+            tri = np.asarray(self.triangles)
+            if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] < 1:
+                problems.append(f"triangles must have shape (t, 3), got {tri.shape}")
+            elif tri.min() < 0 or tri.max() >= m:
+                problems.append(f"triangle indices must lie in [0, {m - 1}] (0-based), got [{tri.min()}, {tri.max()}]")
+        for name in ("speeds", "forces", "ar_lsf", "ma_lsf", "variance", "gain"):
+            if not np.all(np.isfinite(np.asarray(getattr(self, name), dtype=float))):
+                problems.append(f"{name} contains NaN or Inf")
+        if not problems:
+            if np.any(np.asarray(self.variance) < 0):
+                problems.append("variance must be ≥ 0")
+            for name in ("ar_lsf", "ma_lsf"):
+                arr = np.asarray(getattr(self, name))
+                if arr.size and (arr.min() <= 0 or arr.max() >= np.pi or np.any(np.diff(arr, axis=1) <= 0)):
+                    problems.append(f"{name} must increase strictly inside (0, π) in every row")
+            if not (self.max_speed > 0 and self.max_force > 0):
+                problems.append(f"max_speed and max_force must be > 0, got {self.max_speed}, {self.max_force}")
+            if not (0 <= self.mu < 5):
+                problems.append(f"mu must lie in [0, 5), got {self.mu}")
+        if problems:
+            raise ValueError(f"vibration model {self.name!r}: " + "; ".join(problems))
+
+    @property
+    def ar_order(self) -> int:
+        return int(np.asarray(self.ar_lsf).shape[1])
+
+    @property
+    def ma_order(self) -> int:
+        return int(np.asarray(self.ma_lsf).shape[1])
+
+    # ---- storage: one .npz of arrays with a JSON header ------------------------------------
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        header = {
+            "format": "hapticlink-vibration-model",
+            "version": FORMAT_VERSION,
+            "name": self.name,
+            "mu": float(self.mu),
+            "max_speed": float(self.max_speed),
+            "max_force": float(self.max_force),
+            "rate_hz": float(self.rate_hz),
+            "provenance": self.provenance,
+            "units": {"speed": "mm/s", "force": "N", "accel": "m/s^2", "lsf": "rad"},
+            "extra": self.extra,
+        }
+        arrays = {
+            "speeds": np.asarray(self.speeds, float),
+            "forces": np.asarray(self.forces, float),
+            "triangles": np.asarray(self.triangles, np.int32),
+            "ar_lsf": np.asarray(self.ar_lsf, float),
+            "ma_lsf": np.asarray(self.ma_lsf, float),
+            "variance": np.asarray(self.variance, float),
+            "gain": np.asarray(self.gain, float),
+        }
+        if self.taps is not None:
+            arrays["tap_speeds"] = self.taps.speeds
+            arrays["tap_accel"] = self.taps.accel
+        np.savez_compressed(path, header=np.array(json.dumps(header)), **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "VibrationModel":
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"vibration model file not found: {path}")
+        with np.load(path, allow_pickle=False) as z:
+            try:
+                header = json.loads(str(z["header"]))
+            except KeyError:
+                raise ValueError(f"{path}: not a hapticlink vibration model (no header)") from None
+            if header.get("format") != "hapticlink-vibration-model":
+                raise ValueError(f"{path}: format is {header.get('format')!r}, expected 'hapticlink-vibration-model'")
+            if header.get("version") != FORMAT_VERSION:
+                raise ValueError(f"{path}: unsupported vibration model version {header.get('version')}")
+            taps = TapSet(z["tap_speeds"], z["tap_accel"]) if "tap_speeds" in z else None
+            return cls(
+                name=header["name"],
+                speeds=z["speeds"],
+                forces=z["forces"],
+                triangles=z["triangles"].astype(np.int64),
+                ar_lsf=z["ar_lsf"],
+                ma_lsf=z["ma_lsf"],
+                variance=z["variance"],
+                gain=z["gain"],
+                mu=header["mu"],
+                max_speed=header["max_speed"],
+                max_force=header["max_force"],
+                taps=taps,
+                rate_hz=header["rate_hz"],
+                provenance=header.get("provenance", ""),
+                extra=header.get("extra", {}),
+            )
