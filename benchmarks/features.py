@@ -24,7 +24,7 @@ import librosa
 import numpy as np
 import scipy
 
-from models.datasets.recording import Recording, make_channel
+from texture_library.recording import Recording, make_channel
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import window_features

@@ -1,6 +1,6 @@
 """Visual embedding cost per image on CPU: patching, GLCM, and each backbone under torch and onnxruntime.
 
-    python -m benchmarks.visual [--repeats 3] [--threads N] [--image PATH] [--out reports/bench/visual.json]
+    python -m benchmarks.visual [--repeats 3] [--threads 1,2] [--image PATH] [--out reports/bench/visual.json]
 
 One image = 49 patches of 224×224 (the default VisualConfig). Backbones:
 EfficientNet-Lite0 with its shipped ImageNet weights, ResNet-50 with random
@@ -21,7 +21,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -60,38 +60,48 @@ def benchmark_image(path: str | None, seed: int) -> np.ndarray:
     return np.clip(grating + rng.normal(0.0, 0.12, size=(1024, 1024)), 0.0, 1.0).astype(np.float32)
 
 
-def bench_backbone(backbone: Any, patches: np.ndarray, config_hash: str, threads: int, repeats: int, workdir: Path) -> dict[str, Any]:
-    """Torch vs onnxruntime embedding time of one image's patches, plus export time and parity."""
+def bench_backbone(
+    backbone: Any, patches: np.ndarray, config_hash: str, thread_counts: list[int], repeats: int, workdir: Path
+) -> list[dict[str, Any]]:
+    """Torch vs onnxruntime embedding time of one image's patches at each thread count, plus export time and parity."""
+    import torch
+
     from models.visual.onnx_backbone import OnnxBackbone, export_backbone_onnx
 
     start = time.perf_counter()
     onnx_path = export_backbone_onnx(backbone, workdir / f"{backbone.name}.onnx", config_hash=config_hash)
     export_s = time.perf_counter() - start
-    runner = OnnxBackbone(onnx_path, intra_op_threads=threads, batch_size=backbone.batch_size)
-
-    torch_out, ort_out = backbone.embed(patches), runner.embed(patches)  # warm-up, and the parity check
-    scale = max(1.0, float(np.abs(torch_out).max()))
-    torch_samples: list[float] = []
-    ort_samples: list[float] = []
-    for _ in range(repeats):  # interleaved, so drifting machine load hits both alike
-        torch_samples += time_call(lambda: backbone.embed(patches), 1, warmup=0)
-        ort_samples += time_call(lambda: runner.embed(patches), 1, warmup=0)
-    torch_stats, ort_stats = summarise(torch_samples), summarise(ort_samples)
-    return {
-        "backbone": backbone.name,
-        "dim": backbone.dim,
-        "weights": "imagenet" if backbone.name == "efficientnet_lite0" else "random (same FLOPs)",
-        "weights_fingerprint": backbone.fingerprint,
-        "patches_per_image": int(patches.shape[0]),
-        "batch_size": backbone.batch_size,
-        "onnx_export_s": export_s,
-        "onnx_file_mb": onnx_path.stat().st_size / 1e6,
-        "torch": torch_stats,
-        "onnxruntime": ort_stats,
-        "ort_speedup": torch_stats["median_ms"] / ort_stats["median_ms"],
-        "parity_max_abs_diff": float(np.abs(torch_out - ort_out).max()),
-        "parity_feature_scale": scale,
-    }
+    rows = []
+    for threads in thread_counts:
+        torch.set_num_threads(threads)
+        runner = OnnxBackbone(onnx_path, intra_op_threads=threads, batch_size=backbone.batch_size)
+        torch_out, ort_out = backbone.embed(patches), runner.embed(patches)  # warm-up, and the parity check
+        scale = max(1.0, float(np.abs(torch_out).max()))
+        torch_samples: list[float] = []
+        ort_samples: list[float] = []
+        for _ in range(repeats):  # interleaved, so drifting machine load hits both alike
+            torch_samples += time_call(lambda: backbone.embed(patches), 1, warmup=0)
+            ort_samples += time_call(lambda r=runner: r.embed(patches), 1, warmup=0)
+        torch_stats, ort_stats = summarise(torch_samples), summarise(ort_samples)
+        rows.append(
+            {
+                "backbone": backbone.name,
+                "dim": backbone.dim,
+                "weights": "imagenet" if backbone.name == "efficientnet_lite0" else "random (same FLOPs)",
+                "weights_fingerprint": backbone.fingerprint,
+                "threads": threads,
+                "patches_per_image": int(patches.shape[0]),
+                "batch_size": backbone.batch_size,
+                "onnx_export_s": export_s,
+                "onnx_file_mb": onnx_path.stat().st_size / 1e6,
+                "torch": torch_stats,
+                "onnxruntime": ort_stats,
+                "ort_speedup": torch_stats["median_ms"] / ort_stats["median_ms"],
+                "parity_max_abs_diff": float(np.abs(torch_out - ort_out).max()),
+                "parity_feature_scale": scale,
+            }
+        )
+    return rows
 
 
 def machine_info() -> dict[str, Any]:
@@ -108,24 +118,31 @@ def machine_info() -> dict[str, Any]:
 
 
 def print_table(result: dict[str, Any]) -> None:
-    print(f"\nvisual embedding per image ({result['config']['n_patches']} patches of "
-          f"{result['config']['patch_size']}×{result['config']['patch_size']}), "
-          f"{result['threads']['torch_intra_op']} threads, median of {result['repeats']}")
-    print(f"{'step':<34}{'torch ms':>12}{'onnxruntime ms':>16}{'ort speed-up':>14}{'max |Δ|/scale':>15}")
+    print(
+        f"\nvisual embedding per image ({result['config']['n_patches']} patches of "
+        f"{result['config']['patch_size']}×{result['config']['patch_size']}), median of {result['repeats']}"
+    )
+    print(f"{'step':<38}{'threads':>8}{'torch ms':>10}{'onnxruntime ms':>16}{'ort speed-up':>14}{'max |Δ|/scale':>15}")
     for row in result["backbones"]:
         label = f"{row['backbone']} ({row['dim']}-d, {'ImageNet' if row['weights'] == 'imagenet' else 'random'})"
         rel = row["parity_max_abs_diff"] / row["parity_feature_scale"]
-        print(f"{label:<34}{row['torch']['median_ms']:>12.0f}{row['onnxruntime']['median_ms']:>16.0f}"
-              f"{row['ort_speedup']:>13.2f}×{rel:>15.1e}")
-    print(f"{'patch extraction (numpy)':<34}{result['patches']['median_ms']:>12.1f}")
-    print(f"{'GLCM 16 levels, 4 angles (numpy)':<34}{result['glcm']['median_ms']:>12.1f}")
+        print(
+            f"{label:<38}{row['threads']:>8}{row['torch']['median_ms']:>10.0f}{row['onnxruntime']['median_ms']:>16.0f}"
+            f"{row['ort_speedup']:>13.2f}×{rel:>15.1e}"
+        )
+    print(f"{'patch extraction (numpy)':<38}{1:>8}{result['patches']['median_ms']:>10.1f}")
+    print(f"{'GLCM 16 levels, 4 angles (numpy)':<38}{1:>8}{result['glcm']['median_ms']:>10.1f}")
     print(f"load average before/after: {result['machine']['loadavg_1_5_15']} / {result['loadavg_after']}")
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.visual", description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per backbone and runtime (default 3)")
-    parser.add_argument("--threads", type=int, default=None, help="torch and onnxruntime intra-op threads (default: torch's)")
+    parser.add_argument(
+        "--threads",
+        default=None,
+        help="comma-separated intra-op thread counts for torch and onnxruntime (default: 1 and torch's default)",
+    )
     parser.add_argument("--image", default=None, help="image file to embed (default: synthetic 1024×1024)")
     parser.add_argument("--backbones", default="efficientnet_lite0,resnet50", help="comma-separated subset")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"JSON report (default {DEFAULT_OUT})")
@@ -142,8 +159,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from models.visual.patches import extract_patches
 
     machine = machine_info()
-    threads = args.threads or torch.get_num_threads()
-    torch.set_num_threads(threads)
+    default_threads = torch.get_num_threads()
+    try:
+        thread_counts = [int(t) for t in args.threads.split(",")] if args.threads else sorted({1, default_threads})
+    except ValueError:
+        parser.error(f"--threads must be comma-separated integers, got {args.threads!r}")
+    if any(t < 1 for t in thread_counts):
+        parser.error(f"--threads must be ≥ 1, got {args.threads!r}")
     config = VisualConfig()
     image = benchmark_image(args.image, seed=0)
     patches = extract_patches(image, config.patch_size, config.grid)
@@ -158,27 +180,41 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="hapticlink-bench-") as tmp:
         for name in names:
             print(f"benchmarking {name} …", file=sys.stderr, flush=True)
-            rows.append(bench_backbone(builders[name](), patches, config.hash(), threads, args.repeats, Path(tmp)))
+            rows += bench_backbone(builders[name](), patches, config.hash(), thread_counts, args.repeats, Path(tmp))
 
     result = {
         "benchmark": "visual",
         "command": " ".join(["python -m benchmarks.visual", *(argv if argv is not None else sys.argv[1:])]),
-        "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "timestamp": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": machine,
         "versions": {
             "torch": torch.__version__,
             "onnxruntime": onnxruntime.__version__,
             "numpy": np.__version__,
         },
-        "threads": {"torch_intra_op": torch.get_num_threads(), "onnxruntime_intra_op": threads},
+        "threads": {
+            "counts": thread_counts,
+            "torch_default": default_threads,
+            "note": "torch.set_num_threads and onnxruntime intra_op_num_threads set alike per row",
+        },
         "repeats": args.repeats,
         "image": {"source": args.image or "synthetic 1024×1024 (seed 0)", "shape": list(image.shape)},
-        "config": {"patch_size": config.patch_size, "grid": config.grid, "n_patches": config.n_patches,
-                   "glcm_levels": config.glcm_levels, "hash": config.hash()},
-        "patches": summarise(time_call(lambda: extract_patches(image, config.patch_size, config.grid), args.repeats * 3)),
-        "glcm": summarise(time_call(
-            lambda: glcm_features(image, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg), args.repeats * 3
-        )),
+        "config": {
+            "patch_size": config.patch_size,
+            "grid": config.grid,
+            "n_patches": config.n_patches,
+            "glcm_levels": config.glcm_levels,
+            "hash": config.hash(),
+        },
+        "patches": summarise(
+            time_call(lambda: extract_patches(image, config.patch_size, config.grid), args.repeats * 3)
+        ),
+        "glcm": summarise(
+            time_call(
+                lambda: glcm_features(image, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg),
+                args.repeats * 3,
+            )
+        ),
         "backbones": rows,
         "loadavg_after": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }

@@ -1,9 +1,189 @@
-"""Subcommands of the drivers part: robot."""
+"""Subcommands of the drivers part: robot (stream a sensor source to the service)."""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
+
+SOURCE_SPECS = (
+    "simulated:LIBRARY_DIR:ENTRY_ID",
+    "replay:DATASET_DIR:TEXTURE_ID",
+    "serial:PORT[:BAUD]",
+    "usb:VID:PID",
+    "camera-dir:DIR",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Registered once the robot client exists."""
+    p = sub.add_parser(
+        "robot",
+        help="stream a sensor source (simulated, replay, serial, usb, camera-dir) to the service",
+        description="Stream a sensor source to a hapticlink service, reconnecting and resending across outages.",
+    )
+    p.add_argument("--source", required=True, metavar="SPEC", help="one of: " + ", ".join(SOURCE_SPECS))
+    p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", metavar="ID", help="stream into this session (needs --token); default: create one")
+    p.add_argument("--token", metavar="T", help="the session's robot token")
+    p.add_argument("--name", help="name of the session to create")
+    p.add_argument("--transport", choices=("ws", "http"), default="ws", help="WebSocket (default) or one HTTP POST per block")
+    p.add_argument("--json", action="store_true", help="send JSON blocks instead of binary (http transport only)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop reading after S seconds, deliver what is buffered, exit")
+    p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True, help="pace simulated/replay sources in real time (default)")
+    p.add_argument("--block-s", type=float, default=0.02, metavar="S", help="seconds per block (default 0.02)")
+    p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
+    p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
+    p.add_argument("--recording", type=int, default=0, metavar="N", help="replay: which of the texture's recordings (default 0)")
+    p.add_argument("--loop", action="store_true", help="replay: play the recording again and again")
+    p.add_argument("--start-seq", type=int, default=0, metavar="N", help="seq of the first block (resuming a session: above its last)")
+    p.add_argument("--max-buffer-s", type=float, default=60.0, metavar="S", help="seconds of unacknowledged data kept for resending (default 60)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.set_defaults(func=_run_robot)
+
+
+def _split_dir_id(kind: str, rest: str, what: str) -> tuple[Path, str]:
+    # rsplit: the directory may itself contain ':' (Windows drive letters); ids never do.
+    if ":" not in rest:
+        raise ValueError(f"source {kind}: expected {kind}:DIR:{what}, got {kind}:{rest!r}")
+    directory, ident = rest.rsplit(":", 1)
+    if not directory or not ident:
+        raise ValueError(f"source {kind}: expected {kind}:DIR:{what} with both parts non-empty, got {kind}:{rest!r}")
+    if not Path(directory).is_dir():
+        raise ValueError(f"source {kind}: {directory!r} is not a directory")
+    return Path(directory), ident
+
+
+def _parse_usb_id(label: str, text: str) -> int:
+    try:
+        value = int(text, 16)
+    except ValueError:
+        raise ValueError(f"source usb: {label} must be hexadecimal (e.g. 1209 or 0x1209), got {text!r}") from None
+    if not 0 <= value <= 0xFFFF:
+        raise ValueError(f"source usb: {label} must lie in 0000…ffff, got {text!r}")
+    return value
+
+
+def source_from_spec(
+    spec: str,
+    *,
+    realtime: bool = True,
+    block_s: float = 0.02,
+    seed: int = 0,
+    image: str | None = None,
+    recording: int = 0,
+    loop: bool = False,
+):
+    """Build the SensorSource a SPEC names (see SOURCE_SPECS); ValueError says what is wrong with it."""
+    kind, sep, rest = spec.partition(":")
+    if not sep or not rest:
+        raise ValueError(f"source spec {spec!r} must be one of: {', '.join(SOURCE_SPECS)}")
+    if kind == "simulated":
+        from drivers.simulated import SimulatedSource
+
+        lib, entry = _split_dir_id(kind, rest, "ENTRY_ID")
+        return SimulatedSource.from_library(lib, entry, image_path=image, seed=seed, block_s=block_s, realtime=realtime)
+    if kind == "replay":
+        from drivers.replay import ReplaySource
+
+        dataset, texture = _split_dir_id(kind, rest, "TEXTURE_ID")
+        return ReplaySource.from_dataset(dataset, texture, recording=recording, block_s=block_s, realtime=realtime, loop=loop)
+    if kind == "serial":
+        from drivers.serial_board import SerialBoardSource
+
+        port, baud = rest, None
+        head, _, tail = rest.rpartition(":")
+        if head and tail.isdigit():
+            port, baud = head, int(tail)
+        if baud is not None and baud <= 0:
+            raise ValueError(f"source serial: baud rate must be positive, got {baud}")
+        return SerialBoardSource(port, block_s=block_s) if baud is None else SerialBoardSource(port, baudrate=baud, block_s=block_s)
+    if kind == "usb":
+        from drivers.usb_daq import UsbDaqSource
+
+        parts = rest.split(":")
+        if len(parts) != 2:
+            raise ValueError(f"source usb: expected usb:VID:PID in hexadecimal, got {spec!r}")
+        return UsbDaqSource(_parse_usb_id("VID", parts[0]), _parse_usb_id("PID", parts[1]), block_s=block_s)
+    if kind == "camera-dir":
+        from drivers.camera import WatchedDirectorySource
+
+        return WatchedDirectorySource(rest)
+    raise ValueError(f"unknown source kind {kind!r}; SPEC must be one of: {', '.join(SOURCE_SPECS)}")
+
+
+def _run_robot(args: argparse.Namespace) -> int:
+    import asyncio
+    import json
+    import logging
+
+    from drivers.robot import RobotClient, ServiceError
+
+    if (args.session is None) != (args.token is None):
+        raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.json and args.transport != "http":
+        raise ValueError("--json needs --transport http (the WebSocket carries binary blocks)")
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        # httpx logs every request at INFO: 50 a second here.
+        logging.getLogger("httpx").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+    source = source_from_spec(
+        args.source, realtime=args.realtime, block_s=args.block_s, seed=args.seed, image=args.image, recording=args.recording, loop=args.loop
+    )
+    client = RobotClient(
+        args.url,
+        source,
+        session_id=args.session,
+        robot_token=args.token,
+        transport=args.transport,
+        binary=not args.json,
+        max_buffer_s=args.max_buffer_s,
+        session_name=args.name,
+        start_seq=args.start_seq,
+    )
+    try:
+        stats = asyncio.run(_stream(client, args.duration))
+    except asyncio.CancelledError:
+        return 130
+    except (ServiceError, OSError, LookupError) as exc:
+        # Device missing, port unavailable, token refused: say so without a traceback.
+        print(f"hapticlink robot: error: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(stats.as_dict()))
+    return 1 if stats.lost or stats.unsent else 0
+
+
+async def _stream(client, duration_s: float | None):
+    """Create the session if needed (printing the operator link), then run; first Ctrl-C drains, second quits."""
+    import asyncio
+    import signal
+
+    if client.session_id is None:
+        info = await client.open_session()
+        print(f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True)
+    loop = asyncio.get_running_loop()
+    main = asyncio.current_task()
+    interrupted = False
+
+    def on_signal() -> None:
+        nonlocal interrupted
+        if interrupted:
+            main.cancel()
+            return
+        interrupted = True
+        print("stopping: delivering buffered blocks (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
+        client.stop()
+
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, on_signal)
+            installed.append(sig)
+        except (NotImplementedError, RuntimeError, ValueError):
+            pass  # no signal handlers here (Windows, not the main thread): Ctrl-C stops at once
+    try:
+        return await client.run(duration_s)
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)

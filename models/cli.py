@@ -29,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("dir")
     c.add_argument("--quick", action="store_true", help="structure only: skip decoding recordings and images")
     c.set_defaults(func=_dataset_check)
+    register_models(sub)
 
 
 def _dataset_build(args: argparse.Namespace) -> int:
@@ -69,4 +70,84 @@ def _dataset_check(args: argparse.Namespace) -> int:
         print(f"{args.dir}: {len(problems)} problem(s)", file=sys.stderr)
         return 1
     print(f"{args.dir}: ok")
+    return 0
+
+
+def register_models(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("evaluate", help="leave-one-texture-out evaluation of one model → results.json + figures")
+    e.add_argument("--dataset", required=True)
+    e.add_argument("--model", required=True, help="e.g. ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both")
+    e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
+    e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    e.add_argument("--workers", type=int, help="parallel folds (default: one per core)")
+    e.add_argument("--backend", default="process", choices=["process", "serial", "ray"])
+    _feature_args(e)
+    e.add_argument("--max-epochs", type=int, help="networks: cap on epochs (default 200)")
+    e.add_argument("--no-figures", action="store_true")
+    e.set_defaults(func=_evaluate)
+
+    t = sub.add_parser("train", help="train on every rated texture and export ONNX")
+    t.add_argument("--dataset", required=True)
+    t.add_argument("--model", required=True)
+    t.add_argument("--out", required=True, help="model file to write (.onnx)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--metrics", help="results.json of this model's LOOCV, recorded in the model file")
+    _feature_args(t)
+    t.add_argument("--max-epochs", type=int)
+    t.set_defaults(func=_train)
+
+    p = sub.add_parser("predict", help="predict every texture of a dataset with an exported model → CSV")
+    p.add_argument("--model", required=True, help="model file (.onnx)")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--out", required=True, help="CSV: texture, rough_smooth, flat_bumpy, sticky_slippery, hard_soft (bipolar)")
+    p.add_argument("--textures", default="all", choices=["all", "yes", "withheld", "no"], help="which textures by rated status")
+    p.set_defaults(func=_predict)
+
+
+def _feature_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--tactile-features", default="mfcc", choices=["mfcc", "dwt", "dft"])
+    parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+
+
+def _options(args: argparse.Namespace) -> dict:
+    return {} if getattr(args, "max_epochs", None) is None else {"max_epochs": args.max_epochs}
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from models.evaluation.data import load_texture_data
+    from models.evaluation.evaluate import evaluate
+    from models.evaluation.registry import EstimatorSpec
+    from models.tactile.config import TactileConfig
+
+    spec = EstimatorSpec(args.model, _options(args))
+    modality = spec.build().modality
+    data = load_texture_data(args.dataset, tactile_config=TactileConfig(feature_set=args.tactile_features),
+                             visual=modality in ("visual", "both"), visual_part=args.visual_part, workers=args.workers)
+    res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
+                   figures=not args.no_figures)
+    mae, sd = res["mae"], res["mae_std"]
+    print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
+    for k in mae:
+        print(f"  {k:16s} {mae[k]:6.2f} ± {sd[k]:.2f}")
+    print(f"results in {args.out}/results.json ({res['wall_s']:.0f} s)")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from models.tactile.config import TactileConfig
+    from models.train import train_and_export
+
+    path = train_and_export(args.dataset, args.model, args.out, seed=args.seed,
+                            tactile_config=TactileConfig(feature_set=args.tactile_features),
+                            visual_part=args.visual_part, metrics=args.metrics, options=_options(args))
+    print(f"wrote {path}")
+    return 0
+
+
+def _predict(args: argparse.Namespace) -> int:
+    from models.train import predict_dataset, write_predictions
+
+    textures, preds = predict_dataset(args.model, args.dataset, rated=None if args.textures == "all" else args.textures)
+    write_predictions(args.out, textures, preds)
+    print(f"wrote {len(textures)} predictions to {args.out}")
     return 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,14 @@ from models.datasets.build import run_jobs
 from models.datasets.format import Dataset
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
+from models.visual.config import VisualConfig
+
+DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
+
+
+def cache_root() -> Path:
+    """Where derived artefacts shared across datasets live (backbone ONNX, per-view features)."""
+    return Path(os.environ.get("HAPTICLINK_CACHE", "cache"))
 
 
 @dataclass(frozen=True)
@@ -60,9 +69,13 @@ def _tactile_job(job: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     ds = Dataset(job["root"])
     cfg = TactileConfig(**job["config"])
     out = []
-    for rec in ds.recordings(job["texture"]):
-        crop = job["crop_s"]
-        feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop)
+    crop = job["crop_s"]
+    names = ds.meta(job["texture"]).recordings
+    for name, rec in zip(names, ds.recordings(job["texture"])):
+        try:
+            feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop)
+        except ValueError as exc:
+            raise ValueError(f"texture {job['texture']!r}, {name} (crop_s={crop:g} s at both ends): {exc}") from None
         out.append((feats, t0))
     return out
 
@@ -96,13 +109,64 @@ def tactile_table(root: str | Path, config: TactileConfig | None = None, *, work
     return table
 
 
+def backbone_onnx(config: VisualConfig) -> Path:
+    """The resolved backbone exported to ONNX once (keyed by its weights and the visual config).
+
+    Bulk extraction runs through onnxruntime, several times faster than torch on CPU, and
+    the service runs the very same file.
+    """
+    from models.visual.backbone import resolve_backbone
+    from models.visual.onnx_backbone import export_backbone_onnx
+
+    backbone = resolve_backbone(config)
+    path = cache_root() / "backbones" / f"{backbone.name}-{backbone.fingerprint[:12]}-{config.hash()}.onnx"
+    if not path.is_file():
+        tmp = path.with_suffix(".tmp.onnx")
+        export_backbone_onnx(backbone, tmp, config_hash=config.hash())
+        tmp.replace(path)
+    return path
+
+
+def visual_table(
+    root: str | Path, config: VisualConfig | None = None, *, n_views: int = DEFAULT_VIEWS, seed: int = 0
+) -> VisualTable:
+    """Visual features of every texture's first image, n_views augmented views each (cached)."""
+    from models.visual.cache import FeatureCache
+    from models.visual.embedding import batch_visual_features
+    from models.visual.onnx_backbone import OnnxBackbone
+
+    ds = Dataset(root)
+    cfg = config or VisualConfig()
+    textures = ds.texture_ids()
+    backbone = OnnxBackbone(backbone_onnx(cfg), expected_config_hash=cfg.hash())
+    cache = ds.features_dir / (
+        f"visual-{backbone.name}-{backbone.fingerprint[:12]}-{cfg.hash()}-v{n_views}-s{seed}-{dataset_fingerprint(ds)}.npz"
+    )
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            if list(z["textures"]) == textures:
+                return VisualTable(z["X"], textures, backbone.name, backbone.dim, cfg.hash())
+    images = []
+    for t in textures:
+        paths = ds.image_paths(t)
+        if not paths:
+            raise ValueError(f"texture {t!r} has no image")
+        images.append(paths[0])
+    feats = batch_visual_features(images, cfg, backbone, n_views=n_views, seed=seed,
+                                  cache=FeatureCache(cache_root() / "visual"), progress=True)
+    table = VisualTable(feats.values, textures, feats.backbone, feats.backbone_dim, cfg.hash())
+    ds.features_dir.mkdir(exist_ok=True)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, X=table.X, textures=np.array(textures))
+    tmp.replace(cache)
+    return table
+
+
 def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True) -> str:
     """Fill the feature caches of a dataset; returns a one-line summary."""
     t = tactile_table(root, workers=workers)
     summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
     if visual:
-        from models.visual_table import visual_table
-
         v = visual_table(root)
         summary += f"; visual {v.X.shape[0]} textures × {v.X.shape[1]} views × {v.X.shape[2]} ({v.backbone})"
     return summary

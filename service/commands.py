@@ -1,9 +1,78 @@
-"""Subcommands of the service part: serve, demo."""
+"""Subcommands of the service part: serve."""
 
 from __future__ import annotations
 
 import argparse
+import logging
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Registered once the service exists."""
+    p = sub.add_parser(
+        "serve",
+        help="run the real-time service (HTTP + WebSocket)",
+        description="Serve estimation sessions. Settings come from HAPTICLINK_* environment variables "
+        "(docs/service.md); these flags override them.",
+    )
+    p.add_argument("--model", type=Path, metavar="PATH", help="exported model .onnx (HAPTICLINK_MODEL_PATH)")
+    p.add_argument("--library", type=Path, metavar="DIR", help="texture library directory (HAPTICLINK_LIBRARY_DIR)")
+    p.add_argument("--backbone", type=Path, metavar="PATH", help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)")
+    p.add_argument("--host", help="address to listen on (HAPTICLINK_HOST, default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port (HAPTICLINK_PORT, default 8000)")
+    p.add_argument("--broker", choices=("memory", "redis"), help="event fan-out (HAPTICLINK_BROKER)")
+    p.add_argument("--redis-url", help="Redis for --broker redis (HAPTICLINK_REDIS_URL)")
+    p.add_argument("--instance-id", help="this replica's name (HAPTICLINK_INSTANCE_ID)")
+    p.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), help="HAPTICLINK_LOG_LEVEL")
+    p.set_defaults(func=_serve)
+
+
+FLAG_TO_FIELD = {
+    "model": "model_path",
+    "library": "library_dir",
+    "backbone": "backbone_path",
+    "host": "host",
+    "port": "port",
+    "broker": "broker",
+    "redis_url": "redis_url",
+    "instance_id": "instance_id",
+    "log_level": "log_level",
+}
+
+
+def settings_from_args(args: argparse.Namespace):
+    """Settings from the environment with the given flags on top; ValueError names a bad value."""
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    overrides = {field: getattr(args, flag) for flag, field in FLAG_TO_FIELD.items() if getattr(args, flag, None) is not None}
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ValueError(f"invalid settings: {problems}") from None
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+
+    settings = settings_from_args(args)
+    for label, path, flag in (("model", settings.model_path, "--model"), ("library", settings.library_dir, "--library")):
+        if path is None:
+            raise ValueError(f"no {label} configured: pass {flag} or set HAPTICLINK_{FLAG_TO_FIELD[flag[2:]].upper()}")
+        if not path.exists():
+            raise ValueError(f"{label} not found: {path}")
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # uvicorn handles SIGINT/SIGTERM: stop accepting, let open requests finish, run the lifespan shutdown.
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        ws_max_size=settings.max_body_bytes,
+        timeout_graceful_shutdown=5,
+        access_log=settings.log_level == "debug",
+    )
+    return 0

@@ -62,7 +62,15 @@ def read_model(path: str | Path, taps_path: str | Path | None = None, name: str 
     rate = _scalar(root, "SampleRate", path)
     speeds = _values(root.find("speedList"), "speedList", path)
     forces = _values(root.find("forceList"), "forceList", path)
-    triangles = np.array([_values(t, "tri", path) for t in root.findall("tri")], dtype=np.int64) - 1
+    tri_nodes = root.findall("tri")
+    if not tri_nodes:
+        raise ValueError(f"{path}: missing <tri>")
+    tris = [_values(t, "tri", path) for t in tri_nodes]
+    if any(len(t) != 3 for t in tris):
+        raise ValueError(f"{path}: every <tri> must hold 3 vertex indices, got {sorted({len(t) for t in tris})}")
+    if any(not np.all(t == np.round(t)) for t in tris):
+        raise ValueError(f"{path}: <tri> holds a vertex index that is not an integer")
+    triangles = np.array(tris, dtype=np.int64) - 1  # HaTT counts vertices from 1
     models = root.findall("model")
     if len(models) != len(speeds):
         raise ValueError(f"{path}: {len(models)} <model> elements but {len(speeds)} grid points")

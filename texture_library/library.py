@@ -4,7 +4,8 @@
     LIB/models/<id>.npz   the entry's VibrationModel (friction μ and tap transients included)
 
 entry = {"id", "name", "group", "ratings": {attr: bipolar}, "spread": {attr: sd} | null,
-         "ratings_source": "human" | "predicted" | "ground-truth", "provenance", "licence", "model": "models/<id>.npz"}
+         "ratings_source": "human" | "predicted" | "ground-truth", "provenance", "licence",
+         "model": "models/<id>.npz", "image": "images/<id>.png" | null}
 """
 
 from __future__ import annotations
@@ -37,11 +38,16 @@ class LibraryEntry:
     licence: str
     model_path: str
     spread: np.ndarray | None = None  # (4,) rater standard deviation, bipolar
+    image_path: str | None = None  # a photo of the surface, relative to the library root
 
     def __post_init__(self) -> None:
         if not _ID.match(self.id):
             raise ValueError(f"library entry id {self.id!r} is not a valid name (letters, digits, _ . -)")
         check_ratings(self.ratings, f"entry {self.id!r} ratings")
+        if self.spread is not None:
+            spread = np.asarray(self.spread, float)
+            if spread.shape != (len(ATTRIBUTES),) or not np.all(np.isfinite(spread)) or np.any(spread < 0):
+                raise ValueError(f"entry {self.id!r}: spread must be {len(ATTRIBUTES)} finite values ≥ 0, got {self.spread!r}")
         if self.ratings_source not in RATING_SOURCES:
             raise ValueError(f"entry {self.id!r}: ratings_source must be one of {RATING_SOURCES}, got {self.ratings_source!r}")
 
@@ -56,6 +62,7 @@ class LibraryEntry:
             "provenance": self.provenance,
             "licence": self.licence,
             "model": self.model_path,
+            "image": self.image_path,
         }
 
     @classmethod
@@ -68,6 +75,8 @@ class LibraryEntry:
         if unknown or set(ratings) != set(ATTRIBUTES):
             raise ValueError(f"entry {raw['id']!r}: ratings must have exactly {list(ATTRIBUTES)}, got {sorted(ratings)}")
         spread = raw.get("spread")
+        if spread is not None and (not isinstance(spread, dict) or set(spread) != set(ATTRIBUTES)):
+            raise ValueError(f"entry {raw['id']!r}: spread must be null or have exactly {list(ATTRIBUTES)}")
         return cls(
             id=raw["id"],
             name=raw["name"],
@@ -78,6 +87,7 @@ class LibraryEntry:
             licence=raw.get("licence", ""),
             model_path=raw["model"],
             spread=None if spread is None else np.array([spread[a] for a in ATTRIBUTES], float),
+            image_path=raw.get("image"),
         )
 
 
@@ -117,6 +127,11 @@ class Library:
             self._models[entry_id] = VibrationModel.load(self.root / self.entry(entry_id).model_path)
         return self._models[entry_id]
 
+    def image(self, entry_id: str) -> bytes | None:
+        """The entry's photo as encoded bytes, if it has one."""
+        rel = self.entry(entry_id).image_path
+        return None if rel is None else (self.root / rel).read_bytes()
+
     def save(self) -> Path:
         self.root.mkdir(parents=True, exist_ok=True)
         doc = {"format": FORMAT, "version": VERSION, "name": self.name, "entries": [e.to_json() for e in self.entries]}
@@ -152,6 +167,8 @@ class Library:
 
 def add_entry(lib_root: Path, entry_id: str, model: VibrationModel, **fields) -> LibraryEntry:
     """Save `model` under lib_root/models/<id>.npz and return its entry (caller collects and saves)."""
+    if not _ID.match(entry_id):  # before anything is written: the id becomes a file name
+        raise ValueError(f"library entry id {entry_id!r} is not a valid name (letters, digits, _ . -)")
     (lib_root / "models").mkdir(parents=True, exist_ok=True)
     rel = f"models/{entry_id}.npz"
     model.save(lib_root / rel)

@@ -46,6 +46,9 @@ def lsf_to_poly(lsf: np.ndarray) -> np.ndarray:
         raise ValueError("lsf contains NaN or Inf")
     if w.min() <= 0.0 or w.max() >= np.pi:
         raise ValueError(f"lsf must lie strictly inside (0, π), got [{w.min():.4g}, {w.max():.4g}]")
+    if p > 1 and np.any(np.diff(w, axis=-1) <= 0.0):
+        # Unsorted input would silently pair the wrong roots with P and Q.
+        raise ValueError("lsf must increase strictly along the last axis")
     flat = np.cos(w.reshape(-1, p))
     p_poly = _expand(flat[:, 0::2])  # roots of P: ω₁, ω₃, …
     q_poly = _expand(flat[:, 1::2])  # roots of Q: ω₂, ω₄, …
@@ -86,7 +89,10 @@ def poly_to_lsf(a: np.ndarray) -> np.ndarray:
     for poly in (ext + rev, ext - rev):
         ang = np.angle(np.roots(poly))
         angles.append(ang[(ang > 1e-9) & (ang < np.pi - 1e-9)])
-    return np.sort(np.concatenate(angles))
+    lsf = np.sort(np.concatenate(angles))
+    if lsf.size != p or np.any(np.diff(lsf) <= 0):
+        raise ValueError(f"LSFs of a could not be resolved numerically (found {lsf.size} of {p}); a is too close to instability")
+    return lsf
 
 
 def poles_to_poly(freqs_hz: np.ndarray, radii: np.ndarray, rate_hz: float) -> np.ndarray:

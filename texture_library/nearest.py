@@ -64,8 +64,9 @@ class HysteresisSelector:
     def update(self, index: PerceptualIndex, rating: np.ndarray) -> str:
         d = index.distances(rating)
         best = index.ids[int(np.argmin(d))]
-        if self.current is None:
-            self.current = best
+        if self.current is None or self.current not in index.ids:
+            # first window, or the library no longer holds the current choice
+            self.current, self._challenger, self._streak = best, None, 0
             return best
         if best == self.current:
             self._challenger, self._streak = None, 0

@@ -33,7 +33,7 @@ PARAM_RANGES: dict[str, tuple[float, float, bool]] = {
     "roughness_um": (1.0, 200.0, True),  # RMS height of the micro-texture
     "grain_mm": (0.3, 3.0, True),  # spatial period of the micro-texture
     "bump_height_mm": (0.0, 1.5, False),  # height of macro bumps
-    "bump_period_mm": (3.0, 15.0, True),  # spacing of macro bumps
+    "bump_period_mm": (1.5, 6.0, True),  # spacing of macro bumps: at 150 mm/s they ring at 25–100 Hz, above the 20 Hz high-pass
     "mu": (0.15, 1.2, False),  # kinetic friction coefficient
     "stiffness_n_per_mm": (0.05, 50.0, True),  # contact stiffness
     "albedo": (0.25, 0.75, False),  # mean grey level: perceptually irrelevant on purpose

@@ -63,7 +63,13 @@ def stroke(
     tool[:, 2] += GRAVITY
     rot = random_rotation(rng) if rotation is None else np.asarray(rotation, float)
     accel = tool @ rot.T + noise_std * rng.standard_normal((n, 3))
-    direction = np.sign(np.gradient(trajectory.position)) if n > 1 else np.ones(n)
+    # Direction of motion from the backward step: position[i] − position[i−1] is the motion *into*
+    # sample i, so its sign is exact at a reversal (a central difference straddles it and can
+    # come out 0 or wrong there). The first sample takes the second's direction.
+    direction = np.ones(n)
+    if n > 1:
+        direction = np.sign(np.diff(trajectory.position, prepend=trajectory.position[0]))
+        direction[0] = direction[1]
     friction = -model.mu * trajectory.force * direction
     force = np.stack([friction, np.zeros(n), trajectory.force], axis=1)
     force += force_noise_std * rng.standard_normal((n, 3))

@@ -86,11 +86,15 @@ def render(
     model: VibrationModel,
     speed: np.ndarray,
     force: np.ndarray,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None = None,
+    *,
+    excitation: np.ndarray | None = None,
 ) -> np.ndarray:
     """Synthesize texture vibration along a trajectory.
 
     speed: (n,) mm/s and force: (n,) N, sampled at model.rate_hz (1 kHz).
+    The excitation is unit-variance white noise drawn from `rng` (one `standard_normal(n)`
+    call), or the given `excitation` (n,) — scaled by √variance at each point either way.
     Returns acceleration (n,) in m/s² at the same rate.
     """
     speed = np.asarray(speed, float)
@@ -101,7 +105,13 @@ def render(
         return np.zeros(0)
     if not (np.all(np.isfinite(speed)) and np.all(np.isfinite(force))):
         raise ValueError("speed and force must be finite (no NaN/Inf)")
+    if excitation is None:
+        if rng is None:
+            raise ValueError("render needs an rng or an explicit excitation")
+        excitation = rng.standard_normal(speed.size)
+    excitation = np.asarray(excitation, float)
+    if excitation.shape != speed.shape:
+        raise ValueError(f"excitation must have shape {speed.shape}, got {excitation.shape}")
     params = interpolate(model, speed, force)
-    excitation = rng.standard_normal(speed.size) * np.sqrt(params["variance"])
     ma = params["ma"] * params["gain"][:, None]
-    return _arma_time_varying(params["ar"], ma, excitation)
+    return _arma_time_varying(params["ar"], ma, excitation * np.sqrt(params["variance"]))

@@ -47,6 +47,10 @@ def freehand(
         raise ValueError(f"speed_range must satisfy 0 ≤ low < high, got {speed_range}")
     if not (0 <= f_lo < f_hi):
         raise ValueError(f"force_range must satisfy 0 ≤ low < high, got {force_range}")
+    s_lo, s_hi = stroke_s
+    if not (0 < s_lo <= s_hi) or s_lo * rate_hz < 2:
+        # a stroke of 0 samples would never advance the loop below
+        raise ValueError(f"stroke_s must satisfy 0 < low ≤ high with low ≥ 2 samples at {rate_hz:g} Hz, got {stroke_s}")
     n = int(round(duration_s * rate_hz))
     speed = np.empty(n)
     level = np.empty(n)

@@ -67,6 +67,8 @@ class VibrationModel:
             tri = np.asarray(self.triangles)
             if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] < 1:
                 problems.append(f"triangles must have shape (t, 3), got {tri.shape}")
+            elif tri.dtype.kind not in "iu":
+                problems.append(f"triangles must be integer indices, got dtype {tri.dtype}")
             elif tri.min() < 0 or tri.max() >= m:
                 problems.append(f"triangle indices must lie in [0, {m - 1}] (0-based), got [{tri.min()}, {tri.max()}]")
         for name in ("speeds", "forces", "ar_lsf", "ma_lsf", "variance", "gain"):
@@ -83,6 +85,8 @@ class VibrationModel:
                 problems.append(f"max_speed and max_force must be > 0, got {self.max_speed}, {self.max_force}")
             if not (0 <= self.mu < 5):
                 problems.append(f"mu must lie in [0, 5), got {self.mu}")
+            if not self.rate_hz > 0:
+                problems.append(f"rate_hz must be > 0, got {self.rate_hz}")
         if problems:
             raise ValueError(f"vibration model {self.name!r}: " + "; ".join(problems))
 
@@ -129,25 +133,42 @@ class VibrationModel:
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"vibration model file not found: {path}")
-        with np.load(path, allow_pickle=False) as z:
+        try:
+            z = np.load(path, allow_pickle=False)
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
+            raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+        with z:
+            if "header" not in z:
+                raise ValueError(f"{path}: not a hapticlink vibration model (no header)")
             try:
                 header = json.loads(str(z["header"]))
-            except KeyError:
-                raise ValueError(f"{path}: not a hapticlink vibration model (no header)") from None
+            except ValueError as exc:
+                raise ValueError(f"{path}: header is not valid JSON ({exc})") from None
+            if not isinstance(header, dict):
+                raise ValueError(f"{path}: header must be a JSON object")
             if header.get("format") != "hapticlink-vibration-model":
                 raise ValueError(f"{path}: format is {header.get('format')!r}, expected 'hapticlink-vibration-model'")
             if header.get("version") != FORMAT_VERSION:
                 raise ValueError(f"{path}: unsupported vibration model version {header.get('version')}")
-            taps = TapSet(z["tap_speeds"], z["tap_accel"]) if "tap_speeds" in z else None
+            missing = [k for k in ("name", "mu", "max_speed", "max_force", "rate_hz") if k not in header]
+            missing += [k for k in ("speeds", "forces", "triangles", "ar_lsf", "ma_lsf", "variance", "gain") if k not in z]
+            if missing:
+                raise ValueError(f"{path}: missing {missing}")
+            try:
+                arrays = {k: z[k] for k in z.files if k != "header"}
+            except Exception as exc:  # noqa: BLE001 - a corrupt member (bad zip, bad zlib stream)
+                raise ValueError(f"{path}: cannot read arrays ({exc})") from None
+        try:
+            taps = TapSet(arrays["tap_speeds"], arrays["tap_accel"]) if "tap_speeds" in arrays else None
             return cls(
                 name=header["name"],
-                speeds=z["speeds"],
-                forces=z["forces"],
-                triangles=z["triangles"].astype(np.int64),
-                ar_lsf=z["ar_lsf"],
-                ma_lsf=z["ma_lsf"],
-                variance=z["variance"],
-                gain=z["gain"],
+                speeds=arrays["speeds"],
+                forces=arrays["forces"],
+                triangles=arrays["triangles"].astype(np.int64),
+                ar_lsf=arrays["ar_lsf"],
+                ma_lsf=arrays["ma_lsf"],
+                variance=arrays["variance"],
+                gain=arrays["gain"],
                 mu=header["mu"],
                 max_speed=header["max_speed"],
                 max_force=header["max_force"],
@@ -156,3 +177,5 @@ class VibrationModel:
                 provenance=header.get("provenance", ""),
                 extra=header.get("extra", {}),
             )
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{path}: {exc}") from None

@@ -48,6 +48,8 @@ def check_dataset(root: str | Path, *, deep: bool = True) -> list[str]:
         header = json.loads(header_path.read_text())
     except json.JSONDecodeError as exc:
         return [f"{header_path}: invalid JSON ({exc})"]
+    if not isinstance(header, dict):
+        return [f"{header_path}: expected a JSON object"]
     if header.get("format") != FORMAT:
         problems.append(f"{header_path}: format is {header.get('format')!r}, expected {FORMAT!r}")
     if header.get("version") != VERSION:
@@ -93,6 +95,7 @@ def _check_ratings(root: Path, rated: dict[str, str]) -> list[str]:
         return [str(exc)]
     problems = []
     seen: Counter = Counter()
+    first_line: dict[tuple[str, str, str, str], int] = {}
     for line, row in enumerate(rows, start=2):
         where = f"{path} line {line}"
         tid = row["texture"]
@@ -114,6 +117,12 @@ def _check_ratings(root: Path, rated: dict[str, str]) -> list[str]:
             problems.append(f"{where}: rating {value:g} out of range [{RATING_MIN:g}, {RATING_MAX:g}]")
         if not (row["presentation"] or "").isdigit() or int(row["presentation"]) < 1:
             problems.append(f"{where}: presentation {row['presentation']!r} must be an integer ≥ 1")
+        key = (tid, row["rater"], row["presentation"], row["attribute"])
+        if key in first_line:
+            problems.append(f"{where}: rater {row['rater']!r} rated {row['attribute']!r} of {tid!r} in presentation "
+                            f"{row['presentation']} again (first on line {first_line[key]}); use presentation 2, 3, … for repeats")
+        else:
+            first_line[key] = line
         seen[tid] += 1
     for tid, status in rated.items():
         if status == "yes" and seen[tid] == 0:
@@ -124,9 +133,9 @@ def _check_ratings(root: Path, rated: dict[str, str]) -> list[str]:
 def _check_texture(dataset: Dataset, tid: str, deep: bool) -> list[str]:
     problems = []
     try:
-        meta = dataset.meta(tid)
-    except (ValueError, json.JSONDecodeError) as exc:
-        return [f"texture {tid!r}: {exc}"]
+        meta = dataset.meta(tid)  # its ValueError names the texture and the file
+    except ValueError as exc:
+        return [str(exc)]
     if not meta.recordings:
         problems.append(f"texture {tid!r}: no recordings listed in meta.json")
     if not meta.images:

@@ -14,15 +14,14 @@ from __future__ import annotations
 
 import csv
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from models.datasets.recording import Channel, Recording, make_channel
-from texture_library.channels import CANONICAL_UNITS
+from texture_library.recording import Recording, load_recording, save_recording  # noqa: F401 - part of the format
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN
-from texture_library.channels import CHANNEL_KINDS
 
 FORMAT = "hapticlink-dataset"
 VERSION = 1
@@ -57,54 +56,6 @@ class TextureMeta:
 
     def to_json(self) -> dict:
         return {"images": self.images, "recordings": self.recordings, "vibration_model": self.vibration_model, "extra": self.extra}
-
-
-# ---- recordings ---------------------------------------------------------------------------------
-def save_recording(path: str | Path, recording: Recording) -> Path:
-    """Write a recording as .npz: one array per channel plus a JSON header of rates and units."""
-    path = Path(path)
-    channels = recording.channels()
-    header = {
-        "format": "hapticlink-recording",
-        "version": VERSION,
-        "channels": {k: {"rate_hz": c.rate_hz, "units": CANONICAL_UNITS[k]} for k, c in channels.items()},
-    }
-    np.savez_compressed(path, header=np.array(json.dumps(header)), **{k: c.data.astype(np.float32) for k, c in channels.items()})
-    return path
-
-
-def load_recording(path: str | Path) -> Recording:
-    """Read a recording .npz; ValueError names the file and what is wrong."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"recording not found: {path}")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
-        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
-    with z:
-        if "header" not in z:
-            raise ValueError(f"{path}: no header (not a hapticlink recording)")
-        header = json.loads(str(z["header"]))
-        if header.get("format") != "hapticlink-recording" or header.get("version") != VERSION:
-            raise ValueError(f"{path}: format {header.get('format')!r} version {header.get('version')!r} is not hapticlink-recording v{VERSION}")
-        chans: dict[str, Channel] = {}
-        for kind, spec in header.get("channels", {}).items():
-            if kind not in CHANNEL_KINDS:
-                raise ValueError(f"{path}: unknown channel {kind!r}")
-            if kind not in z:
-                raise ValueError(f"{path}: header lists channel {kind!r} but the array is missing")
-            try:
-                chans[kind] = make_channel(kind, z[kind], spec.get("rate_hz"), spec.get("units"))
-            except ValueError as exc:
-                raise ValueError(f"{path}: {exc}") from None
-    for needed in ("accel", "force"):
-        if needed not in chans:
-            raise ValueError(f"{path}: missing channel {needed!r}")
-    try:
-        return Recording(chans["accel"], chans["force"], chans.get("speed"), chans.get("position"))
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
 
 
 # ---- writing ------------------------------------------------------------------------------------
@@ -147,7 +98,7 @@ class DatasetWriter:
         write_csv(
             self.root / "ratings.csv",
             RATING_COLUMNS,
-            [(r.texture, r.rater, r.presentation, r.attribute, f"{r.rating:g}") for r in self.ratings],
+            [(r.texture, r.rater, r.presentation, r.attribute, f"{r.rating:.10g}") for r in self.ratings],
         )
         (self.root / "dataset.json").write_text(json.dumps(self.header, indent=1))
         return self.root
@@ -209,15 +160,22 @@ class Dataset:
         return textures, raters, table
 
     def mean_ratings(self) -> dict[str, np.ndarray]:
-        """Texture id → mean bipolar rating over raters (4,)."""
+        """Texture id → mean bipolar rating over raters (4,), first presentation only; NaN for an attribute nobody rated."""
         textures, _, table = self.rating_table()
-        return {t: np.nanmean(table[i], axis=0) for i, t in enumerate(textures)}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # "Mean of empty slice": that NaN is the answer
+            return {t: np.nanmean(table[i], axis=0) for i, t in enumerate(textures)}
 
     def meta(self, texture: str) -> TextureMeta:
         path = self.root / "textures" / texture / "meta.json"
         if not path.is_file():
             raise ValueError(f"texture {texture!r}: missing {path}")
-        raw = json.loads(path.read_text())
+        try:
+            raw = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ValueError(f"texture {texture!r}: {path}: invalid JSON ({exc})") from None
+        if not isinstance(raw, dict):
+            raise ValueError(f"texture {texture!r}: {path}: expected a JSON object")
         return TextureMeta(raw.get("images", []), raw.get("recordings", []), raw.get("vibration_model"), raw.get("extra", {}))
 
     def resolve(self, texture: str, name: str) -> Path:

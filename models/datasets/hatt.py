@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from typing import Iterable
 
 from models.datasets.build import run_jobs
 from models.datasets.format import DatasetWriter, RatingRow, TextureInfo, TextureMeta, save_recording
 from models.datasets.simulate import simulated_recording, texture_rng
-from models.datasets.texnet import IGNORED, to_bipolar
+from texture_library.texnet import read_texnet_ratings
 from texture_library.hatt import read_model
 
 LICENCE = (
@@ -44,24 +45,29 @@ def build_hatt(
     duration_s: float = 60.0,
     recordings: int = 1,
     limit: int | None = None,
+    textures: Iterable[str] | None = None,
     workers: int | None = None,
 ) -> Path:
-    """Build the dataset; `limit` keeps the first N textures (for quick trials)."""
+    """Build the dataset; `textures` keeps only those ids (in textures.csv order), `limit` the first N
+    of what is left (for quick trials)."""
     src = Path(src).resolve()
     for needed in ("textures.csv", "ratings.csv", "models", "taps", "images"):
         if not (src / needed).exists():
             raise ValueError(f"{src} does not look like hatt-texnet: missing {needed}")
     with open(src / "textures.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
+    if textures is not None:
+        wanted = set(textures)
+        unknown = sorted(wanted - {r["texture"] for r in rows})
+        if unknown:
+            raise ValueError(f"{src / 'textures.csv'}: no texture(s) {unknown}")
+        rows = [r for r in rows if r["texture"] in wanted]
     if limit is not None:
         rows = rows[:limit]
-    ratings: dict[str, list[RatingRow]] = {}
-    with open(src / "ratings.csv", newline="") as fh:
-        for r in csv.DictReader(fh):
-            if r["attribute"] in IGNORED:
-                continue
-            attr, value = to_bipolar(r["attribute"], float(r["rating"]))
-            ratings.setdefault(r["texture"], []).append(RatingRow(r["texture"], r["rater"], int(r["presentation"]), attr, value))
+    ratings = {
+        t: [RatingRow(t, rater, pres, attr, value) for attr, values in by_attr.items() for rater, pres, value in values]
+        for t, by_attr in read_texnet_ratings(src / "ratings.csv").items()
+    }
     writer = DatasetWriter(
         out,
         name="hatt-texnet",

@@ -11,7 +11,7 @@ import zlib
 
 import numpy as np
 
-from models.datasets.recording import Recording, recording_from_stroke
+from texture_library.recording import Recording, recording_from_stroke
 from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
 from texture_library.vibration import VibrationModel

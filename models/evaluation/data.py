@@ -54,8 +54,8 @@ class TextureData:
             targets=None if self.targets is None else self.targets[idx],
         )
 
-    def with_targets(self, targets: np.ndarray) -> "TextureData":
-        return replace(self, targets=np.asarray(targets, np.float32))
+    def with_targets(self, targets: np.ndarray | None) -> "TextureData":
+        return replace(self, targets=None if targets is None else np.asarray(targets, np.float32))
 
 
 def visual_slice(dim: int, part: VisualPart) -> slice:

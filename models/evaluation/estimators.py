@@ -94,7 +94,7 @@ class TextureFeatures:
         return np.concatenate([s.transform(b) / np.sqrt(b.shape[1]) for s, b in zip(self.scalers, blocks)], axis=1)
 
 
-def _targets(data: TextureData) -> np.ndarray:
+def require_targets(data: TextureData) -> np.ndarray:
     if data.targets is None:
         raise ValueError("fit needs rated textures (targets), got none")
     return data.targets.astype(np.float64)
@@ -107,7 +107,7 @@ class MeanEstimator(Estimator):
     name = "mean"
 
     def fit(self, data: TextureData, seed: int) -> "MeanEstimator":
-        self.mean = _targets(data).mean(axis=0)
+        self.mean = require_targets(data).mean(axis=0)
         return self
 
     def predict(self, data: TextureData) -> np.ndarray:
@@ -128,7 +128,7 @@ class RidgeEstimator(Estimator):
 
     def fit(self, data: TextureData, seed: int) -> "RidgeEstimator":
         X = self.features.fit_transform(data)
-        y = _targets(data)
+        y = require_targets(data)
         self.y_mean = y.mean(axis=0)
         yc = y - self.y_mean
         # LOO residuals of ridge in closed form via the SVD of X (n ≪ d here).
@@ -155,6 +155,17 @@ class RidgeEstimator(Estimator):
     def fit_info(self) -> dict:
         return {"alpha": self.alpha}
 
+    def export(self, path, metadata: dict[str, str]):
+        """ONNX of the per-window model. Linear, so averaging window predictions equals predicting
+        from the texture's mean window — the texture-level fit serves window by window unchanged."""
+        from models.linear_onnx import InputBlock, export_linear
+
+        if self.features.tactile_stats != ("mean",):
+            raise ValueError("only ridge on mean tactile features can be exported (std is not linear per window)")
+        names = [n for n in ("visual", "tactile") if self.modality in (n, "both")]
+        blocks = [InputBlock(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size)) for n, s in zip(names, self.features.scalers)]
+        return export_linear(path, blocks, self.coef, self.y_mean, metadata)
+
 
 class KNNEstimator(Estimator):
     """k-nearest textures (distance-weighted); k chosen by leave-one-out over the training textures."""
@@ -174,7 +185,7 @@ class KNNEstimator(Estimator):
 
     def fit(self, data: TextureData, seed: int) -> "KNNEstimator":
         self.X = self.features.fit_transform(data)
-        self.y = _targets(data)
+        self.y = require_targets(data)
         dist = np.linalg.norm(self.X[:, None] - self.X[None], axis=2)
         np.fill_diagonal(dist, np.inf)
         losses = {k: float(np.mean(np.abs(self._weighted(dist, self.y, k) - self.y))) for k in self.ks if k < len(self.y)}
@@ -207,7 +218,7 @@ class SVREstimator(Estimator):
         from sklearn.svm import SVR
 
         X = self.features.fit_transform(data)
-        y = _targets(data)
+        y = require_targets(data)
         self.y_mean, self.y_std = y.mean(axis=0), y.std(axis=0) + 1e-9
         ys = (y - self.y_mean) / self.y_std
         folds = list(KFold(5, shuffle=True, random_state=seed).split(X))
@@ -253,7 +264,7 @@ class WindowSVREstimator(Estimator):
 
         rng = np.random.default_rng(seed)
         rows, ys = [], []
-        for w, y in zip(data.tactile, _targets(data)):
+        for w, y in zip(data.tactile, require_targets(data)):
             take = rng.permutation(len(w))[: self.max_windows]
             rows.append(w[take])
             ys.append(np.tile(y, (len(take), 1)))
@@ -287,7 +298,7 @@ class ShuffledLabels(Estimator):
 
     def fit(self, data: TextureData, seed: int) -> "ShuffledLabels":
         perm = np.random.default_rng(seed + 7919).permutation(len(data))
-        self.inner.fit(data.with_targets(_targets(data)[perm]), seed)
+        self.inner.fit(data.with_targets(require_targets(data)[perm]), seed)
         return self
 
     def predict(self, data: TextureData) -> np.ndarray:

@@ -96,7 +96,9 @@ def raw_model(
     visual_dim: int | None = None,
 ) -> nn.Module:
     """The torch module that `export_onnx` exports: raw inputs (only those the model reads,
-    in the order tactile, visual) → bipolar ratings (N, 4), clipped to ±100. In eval mode."""
+    in the order tactile, visual) → bipolar ratings (N, 4), clipped to ±100.
+
+    Returned in eval mode, which also puts ``model`` (held inside it) in eval mode."""
     modality = getattr(model, "modality", None)
     if modality not in INPUTS_BY_MODALITY:
         raise ValueError(f"model has no valid modality attribute (got {modality!r})")
@@ -149,23 +151,22 @@ def export_onnx(
 
     tactile_mean = np.asarray(tactile_mean).reshape(-1)
     visual_mean = np.asarray(visual_mean).reshape(-1)
-    wrapped = raw_model(
-        model,
-        tactile_mean=tactile_mean,
-        tactile_std=tactile_std,
-        visual_mean=visual_mean,
-        visual_std=visual_std,
-        target_mean=target_mean,
-        target_std=target_std,
-    )
     means = {"tactile": tactile_mean, "visual": visual_mean}
     # tracing example: batch 2 of the mean vectors (the values do not matter, the batch is dynamic)
     example = tuple(torch.from_numpy(np.repeat(means[n].astype(np.float32)[None], 2, axis=0)) for n in inputs)
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     was_training = model.training
     try:
+        wrapped = raw_model(
+            model,
+            tactile_mean=tactile_mean,
+            tactile_std=tactile_std,
+            visual_mean=visual_mean,
+            visual_std=visual_std,
+            target_mean=target_mean,
+            target_std=target_std,
+        )
         with warnings.catch_warnings():
             # the TorchScript exporter is deprecated but unrolls the ConvLSTM loop into a flat,
             # fast graph; its tracer warnings about shape checks are expected

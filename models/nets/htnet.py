@@ -86,7 +86,9 @@ class HTNet(nn.Module):
         super().__init__()
         filters = tuple(filters)
         if n_frames < 1 or n_coeffs < 1 or n_stats < 0:
-            raise ValueError(f"HTNet needs n_frames, n_coeffs ≥ 1 and n_stats ≥ 0, got {n_frames}, {n_coeffs}, {n_stats}")
+            raise ValueError(
+                f"HTNet needs n_frames, n_coeffs ≥ 1 and n_stats ≥ 0, got {n_frames}, {n_coeffs}, {n_stats}"
+            )
         if not filters or any(f < 1 for f in filters):
             raise ValueError(f"HTNet filters must be a non-empty tuple of positive ints, got {filters}")
         if out_dim < 1:

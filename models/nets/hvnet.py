@@ -23,7 +23,7 @@ from models.nets.convlstm import conv1d_keras
 
 def scale_width(filters: int, width: float) -> int:
     """Filters after a width multiplier: rounded, never below 1."""
-    return max(1, int(round(filters * width)))
+    return max(1, round(filters * width))
 
 
 class KerasConv1d(nn.Conv1d):
@@ -67,9 +67,7 @@ class HVNet(nn.Module):
         super().__init__()
         widths, kernels, fc = tuple(widths), tuple(kernels), tuple(fc)
         if not widths or len(widths) != len(kernels):
-            raise ValueError(
-                f"HVNet needs one kernel per encoder stage, got widths {widths} and kernels {kernels}"
-            )
+            raise ValueError(f"HVNet needs one kernel per encoder stage, got widths {widths} and kernels {kernels}")
         if any(k < 1 for k in kernels) or any(w < 1 for w in widths) or width <= 0:
             raise ValueError(f"HVNet filters, kernels and width must be positive: {widths}, {kernels}, {width}")
         if not fc or any(n < 1 for n in fc):
@@ -84,9 +82,7 @@ class HVNet(nn.Module):
         self.stage_lengths: tuple[int, ...] = tuple(in_dim // 2**s for s in range(len(widths)))
         bottleneck_len = in_dim // 2 ** len(widths)
 
-        self.encoder = nn.ModuleList(
-            KerasConv1d(channels[s], channels[s + 1], kernels[s]) for s in range(len(widths))
-        )
+        self.encoder = nn.ModuleList(KerasConv1d(channels[s], channels[s + 1], kernels[s]) for s in range(len(widths)))
         # decoder stage j undoes encoder stage j (in reverse order): channels[j+1] → channels[j]
         self.decoder = nn.ModuleList(
             KerasConv1d(channels[s + 1], channels[s], kernels[s]) for s in reversed(range(len(widths)))

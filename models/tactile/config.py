@@ -35,11 +35,10 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
+from texture_library.channels import MAX_RATE_HZ, MIN_RATE_HZ
+
 #: bump when the feature definitions change for the same configuration values
 FEATURE_CODE_VERSION = 1
-#: rates the pipeline accepts (same bounds as models.datasets.recording)
-MIN_RATE_HZ = 10.0
-MAX_RATE_HZ = 100_000.0
 #: speed/force statistics appended to every feature set, in this order
 STAT_NAMES: tuple[str, ...] = (
     "speed_min",

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from models.datasets.recording import Recording
+from texture_library.recording import Recording
 from models.tactile.config import TactileConfig
 from models.tactile.dft import dft_features
 from models.tactile.dft321 import dft321
@@ -82,7 +82,7 @@ def recording_features(
     None = its end). ValueError if no complete window fits.
     """
     if not isinstance(recording, Recording):
-        raise ValueError(f"recording must be a models.datasets.recording.Recording, got {type(recording).__name__}")
+        raise ValueError(f"recording must be a texture_library.recording.Recording, got {type(recording).__name__}")
     if stop_s is not None and not (math.isfinite(stop_s) and stop_s > skip_s):
         raise ValueError(f"stop_s must be a finite time > skip_s = {skip_s} s, got {stop_s!r}")
     pre = TactilePreprocessor(config, skip_s=skip_s, max_buffer_s=None)

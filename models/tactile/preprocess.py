@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.datasets.recording import Channel
+from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.filters import StatefulSOS, design_highpass, design_lowpass
 from models.tactile.resample import Resampler, check_rate
@@ -63,7 +63,7 @@ class WindowBatch:
 def channel_array(name: str, channel: object) -> tuple[np.ndarray, float]:
     """Validate a pushed channel → (data float64 (n,) or (n, k), rate Hz); ValueError naming ``name``."""
     if not isinstance(channel, Channel):
-        raise ValueError(f"{name} must be a models.datasets.recording.Channel, got {type(channel).__name__}")
+        raise ValueError(f"{name} must be a texture_library.recording.Channel, got {type(channel).__name__}")
     rate = check_rate(channel.rate_hz, f"{name}.rate_hz")
     data = np.asarray(channel.data)
     if data.dtype.kind not in "iuf":

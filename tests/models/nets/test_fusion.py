@@ -7,7 +7,7 @@ import torch
 
 from models.nets.fusion import FusionHead, MLPBranch, VisuoTactileNet, pairwise_max_pool
 
-SMALL = dict(width=1 / 16, visual_fc=(16, 8), tactile_filters=(4, 4), tactile_out=8, head=(8, 8, 4))
+SMALL = {"width": 1 / 16, "visual_fc": (16, 8), "tactile_filters": (4, 4), "tactile_out": 8, "head": (8, 8, 4)}
 
 
 def test_faithful_forward_shapes() -> None:

@@ -39,7 +39,9 @@ def test_seed_reproduces_weights_without_touching_global_rng() -> None:
     b = registry.build("vtnet-compact", 64, 526, seed=7)
     c = registry.build("vtnet-compact", 64, 526, seed=8)
     assert torch.rand(1) == before  # the global stream is where it was
-    for (name, pa), pb, pc in zip(a.state_dict().items(), b.state_dict().values(), c.state_dict().values(), strict=True):
+    for (name, pa), pb, pc in zip(
+        a.state_dict().items(), b.state_dict().values(), c.state_dict().values(), strict=True
+    ):
         assert torch.equal(pa, pb), name
     assert any(not torch.equal(pa, pc) for pa, pc in zip(a.parameters(), c.parameters(), strict=True))
 

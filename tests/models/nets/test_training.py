@@ -13,7 +13,9 @@ from models.nets import registry
 from models.nets.training import TrainArrays, TrainConfig, predict_windows, rmse, train_net
 
 
-def toy_data(seed: int, n_textures: int = 6, windows_per: int = 12, views: int = 3, dim: int = 64, f: int = 526) -> TrainArrays:
+def toy_data(
+    seed: int, n_textures: int = 6, windows_per: int = 12, views: int = 3, dim: int = 64, f: int = 526
+) -> TrainArrays:
     """Targets are a linear function of a per-texture tactile signature plus noise: learnable."""
     rng = np.random.default_rng(seed)
     signature = rng.normal(size=(n_textures, f)).astype(np.float32)
@@ -82,7 +84,9 @@ def test_training_learns_and_is_deterministic() -> None:
     for (name, a), b in zip(m1.state_dict().items(), m2.state_dict().values(), strict=True):
         assert torch.equal(a, b), name
     assert r1.history["val"][-1] < 0.6 * r1.history["val"][0]
-    other = train_net(registry.build("vtnet-tiny", 64, 526, seed=1), data, val, TrainConfig(max_epochs=3, batch=16, seed=4))
+    other = train_net(
+        registry.build("vtnet-tiny", 64, 526, seed=1), data, val, TrainConfig(max_epochs=3, batch=16, seed=4)
+    )
     assert other.history["train"] != r1.history["train"][:3]
 
 
@@ -137,6 +141,13 @@ def test_bad_inputs_raise() -> None:
     with pytest.raises(ValueError, match="lr > 0"):
         TrainConfig(lr=0)
     with pytest.raises(ValueError, match="window_texture must be integer indices"):
-        TrainArrays(np.zeros((2, 3), np.float32), np.array([0, 5]), np.zeros((2, 1, 4), np.float32), np.zeros((2, 4), np.float32))
+        TrainArrays(
+            np.zeros((2, 3), np.float32),
+            np.array([0, 5]),
+            np.zeros((2, 1, 4), np.float32),
+            np.zeros((2, 4), np.float32),
+        )
     with pytest.raises(ValueError, match="visual_views"):
-        TrainArrays(np.zeros((2, 3), np.float32), np.array([0, 1]), np.zeros((2, 4), np.float32), np.zeros((2, 4), np.float32))
+        TrainArrays(
+            np.zeros((2, 3), np.float32), np.array([0, 1]), np.zeros((2, 4), np.float32), np.zeros((2, 4), np.float32)
+        )

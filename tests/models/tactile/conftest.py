@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from models.datasets.recording import Recording, make_channel
+from texture_library.recording import Recording, make_channel
 
 
 def synthetic_recording(

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models.datasets.recording import Channel
+from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import recording_features, window_features

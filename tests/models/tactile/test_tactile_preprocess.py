@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models.datasets.recording import Channel
+from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.preprocess import TactilePreprocessor
 
@@ -133,7 +133,7 @@ def test_speed_beats_position_and_position_then_speed_fails(make_recording):
         ({"accel": Channel(np.zeros((10, 3)), -1000.0)}, "accel.rate_hz"),
         ({"accel": Channel(np.zeros((10, 3)), 1e12)}, "accel.rate_hz"),
         ({"accel": Channel(np.zeros((10, 3)), float("nan"))}, "accel.rate_hz"),
-        ({"accel": np.zeros((10, 3))}, "accel must be a models.datasets.recording.Channel"),
+        ({"accel": np.zeros((10, 3))}, "accel must be a texture_library.recording.Channel"),
         ({"force": Channel(np.array(["a", "b"]), 1000.0)}, "force: samples must be real"),
     ],
 )

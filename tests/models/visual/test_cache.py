@@ -11,7 +11,12 @@ def image():
 
 
 def _key(image, **changes):
-    parts = {"view": IDENTITY_VIEW, "config_hash": "c" * 16, "backbone_name": "efficientnet_lite0", "weights_fingerprint": "f" * 16}
+    parts = {
+        "view": IDENTITY_VIEW,
+        "config_hash": "c" * 16,
+        "backbone_name": "efficientnet_lite0",
+        "weights_fingerprint": "f" * 16,
+    }
     parts.update(changes)
     return cache_key(image, parts["view"], parts["config_hash"], parts["backbone_name"], parts["weights_fingerprint"])
 

@@ -57,7 +57,9 @@ def test_cache_means_one_backbone_pass_per_image_and_view(tmp_path, texture):
 def test_batch_helper_shapes_metadata_and_consistency(tmp_path):
     images = [synthetic_texture(seed=s) for s in range(3)]
     embedder = CountingEmbedder()
-    features = batch_visual_features(images, SMALL, embedder, n_views=2, seed=4, cache=FeatureCache(tmp_path), progress=False)
+    features = batch_visual_features(
+        images, SMALL, embedder, n_views=2, seed=4, cache=FeatureCache(tmp_path), progress=False
+    )
     assert isinstance(features, VisualFeatures)
     assert features.values.shape == (3, 2, 260)
     assert features.backbone_part.shape == (3, 2, 4) and features.glcm_part.shape == (3, 2, 256)
@@ -73,6 +75,17 @@ def test_batch_helper_shapes_metadata_and_consistency(tmp_path):
     assert embedder.calls == 6
     batch_visual_features(images, SMALL, embedder, n_views=2, seed=4, cache=FeatureCache(tmp_path), progress=False)
     assert embedder.calls == 6  # all cached
+
+
+def test_bad_images_raise(texture):
+    embedder = CountingEmbedder()
+    with pytest.raises(ValueError, match="float array"):
+        visual_features((texture * 255).astype(np.uint8), SMALL, embedder)
+    with pytest.raises(ValueError, match=r"img must lie in \[0, 1\]"):
+        visual_features(texture * 2, SMALL, embedder)
+    with pytest.raises(ValueError, match="need at least 224×224"):
+        visual_features(texture[:200], SMALL, embedder)
+    assert embedder.calls == 0
 
 
 def test_visual_features_metadata_validates_dims():

@@ -30,7 +30,9 @@ def _assert_parity(torch_out: np.ndarray, onnx_out: np.ndarray) -> None:
 
 @pytest.fixture(scope="module")
 def efficientnet_onnx(tmp_path_factory, efficientnet_backbone) -> Path:
-    return export_backbone_onnx(efficientnet_backbone, tmp_path_factory.mktemp("onnx") / "lite0.onnx", config_hash=CONFIG.hash())
+    return export_backbone_onnx(
+        efficientnet_backbone, tmp_path_factory.mktemp("onnx") / "lite0.onnx", config_hash=CONFIG.hash()
+    )
 
 
 def test_efficientnet_parity_and_metadata(efficientnet_onnx, efficientnet_backbone):
@@ -50,7 +52,9 @@ def test_efficientnet_parity_and_metadata(efficientnet_onnx, efficientnet_backbo
 def test_resnet_parity_random_weights(tmp_path, resnet_random_backbone):
     # The legacy TorchScript exporter here (≈ 3 s against ≈ 12 s for the dynamo path on 2 cores);
     # the default dynamo path is covered above, and benchmarks/visual.py checks it for ResNet-50 too.
-    path = export_backbone_onnx(resnet_random_backbone, tmp_path / "resnet50.onnx", config_hash=CONFIG.hash(), dynamo=False)
+    path = export_backbone_onnx(
+        resnet_random_backbone, tmp_path / "resnet50.onnx", config_hash=CONFIG.hash(), dynamo=False
+    )
     runner = OnnxBackbone(path)
     assert (runner.name, runner.dim, runner.fingerprint) == ("resnet50", 2048, resnet_random_backbone.fingerprint)
     patches = _patches(1, seed=1)
@@ -65,7 +69,9 @@ def test_onnx_and_torch_share_features_and_cache_entries(tmp_path, efficientnet_
     _assert_parity(visual_features(image, config, efficientnet_backbone), from_onnx)
     # same backbone name and weights fingerprint → the torch side finds the ONNX side's entry
     assert len(list(tmp_path.rglob("*.npy"))) == 1
-    np.testing.assert_array_equal(visual_features(image, config, efficientnet_backbone, FeatureCache(tmp_path)), from_onnx)
+    np.testing.assert_array_equal(
+        visual_features(image, config, efficientnet_backbone, FeatureCache(tmp_path)), from_onnx
+    )
 
 
 def test_refuses_wrong_files_and_configs(tmp_path, efficientnet_onnx):
@@ -100,5 +106,5 @@ def test_serving_modules_import_without_torch():
         "bad = sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))\n"
         "assert not bad, bad\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr

@@ -28,3 +28,25 @@ def to_bipolar(attribute: str, rating: float) -> tuple[str, float]:
         raise ValueError(f"TexNet rating must lie in [0, 100], got {rating}")
     name, sign = TEXNET_TO_BIPOLAR[attribute]
     return name, sign * (2.0 * rating - 100.0)
+
+
+def read_texnet_ratings(path) -> dict[str, dict[str, list[tuple[str, int, float]]]]:
+    """ratings.csv (texture, rater, presentation, attribute, rating) → {texture: {attr: [(rater, presentation, bipolar)]}}."""
+    import csv
+
+    out: dict[str, dict[str, list[tuple[str, int, float]]]] = {}
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in ("texture", "rater", "presentation", "attribute", "rating") if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}")
+        for line, r in enumerate(reader, start=2):
+            if r["attribute"] in IGNORED:
+                continue
+            try:
+                attr, value = to_bipolar(r["attribute"], float(r["rating"]))
+                presentation = int(r["presentation"])
+            except ValueError as exc:
+                raise ValueError(f"{path} line {line}: {exc}") from None
+            out.setdefault(r["texture"], {}).setdefault(attr, []).append((r["rater"], presentation, value))
+    return out

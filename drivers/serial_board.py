@@ -1,0 +1,255 @@
+"""An accelerometer/force board on a serial port, speaking the HL1 line protocol (docs/drivers.md).
+
+    #HL1 rate=1000 accel=g force=N position=mm          header: rate, then channels in column order
+    17,0.01,-0.02,1.00,0.10,0.00,1.52,12.5               one sample: counter, then the columns
+
+The host writes `#?\n` on open and the board answers with its header (it also sends it at boot).
+Values are sent in the board's own units; converting them is the service's job. A counter gap
+ends the current block early and the next block starts at the right time; garbled lines are
+counted and skipped, never parsed into shifted samples.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.blocks import SampleBlock
+from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource
+from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE
+
+log = logging.getLogger(__name__)
+
+HEADER_TAG = "#HL1"
+HEADER_REQUEST = b"#?\n"
+DEFAULT_COLUMNS = {"accel": 3, "force": 3, "speed": 1, "position": 1}
+MAX_LINE_BYTES = 512
+_TOKEN = re.compile(r"^(?P<kind>[a-z]+)(?:\[(?P<cols>\d+)\])?=(?P<value>\S+)$")
+
+
+@dataclass(frozen=True)
+class BoardHeader:
+    """What an HL1 header declares: sample rate (Hz), counter wrap, and (kind, columns, units) in column order."""
+
+    rate_hz: float
+    wrap: int
+    layout: tuple[tuple[str, int, str], ...]
+
+    @property
+    def n_values(self) -> int:
+        """Numbers per data line after the counter."""
+        return sum(cols for _, cols, _ in self.layout)
+
+
+def parse_header(line: str) -> BoardHeader:
+    """Parse `#HL1 rate=<Hz> [wrap=<N>] <kind>[<cols>]=<units> …`; ValueError names the bad token."""
+    tokens = line.strip().split()
+    if not tokens or tokens[0] != HEADER_TAG:
+        raise ValueError(f"serial header must start with {HEADER_TAG!r}, got {line.strip()[:40]!r}")
+    rate: float | None = None
+    wrap = 2**32
+    layout: list[tuple[str, int, str]] = []
+    for tok in tokens[1:]:
+        m = _TOKEN.match(tok)
+        if not m:
+            raise ValueError(f"serial header token {tok!r} is not key=value or kind[cols]=units")
+        kind, cols, value = m["kind"], m["cols"], m["value"]
+        if kind == "rate" and cols is None:
+            try:
+                rate = float(value)
+            except ValueError:
+                raise ValueError(f"serial header: rate must be a number (Hz), got {value!r}") from None
+            if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+                raise ValueError(f"serial header: rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {value}")
+        elif kind == "wrap" and cols is None:
+            if not value.isdigit() or int(value) < 2:
+                raise ValueError(f"serial header: wrap must be an integer ≥ 2, got {value!r}")
+            wrap = int(value)
+        elif kind in UNIT_SCALE:
+            n = DEFAULT_COLUMNS[kind] if cols is None else int(cols)
+            if n not in CHANNEL_COLUMNS[kind]:
+                raise ValueError(f"serial header: {kind} has {list(CHANNEL_COLUMNS[kind])} column(s), got {n}")
+            if value not in UNIT_SCALE[kind]:
+                raise ValueError(f"serial header: {kind} units must be one of {list(UNIT_SCALE[kind])}, got {value!r}")
+            if any(k == kind for k, _, _ in layout):
+                raise ValueError(f"serial header: channel {kind!r} appears twice")
+            layout.append((kind, n, value))
+        else:
+            raise ValueError(f"serial header: unknown key {kind!r} (expected rate, wrap or one of {list(UNIT_SCALE)})")
+    if rate is None:
+        raise ValueError("serial header: rate=<Hz> is required")
+    if not layout:
+        raise ValueError("serial header declares no channels")
+    return BoardHeader(rate, wrap, tuple(layout))
+
+
+@dataclass
+class BoardStats(StreamStats):
+    """StreamStats plus what the line protocol saw (written by the reader thread only)."""
+
+    lines: int = 0  # data lines read, good or not
+    garbled: int = 0  # lines that could not be decoded (skipped; the counter shows the hole)
+    skipped: int = 0  # data lines before any header (layout unknown)
+
+
+class BoardDecoder:
+    """Turns HL1 lines into SampleBlocks of block_s seconds; no I/O, one thread.
+
+    Timing and gap handling: drivers.source.StreamAssembler (stream time = sample index ÷ rate).
+    A new, different header mid-stream means the board restarted: counted as a resync, and
+    stream time continues after the last sample.
+    """
+
+    def __init__(self, block_s: float = 0.02, header: BoardHeader | None = None) -> None:
+        if not (math.isfinite(block_s) and block_s > 0):
+            raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
+        self.block_s = block_s
+        self.stats = BoardStats()
+        self._header: BoardHeader | None = None
+        self._assembler: StreamAssembler | None = None
+        if header is not None:
+            self._set_header(header)
+
+    @property
+    def header(self) -> BoardHeader | None:
+        return self._header
+
+    def _set_header(self, header: BoardHeader) -> None:
+        old = self._assembler
+        self._header = header
+        self._assembler = StreamAssembler(
+            header.rate_hz,
+            header.layout,
+            self.block_s,
+            wrap=header.wrap,
+            time_offset=0.0 if old is None else old.end_time,
+            seq0=0 if old is None else old.next_seq,
+            stats=self.stats,
+        )
+
+    def count_garbled(self) -> None:
+        """Count a line that was lost before it could be decoded (e.g. too long)."""
+        self.stats.lines += 1
+        self.stats.garbled += 1
+
+    def feed_line(self, raw: bytes) -> list[SampleBlock]:
+        """Decode one line (without its newline); return the blocks it completes."""
+        try:
+            line = raw.decode("ascii").strip()
+        except UnicodeDecodeError:
+            self.count_garbled()
+            return []
+        if not line:
+            return []
+        if line.startswith("#"):
+            return self._on_comment(line)
+        self.stats.lines += 1
+        if self._assembler is None:
+            if self.stats.skipped == 0:
+                log.warning("serial board: data before any %s header; waiting for one", HEADER_TAG)
+            self.stats.skipped += 1
+            return []
+        parsed = self._parse_sample(line)
+        if parsed is None:
+            self.stats.garbled += 1
+            return []
+        counter, values = parsed
+        return self._assembler.add(counter, np.asarray([values]))
+
+    def _on_comment(self, line: str) -> list[SampleBlock]:
+        if not line.startswith(HEADER_TAG):
+            log.debug("serial board says: %s", line)
+            return []
+        header = parse_header(line)  # a bad header is a configuration error: raise
+        if header == self._header:
+            return []  # the answer to our request, or a repeat: nothing changes
+        out = self.flush()
+        if self._header is not None:
+            # How long the board was away is unknown, so time continues after the last sample; say so.
+            self.stats.resyncs += 1
+            log.warning("serial board sent a new header (restart?): stream time continues after the last sample")
+        self._set_header(header)
+        return out
+
+    def _parse_sample(self, line: str) -> tuple[int, list[float]] | None:
+        assert self._header is not None
+        fields = line.split(",")
+        if len(fields) != 1 + self._header.n_values:
+            return None
+        try:
+            counter = int(fields[0])
+            values = [float(f) for f in fields[1:]]
+        except ValueError:
+            return None
+        if counter < 0 or counter >= self._header.wrap or not all(math.isfinite(v) for v in values):
+            return None
+        return counter, values
+
+    def flush(self) -> list[SampleBlock]:
+        """The partial block held so far (if any), as a block."""
+        return [] if self._assembler is None else self._assembler.flush()
+
+
+class SerialBoardSource(ThreadedSource):
+    """Sample blocks from an HL1 board on a serial port, read in a background thread.
+
+    port: device name (/dev/ttyACM0, COM3, or a pty); block_s: seconds per block;
+    header: an HL1 header line to assume for boards that never send one.
+    Decoding counts live in `stats` (BoardStats).
+    """
+
+    def __init__(self, port: str, baudrate: int = 921_600, block_s: float = 0.02, header: str | None = None, queue_size: int = 256) -> None:
+        super().__init__(queue_size)
+        if not port:
+            raise ValueError("serial port name is empty")
+        if baudrate <= 0:
+            raise ValueError(f"baudrate must be positive, got {baudrate}")
+        self.port = port
+        self.baudrate = baudrate
+        self.name = f"serial:{port}"
+        self._decoder = BoardDecoder(block_s, parse_header(header) if header else None)
+
+    @property
+    def stats(self) -> BoardStats:
+        return self._decoder.stats
+
+    def _produce(self, stop: threading.Event, emit: Callable[[Item], None]) -> None:
+        import serial  # pyserial: imported here so the rest of drivers loads without it
+
+        # timeout: a read returns at least every 0.1 s so the stop flag is seen promptly.
+        with serial.Serial(self.port, self.baudrate, timeout=0.1) as ser:
+            ser.write(HEADER_REQUEST)
+            pending = b""
+            discarding = False  # inside an over-long line: drop bytes up to the next newline
+            while not stop.is_set():
+                try:
+                    chunk = ser.read(max(1, ser.in_waiting))
+                except serial.SerialException:
+                    if stop.is_set():
+                        break
+                    raise
+                if not chunk:
+                    continue
+                pending += chunk
+                if discarding:
+                    end = pending.find(b"\n")
+                    if end < 0:
+                        pending = b""
+                        continue
+                    pending, discarding = pending[end + 1 :], False
+                *lines, pending = pending.split(b"\n")
+                for raw in lines:
+                    for block in self._decoder.feed_line(raw):
+                        emit(block)
+                if len(pending) > MAX_LINE_BYTES:
+                    # No newline in sight: noise on the line. Count it once and resynchronise on the next newline.
+                    self._decoder.count_garbled()
+                    pending, discarding = b"", True
+            for block in self._decoder.flush():
+                emit(block)

@@ -1,0 +1,88 @@
+"""`hapticlink train` and `hapticlink predict`: fit on every rated texture, export ONNX, predict textures."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from models.evaluation.data import TextureData, VisualPart, load_texture_data
+from models.evaluation.registry import build_estimator
+from models.modelfile import ModelCard
+from models.predictor import Predictor
+from models.tactile.config import TactileConfig
+from texture_library.attributes import ATTRIBUTES
+
+
+def train_and_export(
+    dataset: str | Path,
+    model: str,
+    out: str | Path,
+    *,
+    seed: int = 0,
+    tactile_config: TactileConfig | None = None,
+    visual_part: VisualPart = "both",
+    metrics: str | Path | None = None,
+    options: dict | None = None,
+) -> Path:
+    """Train `model` on all rated textures of `dataset` and write an ONNX file with its card.
+
+    metrics: a results.json from `hapticlink evaluate` whose LOOCV numbers go into the card.
+    """
+    est = build_estimator(model, **(options or {}))
+    if not hasattr(est, "export"):
+        raise ValueError(f"model {model!r} has no ONNX export; export a network or a ridge model")
+    needs_visual = est.modality in ("visual", "both")
+    data = load_texture_data(dataset, tactile_config=tactile_config, visual=needs_visual, visual_part=visual_part)
+    est.fit(data, seed)
+    loocv = {}
+    if metrics is not None:
+        res = json.loads(Path(metrics).read_text())
+        loocv = {"mae": res["mae"], "rmse": res["rmse"], "seeds": res["seeds"], "model": res["model"]}
+    visual = None
+    if needs_visual:
+        visual = {k: data.meta[k] for k in ("backbone", "backbone_dim", "visual_hash", "visual_part")}
+    card = ModelCard(
+        model=model,
+        modality=est.modality,
+        tactile_config=data.meta["tactile_config"],
+        tactile_hash=data.meta["tactile_hash"],
+        visual=visual,
+        dataset=str(data.meta.get("dataset")),
+        metrics=loocv,
+        n_params=est.n_params(),
+        trained_on=data.textures,
+        seed=seed,
+    )
+    return Path(est.export(out, card.to_metadata()))
+
+
+def predict_dataset(model_path: str | Path, dataset: str | Path, *, rated: str | None = None) -> tuple[list[str], np.ndarray]:
+    """Per-texture predictions (T, 4) bipolar: each texture's windows predicted and averaged."""
+    predictor = Predictor(model_path)
+    card = predictor.card
+    part = card.visual["visual_part"] if card.visual else "both"
+    data: TextureData = load_texture_data(dataset, tactile_config=predictor.tactile_config, visual=predictor.needs_visual,
+                                          visual_part=part, rated=rated)
+    if predictor.needs_visual:
+        if data.meta["backbone"] != card.visual["backbone"] or data.meta["visual_hash"] != card.visual["visual_hash"]:
+            raise ValueError(f"model wants visual features from {card.visual['backbone']} ({card.visual['visual_hash']}), "
+                             f"this machine computes {data.meta['backbone']} ({data.meta['visual_hash']})")
+    preds = []
+    for i, windows in enumerate(data.tactile):
+        visual = np.repeat(data.visual[i, :1], len(windows), axis=0) if predictor.needs_visual else None
+        preds.append(predictor.predict(windows if predictor.needs_tactile else None, visual).mean(axis=0))
+    return data.textures, np.array(preds)
+
+
+def write_predictions(path: str | Path, textures: list[str], preds: np.ndarray) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["texture", *ATTRIBUTES])
+        for t, p in zip(textures, preds):
+            w.writerow([t, *(f"{v:.2f}" for v in p)])
+    return path

@@ -1,0 +1,26 @@
+"""One exception for every refusal the service answers with a 4xx/5xx and a message."""
+
+from __future__ import annotations
+
+
+class ServiceError(Exception):
+    """A refusal: HTTP `status` with `detail` (the message the client sees) and optional headers.
+
+    WebSocket handlers map it to an error acknowledgement or a close code instead.
+    """
+
+    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.headers = headers or {}
+
+
+def saturated(what: str, retry_after_s: float) -> ServiceError:
+    """429 with Retry-After (whole seconds are what HTTP caches understand; fractions are accepted by our robot)."""
+    return ServiceError(429, what, {"Retry-After": f"{retry_after_s:g}"})
+
+
+def bad_input(exc: ValueError) -> ServiceError:
+    """A ValueError from the shared validation code, as 422 with its message."""
+    return ServiceError(422, str(exc))

@@ -1,0 +1,116 @@
+"""What the service computes with: the model, its feature configuration, the library and the visual backbone.
+
+Loaded once at start-up (blocking: run it in a thread), checked against each other, warmed
+up. Everything here is numpy + onnxruntime; nothing imports torch.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.evaluation.data import visual_slice
+from models.predictor import Predictor
+from models.tactile.config import TactileConfig
+from models.visual.config import VisualConfig
+from models.visual.embedding import visual_features
+from models.visual.image import load_image
+from models.visual.onnx_backbone import OnnxBackbone
+from service.settings import Settings
+from texture_library.library import Library
+from texture_library.nearest import PerceptualIndex
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """The loaded model and library.
+
+    tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
+    backbone / visual_columns: set when the model reads visual features and a backbone is configured;
+    problem: why the service cannot estimate (None when it can), shown by GET /ready.
+    """
+
+    predictor: Predictor
+    tactile_config: TactileConfig
+    library: Library
+    index: PerceptualIndex
+    visual_config: VisualConfig
+    backbone: OnnxBackbone | None
+    visual_columns: slice | None
+    problem: str | None
+    load_s: float
+
+    @property
+    def model_name(self) -> str:
+        return self.predictor.card.model
+
+    @property
+    def needs_visual(self) -> bool:
+        return self.predictor.needs_visual
+
+    def decode_frame(self, image: bytes) -> np.ndarray:
+        """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable or smaller than a patch."""
+        return load_image(image, min_size=self.visual_config.patch_size)
+
+    def embed_frame(self, gray: np.ndarray) -> np.ndarray:
+        """(H, W) grayscale → the model's visual input (D,) float32: backbone ⊕ GLCM, columns per the card."""
+        if self.backbone is None or self.visual_columns is None:
+            raise ValueError("no visual backbone is configured (HAPTICLINK_BACKBONE_PATH)")
+        return visual_features(gray, self.visual_config, self.backbone)[self.visual_columns].astype(np.float32)
+
+
+def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:
+    """The model's feature configuration with the serving hop; every other field stays as trained."""
+    return TactileConfig(**{**model_config.to_dict(), "hop_s": hop_s})
+
+
+def load_runtime(settings: Settings) -> Runtime:
+    """Load, cross-check and warm up; ValueError names what is missing or inconsistent."""
+    started = time.perf_counter()
+    if settings.model_path is None:
+        raise ValueError("no model configured: set HAPTICLINK_MODEL_PATH or pass --model")
+    if settings.library_dir is None:
+        raise ValueError("no texture library configured: set HAPTICLINK_LIBRARY_DIR or pass --library")
+    predictor = Predictor(settings.model_path, threads=1)
+    tactile_config = serving_config(predictor.tactile_config, settings.hop_s)
+    library = Library.load(settings.library_dir)
+    index = PerceptualIndex(library.ids, library.ratings, np.asarray(settings.nearest_weights))
+    visual_config = VisualConfig()
+    backbone, columns, problem = None, None, None
+    if predictor.needs_visual:
+        backbone, columns, problem = _load_backbone(predictor, visual_config, settings.backbone_path, settings.visual_threads)
+    predictor.warm_up()
+    if backbone is not None:
+        backbone.embed(np.zeros((1, visual_config.patch_size, visual_config.patch_size), np.float32))
+    return Runtime(predictor, tactile_config, library, index, visual_config, backbone, columns, problem,
+                   time.perf_counter() - started)
+
+
+def _load_backbone(
+    predictor: Predictor, config: VisualConfig, path: Path | None, threads: int
+) -> tuple[OnnxBackbone | None, slice | None, str | None]:
+    """The backbone a visual model needs, checked against its card; (None, None, problem) without one."""
+    card = predictor.card
+    wanted = card.visual or {}
+    if path is None:
+        return None, None, (
+            f"model {card.model} needs visual features from {wanted.get('backbone', '?')}; "
+            "set HAPTICLINK_BACKBONE_PATH (or --backbone) to its ONNX export"
+        )
+    backbone = OnnxBackbone(path, intra_op_threads=threads, expected_config_hash=config.hash())
+    if wanted.get("backbone") != backbone.name or wanted.get("visual_hash") != backbone.config_hash:
+        raise ValueError(
+            f"model {card.model} was trained on {wanted.get('backbone')} features ({wanted.get('visual_hash')}); "
+            f"{path} is {backbone.name} ({backbone.config_hash})"
+        )
+    columns = visual_slice(backbone.dim + config.glcm_dim, wanted.get("visual_part", "both"))
+    width = columns.stop - columns.start
+    if width != predictor.n_visual:
+        raise ValueError(f"model {card.model} reads {predictor.n_visual} visual features; {backbone.name} gives {width}")
+    return backbone, columns, None

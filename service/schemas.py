@@ -1,0 +1,150 @@
+"""Pydantic models at the HTTP boundary: request and response bodies, with the examples OpenAPI shows."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from drivers.blocks import BINARY_CONTENT_TYPE
+
+SESSION_ID_EXAMPLE = "replica-a.Xq3v9PzR0kLm"
+TOKEN_EXAMPLE = "kY2f0rC4q2mZ1xP9wV7n3bT5hJ8sL6dA0gE4uR2iO1c"
+
+
+class ErrorOut(BaseModel):
+    """Every refusal: a message that names the problem."""
+
+    detail: str = Field(examples=["accel: sample rate must lie in [10, 100000] Hz, got 1e+06"])
+
+
+class SessionCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"name": "robot-7 on fabric"}]})
+    name: str | None = Field(None, max_length=200, description="a label shown to operators")
+
+
+class SessionCreated(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"session_id": SESSION_ID_EXAMPLE, "robot_token": TOKEN_EXAMPLE, "operator_token": TOKEN_EXAMPLE[::-1]}]})
+    session_id: str = Field(description="prefixed with the replica's instance id")
+    robot_token: str = Field(description="sends blocks and frames (Authorization: Bearer, or ?token= on WebSockets)")
+    operator_token: str = Field(description="reads events and the session's status")
+
+
+class BlockAck(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"seq": 41, "duplicate": False, "windows_ready": 1}]})
+    seq: int
+    duplicate: bool = Field(description="true: the session already had this seq (or a later one); nothing was processed")
+    windows_ready: int = Field(ge=0, description="complete windows of the session not yet published (0 when it keeps up)")
+
+
+class FrameAck(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"accepted": True, "used": True, "width": 448, "height": 448}]})
+    accepted: bool = True
+    used: bool = Field(description="false when the model reads no images (a tactile model ignores frames)")
+    width: int
+    height: int
+
+
+class Counters(BaseModel):
+    blocks_accepted: int
+    blocks_duplicate: int
+    blocks_rejected: int
+    blocks_refused: int
+    windows: int
+    frames_received: int
+    frames_rejected: int
+    frames_embedded: int
+    frames_superseded: int
+    pipeline_errors: int
+
+
+class SessionStatus(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "session_id": SESSION_ID_EXAMPLE, "name": "robot-7 on fabric", "instance": "replica-a", "state": "streaming",
+        "created_at": 1767225600.0, "idle_s": 0.02, "model": "ridge-tactile", "needs_visual": False,
+        "visual_ready": False, "last_seq": 400, "segments": 1, "windows_ready": 0, "pending_blocks": 12,
+        "counters": {"blocks_accepted": 401, "blocks_duplicate": 0, "blocks_rejected": 1, "blocks_refused": 0,
+                     "windows": 16, "frames_received": 0, "frames_rejected": 0, "frames_embedded": 0,
+                     "frames_superseded": 0, "pipeline_errors": 0}}]})
+    session_id: str
+    name: str
+    instance: str
+    state: str = Field(description="open | streaming | waiting_for_frame | saturated | ended")
+    created_at: float = Field(description="Unix time, s")
+    idle_s: float
+    model: str
+    needs_visual: bool
+    visual_ready: bool
+    last_seq: int = Field(description="highest accepted seq (−1: none yet)")
+    segments: int = Field(description="continuous stretches of stream (a time gap starts a new one)")
+    windows_ready: int
+    pending_blocks: int
+    counters: Counters
+
+
+class LibraryEntryOut(BaseModel):
+    id: str
+    name: str
+    group: str
+    ratings: dict[str, float] = Field(examples=[{"rough_smooth": -40.0, "flat_bumpy": 12.5, "sticky_slippery": 8.0, "hard_soft": -60.0}])
+
+
+class LibraryOut(BaseModel):
+    name: str
+    entries: list[LibraryEntryOut]
+
+
+class HealthOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok", "instance": "replica-a"}]})
+    status: str
+    instance: str
+
+
+class ReadyOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"ready": True, "detail": "ready", "model": "ridge-tactile", "modality": "tactile", "library": "synthetic-24-s0",
+         "library_entries": 24, "backbone": None}]})
+    ready: bool
+    detail: str
+    model: str | None = None
+    modality: str | None = None
+    library: str | None = None
+    library_entries: int | None = None
+    backbone: str | None = None
+
+
+class JsonChannel(BaseModel):
+    rate_hz: float = Field(description="samples per second, 10…100000")
+    units: str = Field(description="accel: m/s^2 | g; force: N; speed: mm/s | m/s; position: mm | m")
+    data: list[float] | list[list[float]] = Field(description="(n,) or (n, k) samples")
+
+
+class JsonBlock(BaseModel):
+    """A sample block as JSON (drivers/blocks.py); the binary form carries the same header."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "seq": 0, "t0": 0.0,
+        "channels": {"accel": {"rate_hz": 1000, "units": "m/s^2", "data": [[0.1, -0.2, 9.8], [0.0, 0.1, 9.7]]},
+                     "force": {"rate_hz": 1000, "units": "N", "data": [1.5, 1.52]},
+                     "speed": {"rate_hz": 1000, "units": "mm/s", "data": [80.0, 80.4]}}}]})
+    seq: int = Field(ge=0)
+    t0: float = Field(description="time of the first sample on the robot's clock, s")
+    channels: dict[str, JsonChannel]
+
+
+BLOCK_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {"schema": JsonBlock.model_json_schema(ref_template="#/components/schemas/{model}")},
+        BINARY_CONTENT_TYPE: {
+            "schema": {"type": "string", "format": "binary",
+                       "description": "b'HLB1' | uint32 LE header length | header JSON | float32 LE samples"},
+        },
+    },
+}
+FRAME_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        "image/png": {"schema": {"type": "string", "format": "binary"}},
+        "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+    },
+}

@@ -1,0 +1,114 @@
+"""The service's configuration: one pydantic `Settings`, read from HAPTICLINK_* environment variables.
+
+Flags of `hapticlink serve` override the environment; the object is serialisable
+(`settings.model_dump(mode="json")`) and `settings_table()` renders the documentation table
+that docs/service.md carries (a test keeps the two equal).
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+ENV_PREFIX = "HAPTICLINK_"
+_INSTANCE_ID = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
+
+
+def default_instance_id() -> str:
+    """The host name reduced to the characters a session id may carry (containers: the container id)."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40].strip("-")
+    return name or "local"
+
+
+class Settings(BaseSettings):
+    """Everything the service reads at start-up. Durations in s, sizes in bytes, ratings bipolar."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="forbid", frozen=True)
+
+    # ---- what to serve --------------------------------------------------------------------------
+    model_path: Path | None = Field(None, description="exported perceptual model (.onnx with a hapticlink card)")
+    library_dir: Path | None = Field(None, description="texture library directory (library.json + models/)")
+    backbone_path: Path | None = Field(
+        None, description="visual backbone ONNX (models/featurize.py backbone_onnx); needed only by visual models"
+    )
+    # ---- network ----------------------------------------------------------------------------------
+    host: str = Field("127.0.0.1", description="address to listen on")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
+    instance_id: str = Field(
+        default_factory=default_instance_id,
+        description="this replica's name; prefixes its session ids so a load balancer can pin sessions",
+    )
+    # ---- estimation -------------------------------------------------------------------------------
+    hop_s: float = Field(0.5, gt=0, le=10, description="window hop for serving; the model's TactileConfig fixes the rest")
+    smoothing_alpha: float = Field(0.5, gt=0, le=1, description="EMA weight of the newest window (1: no smoothing)")
+    confidence_windows: int = Field(5, ge=2, le=100, description="recent windows whose spread gives the confidence")
+    top_k: int = Field(3, ge=1, le=50, description="library matches per window event")
+    nearest_weights: tuple[float, float, float, float] = Field(
+        (1.0, 1.0, 1.0, 1.0), description="per-attribute weights of the perceptual distance (JSON list in the environment)"
+    )
+    hysteresis_margin: float = Field(5.0, ge=0, description="bipolar distance a challenger must gain to replace the choice")
+    hysteresis_hold: int = Field(2, ge=1, description="windows in a row a challenger must win")
+    # ---- bounds -----------------------------------------------------------------------------------
+    session_queue_windows: int = Field(
+        8, ge=1, description="complete windows a session may have waiting; beyond it ingest answers 429 / closes 4429"
+    )
+    session_queue_blocks: int = Field(1024, ge=1, description="blocks a session may hold unprocessed (guards against tiny blocks)")
+    max_lag_s: float = Field(5.0, gt=0, description="how far one channel may run ahead of another before blocks are refused")
+    subscriber_queue: int = Field(16, ge=1, description="events buffered per operator connection; older ones are dropped")
+    max_body_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="largest request body or WebSocket message (413 / close 1009)")
+    max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
+    session_idle_s: float = Field(600.0, gt=0, description="a session with no traffic for this long is ended")
+    # ---- compute ----------------------------------------------------------------------------------
+    pool_threads: int = Field(2, ge=1, le=64, description="threads computing windows (features, model, lookup)")
+    visual_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)")
+    # ---- fan-out ----------------------------------------------------------------------------------
+    broker: Literal["memory", "redis"] = Field("memory", description="event fan-out: in-process, or Redis pub/sub across replicas")
+    redis_url: str = Field("redis://localhost:6379/0", description="Redis for broker=redis")
+    log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info", description="log verbosity")
+
+    @field_validator("instance_id")
+    @classmethod
+    def _instance_id_is_a_name(cls, value: str) -> str:
+        if not _INSTANCE_ID.match(value):
+            raise ValueError(f"instance_id must be 1–40 letters, digits, '_' or '-', got {value!r}")
+        return value
+
+    @field_validator("nearest_weights")
+    @classmethod
+    def _weights_usable(cls, value: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        if any(w < 0 for w in value) or not any(w > 0 for w in value):
+            raise ValueError(f"nearest_weights must be ≥ 0 and not all zero, got {value}")
+        return value
+
+    @field_validator("redis_url")
+    @classmethod
+    def _redis_scheme(cls, value: str) -> str:
+        if not value.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"redis_url must start with redis://, rediss:// or unix://, got {value!r}")
+        return value
+
+
+def env_name(field: str) -> str:
+    """The environment variable that sets `field`."""
+    return ENV_PREFIX + field.upper()
+
+
+def settings_table() -> str:
+    """Markdown table of every setting: variable, default, meaning (docs/service.md embeds it)."""
+    rows = ["| variable | default | meaning |", "|---|---|---|"]
+    for name, info in Settings.model_fields.items():
+        if info.default_factory is not None:
+            default = "host name"
+        elif info.default is None:
+            default = "—"
+        elif isinstance(info.default, tuple):
+            default = "`" + "[" + ", ".join(f"{v:g}" for v in info.default) + "]`"
+        else:
+            default = f"`{info.default}`"
+        rows.append(f"| `{env_name(name)}` | {default} | {info.description} |")
+    return "\n".join(rows)

@@ -1,0 +1,190 @@
+"""The service's state: runtime (loaded in the background), sessions, broker, pools, metrics.
+
+Routes are thin: they authenticate, parse, and call into this object; everything that can be
+refused raises ServiceError with the status and message the client gets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import secrets
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from service.auth import Role, SessionCredentials, authorize, issue_credentials
+from service.broker import Broker, SessionRecord, Subscription, make_broker
+from service.errors import ServiceError
+from service.events import encode, status_event
+from service.metrics import ServiceMetrics
+from service.runtime import Runtime, load_runtime
+from service.session import Session, session_not_found
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+REAP_EVERY_S = 5.0
+
+
+class ServiceState:
+    """Create with settings, `await start()` inside the event loop, `await close()` at shutdown."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.metrics = ServiceMetrics()
+        self.broker: Broker = make_broker(settings.broker, subscriber_queue=settings.subscriber_queue,
+                                          redis_url=settings.redis_url, instance_id=settings.instance_id)
+        self.sessions: dict[str, Session] = {}
+        self.runtime: Runtime | None = None
+        self.load_error: str | None = None
+        self.window_pool = ThreadPoolExecutor(settings.pool_threads, thread_name_prefix="hapticlink-window")
+        self.visual_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-visual")
+        self._tasks: list[asyncio.Task] = []
+        self._subscribers = 0
+        self._last_publish_error = 0.0
+
+    # ---- lifecycle -------------------------------------------------------------------------------
+    async def start(self) -> None:
+        await self.broker.start()
+        self._tasks = [asyncio.create_task(self._load(), name="load-runtime"),
+                       asyncio.create_task(self._reap_idle(), name="reap-idle-sessions")]
+
+    async def _load(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            self.runtime = await loop.run_in_executor(self.window_pool, load_runtime, self.settings)
+        except ValueError as exc:
+            self.load_error = str(exc)
+            log.error("cannot serve: %s", exc)
+            return
+        rt = self.runtime
+        self.metrics.ready.set(1 if rt.problem is None else 0)
+        log.info("model %s (%s) and library %s (%d entries) loaded and warmed up in %.1f s%s",
+                 rt.model_name, rt.predictor.card.modality, rt.library.name, len(rt.library.ids), rt.load_s,
+                 f"; NOT READY: {rt.problem}" if rt.problem else "")
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        for sid in list(self.sessions):
+            await self.end_session(sid, "the service is shutting down")
+        await self.broker.close()
+        self.window_pool.shutdown(wait=False, cancel_futures=True)
+        self.visual_pool.shutdown(wait=False, cancel_futures=True)
+
+    def readiness(self) -> tuple[bool, str]:
+        """(ready, why): ready once the model and library are loaded, cross-checked and warmed up."""
+        if self.load_error is not None:
+            return False, self.load_error
+        if self.runtime is None:
+            return False, "loading the model and library"
+        if self.runtime.problem is not None:
+            return False, self.runtime.problem
+        return True, "ready"
+
+    def require_runtime(self) -> Runtime:
+        ready, why = self.readiness()
+        if not ready or self.runtime is None:
+            raise ServiceError(503, f"not ready: {why}", {"Retry-After": "1"})
+        return self.runtime
+
+    # ---- sessions --------------------------------------------------------------------------------
+    async def create_session(self, name: str | None) -> tuple[Session, str, str]:
+        """A new session → (session, robot token, operator token)."""
+        runtime = self.require_runtime()
+        if len(self.sessions) >= self.settings.max_sessions:
+            raise ServiceError(503, f"this replica already runs {len(self.sessions)} sessions (max_sessions)",
+                               {"Retry-After": "5"})
+        # The replica's name prefixes the id so a load balancer can send all of a session's traffic here.
+        session_id = f"{self.settings.instance_id}.{secrets.token_urlsafe(9)}"
+        robot, operator, credentials = issue_credentials()
+        name = name or session_id
+        session = Session(session_id, name, credentials, runtime, self.settings, self.window_pool, self.visual_pool,
+                          self.publish, self.metrics)
+        self.sessions[session_id] = session
+        self.metrics.sessions_active.set(len(self.sessions))
+        try:
+            await self.broker.register(SessionRecord(session_id, name, self.settings.instance_id, credentials))
+        except Exception:
+            await self._drop(session_id)
+            raise
+        await self.publish(session_id, status_event(session_id, "session_created", f"session {name!r} created",
+                                                    model=runtime.model_name), False)
+        return session, robot, operator
+
+    async def end_session(self, session_id: str, why: str) -> dict:
+        session = self.sessions.get(session_id)
+        if session is None:
+            raise session_not_found(session_id)
+        status = session.status()
+        await self._drop(session_id)
+        with contextlib.suppress(Exception):
+            await self.broker.forget(session_id)
+        await self.publish(session_id, status_event(session_id, "session_ended", why, counters=status["counters"]), True)
+        return {**status, "state": "ended"}
+
+    async def _drop(self, session_id: str) -> None:
+        session = self.sessions.pop(session_id, None)
+        self.metrics.sessions_active.set(len(self.sessions))
+        if session is not None:
+            await session.close()
+
+    async def _reap_idle(self) -> None:
+        while True:
+            await asyncio.sleep(REAP_EVERY_S)
+            now = time.monotonic()
+            for sid, session in list(self.sessions.items()):
+                if now - session.last_activity > self.settings.session_idle_s:
+                    log.info("ending session %s: idle for %.0f s", sid, now - session.last_activity)
+                    with contextlib.suppress(ServiceError):
+                        await self.end_session(sid, f"no traffic for {self.settings.session_idle_s:g} s")
+
+    async def credentials(self, session_id: str) -> tuple[SessionCredentials, Session | None]:
+        """The session's credentials and, if it runs here, the session; 404 if no replica knows it."""
+        session = self.sessions.get(session_id)
+        if session is not None:
+            return session.credentials, session
+        record = await self.broker.lookup(session_id)
+        if record is None:
+            raise session_not_found(session_id)
+        return record.credentials, None
+
+    async def authorized(self, session_id: str, token: str | None, roles: frozenset[Role]) -> tuple[Role, Session | None]:
+        creds, session = await self.credentials(session_id)
+        return authorize(creds, token, roles, session_id), session
+
+    async def local_session(self, session_id: str, token: str | None, roles: frozenset[Role]) -> Session:
+        """The session if it runs on this replica and `token` may do this; 421 if another replica runs it."""
+        _, session = await self.authorized(session_id, token, roles)
+        if session is None:
+            record = await self.broker.lookup(session_id)
+            owner = record.instance if record else "another replica"
+            raise ServiceError(421, f"session {session_id} runs on {owner}; route its traffic by session id")
+        return session
+
+    # ---- events ----------------------------------------------------------------------------------
+    async def publish(self, session_id: str, event: dict, final: bool) -> None:
+        """Serialise once and hand to the broker; a broker failure costs the event, never the session."""
+        try:
+            await self.broker.publish(session_id, encode(event), final)
+        except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: count, log at most every 10 s
+            self.metrics.publish_errors.inc()
+            now = time.monotonic()
+            if now - self._last_publish_error > 10:
+                self._last_publish_error = now
+                log.warning("publishing an event of session %s failed: %s", session_id, exc)
+
+    async def subscribe(self, session_id: str) -> Subscription:
+        sub = await self.broker.subscribe(session_id)
+        self._subscribers += 1
+        self.metrics.subscribers.set(self._subscribers)
+        return sub
+
+    async def unsubscribe(self, sub: Subscription) -> None:
+        self._subscribers -= 1
+        self.metrics.subscribers.set(self._subscribers)
+        await self.broker.unsubscribe(sub)

@@ -1,0 +1,114 @@
+"""Image files, a watched directory, and the OpenCV camera's error without cv2."""
+
+from __future__ import annotations
+
+import asyncio
+import importlib.util
+import io
+import logging
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from drivers.camera import ImageFilesSource, OpenCVCameraSource, WatchedDirectorySource, encode_image, png_bytes
+
+
+def image_bytes(fmt: str, seed: int = 0) -> bytes:
+    rng = np.random.default_rng(seed)
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (32, 40, 3), dtype=np.uint8)).save(buf, format=fmt)
+    return buf.getvalue()
+
+
+def test_image_files_become_frames_with_their_content_type(tmp_path):
+    png, jpeg, bmp = image_bytes("PNG"), image_bytes("JPEG"), image_bytes("BMP")
+    for name, data in (("a.png", png), ("b.jpg", jpeg), ("c.bmp", bmp)):
+        (tmp_path / name).write_bytes(data)
+    source = ImageFilesSource([tmp_path / "a.png", tmp_path / "b.jpg", tmp_path / "c.bmp"], interval_s=0.5, realtime=False)
+
+    async def main():
+        return [f async for f in source]
+
+    frames = asyncio.run(main())
+    assert [(f.t, f.content_type) for f in frames] == [(0.0, "image/png"), (0.5, "image/jpeg"), (1.0, "image/png")]
+    assert frames[0].image == png and frames[1].image == jpeg
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(frames[2].image))), np.asarray(Image.open(io.BytesIO(bmp)))), "BMP re-encoded losslessly"
+    with pytest.raises(ValueError, match="not found"):
+        ImageFilesSource([tmp_path / "missing.png"])
+    with pytest.raises(ValueError, match="interval_s"):
+        ImageFilesSource([tmp_path / "a.png"], interval_s=0)
+
+
+def append(path, data: bytes) -> None:
+    with open(path, "ab") as f:
+        f.write(data)
+
+
+def test_watched_directory_sends_new_images_and_skips_partial_and_other_files(tmp_path, caplog):
+    first, later, jpeg = image_bytes("PNG", 1), image_bytes("PNG", 2), image_bytes("JPEG", 3)
+    (tmp_path / "000.png").write_bytes(first)
+    source = WatchedDirectorySource(tmp_path, poll_s=0.02)
+
+    async def main():
+        frames: asyncio.Queue = asyncio.Queue()
+
+        async def pump():
+            async for frame in source:
+                await frames.put(frame)
+
+        task = asyncio.create_task(pump())
+        got = [await asyncio.wait_for(frames.get(), 10)]  # the file that was there at start
+        # a camera app writing a file: half of it first (must not be sent), then the rest
+        (tmp_path / "001.png").write_bytes(later[: len(later) // 2])
+        while source.skipped < 1:
+            await asyncio.sleep(0.01)
+        (tmp_path / "notes.txt").write_text("not an image")
+        await asyncio.to_thread(append, tmp_path / "001.png", later[len(later) // 2 :])
+        got.append(await asyncio.wait_for(frames.get(), 10))
+        (tmp_path / "002.jpg").write_bytes(jpeg)
+        got.append(await asyncio.wait_for(frames.get(), 10))
+        await source.aclose()
+        await asyncio.wait_for(task, 10)
+        return got
+
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"):
+        frames = asyncio.run(main())
+    assert [(f.meta["path"], f.content_type) for f in frames] == [("000.png", "image/png"), ("001.png", "image/png"), ("002.jpg", "image/jpeg")]
+    assert frames[0].image == first and frames[1].image == later and frames[2].image == jpeg
+    assert "partial or unreadable" in caplog.text and "notes.txt" in caplog.text
+
+
+def test_watched_directory_can_ignore_what_is_already_there(tmp_path):
+    (tmp_path / "old.png").write_bytes(image_bytes("PNG"))
+    source = WatchedDirectorySource(tmp_path, poll_s=0.02, include_existing=False)
+
+    async def main():
+        it = aiter(source)
+        nxt = asyncio.ensure_future(anext(it))
+        await asyncio.sleep(0.1)
+        (tmp_path / "new.png").write_bytes(image_bytes("PNG", 5))
+        frame = await asyncio.wait_for(nxt, 10)
+        await source.aclose()
+        return frame
+
+    frame = asyncio.run(main())
+    assert frame.meta["path"] == "new.png"
+    with pytest.raises(ValueError, match="not a directory"):
+        WatchedDirectorySource(tmp_path / "nope")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("cv2") is not None, reason="OpenCV is installed here")
+def test_opencv_camera_without_cv2_says_what_to_install():
+    with pytest.raises(ImportError, match="opencv-python-headless"):
+        OpenCVCameraSource(0)
+
+
+def test_encoding_helpers():
+    img = np.arange(64, dtype=np.uint8).reshape(8, 8)
+    data, ctype = encode_image(png_bytes(img))
+    assert ctype == "image/png" and np.array_equal(np.asarray(Image.open(io.BytesIO(data))), img)
+    with pytest.raises(ValueError, match="not a complete image"):
+        encode_image(png_bytes(img)[:40])
+    with pytest.raises(ValueError, match="uint8"):
+        png_bytes(img.astype(float))

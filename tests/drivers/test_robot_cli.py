@@ -1,0 +1,89 @@
+"""`hapticlink robot`: source specs, argument errors, and one run against the fake service."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from drivers.camera import WatchedDirectorySource
+from drivers.cli import register, source_from_spec
+from drivers.serial_board import SerialBoardSource
+from drivers.usb_daq import UsbDaqSource
+from texture_library.recording import Recording, make_channel, save_recording
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hapticlink")
+    register(p.add_subparsers(dest="command", required=True))
+    return p
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("simulated", "must be one of: simulated:LIBRARY_DIR:ENTRY_ID"),
+        ("webcam:0", "unknown source kind 'webcam'"),
+        ("simulated:only-a-dir", "expected simulated:DIR:ENTRY_ID"),
+        ("replay:/no/such/dir:t1", "'/no/such/dir' is not a directory"),
+        ("replay::t1", "both parts non-empty"),
+        ("usb:1209", "expected usb:VID:PID"),
+        ("usb:12g9:0001", "VID must be hexadecimal"),
+        ("usb:1209:10000", "PID must lie in 0000…ffff"),
+        ("serial:/dev/ttyUSB0:0", "baud rate must be positive"),
+        ("camera-dir:/no/such/dir", "not a directory"),
+    ],
+)
+def test_bad_specs_say_what_is_wrong(spec, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        source_from_spec(spec)
+
+
+def test_good_specs_build_their_sources(tmp_path):
+    s = source_from_spec("serial:/dev/ttyUSB0:115200")
+    assert isinstance(s, SerialBoardSource) and (s.port, s.baudrate) == ("/dev/ttyUSB0", 115200)
+    assert source_from_spec("serial:COM3").port == "COM3"
+    u = source_from_spec("usb:1209:0x0001", block_s=0.05)
+    assert isinstance(u, UsbDaqSource) and (u.vid, u.pid, u.block_s) == (0x1209, 1, 0.05)
+    assert isinstance(source_from_spec(f"camera-dir:{tmp_path}"), WatchedDirectorySource)
+
+
+def test_robot_arguments(tmp_path):
+    args = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--no-realtime", "--transport", "http"])
+    assert (args.realtime, args.transport, args.duration, args.session) == (False, "http", None, None)
+    only_session = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--session", "s1"])
+    with pytest.raises(ValueError, match="--session and --token go together"):
+        only_session.func(only_session)
+    json_ws = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--json"])
+    with pytest.raises(ValueError, match="--json needs --transport http"):
+        json_ws.func(json_ws)
+    bad_url = parser().parse_args(["robot", "--source", f"camera-dir:{tmp_path}", "--url", "h:1"])
+    with pytest.raises(ValueError, match="url must be http"):
+        bad_url.func(bad_url)
+
+
+def test_robot_command_replays_a_recording_into_a_new_session(kit, fake_service, tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    rec = Recording(
+        accel=make_channel("accel", rng.standard_normal((500, 3)), 1000.0),
+        force=make_channel("force", rng.uniform(1, 2, 500), 1000.0),
+        speed=make_channel("speed", rng.uniform(20, 80, 500), 1000.0),
+    )
+    folder = tmp_path / "textures" / "t1"
+    folder.mkdir(parents=True)
+    save_recording(folder / "recording_000.npz", rec)
+    (folder / "meta.json").write_text(json.dumps({"recordings": ["recording_000.npz"], "images": []}))
+
+    # The service runs in its own thread and loop: the command owns the main thread's loop.
+    with kit.ServerThread(fake_service.app) as server:
+        args = parser().parse_args(["robot", "--source", f"replay:{tmp_path}:t1", "--url", server.url, "--no-realtime", "--transport", "http"])
+        status = args.func(args)
+    out = capsys.readouterr().out.splitlines()
+    sess = fake_service.only_session()
+    assert status == 0
+    assert out[0].startswith("session s1") and out[2] == f"console {server.url}/console?session=s1&token={sess.operator_token}"
+    stats = json.loads(out[-1])
+    assert stats["acked"] == stats["read"] == 25 and stats["lost"] == stats["unsent"] == 0
+    np.testing.assert_array_equal(kit.concat(sess.accepted, "speed"), rec.speed.data.astype(np.float32))

@@ -1,0 +1,283 @@
+"""RobotClient against a fake service on loopback (uvicorn + Starlette), real httpx/websockets clients."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+
+import numpy as np
+import pytest
+
+from drivers.blocks import Frame
+from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, _Pending
+from drivers.source import blocks_from_arrays
+
+FAST = {"backoff": (0.01, 0.05), "seed": 7}
+TRANSPORTS = [pytest.param("ws", True, id="ws"), pytest.param("http", True, id="http-binary"), pytest.param("http", False, id="http-json")]
+
+
+async def _wait_until(predicate, timeout_s: float = 10.0) -> None:
+    """Poll until predicate() holds (a hang guard, not a timing assertion)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while not predicate():
+        if loop.time() > deadline:
+            raise AssertionError("condition not reached within the hang guard")
+        await asyncio.sleep(0.005)
+
+
+def _assert_exactly_once(kit, sess, arrays, n_blocks: int) -> None:
+    seqs = [b.seq for b in sess.accepted]
+    assert seqs == list(range(n_blocks)), "every block accepted once, in order"
+    for kind, (data, _, units) in arrays.items():
+        np.testing.assert_array_equal(kit.concat(sess.accepted, kind), data)
+        assert {b.channels[kind].units for b in sess.accepted} == {units}
+
+
+@pytest.mark.parametrize("transport, binary", TRANSPORTS)
+def test_every_sample_arrives_once_and_in_order_across_outages(kit, fake_service, transport, binary):
+    arrays = kit.stroke_arrays(6000, seed=1)  # 6 s at 1 kHz → 300 blocks of 20 ms
+    blocks = list(blocks_from_arrays(arrays, 0.02))
+    source = kit.ListSource(blocks)
+    fake_service.saturate = 2  # 429 (HTTP) / close 4429 (WS) twice
+    fake_service.fail_after_accept = {10, 120}  # processed, but the acknowledgement never arrives
+    fake_service.fail_at = {60: 3}  # 503 three times before block 60 gets through
+    fake_service.ws_kill_every = 97 if transport == "ws" else 0
+    server = kit.LoopbackServer(fake_service.app)
+    restarts = []
+
+    def on_accept(seq: int) -> None:
+        if seq == 200 and not restarts:  # a full outage mid-stream: the server goes away for a while
+            restarts.append(server.restart_soon(0.3))
+
+    fake_service.on_accept = on_accept
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, source, transport=transport, binary=binary, **FAST)
+            stats = await client.run()
+            await asyncio.gather(*restarts)
+            return client, stats
+        finally:
+            await server.stop()
+
+    _, stats = asyncio.run(main())
+    sess = fake_service.only_session()
+    _assert_exactly_once(kit, sess, arrays, len(blocks))
+    assert restarts, "the outage happened"
+    assert stats.read == stats.acked == len(blocks)
+    assert stats.lost == stats.unsent == stats.rejected == 0
+    assert stats.saturated == 2
+    assert stats.reconnects >= 2 and stats.resent >= 2
+    assert stats.duplicates >= 2  # the blocks whose acknowledgement was lost came back as duplicates
+    assert sess.deliveries[10] == 2 and sess.deliveries[120] >= 2
+    assert source.closed
+
+
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_a_refused_block_is_dropped_not_retried(kit, fake_service, transport):
+    arrays = kit.stroke_arrays(1000, seed=2)
+    blocks = list(blocks_from_arrays(arrays, 0.02))
+    fake_service.reject_seqs = {7}
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            return await RobotClient(server.url, kit.ListSource(blocks), transport=transport, **FAST).run()
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    sess = fake_service.only_session()
+    assert sess.deliveries[7] == 1, "a 400 block is not sent again"
+    assert [b.seq for b in sess.accepted] == [s for s in range(len(blocks)) if s != 7]
+    assert stats.rejected == 1 and stats.acked == len(blocks) - 1 and stats.unsent == 0
+
+
+def test_full_buffer_drops_the_oldest_and_counts_them_lost(kit, fake_service, caplog):
+    arrays = kit.stroke_arrays(1000, seed=3)  # 50 blocks of 20 ms
+    blocks = list(blocks_from_arrays(arrays, 0.02))
+    fake_service.add_session("s-fixed", "robot-secret")
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()  # learn a free port, then take the service away before the robot starts
+        await server.stop()
+        client = RobotClient(server.url, kit.ListSource(blocks), session_id="s-fixed", robot_token="robot-secret", max_buffer_s=0.2, **FAST)
+        run = asyncio.create_task(client.run())
+        await _wait_until(lambda: client.stats.read == len(blocks))
+        await server.start()
+        try:
+            return await run
+        finally:
+            await server.stop()
+
+    with caplog.at_level(logging.ERROR, logger="drivers.robot"):
+        stats = asyncio.run(main())
+    sess = fake_service.sessions["s-fixed"]
+    assert [b.seq for b in sess.accepted] == list(range(40, 50)), "the newest 0.2 s survive"
+    np.testing.assert_array_equal(kit.concat(sess.accepted, "accel"), arrays["accel"][0][800:])
+    assert stats.lost == 40 and stats.lost_s == pytest.approx(0.8)
+    assert stats.acked == 10 and stats.unsent == 0
+    assert any("resend buffer full" in r.message for r in caplog.records)
+
+
+def test_creates_a_session_logs_the_console_link_and_posts_frames(kit, fake_service, caplog):
+    arrays = kit.stroke_arrays(200, seed=4)
+    png = b"\x89PNG\r\n\x1a\n" + b"not really decoded by the fake"
+    items = [Frame(0.0, png, "image/png"), *blocks_from_arrays(arrays, 0.02)]
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.ListSource(items), session_name="bench", **FAST)
+            stats = await client.run()
+            return client, stats
+        finally:
+            await server.stop()
+
+    with caplog.at_level(logging.INFO, logger="drivers.robot"):
+        client, stats = asyncio.run(main())
+    sess = fake_service.only_session()
+    sid = client.session.session_id
+    assert client.session.console_url == f"{server.url}/console?session={sid}&token={sess.operator_token}"
+    assert sess.operator_token in caplog.text and client.session.console_url in caplog.text
+    assert sess.frames == [("image/png", png)]
+    assert stats.frames_sent == 1 and stats.acked == 10
+
+
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_a_refused_token_is_fatal(kit, fake_service, transport):
+    fake_service.add_session("s-fixed", "robot-secret")
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.EndlessSource(), session_id="s-fixed", robot_token="wrong", transport=transport, **FAST)
+            await client.run()
+        finally:
+            await server.stop()
+
+    with pytest.raises(RobotAuthError):
+        asyncio.run(main())
+
+
+def test_duration_stops_reading_then_drains(kit, fake_service):
+    server = kit.LoopbackServer(fake_service.app)
+    source = kit.EndlessSource(speed=4.0)
+
+    async def main():
+        await server.start()
+        try:
+            return await RobotClient(server.url, source, **FAST).run(duration_s=0.3)
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    sess = fake_service.only_session()
+    assert stats.read > 0 and stats.acked == stats.read and stats.unsent == 0
+    assert [b.seq for b in sess.accepted] == list(range(stats.read))
+    assert source.closed
+
+
+def test_cancelling_run_closes_the_source_and_its_tasks(kit, fake_service):
+    server = kit.LoopbackServer(fake_service.app)
+    source = kit.EndlessSource(speed=4.0)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, source, **FAST)
+            run = asyncio.create_task(client.run())
+            await _wait_until(lambda: fake_service.sessions and len(fake_service.only_session().accepted) >= 5)
+            run.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await run
+            leftovers = [t.get_name() for t in asyncio.all_tasks() if t.get_name().startswith("robot-")]
+            return client, leftovers
+        finally:
+            await server.stop()
+
+    client, leftovers = asyncio.run(main())
+    assert source.closed and leftovers == []
+    assert client.stats.unsent == client.stats.read - client.stats.acked
+
+
+def test_bad_client_arguments_are_named():
+    src = object()
+    with pytest.raises(ValueError, match="http://"):
+        RobotClient("ftp://x", src)
+    with pytest.raises(ValueError, match="both session_id and robot_token"):
+        RobotClient("http://x", src, session_id="s")
+    with pytest.raises(ValueError, match="binary=False needs transport='http'"):
+        RobotClient("http://x", src, binary=False)
+    with pytest.raises(ValueError, match="transport"):
+        RobotClient("http://x", src, transport="udp")
+    with pytest.raises(ValueError, match="backoff"):
+        RobotClient("http://x", src, backoff=(1.0, 0.5))
+
+
+def test_backoff_grows_exponentially_with_jitter_and_caps():
+    b = Backoff(0.1, 1.0, rng=random.Random(0))
+    delays = [b.next() for _ in range(8)]
+    ceilings = [min(1.0, 0.1 * 2**k) for k in range(8)]
+    assert all(c / 2 <= d <= c for d, c in zip(delays, ceilings))
+    assert len(set(delays)) == len(delays), "jittered"
+    b.reset()
+    assert 0.05 <= b.next() <= 0.1
+
+
+def test_resend_buffer_keeps_max_seconds_and_settles_cumulatively():
+    buf = ResendBuffer(max_s=0.07)  # room for three blocks of 20 ms
+    dropped = [d.seq for i in range(5) for d in buf.append(_Pending(i, b"x", 0.02))]
+    assert dropped == [0, 1] and len(buf) == 3 and buf.held_s == pytest.approx(0.06)
+    assert buf.oldest_seq == 2
+    assert buf.first_from(0).seq == 2 and buf.first_from(4).seq == 4 and buf.first_from(5) is None
+    assert buf.count_before(4) == 2
+    assert [e.seq for e in buf.settle(3)] == [2, 3] and buf.oldest_seq == 4
+    with pytest.raises(ValueError, match="does not follow"):
+        buf.append(_Pending(9, b"x", 0.02))
+
+
+class FailingSource:
+    """Yields its blocks, then fails like an unplugged device."""
+
+    name = "failing"
+
+    def __init__(self, blocks) -> None:
+        self.blocks = blocks
+        self.closed = False
+
+    async def _items(self):
+        for block in self.blocks:
+            yield block
+        raise OSError("device unplugged")
+
+    def __aiter__(self):
+        return self._items()
+
+    async def aclose(self) -> None:
+        self.closed = True
+
+
+def test_a_failing_source_ends_the_run_after_its_blocks_are_delivered(kit, fake_service):
+    arrays = kit.stroke_arrays(400, seed=5)
+    source = FailingSource(list(blocks_from_arrays(arrays, 0.02)))
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            await RobotClient(server.url, source, **FAST).run()
+        finally:
+            await server.stop()
+
+    with pytest.raises(OSError, match="unplugged"):
+        asyncio.run(main())
+    _assert_exactly_once(kit, fake_service.only_session(), arrays, 20)
+    assert source.closed

@@ -1,0 +1,160 @@
+"""SerialBoardSource over a real pseudo-terminal pair: a thread plays the board on the master side."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import select
+import threading
+import tty
+
+import numpy as np
+import pytest
+
+from drivers.serial_board import BoardDecoder, SerialBoardSource, parse_header
+
+HEADER = "#HL1 rate=1000 accel=g force=N position=mm"
+
+
+def sample_values(counter: int) -> list[float]:
+    """What the fake board measures at sample `counter`: ax, ay, az (g), fx, fy, fz (N), position (mm)."""
+    return [0.001 * counter, -0.5, 1.0 + 0.25 * (counter % 4), 0.1, 0.0, 1.5 + 0.01 * counter, 0.2 * counter]
+
+
+def data_line(counter: int) -> bytes:
+    return (f"{counter}," + ",".join(f"{v:.4f}" for v in sample_values(counter)) + "\n").encode()
+
+
+@pytest.fixture
+def pty_port():
+    """(master fd, slave device name); the slave is raw so bytes pass untouched."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
+
+
+def play_board(master: int, lines: list[bytes]) -> tuple[threading.Thread, dict]:
+    """The board: wait for the host's header request (it comes right after the port is opened,
+    and opening flushes the input), then send the lines."""
+    seen = {"request": b""}
+
+    def run() -> None:
+        while b"#?\n" not in seen["request"]:
+            ready, _, _ = select.select([master], [], [], 5.0)
+            if not ready:
+                return
+            seen["request"] += os.read(master, 64)
+        for chunk in lines:
+            os.write(master, chunk)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, seen
+
+
+async def collect(source, n_samples: int) -> list:
+    blocks, got = [], 0
+    async for block in source:
+        blocks.append(block)
+        got += block.channels["accel"].data.shape[0]
+        if got >= n_samples:
+            break
+    await source.aclose()
+    return blocks
+
+
+def test_values_gaps_and_garbled_lines_over_a_pty(pty_port):
+    master, port = pty_port
+    lost = {30, 31, 32}  # lines lost on the wire
+    lines = [b"boot noise without a header\n", (HEADER + "\r\n").encode(), b"# board v1.2 says hello\n"]
+    for c in range(100):
+        if c in lost:
+            continue
+        if c == 50:
+            lines.append(b"50,0.05,-0.5,1.5,0.1,oops,2.0,10.0\n")  # garbled: its sample is missing
+        else:
+            lines.append(data_line(c))
+        if c == 60:
+            lines.append(b"\xff\xfe\x00\n")  # noise between two good lines
+        if c == 70:
+            lines.append(b"9" * 700)  # a runaway line with no newline in sight...
+            lines.append(b"123,4\n")  # ...whose tail must not be parsed as a sample
+    expected_counters = [c for c in range(100) if c not in lost and c != 50]
+
+    source = SerialBoardSource(port, block_s=0.02)
+    board, seen = play_board(master, lines)
+
+    async def main():
+        return await asyncio.wait_for(collect(source, len(expected_counters)), 20)
+
+    blocks = asyncio.run(main())
+    board.join(5)
+
+    accel = np.concatenate([b.channels["accel"].data for b in blocks])
+    force = np.concatenate([b.channels["force"].data for b in blocks])
+    position = np.concatenate([b.channels["position"].data for b in blocks])
+    truth = np.array([sample_values(c) for c in expected_counters])
+    np.testing.assert_allclose(accel, truth[:, 0:3], atol=1e-4)
+    np.testing.assert_allclose(force, truth[:, 3:6], atol=1e-4)
+    np.testing.assert_allclose(position, truth[:, 6], atol=1e-4)
+    assert {(k, c.units) for b in blocks for k, c in b.channels.items()} == {("accel", "g"), ("force", "N"), ("position", "mm")}
+    assert {c.rate_hz for b in blocks for c in b.channels.values()} == {1000.0}
+
+    # time is never shifted: every block starts at its first sample's counter / rate
+    starts, i = [], 0
+    for b in blocks:
+        starts.append(expected_counters[i])
+        i += b.channels["accel"].data.shape[0]
+    assert [round(b.t0 * 1000) for b in blocks] == starts
+    assert 33 in starts and 51 in starts, "a gap starts a new block at the true time"
+    assert [b.seq for b in blocks] == list(range(len(blocks)))
+
+    s = source.stats
+    assert (s.gaps, s.missing_samples) == (2, 4)
+    assert s.garbled == 3  # the bad number, the binary noise, the runaway line
+    assert s.skipped == 1 and s.resyncs == 0
+    assert not source._thread.is_alive(), "clean shutdown: the reader thread is gone"
+    assert seen["request"] == b"#?\n", "the host asked the board for its header when it opened the port"
+
+
+def test_a_bad_header_is_raised_with_its_reason(pty_port):
+    master, port = pty_port
+    source = SerialBoardSource(port)
+    play_board(master, [b"#HL1 rate=1000 accel=furlongs\n"])
+
+    async def main():
+        return await asyncio.wait_for(collect(source, 1), 10)
+
+    with pytest.raises(ValueError, match="accel units must be one of"):
+        asyncio.run(main())
+
+
+def test_parse_header_names_what_is_wrong():
+    h = parse_header("#HL1 rate=500 wrap=65536 accel=m/s^2 force[1]=N position[2]=m")
+    assert h.rate_hz == 500 and h.wrap == 65536 and h.n_values == 6
+    assert h.layout == (("accel", 3, "m/s^2"), ("force", 1, "N"), ("position", 2, "m"))
+    for bad, why in [
+        ("HL1 rate=1", "must start with"),
+        ("#HL1 accel=g", "rate=<Hz> is required"),
+        ("#HL1 rate=5 accel=g", "rate must lie in"),
+        ("#HL1 rate=1000", "no channels"),
+        ("#HL1 rate=1000 accel[2]=g", "accel has [3] column"),
+        ("#HL1 rate=1000 torque=Nm", "unknown key 'torque'"),
+        ("#HL1 rate=1000 accel=g accel=g", "appears twice"),
+    ]:
+        with pytest.raises(ValueError, match=why.replace("[", r"\[")):
+            parse_header(bad)
+
+
+def test_decoder_restart_header_continues_time_and_counts_a_resync():
+    dec = BoardDecoder(0.1, parse_header("#HL1 rate=100 force[1]=N speed=mm/s"))
+    out = []
+    for c in range(5):
+        out += dec.feed_line(f"{c},1.0,{c}".encode())
+    out += dec.feed_line(b"#HL1 rate=200 force[1]=N speed=mm/s")  # the board restarted at another rate
+    out += dec.feed_line(b"0,2.0,7")
+    out += dec.flush()
+    assert [round(b.t0, 4) for b in out] == [0.0, 0.05]
+    assert out[1].channels["force"].rate_hz == 200.0 and dec.stats.resyncs == 1

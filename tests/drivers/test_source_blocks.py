@@ -1,0 +1,216 @@
+"""blocks_from_arrays, paced, ThreadedSource and StreamAssembler."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.blocks import Frame, SampleBlock
+from drivers.source import SensorSource, StreamAssembler, ThreadedSource, blocks_from_arrays, paced
+
+RATES = st.sampled_from([10.0, 100.0, 333.3, 500.0, 1000.0, 1234.5, 2500.0, 10_000.0])
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    rates=st.lists(RATES, min_size=1, max_size=3),
+    duration_s=st.floats(0.01, 2.0),
+    block_s=st.floats(0.003, 0.5),
+    t0=st.floats(-10.0, 1000.0),
+    seq0=st.integers(0, 10**6),
+    seed=st.integers(0, 2**16),
+)
+def test_concatenated_blocks_give_back_the_arrays(rates, duration_s, block_s, t0, seq0, seed):
+    rng = np.random.default_rng(seed)
+    kinds = ["accel", "force", "speed"][: len(rates)]
+    channels = {}
+    for kind, rate in zip(kinds, rates):
+        n = max(1, int(duration_s * rate * rng.uniform(0.9, 1.1)))  # lengths need not agree exactly
+        shape = (n, 3) if kind == "accel" else (n,)
+        channels[kind] = (rng.standard_normal(shape).astype(np.float32), rate, "m/s^2" if kind == "accel" else "N" if kind == "force" else "mm/s")
+    blocks = list(blocks_from_arrays(channels, block_s, t0=t0, seq0=seq0))
+
+    assert [b.seq for b in blocks] == list(range(seq0, seq0 + len(blocks)))
+    assert all(b.channels for b in blocks)
+    for kind, (data, rate, units) in channels.items():
+        parts = [b.channels[kind] for b in blocks if kind in b.channels]
+        np.testing.assert_array_equal(np.concatenate([p.data for p in parts]), data)
+        assert {p.units for p in parts} == {units} and {p.rate_hz for p in parts} == {rate}
+        # each block's first sample lies within half a sample period of the block's t0 (remainders carried, no drift)
+        start = 0
+        for b in blocks:
+            if kind in b.channels:
+                assert abs(start / rate - (b.t0 - t0)) <= 0.5 / rate + 1e-6
+                assert b.channels[kind].data.shape[0] <= int(np.ceil(block_s * rate)) + 1 or b is blocks[-1]
+                start += b.channels[kind].data.shape[0]
+    t0s = [b.t0 for b in blocks]
+    assert t0s == sorted(t0s)
+
+
+def test_blocks_at_1khz_are_exactly_20_samples():
+    data = np.arange(1000, dtype=np.float32)
+    blocks = list(blocks_from_arrays({"speed": (data, 1000.0, "mm/s")}, 0.02, t0=5.0))
+    assert [b.channels["speed"].data.shape[0] for b in blocks] == [20] * 50
+    assert blocks[3].t0 == pytest.approx(5.06) and blocks[3].channels["speed"].data[0] == 60
+
+
+def test_blocks_from_arrays_names_bad_arguments():
+    good = (np.zeros(10, np.float32), 1000.0, "N")
+    with pytest.raises(ValueError, match="block_s"):
+        list(blocks_from_arrays({"force": good}, 0.0))
+    with pytest.raises(ValueError, match="at least one channel"):
+        list(blocks_from_arrays({}, 0.02))
+    with pytest.raises(ValueError, match="units"):
+        list(blocks_from_arrays({"force": (good[0], 1000.0, "lbf")}, 0.02))
+    with pytest.raises(ValueError, match="shape"):
+        list(blocks_from_arrays({"accel": (np.zeros((10, 2)), 1000.0, "g")}, 0.02))
+    with pytest.raises(ValueError, match="samples per block"):
+        list(blocks_from_arrays({"force": (np.zeros(10), 100_000.0, "N")}, 2.0))
+
+
+class FakeClock:
+    """A monotonic clock that advances only when paced sleeps (or the consumer is slow)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def monotonic(self) -> float:
+        return self.now
+
+    async def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += max(0.0, seconds)
+
+
+def _block(t0: float, n: int = 20) -> SampleBlock:
+    from drivers.blocks import ChannelBlock
+
+    return SampleBlock(t0, {"speed": ChannelBlock(np.zeros(n, np.float32), 1000.0, "mm/s")})
+
+
+def test_paced_follows_an_absolute_schedule_without_drift(monkeypatch):
+    clock = FakeClock()
+    monkeypatch.setattr("drivers.source._monotonic", clock.monotonic)
+    monkeypatch.setattr("drivers.source._sleep", clock.sleep)
+    items = [Frame(0.0, b"png"), *[_block(0.02 * k) for k in range(10)]]
+
+    async def consume():
+        emitted = []
+        async for item in paced(items, realtime=True, speed=2.0):
+            emitted.append(clock.now - 100.0)
+            if len(emitted) == 4:
+                clock.now += 0.05  # the consumer is late once: the schedule must not shift
+        return emitted
+
+    emitted = asyncio.run(consume())
+    # block k completes at 0.02·(k+1) s of stream time; at speed 2 that is 0.01·(k+1) s of wall time
+    expected = [0.0] + [0.01 * (k + 1) for k in range(10)]
+    for got, want in zip(emitted, expected):
+        assert got >= want - 1e-12  # never early
+    late_from = 4
+    assert emitted[late_from] == pytest.approx(0.08)  # caught up at once after the late consumer
+    assert emitted[-1] == pytest.approx(0.1), "no drift: the last block is on its original schedule"
+
+
+def test_paced_without_realtime_never_sleeps_a_positive_time(monkeypatch):
+    clock = FakeClock()
+    monkeypatch.setattr("drivers.source._sleep", clock.sleep)
+
+    async def consume():
+        return [i async for i in paced([_block(0.02 * k) for k in range(5)], realtime=False)]
+
+    assert len(asyncio.run(consume())) == 5 and set(clock.sleeps) == {0}
+    with pytest.raises(ValueError, match="speed"):
+        asyncio.run(consume_with(paced([], True, speed=0.0)))
+
+
+async def consume_with(agen):
+    return [i async for i in agen]
+
+
+class BurstSource(ThreadedSource):
+    """Emits n items at once from its thread, then signals and waits to be stopped (or fails)."""
+
+    name = "burst"
+
+    def __init__(self, n: int, queue_size: int, fail: bool = False) -> None:
+        super().__init__(queue_size)
+        self.n, self.fail = n, fail
+        self.emitted = threading.Event()
+        self.closed_device = threading.Event()
+
+    def _produce(self, stop, emit):
+        try:
+            for k in range(self.n):
+                emit(_block(0.02 * k))
+            self.emitted.set()
+            if self.fail:
+                raise OSError("device unplugged")
+        finally:
+            self.closed_device.set()
+
+
+def test_threaded_source_bounds_its_queue_drops_oldest_and_ends():
+    src = BurstSource(10, queue_size=3)
+    assert isinstance(src, SensorSource)
+
+    async def consume():
+        it = aiter(src)
+        first = await anext(it)  # starts the thread; the first item may already be through
+        await asyncio.to_thread(src.emitted.wait, 5)
+        rest = [b async for b in it]
+        await src.aclose()
+        return [first, *rest]
+
+    items = asyncio.run(consume())
+    t0s = [round(b.t0 / 0.02) for b in items]
+    assert t0s[-3:] == [7, 8, 9], "the newest items survive"
+    assert src.overruns == 10 - len(items)
+    assert src.closed_device.is_set()
+
+
+def test_threaded_source_raises_the_thread_error():
+    src = BurstSource(2, queue_size=8, fail=True)
+
+    async def consume():
+        return [b async for b in src]
+
+    with pytest.raises(OSError, match="unplugged"):
+        asyncio.run(consume())
+
+
+LAYOUT = (("accel", 3, "g"), ("force", 1, "N"))
+
+
+def _rows(counters):
+    return np.array([[c, c + 0.5, -c, 2 * c] for c in counters], float)
+
+
+def test_assembler_splits_on_the_grid_and_at_gaps_with_true_times():
+    asm = StreamAssembler(1000.0, LAYOUT, 0.01)  # 10 samples per block
+    out = asm.add(0, _rows(range(25)))  # counters 0..24 in one packet
+    out += asm.add(28, _rows(range(28, 40)))  # 25, 26, 27 lost
+    out += asm.flush()
+    assert [(round(b.t0 * 1000), b.channels["force"].data.shape[0]) for b in out] == [(0, 10), (10, 10), (20, 5), (28, 2), (30, 10)]
+    assert out[3].channels["accel"].data[0].tolist() == [28, 28.5, -28]
+    assert asm.stats.gaps == 1 and asm.stats.missing_samples == 3 and asm.stats.samples == 37
+    assert [b.seq for b in out] == [0, 1, 2, 3, 4]
+
+
+def test_assembler_counts_across_the_counter_wrap_and_resyncs_backwards():
+    asm = StreamAssembler(100.0, LAYOUT, 0.1, wrap=256)
+    out = asm.add(250, _rows(range(6)))  # 250..255
+    out += asm.add(0, _rows(range(4)))  # wrapped: contiguous, no gap
+    assert asm.stats.gaps == 0
+    out += asm.add(10, _rows(range(2)))  # 4..9 lost across nothing but a jump of 6
+    assert asm.stats.gaps == 1 and asm.stats.missing_samples == 6
+    out += asm.add(3, _rows(range(2)))  # backwards: a restart
+    out += asm.flush()
+    assert asm.stats.resyncs == 1
+    assert out[-1].t0 == pytest.approx((10 + 6 + 2) / 100.0), "after a resync time continues after the last sample"

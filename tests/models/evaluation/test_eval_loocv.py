@@ -1,0 +1,57 @@
+import numpy as np
+import pytest
+
+from models.evaluation.estimators import MeanEstimator
+from models.evaluation.loocv import loocv, run_fold
+from models.evaluation.metrics import error_table
+from models.evaluation.registry import EstimatorSpec, build_estimator
+
+
+def mae(run, data):
+    return error_table(run.predictions, data.targets)["mae"]["mean"]
+
+
+@pytest.mark.parametrize("name", ["ridge-both", "ridge-tactile", "ridge-visual", "knn-both", "svr-visual"])
+def test_models_learn_the_linear_world_far_better_than_the_mean(linear_world, name):
+    mean = mae(loocv(linear_world, EstimatorSpec("mean"), backend="serial", progress=False), linear_world)
+    model = mae(loocv(linear_world, EstimatorSpec(name), backend="serial", progress=False), linear_world)
+    assert model < 0.5 * mean, (name, model, mean)
+
+
+def test_no_leakage_shuffled_labels_stay_at_predict_the_mean_level(linear_world):
+    mean = mae(loocv(linear_world, EstimatorSpec("mean"), backend="serial", progress=False), linear_world)
+    real = mae(loocv(linear_world, EstimatorSpec("ridge-both"), backend="serial", progress=False), linear_world)
+    shuffled = [mae(loocv(linear_world, EstimatorSpec("shuffled-ridge-both"), seed=s, backend="serial", progress=False), linear_world)
+                for s in range(3)]
+    assert real < 0.3 * mean
+    assert np.mean(shuffled) > 0.8 * mean, (shuffled, mean)
+
+
+class PeekingEstimator(MeanEstimator):
+    """Tries to read the held-out ratings at predict time."""
+
+    def predict(self, data):
+        assert data.targets is None, "the held-out texture's ratings reached predict"
+        return super().predict(data)
+
+
+def test_held_out_ratings_never_reach_predict(linear_world, monkeypatch):
+    monkeypatch.setattr(EstimatorSpec, "build", lambda self: PeekingEstimator())
+    pred, _, _, _ = run_fold(linear_world, EstimatorSpec("mean"), 3, 0)
+    others = np.delete(linear_world.targets, 3, axis=0).mean(axis=0)
+    np.testing.assert_allclose(pred, others, rtol=1e-6)
+
+
+def test_process_backend_equals_serial(linear_world):
+    a = loocv(linear_world, EstimatorSpec("ridge-both"), backend="serial", progress=False)
+    b = loocv(linear_world, EstimatorSpec("ridge-both"), backend="process", workers=2, progress=False)
+    np.testing.assert_allclose(a.predictions, b.predictions, rtol=1e-6)
+
+
+def test_bad_arguments(linear_world):
+    with pytest.raises(ValueError, match="unknown model"):
+        build_estimator("no-such-model")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        loocv(linear_world, EstimatorSpec("mean"), backend="threads")
+    with pytest.raises(ValueError, match="at least 3 rated textures"):
+        loocv(linear_world.take([0, 1]), EstimatorSpec("mean"))

@@ -1,0 +1,213 @@
+"""Shared pieces of the service tests: real fixtures (library, dataset, ONNX models) and a real uvicorn
+server on a random loopback port, run in a background thread with its own event loop.
+
+Helpers are handed out through the `kit` fixture (conftest is not importable under importlib mode).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+
+from drivers.blocks import SampleBlock
+from drivers.source import blocks_from_arrays
+from service.app import create_app
+from service.settings import Settings
+from texture_library.library import Library
+from texture_library.recording import Recording, recording_from_stroke
+from texture_library.stroke import stroke
+from texture_library.trajectory import freehand, model_ranges
+
+FIXED_SEED = 1234
+
+
+# ---- the real server -----------------------------------------------------------------------------
+class ServerThread:
+    """uvicorn serving create_app(settings) on 127.0.0.1:<free port> in a daemon thread."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.app = create_app(settings)
+        self.port = 0
+        self._server: uvicorn.Server | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}"
+
+    def start(self, wait_ready: bool = True, timeout_s: float = 60.0) -> "ServerThread":
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(("127.0.0.1", 0))
+        self.port = sock.getsockname()[1]
+        config = uvicorn.Config(self.app, lifespan="on", log_level="warning", access_log=False,
+                                ws_max_size=self.settings.max_body_bytes, timeout_graceful_shutdown=3)
+        self._server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self._server.started:
+            if not self._thread.is_alive():
+                raise RuntimeError("the server thread died during start-up")
+            if time.monotonic() > deadline:
+                raise TimeoutError("the server did not start")
+            time.sleep(0.01)
+        if wait_ready:
+            self.wait_ready(deadline - time.monotonic())
+        return self
+
+    def wait_ready(self, timeout_s: float = 60.0) -> dict:
+        deadline = time.monotonic() + timeout_s
+        with httpx.Client(base_url=self.url, timeout=5) as client:
+            while True:
+                r = client.get("/ready")
+                if r.status_code == 200:
+                    return r.json()
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"not ready: {r.text}")
+                time.sleep(0.05)
+
+    def stop(self) -> None:
+        if self._server is not None and self._thread is not None:
+            self._server.should_exit = True
+            self._thread.join(timeout=15)
+        self._server = self._thread = None
+
+
+@contextlib.contextmanager
+def running(settings: Settings, wait_ready: bool = True) -> Iterator[ServerThread]:
+    server = ServerThread(settings).start(wait_ready=wait_ready)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+# ---- signals -------------------------------------------------------------------------------------
+def stroke_recording(library_dir: Path, entry_id: str, seconds: float, seed: int = FIXED_SEED) -> Recording:
+    """`seconds` of freehand stroking over a library entry's vibration model (1 kHz, canonical units)."""
+    model = Library.load(library_dir).model(entry_id)
+    rng = np.random.default_rng(seed)
+    traj = freehand(seconds, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
+    s = stroke(model, traj, rng)
+    return recording_from_stroke(s.accel, s.force, s.speed, s.rate_hz)
+
+
+def recording_blocks(rec: Recording, block_s: float = 0.02, t0: float = 0.0, seq0: int = 0) -> list[SampleBlock]:
+    """The recording cut into consecutive wire blocks (float32, as a robot sends them)."""
+    channels = {
+        "accel": (rec.accel.data, rec.accel.rate_hz, "m/s^2"),
+        "force": (rec.force.data, rec.force.rate_hz, "N"),
+        "speed": (rec.speed.data, rec.speed.rate_hz, "mm/s"),
+    }
+    return list(blocks_from_arrays(channels, block_s, t0=t0, seq0=seq0))
+
+
+def wait_for(predicate, timeout_s: float = 30.0, every_s: float = 0.02):
+    """Poll until predicate() is truthy; returns its value (TimeoutError otherwise)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not met in time")
+        time.sleep(every_s)
+
+
+def create_session(client: httpx.Client, name: str = "test") -> dict:
+    r = client.post("/sessions", json={"name": name})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def session_status(client: httpx.Client, session: dict) -> dict:
+    r = client.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+# ---- fixtures ------------------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def library_dir(tmp_path_factory) -> Path:
+    from texture_library.synthetic_library import build_synthetic_library
+
+    root = tmp_path_factory.mktemp("library")
+    build_synthetic_library(root, n_textures=6, image_size=256)
+    return root
+
+
+@pytest.fixture(scope="session")
+def tactile_model(tmp_path_factory) -> Path:
+    """ridge-tactile trained on a small synthetic dataset (needs no visual features: fast)."""
+    from models.datasets.build import build
+    from models.train import train_and_export
+
+    root = tmp_path_factory.mktemp("tactile-model")
+    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
+    return train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
+
+
+@pytest.fixture(scope="session")
+def visual_model(tmp_path_factory) -> SimpleNamespace:
+    """ridge-both on 3 synthetic textures and the EfficientNet backbone ONNX it was trained with.
+
+    Exporting the backbone and embedding 3 × 8 image views takes ~30 s the first time; both are
+    cached under ./cache (HAPTICLINK_CACHE) and reused by later runs.
+    """
+    from models.datasets.build import build
+    from models.featurize import backbone_onnx
+    from models.train import train_and_export
+    from models.visual.config import VisualConfig
+
+    root = tmp_path_factory.mktemp("visual-model")
+    dataset = build("synthetic", root / "dataset", n_textures=3, duration_s=3, image_size=256)
+    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
+    return SimpleNamespace(model=model, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+
+
+@pytest.fixture(scope="session")
+def base_settings(tactile_model, library_dir) -> Settings:
+    return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600)
+
+
+@pytest.fixture(scope="session")
+def server(base_settings) -> Iterator[ServerThread]:
+    """One shared server with the tactile model and default bounds."""
+    with running(base_settings) as srv:
+        yield srv
+
+
+@pytest.fixture
+def client(server) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=server.url, timeout=10) as c:
+        yield c
+
+
+@pytest.fixture
+def kit() -> SimpleNamespace:
+    return SimpleNamespace(
+        ServerThread=ServerThread,
+        running=running,
+        stroke_recording=stroke_recording,
+        recording_blocks=recording_blocks,
+        wait_for=wait_for,
+        create_session=create_session,
+        session_status=session_status,
+        FIXED_SEED=FIXED_SEED,
+    )

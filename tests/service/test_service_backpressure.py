@@ -1,0 +1,154 @@
+"""Bounded queues: a saturated session refuses ingest (429 + Retry-After, close 4429) without taking
+anything, a resend then succeeds, and the drivers' RobotClient rides it out losing nothing.
+
+Saturation is produced deterministically: the server runs in this process, so the test occupies
+its one window-pool thread (as a slow CPU would) and releases it later.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+
+import httpx
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
+from drivers.robot import RobotClient
+from drivers.source import paced
+
+QUEUE_WINDOWS = 2
+
+
+@pytest.fixture
+def tight_server(kit, base_settings):
+    settings = base_settings.model_copy(update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS})
+    with kit.running(settings) as srv:
+        yield srv
+
+
+class PoolStall:
+    """Occupies the server's window pool until released (the session's jobs queue up behind it)."""
+
+    def __init__(self, server) -> None:
+        self.release = threading.Event()
+        self.future = server.app.state.service.window_pool.submit(self.release.wait, 60)
+
+    def __enter__(self) -> "PoolStall":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release.set()
+        self.future.result(timeout=10)
+
+
+def _post(client, session, block):
+    return client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block),
+                       headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE})
+
+
+def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight_server, library_dir):
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 4.0))  # 200 blocks, 8 windows
+    with httpx.Client(base_url=tight_server.url, timeout=10) as client:
+        session = kit.create_session(client)
+        with PoolStall(tight_server):
+            sent = 0
+            for block in blocks:
+                r = _post(client, session, block)
+                if r.status_code == 429:
+                    break
+                assert r.status_code == 202, r.text
+                sent += 1
+            assert r.status_code == 429, "the session never saturated"
+            assert r.headers["retry-after"] == "1"
+            assert "saturated" in r.json()["detail"] and f"resend block {blocks[sent].seq}" in r.json()["detail"]
+            # Saturation comes from the window bound: QUEUE_WINDOWS complete windows are waiting.
+            assert sent == 25 * QUEUE_WINDOWS
+            status = kit.session_status(client, session)
+            assert status["last_seq"] == blocks[sent - 1].seq  # nothing of the refused block was taken
+            assert status["state"] == "saturated" and status["counters"]["blocks_refused"] == 1
+        for block in blocks[sent:]:  # the robot resends from the refused block
+            while (r := _post(client, session, block)).status_code == 429:
+                pass  # drains within milliseconds once the pool is free
+            assert r.status_code == 202 and r.json()["duplicate"] is False
+        final = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 8 and s)
+        assert final["counters"]["windows"] == 8 and final["counters"]["blocks_accepted"] == len(blocks)
+
+
+def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_dir):
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
+    with httpx.Client(base_url=tight_server.url, timeout=10) as client:
+        session = kit.create_session(client)
+        url = f"{tight_server.ws_url}/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
+        with PoolStall(tight_server), connect(url) as ws:
+            acked = 0
+            with pytest.raises(ConnectionClosed):
+                for block in blocks:
+                    ws.send(encode_binary(block))
+                    assert json.loads(ws.recv(timeout=5))["ok"] is True
+                    acked += 1
+            assert ws.close_code == 4429 and "saturated" in ws.close_reason
+            assert acked == 25 * QUEUE_WINDOWS
+            assert kit.session_status(client, session)["last_seq"] == blocks[acked - 1].seq
+        kit.wait_for(lambda: kit.session_status(client, session)["windows_ready"] == 0)
+        with connect(url) as ws:  # reconnect and resend from the first unacknowledged block
+            for block in blocks[acked:]:
+                ws.send(encode_binary(block))
+                assert json.loads(ws.recv(timeout=5)) == {"seq": block.seq, "ok": True, "duplicate": False}
+        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 4)
+
+
+class BlockList:
+    """A SensorSource over prepared blocks (as fast as the client takes them)."""
+
+    name = "blocks"
+
+    def __init__(self, blocks) -> None:
+        self.blocks = blocks
+
+    def __aiter__(self):
+        return paced(self.blocks, False).__aiter__()
+
+    async def aclose(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_server, library_dir, transport):
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_004", 3.0))
+
+    async def main():
+        robot = RobotClient(tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1)
+        stall = PoolStall(tight_server)
+        loop = asyncio.get_running_loop()
+        loop.call_later(1.0, stall.release.set)  # the slow spell ends after a second
+        stats = await robot.run()
+        return robot, stats
+
+    robot, stats = asyncio.run(main())
+    assert stats.saturated >= 1, "the client never saw the session saturated"
+    assert stats.acked == len(blocks) and stats.lost == 0 and stats.rejected == 0 and stats.unsent == 0
+    session = {"session_id": robot.session.session_id, "operator_token": robot.session.operator_token}
+    with httpx.Client(base_url=tight_server.url, timeout=10) as client:
+        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 6 and s)
+    assert status["counters"]["windows"] == 6
+    assert status["counters"]["blocks_accepted"] == len(blocks)
+
+
+def test_a_subscriber_that_never_reads_does_not_hold_back_another(kit, server, client, library_dir):
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 20.0), block_s=0.5)
+    session = kit.create_session(client)
+    url = f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
+    with connect(url) as idle, connect(url) as reader:
+        assert '"subscribed"' in idle.recv(timeout=5) and '"subscribed"' in reader.recv(timeout=5)
+        for block in blocks:
+            assert _post(client, session, block).status_code == 202
+        windows = []
+        while len(windows) < 40:
+            event = json.loads(reader.recv(timeout=10))
+            if event["type"] == "window":
+                windows.append(event["window_index"])
+    assert windows == list(range(40))

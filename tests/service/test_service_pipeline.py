@@ -1,0 +1,162 @@
+"""The pipeline end to end on a real server: blocks in (HTTP and WebSocket), window events out.
+
+The service must compute exactly what training computes: its raw ratings equal the offline
+recording_features + Predictor.predict of the same samples.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, encode_json
+from models.predictor import Predictor
+from models.tactile.features import recording_features
+from service.events import StatusEvent, WindowEvent
+from texture_library.attributes import ATTRIBUTES
+from texture_library.library import Library
+from texture_library.nearest import HysteresisSelector, PerceptualIndex
+from texture_library.recording import Channel, Recording
+
+
+def post_block(client, session, block: SampleBlock, binary: bool = True):
+    headers = {"Authorization": f"Bearer {session['robot_token']}"}
+    if binary:
+        headers["Content-Type"] = BINARY_CONTENT_TYPE
+        return client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block), headers=headers)
+    return client.post(f"/sessions/{session['session_id']}/blocks", json=encode_json(block), headers=headers)
+
+
+def read_windows(sub, n: int, timeout_s: float = 20.0) -> tuple[list[dict], list[dict]]:
+    windows, statuses = [], []
+    while len(windows) < n:
+        event = json.loads(sub.recv(timeout=timeout_s))
+        (windows if event["type"] == "window" else statuses).append(event)
+    return windows, statuses
+
+
+def events_url(server, session) -> str:
+    return f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
+
+
+def float32_recording(rec: Recording) -> Recording:
+    """What the service receives: the wire carries float32."""
+    def f32(c: Channel) -> Channel:
+        return Channel(c.data.astype(np.float32).astype(np.float64), c.rate_hz)
+    return Recording(f32(rec.accel), f32(rec.force), f32(rec.speed))
+
+
+def test_events_equal_the_offline_features_and_model(kit, server, client, library_dir, tactile_model):
+    rec = kit.stroke_recording(library_dir, "synth_002", 4.2)
+    blocks = kit.recording_blocks(rec, block_s=0.02, t0=100.0)
+    session = kit.create_session(client)
+    with connect(events_url(server, session)) as sub:
+        first = json.loads(sub.recv(timeout=5))
+        StatusEvent.model_validate(first)
+        assert first["event"] == "subscribed"
+        for i, block in enumerate(blocks):  # JSON and binary blocks mixed
+            r = post_block(client, session, block, binary=i % 3 != 0)
+            assert r.status_code == 202, r.text
+            assert r.json()["seq"] == block.seq and r.json()["duplicate"] is False
+        windows, _ = read_windows(sub, 8)
+    for w in windows:
+        WindowEvent.model_validate(w)
+    assert [w["window_index"] for w in windows] == list(range(8))
+    assert [w["t_start_s"] for w in windows] == pytest.approx([100.0 + 0.5 * i for i in range(8)])
+    assert [w["block_seq"] for w in windows] == [25 * (i + 1) - 1 for i in range(8)]  # 20 ms blocks, 0.5 s windows
+
+    predictor = Predictor(tactile_model)
+    features, t_start = recording_features(float32_recording(rec), predictor.tactile_config)
+    offline = predictor.predict(features[:8])
+    served = np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows])
+    assert np.allclose(served, offline, atol=0.011)  # events carry 2 decimals
+
+    # smoothing and hysteresis replayed offline give the same ratings and choices
+    lib = Library.load(library_dir)
+    index = PerceptualIndex(lib.ids, lib.ratings)
+    selector = HysteresisSelector(5.0, 2)
+    state = None
+    for w, raw in zip(windows, served, strict=True):
+        state = raw if state is None else 0.5 * raw + 0.5 * state
+        assert np.allclose([w["ratings"][a] for a in ATTRIBUTES], state, atol=0.02)
+        assert w["chosen"] == selector.update(index, state)
+        assert [m["id"] for m in w["matches"]] == [m.id for m in index.query(state, 3)]
+        assert all(v >= 0 for v in w["latency_ms"].values())
+        assert w["latency_ms"]["total"] >= w["latency_ms"]["queue"]
+        assert w["model"] == "ridge-tactile"
+
+
+def test_duplicates_are_acknowledged_but_not_processed_again(kit, server, client, library_dir):
+    rec = kit.stroke_recording(library_dir, "synth_001", 1.5)
+    blocks = kit.recording_blocks(rec)
+    session = kit.create_session(client)
+    for block in blocks[:60]:
+        assert post_block(client, session, block).status_code == 202
+    for block in blocks[10:60]:  # a robot resending after an outage
+        r = post_block(client, session, block)
+        assert r.status_code == 202 and r.json()["duplicate"] is True
+    for block in blocks[60:]:
+        assert post_block(client, session, block).status_code == 202
+    status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] == 3 and s)
+    assert status["counters"]["blocks_duplicate"] == 50
+    assert status["counters"]["blocks_accepted"] == len(blocks)
+    assert status["last_seq"] == blocks[-1].seq
+
+
+def test_any_block_size_gives_the_same_windows(kit, server, client, library_dir):
+    rec = kit.stroke_recording(library_dir, "synth_004", 2.0)
+    results = []
+    for block_s in (0.02, 0.007, 0.5, 2.0):
+        session = kit.create_session(client)
+        with connect(events_url(server, session)) as sub:
+            sub.recv(timeout=5)
+            for block in kit.recording_blocks(rec, block_s=block_s):
+                assert post_block(client, session, block).status_code == 202
+            windows, _ = read_windows(sub, 4)
+        results.append(np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows]))
+    for other in results[1:]:
+        assert np.array_equal(results[0], other)
+
+
+def test_a_time_gap_starts_a_new_segment_and_no_window_straddles_it(kit, server, client, library_dir):
+    rec = kit.stroke_recording(library_dir, "synth_003", 2.0)
+    first = kit.recording_blocks(rec.crop(0, 0.75), t0=0.0)
+    second = kit.recording_blocks(rec.crop(0.75, 2.0), t0=5.0, seq0=len(first))  # 4.25 s of data lost
+    session = kit.create_session(client)
+    with connect(events_url(server, session)) as sub:
+        sub.recv(timeout=5)
+        for block in first + second:
+            assert post_block(client, session, block).status_code == 202
+        windows, _ = read_windows(sub, 3)
+    assert [w["t_start_s"] for w in windows] == pytest.approx([0.0, 5.0, 5.5])
+    status = kit.session_status(client, session)
+    assert status["segments"] == 2 and status["counters"]["windows"] == 3
+
+
+def test_websocket_ingest_acknowledges_each_block_and_survives_bad_ones(kit, server, client, library_dir):
+    rec = kit.stroke_recording(library_dir, "synth_005", 1.0)
+    blocks = kit.recording_blocks(rec)
+    session = kit.create_session(client)
+    url = f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
+    with connect(url) as ws, connect(events_url(server, session)) as sub:
+        sub.recv(timeout=5)
+        for i, block in enumerate(blocks):
+            if i == 10:  # garbage, then a well-formed block that lies about its rate: both refused, socket stays
+                ws.send(b"HLB1garbage")
+                bad = json.loads(ws.recv(timeout=5))
+                assert bad["seq"] is None and bad["ok"] is False and "header length" in bad["error"]
+                lying = json.loads(json.dumps(encode_json(block)))
+                lying["channels"]["accel"]["rate_hz"] = 2000.0
+                ws.send(json.dumps(lying))
+                bad = json.loads(ws.recv(timeout=5))
+                assert bad == {"seq": block.seq, "ok": False, "error": "accel: rate changed from 1000 Hz to 2000 Hz mid-stream"}
+            ws.send(encode_binary(block) if i % 2 else json.dumps(encode_json(block)))
+            ack = json.loads(ws.recv(timeout=5))
+            assert ack == {"seq": block.seq, "ok": True, "duplicate": False}
+        ws.send(encode_binary(blocks[3]))
+        assert json.loads(ws.recv(timeout=5)) == {"seq": blocks[3].seq, "ok": True, "duplicate": True}
+        windows, _ = read_windows(sub, 2)
+    assert [w["window_index"] for w in windows] == [0, 1]

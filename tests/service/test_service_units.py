@@ -1,0 +1,220 @@
+"""The service's small parts on their own: auth, smoothing/confidence, stream admission, broker queues, metrics, settings."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+
+from drivers.blocks import ChannelBlock, SampleBlock
+from models.tactile.config import TactileConfig
+from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, bearer_token, issue_credentials
+from service.broker import InMemoryBroker, LatestQueue
+from service.errors import ServiceError
+from service.metrics import ServiceMetrics
+from service.settings import Settings, env_name, settings_table
+from service.smoothing import SD_UNIFORM, ExponentialSmoother, SpreadConfidence
+from service.stream import StreamAdmission
+
+
+# ---- auth ------------------------------------------------------------------------------------------
+def test_tokens_open_only_their_role_and_session():
+    robot, operator, creds = issue_credentials()
+    _, other_operator, _ = issue_credentials()
+    assert robot != operator and len(robot) >= 40
+    assert authorize(creds, robot, ROBOT_ONLY, "s") is Role.ROBOT
+    assert authorize(creds, operator, OPERATOR_ONLY, "s") is Role.OPERATOR
+    assert authorize(creds, operator, EITHER, "s") is Role.OPERATOR
+    for token, allowed, status in ((None, ROBOT_ONLY, 401), (other_operator, OPERATOR_ONLY, 401),
+                                   (operator, ROBOT_ONLY, 403), (robot, OPERATOR_ONLY, 403)):
+        with pytest.raises(ServiceError) as err:
+            authorize(creds, token, allowed, "s")
+        assert err.value.status == status
+    # only digests are kept
+    assert robot not in repr(creds) and operator not in repr(creds)
+
+
+def test_bearer_header_parsing():
+    assert bearer_token("Bearer abc") == "abc"
+    assert bearer_token("bearer  abc ") == "abc"
+    assert bearer_token("Basic abc") is None
+    assert bearer_token("Bearer ") is None
+    assert bearer_token(None) is None
+
+
+# ---- smoothing and confidence ----------------------------------------------------------------------
+def test_ema_passes_the_first_window_then_blends():
+    ema = ExponentialSmoother(0.25)
+    assert np.allclose(ema.update(np.array([40.0, 0, 0, 0])), [40, 0, 0, 0])
+    assert np.allclose(ema.update(np.array([0.0, 80, 0, 0])), [30, 20, 0, 0])
+    with pytest.raises(ValueError):
+        ExponentialSmoother(0.0)
+
+
+def test_confidence_is_one_for_agreement_and_falls_with_spread():
+    conf = SpreadConfidence(4)
+    assert np.all(conf.update(np.full(4, 10.0)) == 0)  # one window: unknown
+    assert np.allclose(conf.update(np.full(4, 10.0)), 1.0)
+    spread = SpreadConfidence(2)
+    spread.update(np.array([-100.0, 0, 0, 0]))
+    c = spread.update(np.array([100.0, 0, 0, 0]))
+    assert c[0] == 0.0  # sd 100 > the uniform sd → clipped at 0
+    assert np.allclose(c[1:], 1.0)
+    mild = SpreadConfidence(2)
+    mild.update(np.zeros(4))
+    assert np.isclose(mild.update(np.array([20.0, 0, 0, 0]))[0], 1 - 10 / SD_UNIFORM)
+
+
+# ---- stream admission ------------------------------------------------------------------------------
+def _block(t0, n=20, rate=1000.0, seq=0, kinds=("accel", "force", "speed"), accel_units="m/s^2", force_cols=1):
+    chans = {}
+    if "accel" in kinds:
+        chans["accel"] = ChannelBlock(np.ones((n, 3), np.float32), rate, accel_units)
+    if "force" in kinds:
+        shape = (n,) if force_cols == 1 else (n, force_cols)
+        chans["force"] = ChannelBlock(np.ones(shape, np.float32), rate, "N")
+    if "speed" in kinds:
+        chans["speed"] = ChannelBlock(np.ones(n, np.float32), rate, "mm/s")
+    if "position" in kinds:
+        chans["position"] = ChannelBlock(np.arange(n, dtype=np.float32), rate, "mm")
+    return SampleBlock(t0, chans, seq)
+
+
+def test_admission_counts_windows_by_stream_time():
+    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
+    for k in range(24):
+        adm.admit(_block(k * 0.02, seq=k), 0)
+    assert adm.windows_complete() == 0
+    adm.admit(_block(24 * 0.02, seq=24), 0)  # 500 samples: the first window is complete
+    assert adm.windows_complete() == 1 and adm.backlog() == 1
+    adm.note_taken(adm.segment, 1)
+    assert adm.backlog() == 0
+
+
+def test_admission_converts_units_to_canonical():
+    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
+    admitted = adm.admit(_block(0.0, accel_units="g"), 0)
+    assert np.allclose(admitted.channels["accel"].data, 9.80665)
+
+
+@pytest.mark.parametrize("second, message", [
+    (_block(0.02, rate=2000.0), "rate changed"),
+    (_block(0.02, force_cols=3), "column count changed"),
+])
+def test_admission_refuses_contradictions_and_keeps_state(second, message):
+    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
+    adm.admit(_block(0.0), 0)
+    before = (adm.covered(), adm.segment)
+    with pytest.raises(ValueError, match=message):
+        adm.admit(second, 0)
+    assert (adm.covered(), adm.segment) == before
+    adm.admit(_block(0.02, seq=1), 0)  # the stream continues
+
+
+def test_speed_after_position_is_refused_position_after_speed_ignored():
+    pos = StreamAdmission(TactileConfig(), max_lag_s=5)
+    pos.admit(_block(0.0, kinds=("accel", "force", "position")), 0)
+    with pytest.raises(ValueError, match="speed"):
+        pos.admit(_block(0.02, kinds=("accel", "force", "speed")), 0)
+    spd = StreamAdmission(TactileConfig(), max_lag_s=5)
+    spd.admit(_block(0.0), 0)
+    admitted = spd.admit(_block(0.02, kinds=("accel", "force", "speed", "position")), 0)
+    assert "position" not in admitted.channels
+
+
+def test_a_missing_channel_is_refused_once_it_lags_too_far():
+    adm = StreamAdmission(TactileConfig(), max_lag_s=0.1)
+    for k in range(5):
+        adm.admit(_block(k * 0.02, kinds=("accel", "speed")), 0)
+    with pytest.raises(ValueError, match="force lag"):
+        adm.admit(_block(0.1, kinds=("accel", "speed")), 0)
+
+
+def test_a_time_gap_starts_a_new_segment():
+    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
+    a = adm.admit(_block(10.0), 0)
+    b = adm.admit(_block(10.02, seq=1), 0)
+    c = adm.admit(_block(11.0, seq=2), 0)  # 0.96 s missing
+    assert a.segment == b.segment == 0 and c.segment == 1
+    assert c.origin_t0 == 11.0 and c.covered == 20
+
+
+# ---- broker ----------------------------------------------------------------------------------------
+def test_latest_queue_keeps_the_newest_and_counts_drops():
+    async def main():
+        q = LatestQueue(3)
+        for i in range(10):
+            q.offer(str(i))
+        q.offer("end", final=True)
+        q.offer("after")  # ignored: the subscription ended
+        got = []
+        while (item := await q.get()) is not None:
+            got.append(item)
+        return got, q.dropped
+
+    got, dropped = asyncio.run(main())
+    assert got == ["8", "9", "end"] and dropped == 8
+
+
+def test_a_slow_subscriber_never_holds_back_the_others():
+    async def main():
+        broker = InMemoryBroker(subscriber_queue=4)
+        slow = await broker.subscribe("s")
+        fast = await broker.subscribe("s")
+        received = []
+
+        async def read_fast():
+            while (text := await fast.get()) is not None:
+                received.append(json.loads(text)["i"])
+
+        reader = asyncio.create_task(read_fast())
+        for i in range(100):
+            await broker.publish("s", json.dumps({"i": i}))
+            await asyncio.sleep(0)  # the fast reader keeps up
+        await broker.publish("s", json.dumps({"i": "end"}), final=True)
+        await reader
+        slow_items = []
+        while (text := await slow.get()) is not None:
+            slow_items.append(json.loads(text)["i"])
+        return received, slow_items, slow.dropped, fast.dropped
+
+    received, slow_items, slow_dropped, fast_dropped = asyncio.run(main())
+    assert received == [*range(100), "end"] and fast_dropped == 0
+    assert slow_items == [97, 98, 99, "end"] and slow_dropped == 97
+
+
+# ---- metrics and settings --------------------------------------------------------------------------
+def test_metrics_render_prometheus_text():
+    m = ServiceMetrics()
+    m.blocks.inc(outcome="accepted")
+    m.blocks.inc(2, outcome="accepted")
+    m.latency.observe(0.003, stage="total")
+    text = m.render()
+    assert 'hapticlink_blocks_total{outcome="accepted"} 3' in text
+    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="0.002"} 0' in text
+    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="0.005"} 1' in text
+    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="+Inf"} 1' in text
+    assert "# TYPE hapticlink_window_latency_seconds histogram" in text
+
+
+def test_settings_come_from_the_environment_and_serialise(monkeypatch, tmp_path):
+    monkeypatch.setenv("HAPTICLINK_MODEL_PATH", str(tmp_path / "m.onnx"))
+    monkeypatch.setenv("HAPTICLINK_NEAREST_WEIGHTS", "[1, 2, 0, 1]")
+    monkeypatch.setenv("HAPTICLINK_BROKER", "redis")
+    s = Settings()
+    assert s.model_path == tmp_path / "m.onnx" and s.nearest_weights == (1, 2, 0, 1) and s.broker == "redis"
+    assert Settings(**s.model_dump()) == s
+    json.dumps(s.model_dump(mode="json"))
+    monkeypatch.setenv("HAPTICLINK_NEAREST_WEIGHTS", "[0, 0, 0, 0]")
+    with pytest.raises(ValueError):
+        Settings()
+    with pytest.raises(ValueError):
+        Settings(instance_id="a.b")  # '.' separates the instance from the session id
+
+
+def test_every_setting_is_in_the_table():
+    table = settings_table()
+    for name in Settings.model_fields:
+        assert f"`{env_name(name)}`" in table
