@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token", metavar="T", help="the session's robot token")
     p.add_argument("--name", help="name of the session to create")
     p.add_argument("--transport", choices=("ws", "http"), default="ws", help="WebSocket (default) or one HTTP POST per block")
-    p.add_argument("--json", action="store_true", help="send JSON blocks instead of binary (http transport only)")
+    p.add_argument("--json", action="store_true", help="send JSON blocks instead of the binary format")
     p.add_argument("--duration", type=float, metavar="S", help="stop reading after S seconds, deliver what is buffered, exit")
     p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True, help="pace simulated/replay sources in real time (default)")
     p.add_argument("--block-s", type=float, default=0.02, metavar="S", help="seconds per block (default 0.02)")
@@ -122,8 +122,6 @@ def _run_robot(args: argparse.Namespace) -> int:
         raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
-    if args.json and args.transport != "http":
-        raise ValueError("--json needs --transport http (the WebSocket carries binary blocks)")
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         # httpx logs every request at INFO: 50 a second here.

@@ -31,6 +31,8 @@ log = logging.getLogger(__name__)
 
 WS_SATURATED = 4429  # close code: the session is saturated; reconnect after a backoff
 WS_POLICY_VIOLATION = 1008  # close code: authentication failed; fatal
+#: HTTP statuses that say "not now" rather than "bad block": 408 timeout, 421 misdirected (another replica), 425 too early
+RETRY_STATUSES = frozenset({408, 421, 425})
 MAX_RETRY_AFTER_S = 60.0
 FRAME_QUEUE = 4  # frames kept during an outage: the newest matter, older ones are superseded
 LOST_LOG_EVERY_S = 5.0
@@ -201,9 +203,9 @@ class RobotClient:
     """Streams `source` to the service at `url` (http(s)://host:port[/prefix]).
 
     session_id + robot_token: stream into an existing session; neither: create one (its operator
-    console link is logged and kept in `session`). transport "ws" (binary blocks over one
-    WebSocket, up to `window` unacknowledged in flight) or "http" (one POST per block, in order;
-    binary=False sends JSON). max_buffer_s: seconds of unacknowledged data kept for resending.
+    console link is logged and kept in `session`). transport "ws" (blocks over one WebSocket,
+    up to `window` unacknowledged in flight) or "http" (one POST per block, in order);
+    binary=False sends JSON blocks (WebSocket text messages) instead of the binary format. max_buffer_s: seconds of unacknowledged data kept for resending.
     backoff: (first, longest) wait in seconds between reconnection attempts. start_seq: seq of the
     first block (when resuming a session that already has blocks, pass more than its last seq).
     `run()` closes the source when it returns.
@@ -234,8 +236,6 @@ class RobotClient:
             raise ValueError("give both session_id and robot_token (stream into that session) or neither (create one)")
         if transport not in ("ws", "http"):
             raise ValueError(f"transport must be 'ws' or 'http', got {transport!r}")
-        if transport == "ws" and not binary:
-            raise ValueError("the WebSocket transport carries binary blocks only; binary=False needs transport='http'")
         if isinstance(start_seq, bool) or not isinstance(start_seq, int) or start_seq < 0:
             raise ValueError(f"start_seq must be an integer ≥ 0, got {start_seq!r}")
         if window < 1:
@@ -521,14 +521,18 @@ class RobotClient:
         or the connection ends (_Disconnected)."""
         from websockets.exceptions import ConnectionClosed
 
-        receiver = asyncio.create_task(self._ws_receive(ws), name="robot-acks")
+        # The service answers every message in order, so the n-th answer is about the n-th block
+        # sent on this connection; that names the block even when an error answer carries no seq.
+        sent_order: deque[int] = deque()
+        receiver = asyncio.create_task(self._ws_receive(ws, sent_order), name="robot-acks")
         next_seq = self._buffer.oldest_seq if self._buffer.oldest_seq is not None else self._next_seq
         try:
             while not receiver.done():
                 self._blocks_changed.clear()
                 entry = self._buffer.first_from(next_seq)
                 if entry is not None and self._buffer.count_before(entry.seq) < self.window:
-                    await ws.send(entry.payload)
+                    sent_order.append(entry.seq)
+                    await ws.send(entry.payload if self.binary else entry.payload.decode())
                     self._count_send(entry.seq)
                     next_seq = entry.seq + 1
                     continue
@@ -542,18 +546,22 @@ class RobotClient:
             await asyncio.gather(receiver, return_exceptions=True)
         raise _Disconnected(ws.close_code, ws.close_reason or "")
 
-    async def _ws_receive(self, ws) -> None:
+    async def _ws_receive(self, ws, sent_order: deque[int]) -> None:
         from websockets.exceptions import ConnectionClosed
 
         try:
             async for message in ws:
+                expected = sent_order.popleft() if sent_order else None
                 try:
                     ack = json.loads(message)
-                    seq, ok = int(ack["seq"]), bool(ack["ok"])
-                except (ValueError, KeyError, TypeError):
+                    seq, ok = ack.get("seq"), bool(ack["ok"])
+                    seq = expected if seq is None else int(seq)
+                except (ValueError, KeyError, TypeError, AttributeError):
                     log.warning("ignoring an unreadable acknowledgement: %r", message[:200])
                     continue
-                if ok:
+                if seq is None:
+                    log.warning("ignoring an acknowledgement for no block sent on this connection: %r", message[:200])
+                elif ok:
                     self._settle(seq, bool(ack.get("duplicate", False)))
                 else:
                     self._reject(seq, str(ack.get("error", "no reason given")))
@@ -607,9 +615,9 @@ class RobotClient:
                 raise RobotAuthError(f"the service refused the robot token (HTTP {status}: {_detail(r)})")
             elif status == 404:
                 raise ServiceError(f"the service has no session {self.session_id!r} (HTTP 404: {_detail(r)})")
-            elif 400 <= status < 500:
+            elif 400 <= status < 500 and status not in RETRY_STATUSES:
                 self._reject(entry.seq, f"HTTP {status}: {_detail(r)}")
-            else:
+            else:  # 5xx, 408, 421, 425: the service cannot take it now
                 outage = True
                 delay = self._block_backoff.next()
                 log.warning("POST block %d: HTTP %d; retrying in %.2f s", entry.seq, status, delay)
@@ -637,7 +645,7 @@ class RobotClient:
             status = r.status_code
             if status in (401, 403):
                 raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {_detail(r)})")
-            if status == 429 or status >= 500:
+            if status == 429 or status >= 500 or status in RETRY_STATUSES:
                 delay = (_retry_after(r) if status == 429 else None) or self._frame_backoff.next()
                 await asyncio.sleep(delay)
                 continue

@@ -9,7 +9,6 @@ speed (n,) mm/s, at the model's rate (1 kHz).
 from __future__ import annotations
 
 import asyncio
-import logging
 import math
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,8 +22,6 @@ from texture_library.library import Library
 from texture_library.stroke import StrokeSignals, random_rotation, stroke
 from texture_library.trajectory import Trajectory, freehand, model_ranges
 from texture_library.vibration import VibrationModel
-
-log = logging.getLogger(__name__)
 
 MAX_STROKE_S = 2.0  # freehand's longest single stroke: a chunk is rendered this much longer, then cut at a turnaround
 

@@ -52,6 +52,7 @@ FRAME_TYPES = ("image/png", "image/jpeg")
 WS_SATURATED = 4429
 WS_MISDIRECTED = 4421
 WS_TRY_AGAIN = 1013
+_OK_ACK = '{"seq": %d, "ok": true, "duplicate": %s}'  # the per-block answer, formatted without json.dumps
 #: what a malformed payload can raise inside the shared decoders (huge ints overflow, deep nesting recurses)
 DECODE_ERRORS = (ValueError, TypeError, OverflowError, RecursionError)
 
@@ -220,7 +221,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     await websocket.send_text(json.dumps({"seq": _peek_seq(payload, binary), "ok": False,
                                                           "error": exc.detail}))
                     continue
-                await websocket.send_text(json.dumps({"seq": ack["seq"], "ok": True, "duplicate": ack["duplicate"]}))
+                await websocket.send_text(_OK_ACK % (ack["seq"], "true" if ack["duplicate"] else "false"))
         except WebSocketDisconnect:
             return
 
@@ -242,10 +243,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             done, pending = await asyncio.wait({forward, listen}, return_when=asyncio.FIRST_COMPLETED)
             for task in pending:
                 task.cancel()
-            for task in pending:
+            for task in (forward, listen):  # collect every outcome: a send to a vanished client raises
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-            if forward in done and websocket.application_state == WebSocketState.CONNECTED:
+            ended = forward in done and forward.exception() is None
+            if ended and websocket.application_state == WebSocketState.CONNECTED:
                 with contextlib.suppress(Exception):
                     await websocket.close(1000, "session ended")
         except (WebSocketDisconnect, RuntimeError):

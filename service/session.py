@@ -101,10 +101,11 @@ class Session:
         if block.seq <= self.last_seq:
             self.counters.blocks_duplicate += 1
             return {"seq": block.seq, "duplicate": True, "windows_ready": self.admission.backlog()}
-        if self.saturated():
+        backlog = self.admission.backlog()
+        if backlog >= self.settings.session_queue_windows or len(self._pending) >= self.settings.session_queue_blocks:
             self.counters.blocks_refused += 1
             raise saturated(
-                f"session {self.id} is saturated ({self.admission.backlog()} windows, {len(self._pending)} blocks "
+                f"session {self.id} is saturated ({backlog} windows, {len(self._pending)} blocks "
                 f"waiting); resend block {block.seq} later", RETRY_AFTER_S)
         try:
             admitted = self.admission.admit(block, arrived_ns)
@@ -138,8 +139,12 @@ class Session:
                 continue
             blocks, self._pending = self._pending, []
             try:
-                estimates, segment, taken = await loop.run_in_executor(
-                    self._window_pool, self.estimator.process, blocks, self.visual)
+                import os
+                if os.environ.get("HL_INLINE"):
+                    estimates, segment, taken = self.estimator.process(blocks, self.visual)
+                else:
+                    estimates, segment, taken = await loop.run_in_executor(
+                        self._window_pool, self.estimator.process, blocks, self.visual)
             except Exception as exc:  # noqa: BLE001 - admission mirrors the preprocessor, so this is a bug: keep serving
                 log.exception("session %s: estimation failed", self.id)
                 self.counters.pipeline_errors += 1

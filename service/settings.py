@@ -66,6 +66,11 @@ class Settings(BaseSettings):
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(2, ge=1, le=64, description="threads computing windows (features, model, lookup)")
     visual_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)")
+    gil_switch_interval_s: float = Field(
+        0.0005, gt=0, le=0.1,
+        description="Python's GIL switch interval (sys.setswitchinterval); short keeps the event loop's socket "
+        "writes from waiting behind pool threads",
+    )
     # ---- fan-out ----------------------------------------------------------------------------------
     broker: Literal["memory", "redis"] = Field("memory", description="event fan-out: in-process, or Redis pub/sub across replicas")
     redis_url: str = Field("redis://localhost:6379/0", description="Redis for broker=redis")

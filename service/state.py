@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import logging
 import secrets
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -46,6 +47,9 @@ class ServiceState:
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
+        # Every socket write releases the GIL; with pool threads computing, getting it back can take a
+        # whole switch interval (5 ms by default), per write. A short interval bounds that wait.
+        sys.setswitchinterval(self.settings.gil_switch_interval_s)
         await self.broker.start()
         self._tasks = [asyncio.create_task(self._load(), name="load-runtime"),
                        asyncio.create_task(self._reap_idle(), name="reap-idle-sessions")]

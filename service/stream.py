@@ -46,10 +46,14 @@ class AdmittedBlock:
 
 def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
     """The block's channels converted from their units to canonical ones (m/s², N, mm/s, mm), float64."""
-    return {
-        kind: Channel(c.data.astype(np.float64) * UNIT_SCALE[kind][c.units], c.rate_hz)
-        for kind, c in block.channels.items()
-    }
+    out = {}
+    for kind, c in block.channels.items():
+        scale = UNIT_SCALE[kind][c.units]
+        data = c.data.astype(np.float64)
+        if scale != 1.0:
+            data *= scale
+        out[kind] = Channel(data, c.rate_hz)
+    return out
 
 
 class StreamAdmission:

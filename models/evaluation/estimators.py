@@ -44,11 +44,11 @@ def tactile_summary(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> np
     return np.stack([np.concatenate([funcs[s](w, axis=0) for s in stats]) for w in data.tactile]).astype(np.float64)
 
 
-def visual_matrix(data: TextureData) -> np.ndarray:
-    """(T, D): the original view (view 0) of each texture's image."""
+def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
+    """(T, D): one view of each texture's image (view 0 is the original)."""
     if data.visual is None:
         raise ValueError("this estimator needs visual features, but the data has none")
-    return data.visual[:, 0, :].astype(np.float64)
+    return data.visual[:, view, :].astype(np.float64)
 
 
 class Standardizer:
@@ -74,10 +74,10 @@ class TextureFeatures:
         self.modality = modality
         self.tactile_stats = tactile_stats
 
-    def _blocks(self, data: TextureData) -> list[np.ndarray]:
+    def _blocks(self, data: TextureData, view: int = 0) -> list[np.ndarray]:
         blocks = []
         if self.modality in ("visual", "both"):
-            blocks.append(visual_matrix(data))
+            blocks.append(visual_matrix(data, view))
         if self.modality in ("tactile", "both"):
             blocks.append(tactile_summary(data, self.tactile_stats))
         return blocks
@@ -86,6 +86,17 @@ class TextureFeatures:
         blocks = self._blocks(data)
         self.scalers = [Standardizer().fit(b) for b in blocks]
         return self._combine(blocks)
+
+    def fit_transform_views(self, data: TextureData) -> tuple[np.ndarray, np.ndarray]:
+        """One row per (texture, augmented image view): (X (T·V, K), texture index (T·V,)).
+
+        Training on every view teaches invariance to rotation, flips and noise; prediction
+        still uses the original view only, as the service sees one camera frame."""
+        n_views = 1 if data.visual is None or self.modality == "tactile" else data.visual.shape[1]
+        per_view = [self._blocks(data, v) for v in range(n_views)]
+        stacked = [np.concatenate(parts) for parts in zip(*per_view)]
+        self.scalers = [Standardizer().fit(b) for b in stacked]
+        return self._combine(stacked), np.tile(np.arange(len(data)), n_views)
 
     def transform(self, data: TextureData) -> np.ndarray:
         return self._combine(self._blocks(data))
@@ -137,7 +148,8 @@ class RidgeEstimator(Estimator):
         best = (np.inf, None)
         for a in self.alphas:
             d = s**2 / (s**2 + a)
-            hat_diag = np.sum(u**2 * d, axis=1)
+            # the fitted intercept adds 1/n to every leverage (columns of X are centred)
+            hat_diag = np.sum(u**2 * d, axis=1) + 1.0 / len(yc)
             resid = (yc - u @ (d[:, None] * uty)) / (1 - hat_diag)[:, None]
             loss = float(np.mean(resid**2))
             if loss < best[0]:
@@ -205,46 +217,69 @@ class KNNEstimator(Estimator):
 
 
 class SVREstimator(Estimator):
-    """RBF support-vector regression per attribute on texture-level features; C by inner 5-fold CV."""
+    """RBF support-vector regression per attribute on texture-level features.
 
-    def __init__(self, modality: Modality, Cs: tuple[float, ...] = (0.3, 1.0, 3.0, 10.0)):
+    Chosen per attribute by inner 5-fold CV over the training textures (folds split textures,
+    never views of one texture): C, and for modality "both" the tactile block's weight — 0 lets
+    an attribute ignore touch where touch does not help it. views="all" trains on every
+    augmented image view (prediction uses the original view, as the service sees one frame)."""
+
+    def __init__(self, modality: Modality, Cs: tuple[float, ...] = (0.3, 1.0, 3.0, 10.0), views: str = "first",
+                 tactile_weights: tuple[float, ...] = (0.0, 0.5, 1.0, 2.0)):
+        if views not in ("first", "all"):
+            raise ValueError(f"views must be 'first' or 'all', got {views!r}")
         self.modality = modality
-        self.name = f"svr-{modality}"
+        self.name = f"svr-{modality}" + ("-views" if views == "all" else "")
         self.features = TextureFeatures(modality)
         self.Cs = Cs
+        self.views = views
+        self.tactile_weights = tactile_weights if modality == "both" else (1.0,)
+
+    def _weighted(self, X: np.ndarray, w: float) -> np.ndarray:
+        if self.modality != "both":
+            return X
+        n_visual = self.features.scalers[0].mean.size
+        return np.concatenate([X[:, :n_visual], w * X[:, n_visual:]], axis=1)
 
     def fit(self, data: TextureData, seed: int) -> "SVREstimator":
         from sklearn.model_selection import KFold
         from sklearn.svm import SVR
 
-        X = self.features.fit_transform(data)
+        if self.views == "all":
+            X, row_tex = self.features.fit_transform_views(data)
+        else:
+            X, row_tex = self.features.fit_transform(data), np.arange(len(data))
         y = require_targets(data)
         self.y_mean, self.y_std = y.mean(axis=0), y.std(axis=0) + 1e-9
         ys = (y - self.y_mean) / self.y_std
-        folds = list(KFold(5, shuffle=True, random_state=seed).split(X))
+        folds = [(np.isin(row_tex, tr), np.isin(row_tex, va)) for tr, va in KFold(5, shuffle=True, random_state=seed).split(y)]
         self.models, self.chosen = [], []
         for j in range(ys.shape[1]):
+            target = ys[row_tex, j]
             scores = {}
-            for C in self.Cs:
-                err = 0.0
-                for tr, va in folds:
-                    m = SVR(C=C, epsilon=0.1, gamma="scale").fit(X[tr], ys[tr, j])
-                    err += float(np.sum(np.abs(m.predict(X[va]) - ys[va, j])))
-                scores[C] = err
-            C = min(scores, key=scores.get)
-            self.chosen.append(C)
-            self.models.append(SVR(C=C, epsilon=0.1, gamma="scale").fit(X, ys[:, j]))
+            for w in self.tactile_weights:
+                Xw = self._weighted(X, w)
+                for C in self.Cs:
+                    err = 0.0
+                    for tr, va in folds:
+                        m = SVR(C=C, epsilon=0.1, gamma="scale").fit(Xw[tr], target[tr])
+                        err += float(np.sum(np.abs(m.predict(Xw[va]) - target[va])))
+                    scores[(w, C)] = err
+            w, C = min(scores, key=scores.get)
+            self.chosen.append({"C": C, "tactile_weight": w} if self.modality == "both" else {"C": C})
+            self.models.append(SVR(C=C, epsilon=0.1, gamma="scale").fit(self._weighted(X, w), target))
         return self
 
     def predict(self, data: TextureData) -> np.ndarray:
         X = self.features.transform(data)
-        return np.stack([m.predict(X) for m in self.models], axis=1) * self.y_std + self.y_mean
+        out = [m.predict(self._weighted(X, c.get("tactile_weight", 1.0))) for m, c in zip(self.models, self.chosen)]
+        return np.stack(out, axis=1) * self.y_std + self.y_mean
 
     def n_params(self) -> int:
         return int(sum(m.support_vectors_.size + m.dual_coef_.size for m in self.models))
 
     def fit_info(self) -> dict:
-        return {"C": self.chosen}
+        return {"chosen": self.chosen}
 
 
 class WindowSVREstimator(Estimator):

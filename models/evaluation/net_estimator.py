@@ -9,6 +9,7 @@ windows, each paired with the original image view.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ def _stack_windows(data: TextureData) -> tuple[np.ndarray, np.ndarray]:
 class NetEstimator(Estimator):
     def __init__(self, name: str, *, val_fraction: float = 0.15, max_epochs: int = 200, patience: int = 10,
                  lr: float = 1e-3, batch: int = 128, recon_weight: float = 0.1, weight_decay: float = 0.0,
+                 windows_per_texture: int | None = 16, views_per_batch: int = 8, val_windows_per_texture: int | None = 24,
                  threads: int | None = None):
         from models.nets.registry import SPECS
 
@@ -39,8 +41,10 @@ class NetEstimator(Estimator):
         self.name = name
         self.modality = SPECS[name].modality
         self.val_fraction = val_fraction
+        self.val_windows_per_texture = val_windows_per_texture
         self.train_options = dict(max_epochs=max_epochs, patience=patience, lr=lr, batch=batch,
-                                  recon_weight=recon_weight, weight_decay=weight_decay)
+                                  recon_weight=recon_weight, weight_decay=weight_decay,
+                                  windows_per_texture=windows_per_texture, views_per_batch=views_per_batch)
         self.threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0")) or None
 
     def _visual(self, data: TextureData) -> np.ndarray:
@@ -71,6 +75,10 @@ class NetEstimator(Estimator):
         perm = rng.permutation(len(data))
         val_idx, tr_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
         train, val = data.take(tr_idx), data.take(val_idx)
+        if self.val_windows_per_texture is not None:
+            # A fixed random subset of each validation texture's windows: early stopping needs a
+            # stable estimate, not every window, and validation runs every epoch.
+            val = replace(val, tactile=[w[rng.permutation(len(w))[: self.val_windows_per_texture]] for w in val.tactile])
         # Standardisation from the training part only (not even the validation textures).
         self.t_scaler = Standardizer().fit(_stack_windows(train)[0].astype(np.float64))
         views = self._visual(train)
@@ -87,7 +95,7 @@ class NetEstimator(Estimator):
         from models.nets.training import predict_windows
 
         arr = self._arrays(data, None)
-        pred = predict_windows(self.model, arr.tactile, arr.visual_views[arr.window_texture, 0])
+        pred = predict_windows(self.model, arr.tactile, arr.visual_views[:, 0], visual_index=arr.window_texture)
         pred = pred * self.y_scaler.std + self.y_scaler.mean
         return [pred[arr.window_texture == i] for i in range(len(data))]
 

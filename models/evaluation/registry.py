@@ -20,6 +20,7 @@ CLASSICAL = {
     **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
     **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
     **{f"svr-{m}": (lambda m: lambda **kw: SVREstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}-views": (lambda m: lambda **kw: SVREstimator(m, views="all", **kw))(m) for m in ("visual", "both")},
 }
 SHUFFLED_PREFIX = "shuffled-"
 

@@ -31,6 +31,11 @@ from models.nets.hvnet import KerasConv1d
 Output = dict[str, torch.Tensor | None]
 
 
+def gather_rows(x: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
+    """x[index] when windows share rows of a de-duplicated visual batch (see VisuoTactileNet.forward)."""
+    return x if index is None else x[index]
+
+
 def _check_dims(name: str, **dims: int) -> None:
     bad = {k: v for k, v in dims.items() if v < 1}
     if bad:
@@ -62,8 +67,9 @@ class ANN(nn.Module):
         self.head = MLPBranch(2 * branch[-1], tuple(head)[:-1], tuple(head)[-1])
         self.out = nn.Linear(tuple(head)[-1], N_RATINGS)
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> Output:
-        z = torch.cat([self.tactile(tactile), self.visual(visual)], dim=1)
+    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
+        v = self.visual(visual)
+        z = torch.cat([self.tactile(tactile), v if visual_index is None else v[visual_index]], dim=1)
         return {"ratings": self.out(self.head(z)), "reconstruction": None}
 
 
@@ -98,11 +104,11 @@ class Vision1DCNN(nn.Module):
         self.out = nn.Linear(fc, N_RATINGS)
         self.visual_dim = visual_dim
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> Output:
+    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
         z = visual.unsqueeze(1)
         for conv in self.convs:
             z = F.max_pool1d(F.relu(conv(z)), self.pool)
-        return {"ratings": self.out(F.relu(self.fc(z.flatten(1)))), "reconstruction": None}
+        return {"ratings": gather_rows(self.out(F.relu(self.fc(z.flatten(1)))), visual_index), "reconstruction": None}
 
 
 def near_square_shape(n: int, max_aspect: float = 2.0) -> tuple[int, int]:
@@ -151,14 +157,14 @@ class HapticCNN(nn.Module):
         self.out = nn.Linear(fc, N_RATINGS)
         self.visual_dim = visual_dim
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> Output:
+    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
         rows, cols = self.map_shape
         pad = rows * cols - self.visual_dim
         z = F.pad(visual, (0, pad)) if pad else visual
         z = z.reshape(-1, 1, rows, cols)
         for conv in self.convs:
             z = F.max_pool2d(F.relu(conv(z)), 2)
-        return {"ratings": self.out(F.relu(self.fc(z.flatten(1)))), "reconstruction": None}
+        return {"ratings": gather_rows(self.out(F.relu(self.fc(z.flatten(1)))), visual_index), "reconstruction": None}
 
 
 class TactileCNNLSTM(nn.Module):
@@ -194,7 +200,7 @@ class TactileCNNLSTM(nn.Module):
         self.out = nn.Linear(fc, N_RATINGS)
         self.n_frames, self.n_coeffs, self.n_stats = n_frames, n_coeffs, n_stats
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> Output:
+    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
         n_mfcc = self.n_frames * self.n_coeffs
         z = tactile[:, :n_mfcc].reshape(-1, 1, self.n_coeffs)  # (B·T, 1, R): frames share the CNN
         for conv in self.convs:

@@ -112,7 +112,7 @@ class VisuoTactileNet(nn.Module):
         visual_widths, visual_kernels, visual_fc: HV-Net stages and head (embedding = visual_fc[-1]).
         tactile_branch: "htnet" (ConvLSTM over the MFCC layout; needs tactile_dim =
             n_frames·n_coeffs + n_stats) or "mlp" (any tactile_dim, e.g. DWT/DFT features).
-        tactile_filters, tactile_pool_after, tactile_kernel: HT-Net stack (see `HTNet`).
+        tactile_filters, tactile_pool_after, tactile_kernel, tactile_frame_pool: HT-Net stack (see `HTNet`).
         tactile_hidden: hidden sizes of the MLP branch.
         tactile_out: tactile embedding size.
         n_frames, n_coeffs, n_stats: the MFCC window layout.
@@ -138,6 +138,7 @@ class VisuoTactileNet(nn.Module):
         tactile_filters: Sequence[int] = PAPER_FILTERS,
         tactile_pool_after: Sequence[int] | None = None,
         tactile_kernel: int = 3,
+        tactile_frame_pool: int = 1,
         tactile_hidden: Sequence[int] = (128,),
         tactile_out: int = 128,
         n_frames: int = 40,
@@ -163,21 +164,28 @@ class VisuoTactileNet(nn.Module):
             if tactile_branch == "htnet":
                 check_tactile_layout(tactile_dim, n_frames, n_coeffs, n_stats)
                 self.tactile = HTNet(
-                    n_frames, n_coeffs, n_stats, tactile_filters, tactile_pool_after, tactile_kernel, tactile_out
+                    n_frames, n_coeffs, n_stats, tactile_filters, tactile_pool_after, tactile_kernel, tactile_out,
+                    frame_pool=tactile_frame_pool,
                 )
             else:
                 self.tactile = MLPBranch(tactile_dim, tactile_hidden, tactile_out)
             fused += tactile_out
         self.head = FusionHead(fused, head)
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(
+        self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor | None]:
         """tactile: (B, tactile_dim), visual: (B, visual_dim) float32, standardized →
-        {"ratings": (B, 4) standardized, "reconstruction": (B, visual_dim) or None}."""
+        {"ratings": (B, 4) standardized, "reconstruction": (B, visual_dim) or None}.
+
+        visual_index: (B,) rows of `visual` (then (U, visual_dim), U ≤ B) paired with each window —
+        windows sharing an image view share one HV-Net pass; the reconstruction is then (U, visual_dim).
+        """
         parts = []
         reconstruction = None
         if self.visual is not None:
             embedding, reconstruction = self.visual(visual)
-            parts.append(embedding)
+            parts.append(embedding if visual_index is None else embedding[visual_index])
         if self.tactile is not None:
             parts.append(self.tactile(tactile))
         z = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)

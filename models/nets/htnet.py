@@ -67,6 +67,9 @@ class HTNet(nn.Module):
         kernel: ConvLSTM kernel over the coefficient axis.
         padding: the ConvLSTM input convolution's padding ('same' keeps 13 rows).
         out_dim: embedding size.
+        frame_pool: average adjacent MFCC frames by this factor before the stack (1: the paper).
+            The compact presets use 4: the recurrence then runs 10 steps instead of 40, and on a
+            CPU a ConvLSTM's cost is mostly per step, not per filter.
 
     forward(x: (B, n_frames·n_coeffs + n_stats) float32) → (B, out_dim).
     """
@@ -82,9 +85,12 @@ class HTNet(nn.Module):
         out_dim: int = 128,
         *,
         padding: Padding = "same",
+        frame_pool: int = 1,
     ) -> None:
         super().__init__()
         filters = tuple(filters)
+        if frame_pool < 1 or n_frames % frame_pool:
+            raise ValueError(f"HTNet frame_pool must be ≥ 1 and divide n_frames={n_frames}, got {frame_pool}")
         if n_frames < 1 or n_coeffs < 1 or n_stats < 0:
             raise ValueError(
                 f"HTNet needs n_frames, n_coeffs ≥ 1 and n_stats ≥ 0, got {n_frames}, {n_coeffs}, {n_stats}"
@@ -97,11 +103,12 @@ class HTNet(nn.Module):
         pools = default_pool_after(depth) if pool_after is None else tuple(sorted(set(pool_after)))
         if any(not 1 <= p < depth for p in pools):
             raise ValueError(f"HTNet pool_after {tuple(pool_after or ())} must name layers 1..{depth - 1} of {depth}")
-        if n_frames // 2 ** len(pools) < 1:
+        if n_frames // frame_pool // 2 ** len(pools) < 1:
             raise ValueError(f"HTNet: {len(pools)} temporal pools leave no step of {n_frames} frames")
         self.n_frames, self.n_coeffs, self.n_stats = n_frames, n_coeffs, n_stats
         self.in_dim = n_frames * n_coeffs + n_stats
         self.pool_after = pools
+        self.frame_pool = frame_pool
         channels = (1, *filters)
         self.layers = nn.ModuleList(
             ConvLSTM1D(channels[n], channels[n + 1], kernel, padding=padding, return_sequences=n < depth - 1)
@@ -122,6 +129,8 @@ class HTNet(nn.Module):
         n_mfcc = self.n_frames * self.n_coeffs
         # (B, 520) frame-major → (B, T=40, C=1, R=13): channel-first layout used inside the stack
         seq = x[:, :n_mfcc].reshape(-1, self.n_frames, 1, self.n_coeffs)
+        if self.frame_pool > 1:
+            seq = seq.reshape(-1, self.n_frames // self.frame_pool, self.frame_pool, 1, self.n_coeffs).mean(dim=2)
         for n, layer in enumerate(self.layers, start=1):
             seq = layer.forward_channels_first(seq)
             if n in self.pool_after:

@@ -41,6 +41,12 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     num_threads: int | None = None
+    #: windows drawn per texture each epoch (None: all). Windows of one texture are highly
+    #: redundant; a fresh random subset each epoch keeps an epoch cheap without losing them.
+    windows_per_texture: int | None = None
+    #: image views per batch: a batch holds this many chunks of one texture's windows, each chunk
+    #: paired with one random view, so the visual branch runs once per chunk, not once per window
+    views_per_batch: int = 8
 
     def __post_init__(self) -> None:
         if self.lr <= 0 or self.batch < 1 or self.max_epochs < 1 or self.patience < 1:
@@ -50,6 +56,10 @@ class TrainConfig:
             )
         if self.recon_weight < 0 or self.weight_decay < 0:
             raise ValueError(f"recon_weight and weight_decay must be ≥ 0, got {self.recon_weight}, {self.weight_decay}")
+        if self.windows_per_texture is not None and self.windows_per_texture < 1:
+            raise ValueError(f"windows_per_texture must be ≥ 1 or None, got {self.windows_per_texture}")
+        if self.views_per_batch < 1:
+            raise ValueError(f"views_per_batch must be ≥ 1, got {self.views_per_batch}")
         if self.num_threads is not None and self.num_threads < 1:
             raise ValueError(f"num_threads must be ≥ 1 or None, got {self.num_threads}")
 
@@ -109,15 +119,22 @@ def _tensor(a: np.ndarray, device: str) -> torch.Tensor:
 
 
 def predict_windows(
-    model: nn.Module, tactile: np.ndarray, visual_per_window: np.ndarray, batch: int = 1024
+    model: nn.Module,
+    tactile: np.ndarray,
+    visual: np.ndarray,
+    batch: int = 1024,
+    visual_index: np.ndarray | None = None,
 ) -> np.ndarray:
     """Model outputs (standardized ratings) for paired windows, in eval mode without gradients.
 
-    tactile: (N, F) float32, visual_per_window: (N, D) float32 → (N, 4) float32.
+    tactile: (N, F) float32; visual: (N, D) float32, one row per window, or — with
+    visual_index (N,) — (U, D) rows shared by windows → (N, 4) float32.
     The model's train/eval mode is restored afterwards.
     """
-    if tactile.shape[0] != visual_per_window.shape[0]:
-        raise ValueError(f"{tactile.shape[0]} tactile windows but {visual_per_window.shape[0]} visual rows")
+    if visual_index is None:
+        visual_index = np.arange(tactile.shape[0])
+    if visual_index.shape != (tactile.shape[0],):
+        raise ValueError(f"{tactile.shape[0]} tactile windows but {visual_index.shape[0]} visual indices")
     device = next(model.parameters()).device
     was_training = model.training
     model.eval()
@@ -125,18 +142,33 @@ def predict_windows(
     try:
         with torch.no_grad():
             for start in range(0, tactile.shape[0], batch):
+                rows, local = np.unique(visual_index[start : start + batch], return_inverse=True)
                 t = _tensor(tactile[start : start + batch], str(device))
-                v = _tensor(visual_per_window[start : start + batch], str(device))
-                out.append(model(t, v)["ratings"].cpu().numpy())
+                v = _tensor(visual[rows], str(device))
+                idx = torch.as_tensor(local, dtype=torch.long, device=device)
+                out.append(model(t, v, idx)["ratings"].cpu().numpy())
     finally:
         model.train(was_training)
     return np.concatenate(out, axis=0) if out else np.zeros((0, 4), np.float32)
 
 
 def _val_rmse(model: nn.Module, val: TrainArrays, batch: int) -> float:
-    visual = val.visual_views[val.window_texture, VALIDATION_VIEW]
-    pred = predict_windows(model, val.tactile, visual, batch=max(batch, 1024))
+    visual = val.visual_views[:, VALIDATION_VIEW]
+    pred = predict_windows(model, val.tactile, visual, batch=max(batch, 1024), visual_index=val.window_texture)
     return float(np.sqrt(np.mean((pred - val.targets[val.window_texture]) ** 2)))
+
+
+def _epoch_batches(by_texture: list[np.ndarray], chunk: int, per_batch: int, per_texture: int | None,
+                   rng: np.random.Generator):
+    """One epoch's batches: each texture's windows (a random `per_texture` of them, or all) cut
+    into chunks of `chunk`, chunks shuffled, `per_batch` chunks per batch."""
+    items = []
+    for t, windows in enumerate(by_texture):
+        picked = rng.permutation(windows)[:per_texture]
+        items += [(t, picked[i : i + chunk]) for i in range(0, len(picked), chunk)]
+    order = rng.permutation(len(items))
+    for b in range(0, len(order), per_batch):
+        yield [items[i] for i in order[b : b + per_batch]]
 
 
 def train_net(
@@ -170,7 +202,6 @@ def _train(
     tactile = _tensor(data.tactile, cfg.device)
     views = _tensor(data.visual_views, cfg.device)
     targets = _tensor(data.targets, cfg.device)
-    texture = torch.as_tensor(data.window_texture, dtype=torch.long, device=cfg.device)
     n_views = data.visual_views.shape[1]
 
     result = TrainResult(best_epoch=-1)
@@ -178,17 +209,21 @@ def _train(
     best_val = math.inf
     stale = 0
     epochs = tqdm(range(cfg.max_epochs), desc="epochs", disable=not progress, leave=False)
+    by_texture = [np.flatnonzero(data.window_texture == t) for t in range(data.visual_views.shape[0])]
+    views_per_batch = min(cfg.views_per_batch, cfg.batch)
+    chunk = max(1, cfg.batch // views_per_batch)
     for epoch in epochs:
         model.train()
-        order = torch.as_tensor(rng.permutation(data.n_windows), device=cfg.device)
-        view = torch.as_tensor(rng.integers(0, n_views, size=data.n_windows), device=cfg.device)
         total, batches = 0.0, 0
-        for b in range(0, data.n_windows, cfg.batch):
-            idx = order[b : b + cfg.batch]
-            tex = texture[idx]
-            visual = views[tex, view[idx]]
-            out = model(tactile[idx], visual)
-            loss = rmse(out["ratings"], targets[tex])
+        for members in _epoch_batches(by_texture, chunk, views_per_batch, cfg.windows_per_texture, rng):
+            # members: list of (texture, window indices); each gets one random view of its texture
+            idx = torch.as_tensor(np.concatenate([w for _, w in members]), device=cfg.device)
+            tex = torch.as_tensor([t for t, _ in members], dtype=torch.long, device=cfg.device)
+            view = torch.as_tensor(rng.integers(0, n_views, size=len(members)), device=cfg.device)
+            owner = torch.as_tensor(np.repeat(np.arange(len(members)), [len(w) for _, w in members]), device=cfg.device)
+            visual = views[tex, view]
+            out = model(tactile[idx], visual, owner)
+            loss = rmse(out["ratings"], targets[tex[owner]])
             if out.get("reconstruction") is not None and cfg.recon_weight > 0:
                 loss = loss + cfg.recon_weight * torch.mean((out["reconstruction"] - visual) ** 2)
             optimizer.zero_grad(set_to_none=True)

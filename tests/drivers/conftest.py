@@ -51,7 +51,7 @@ class FakeService:
         self.reject_seqs: set[int] = set()  # 400 / ok:false for these seqs
         self.saturate: int = 0  # answer 429 (HTTP) or close 4429 (WS connect) this many times
         self.fail_after_accept: set[int] = set()  # process the block, then 503 / close 1011 without the ack
-        self.fail_at: dict[int, int] = {}  # seq → answer 503 this many times before processing it
+        self.fail_at: dict[int, list[int]] = {}  # seq → HTTP statuses to answer (one per try) before processing it
         self.ws_kill_every: int = 0  # close 1011 after processing every n-th message of a connection
         self.on_accept = None  # callback(seq) after a block is accepted
         self.app = Starlette(
@@ -111,9 +111,8 @@ class FakeService:
             return JSONResponse({"detail": "saturated"}, status_code=429, headers={"Retry-After": "0.02"})
         payload = await request.body()
         seq = _peek_seq(payload, request.headers.get("content-type", ""))
-        if self.fail_at.get(seq, 0) > 0:
-            self.fail_at[seq] -= 1
-            return JSONResponse({"detail": "outage"}, status_code=503)
+        if self.fail_at.get(seq):
+            return JSONResponse({"detail": "not now"}, status_code=self.fail_at[seq].pop(0))
         status, body = self._ingest(sess, payload, request.headers.get("content-type", ""))
         if seq in self.fail_after_accept:
             self.fail_after_accept.discard(seq)
@@ -144,9 +143,13 @@ class FakeService:
         n = 0
         try:
             while True:
-                payload = await ws.receive_bytes()
+                message = await ws.receive()
+                if message["type"] == "websocket.disconnect":
+                    return
+                binary = message.get("bytes") is not None
+                payload = message["bytes"] if binary else message["text"].encode()
                 n += 1
-                status, body = self._ingest(sess, payload, BINARY_CONTENT_TYPE)
+                status, body = self._ingest(sess, payload, BINARY_CONTENT_TYPE if binary else "application/json")
                 seq = body.get("seq")
                 if (self.ws_kill_every and n % self.ws_kill_every == 0) or seq in self.fail_after_accept:
                     self.fail_after_accept.discard(seq)
@@ -155,7 +158,8 @@ class FakeService:
                 if status == 202:
                     await ws.send_json({"seq": seq, "ok": True, "duplicate": body["duplicate"]})
                 else:
-                    await ws.send_json({"seq": seq, "ok": False, "error": body["detail"]})
+                    # like the real service when it cannot read the seq: the client matches answers by order
+                    await ws.send_json({"seq": None, "ok": False, "error": body["detail"]})
         except WebSocketDisconnect:
             return
 

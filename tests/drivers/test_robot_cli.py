@@ -56,9 +56,6 @@ def test_robot_arguments(tmp_path):
     only_session = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--session", "s1"])
     with pytest.raises(ValueError, match="--session and --token go together"):
         only_session.func(only_session)
-    json_ws = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--json"])
-    with pytest.raises(ValueError, match="--json needs --transport http"):
-        json_ws.func(json_ws)
     bad_url = parser().parse_args(["robot", "--source", f"camera-dir:{tmp_path}", "--url", "h:1"])
     with pytest.raises(ValueError, match="url must be http"):
         bad_url.func(bad_url)

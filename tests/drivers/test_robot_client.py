@@ -14,7 +14,12 @@ from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, _P
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
-TRANSPORTS = [pytest.param("ws", True, id="ws"), pytest.param("http", True, id="http-binary"), pytest.param("http", False, id="http-json")]
+TRANSPORTS = [
+    pytest.param("ws", True, id="ws-binary"),
+    pytest.param("ws", False, id="ws-json"),
+    pytest.param("http", True, id="http-binary"),
+    pytest.param("http", False, id="http-json"),
+]
 
 
 async def _wait_until(predicate, timeout_s: float = 10.0) -> None:
@@ -42,7 +47,7 @@ def test_every_sample_arrives_once_and_in_order_across_outages(kit, fake_service
     source = kit.ListSource(blocks)
     fake_service.saturate = 2  # 429 (HTTP) / close 4429 (WS) twice
     fake_service.fail_after_accept = {10, 120}  # processed, but the acknowledgement never arrives
-    fake_service.fail_at = {60: 3}  # 503 three times before block 60 gets through
+    fake_service.fail_at = {60: [503, 421, 503]}  # outage, another replica, outage: block 60 is retried, not dropped
     fake_service.ws_kill_every = 97 if transport == "ws" else 0
     server = kit.LoopbackServer(fake_service.app)
     restarts = []
@@ -214,8 +219,6 @@ def test_bad_client_arguments_are_named():
         RobotClient("ftp://x", src)
     with pytest.raises(ValueError, match="both session_id and robot_token"):
         RobotClient("http://x", src, session_id="s")
-    with pytest.raises(ValueError, match="binary=False needs transport='http'"):
-        RobotClient("http://x", src, binary=False)
     with pytest.raises(ValueError, match="transport"):
         RobotClient("http://x", src, transport="udp")
     with pytest.raises(ValueError, match="backoff"):

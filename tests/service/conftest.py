@@ -183,7 +183,10 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
 
 @pytest.fixture(scope="session")
 def base_settings(tactile_model, library_dir) -> Settings:
-    return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600)
+    # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
+    # the backpressure tests set a tight one.
+    return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600,
+                    session_queue_windows=64)
 
 
 @pytest.fixture(scope="session")

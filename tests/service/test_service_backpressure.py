@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
+import time
 
 import httpx
 import pytest
@@ -72,7 +73,7 @@ def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight
             assert status["state"] == "saturated" and status["counters"]["blocks_refused"] == 1
         for block in blocks[sent:]:  # the robot resends from the refused block
             while (r := _post(client, session, block)).status_code == 429:
-                pass  # drains within milliseconds once the pool is free
+                time.sleep(0.01)  # drains within milliseconds once the pool is free
             assert r.status_code == 202 and r.json()["duplicate"] is False
         final = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 8 and s)
         assert final["counters"]["windows"] == 8 and final["counters"]["blocks_accepted"] == len(blocks)
@@ -142,10 +143,13 @@ def test_a_subscriber_that_never_reads_does_not_hold_back_another(kit, server, c
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 20.0), block_s=0.5)
     session = kit.create_session(client)
     url = f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
-    with connect(url) as idle, connect(url) as reader:
+    # the idle client buffers one message and then stops reading its socket
+    with connect(url, max_queue=1, close_timeout=0.2) as idle, connect(url) as reader:
         assert '"subscribed"' in idle.recv(timeout=5) and '"subscribed"' in reader.recv(timeout=5)
-        for block in blocks:
-            assert _post(client, session, block).status_code == 202
+        for block in blocks:  # each block completes a window; sent as fast as the service takes them
+            while (r := _post(client, session, block)).status_code == 429:
+                time.sleep(0.02)
+            assert r.status_code == 202
         windows = []
         while len(windows) < 40:
             event = json.loads(reader.recv(timeout=10))

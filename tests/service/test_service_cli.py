@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import socket
@@ -12,7 +11,6 @@ import time
 from pathlib import Path
 
 import httpx
-import pytest
 
 from service.cli import build_parser, main
 from service.commands import settings_from_args

@@ -36,10 +36,13 @@ class Recorder(nn.Module):
         self.lin = nn.Linear(f + d, 4)
         self.seen: list[tuple[torch.Tensor, torch.Tensor]] = []
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    def forward(
+        self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor | None]:
+        paired = visual if visual_index is None else visual[visual_index]
         if self.training:
-            self.seen.append((tactile.detach().clone(), visual.detach().clone()))
-        return {"ratings": self.lin(torch.cat([tactile, visual], dim=1)), "reconstruction": visual * 0.5}
+            self.seen.append((tactile.detach().clone(), paired.detach().clone()))
+        return {"ratings": self.lin(torch.cat([tactile, paired], dim=1)), "reconstruction": visual * 0.5}
 
 
 def test_windows_are_paired_with_views_of_their_own_texture() -> None:
@@ -56,6 +59,25 @@ def test_windows_are_paired_with_views_of_their_own_texture() -> None:
     assert pairs.shape[0] == 8 * 24  # every window once per epoch
     assert torch.equal(pairs[:, 0], pairs[:, 1])
     assert set(pairs[:, 2].int().tolist()) == set(range(views))  # views are drawn, not fixed
+
+
+def test_an_epoch_can_subsample_windows_and_shares_one_view_per_chunk() -> None:
+    n_tex, views = 5, 4
+    texture = np.repeat(np.arange(n_tex), 20)
+    tactile = np.stack([texture, np.arange(texture.size)], axis=1).astype(np.float32)  # (texture id, window id)
+    vv = np.zeros((n_tex, views, 2), np.float32)
+    vv[:, :, 0] = np.arange(n_tex)[:, None]
+    vv[:, :, 1] = np.arange(views)[None, :]
+    model = Recorder(2, 2)
+    train_net(model, TrainArrays(tactile, texture, vv, np.zeros((n_tex, 4), np.float32)), None,
+              TrainConfig(max_epochs=3, batch=12, views_per_batch=3, windows_per_texture=8))
+    epoch_windows = sum(t.shape[0] for t, _ in model.seen) / 3
+    assert epoch_windows == n_tex * 8  # 8 of each texture's 20 windows per epoch
+    for t, v in model.seen:
+        assert torch.equal(t[:, 0], v[:, 0])  # own texture
+        assert len({(int(a), int(b)) for a, b in v.tolist()}) <= 3  # at most views_per_batch distinct views
+    seen_windows = {int(w) for t, _ in model.seen for w in t[:, 1]}
+    assert len(seen_windows) > n_tex * 8  # different subsets in different epochs
 
 
 def test_loss_is_rmse_plus_weighted_reconstruction_mse() -> None:
