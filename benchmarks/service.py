@@ -147,6 +147,7 @@ class RobotResult:
     send_lag_ms: list[float] = field(default_factory=list)
     acks_failed: int = 0
     closed_saturated: int = 0
+    stopped: bool = False  # closed by the service; a real robot would reconnect and resend, this one stops
 
 
 async def run_robot(url: str, blocks: list[bytes], block_s: float, start: float, result: RobotResult,
@@ -189,9 +190,9 @@ async def run_robot(url: str, blocks: list[bytes], block_s: float, start: float,
                 sent_at[i] = now
                 try:
                     await ingest.send(payload)
-                except Exception as exc:  # noqa: BLE001 - a 4429 close: count it, stop this robot
+                except Exception:  # noqa: BLE001 - the service closed the socket (4429: saturated); this robot stops
                     result.closed_saturated += int(getattr(ingest, "close_code", None) == 4429)
-                    print(f"robot stopped: {exc}", file=sys.stderr)
+                    result.stopped = True
                     break
             streaming_done.set()
             await asyncio.sleep(2.0)  # the last windows are in flight
@@ -255,6 +256,7 @@ def measure(n: int, model: Path, library: Path, streams: list[list[bytes]], dura
         "events_dropped_by_service": dropped,
         "acks_failed": sum(r.acks_failed for r in results),
         "closed_saturated": sum(r.closed_saturated for r in results),
+        "robots_stopped": sum(r.stopped for r in results),
         "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99), "max": percentile(e2e, 100)},
         "stages_ms": {s: {"p50": percentile(v, 50), "p99": percentile(v, 99)} for s, v in stages.items()},
         "client_send_lag_ms": {"p50": percentile(lag, 50), "p99": percentile(lag, 99)},
@@ -265,6 +267,58 @@ def measure(n: int, model: Path, library: Path, streams: list[list[bytes]], dura
         "server_rss_mb": round(rss, 1),
         "server_peak_rss_mb": round(peak, 1),
         "blocks_per_s": round(n / block_s, 1),
+    }
+
+
+async def _pump(url: str, blocks: list[bytes], in_flight: int) -> int:
+    """Send blocks as fast as acknowledgements allow (in_flight unacknowledged); returns blocks acknowledged."""
+    from websockets.asyncio.client import connect
+
+    async with httpx.AsyncClient(base_url=url, timeout=30) as client:
+        session = (await client.post("/sessions", json={"name": "capacity"})).json()
+    ws_url = url.replace("http://", "ws://") + f"/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
+    acked = 0
+    async with connect(ws_url, compression=None) as ws:
+        window = asyncio.Semaphore(in_flight)
+
+        async def read_acks() -> None:
+            nonlocal acked
+            async for _ in ws:
+                acked += 1
+                window.release()
+                if acked == len(blocks):
+                    return
+
+        reader = asyncio.create_task(read_acks())
+        for payload in blocks:
+            await window.acquire()
+            if reader.done():  # closed by the service
+                break
+            await ws.send(payload)
+        await reader
+    return acked
+
+
+def measure_capacity(model: Path, library: Path, blocks: list[bytes]) -> dict:
+    """One session fed as fast as the service acknowledges: server CPU per block, windows included.
+
+    CPU time per block is what the service costs, and holds up on a busy machine, where latencies
+    measure the neighbours as much as the service.
+    """
+    server = ServerProcess(model, library, {"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
+    try:
+        cpu0, wall0 = server.cpu_seconds(), time.perf_counter()
+        acked = _run(_pump(server.url, blocks, in_flight=32))
+        cpu1, wall1 = server.cpu_seconds(), time.perf_counter()
+    finally:
+        server.stop()
+    per_block_us = 1e6 * (cpu1 - cpu0) / max(acked, 1)
+    return {
+        "blocks": acked,
+        "blocks_per_s": round(acked / (wall1 - wall0), 1),
+        "server_cpu_us_per_block": round(per_block_us, 1),
+        # a 20 ms-block robot sends 50 blocks/s: the share of one core each robot costs
+        "server_core_percent_per_robot": round(per_block_us * 50 / 1e4, 2),
     }
 
 
@@ -306,10 +360,18 @@ def main(argv: list[str] | None = None) -> int:
     hop_s = 0.5
     print(f"rendering {max(args.robots)} streams of {args.duration:g} s …", flush=True)
     streams = robot_streams(library, max(args.robots), args.duration, args.block_s, args.seed)
+    print("capacity: one session as fast as acknowledged …", flush=True)
+    capacity = measure_capacity(model, library, robot_streams(library, 1, 100.0, args.block_s, args.seed + 1)[0])
+    print(f"  {capacity['server_cpu_us_per_block']:.0f} µs server CPU per block (windows included), "
+          f"{capacity['blocks_per_s']:.0f} blocks/s; {capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot",
+          flush=True)
     rows = []
     for n in args.robots:
         print(f"{n} robot(s) for {args.duration:g} s …", flush=True)
         rows.append(measure(n, model, library, streams, args.duration, args.block_s, hop_s, args.seed, {}))
+        if rows[-1]["robots_stopped"]:
+            print(f"  {rows[-1]['robots_stopped']} robot(s) were closed by the service "
+                  f"({rows[-1]['closed_saturated']} with 4429: saturated) and stopped", flush=True)
     print()
     print_table(rows)
     report = {
@@ -317,6 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "config": {"block_s": args.block_s, "duration_s": args.duration, "hop_s": hop_s, "transport": "WebSocket, binary blocks",
                    "channels": "accel (n,3) + force (n,3) + speed (n,) at 1 kHz", "model": str(model)},
+        "capacity": capacity,
         "results": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--quick", action="store_true", help="structure only: skip decoding recordings and images")
     c.set_defaults(func=_dataset_check)
     register_models(sub)
+    register_report(sub)
 
 
 def _dataset_build(args: argparse.Namespace) -> int:
@@ -150,4 +151,19 @@ def _predict(args: argparse.Namespace) -> int:
     textures, preds = predict_dataset(args.model, args.dataset, rated=None if args.textures == "all" else args.textures)
     write_predictions(args.out, textures, preds)
     print(f"wrote {len(textures)} predictions to {args.out}")
+    return 0
+
+
+def register_report(sub: argparse._SubParsersAction) -> None:
+    r = sub.add_parser("report", help="one markdown page of every evaluation of a dataset (reports/<dataset>/README.md)")
+    r.add_argument("--dataset", required=True, help="the dataset the results were computed on (for the human noise ceiling)")
+    r.add_argument("--reports", required=True, help="folder holding <model>/results.json (and ablation/<run>/results.json)")
+    r.add_argument("--regenerate", default="", help="the command that regenerates the page, quoted on it")
+    r.set_defaults(func=_report)
+
+
+def _report(args: argparse.Namespace) -> int:
+    from models.report.markdown import build_report
+
+    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate)}")
     return 0

@@ -80,27 +80,34 @@ class ModelCard:
             raise ValueError(f"{source}: incomplete model metadata ({exc})") from None
 
 
-def read_card(path: str | Path) -> ModelCard:
-    """The card of an ONNX model file, read with onnxruntime (no torch, no onnx needed)."""
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """An ONNX file's metadata_props, read with onnxruntime (no torch, no onnx package needed)."""
     import onnxruntime as ort
 
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"model file not found: {path}")
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
     try:
-        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
         raise ValueError(f"{path}: not a loadable ONNX model ({exc})") from None
-    return ModelCard.from_metadata(sess.get_modelmeta().custom_metadata_map, str(path))
+    return dict(sess.get_modelmeta().custom_metadata_map)
 
 
-def write_card(path: str | Path, card: ModelCard) -> None:
-    """Stamp the card into an existing ONNX file's metadata_props."""
+def write_metadata(path: str | Path, metadata: dict[str, str]) -> None:
+    """Replace an ONNX file's metadata_props with `metadata` (string keys and values)."""
     import onnx
 
     model = onnx.load(str(path))
     del model.metadata_props[:]
-    for k, v in card.to_metadata().items():
+    for k, v in metadata.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
+
+
+def read_card(path: str | Path) -> ModelCard:
+    """The card of an exported hapticlink model."""
+    return ModelCard.from_metadata(read_metadata(path), str(path))

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from models.evaluation.data import TextureData, VisualPart, load_texture_data
+from models.evaluation.data import TextureData, load_texture_data
+from models.visual.embedding import VisualPart
 from models.evaluation.registry import build_estimator
 from models.modelfile import ModelCard
 from models.predictor import Predictor

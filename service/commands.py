@@ -1,4 +1,4 @@
-"""Subcommands of the service part: serve."""
+"""Subcommands of the service part: serve, demo."""
 
 from __future__ import annotations
 
@@ -24,6 +24,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--instance-id", help="this replica's name (HAPTICLINK_INSTANCE_ID)")
     p.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), help="HAPTICLINK_LOG_LEVEL")
     p.set_defaults(func=_serve)
+
+    d = sub.add_parser(
+        "demo",
+        help="the whole loop on this machine: service + simulated robot + console",
+        description="Builds a synthetic world, trains and exports a model, starts the service and a simulated "
+        "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
+    )
+    d.add_argument("--assets", type=Path, default=Path("artifacts/demo"), help="where demo assets are built and cached")
+    d.add_argument("--host", default="127.0.0.1")
+    d.add_argument("--port", type=int, default=8000)
+    d.add_argument("--per-texture", type=float, default=20.0, metavar="S", help="seconds the robot strokes each texture")
+    d.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
+    d.set_defaults(func=_demo)
 
 
 FLAG_TO_FIELD = {
@@ -76,3 +89,9 @@ def _serve(args: argparse.Namespace) -> int:
         access_log=settings.log_level == "debug",
     )
     return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from service.demo import demo
+
+    return demo(args.assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

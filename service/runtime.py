@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.evaluation.data import visual_slice
+from models.visual.embedding import visual_slice
 from models.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig

@@ -1,13 +1,13 @@
-"""One streaming session on the event loop: admission, the bounded work queue, its worker, its frames.
+"""One streaming session on the event loop: admission, its bounded queue of pending blocks, its frames.
 
-    ingest (loop) ─▶ StreamAdmission.admit ─▶ pending blocks ─(a window is complete)─▶ worker
-    worker: SessionEstimator.process in the window pool ─▶ window events ─▶ broker
+    ingest (loop) ─▶ StreamAdmission.admit ─▶ pending blocks ─(a window is complete)─▶ WindowBatcher
+    batcher: the session's blocks, with other sessions', estimated in the window pool ─▶ apply_result ─▶ broker
     frames: decode (window pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
 
 Bounds: pending blocks ≤ session_queue_blocks and complete-but-unprocessed windows <
-session_queue_windows, else ingest is refused (429 / close 4429) without taking anything; one
-estimation job and one embedding job in flight per session; frames arriving during an embedding
-replace each other (only the newest is embedded).
+session_queue_windows, else ingest is refused (429 / close 4429) without taking anything; a
+session is in at most one estimation job and one embedding job at a time; frames arriving during
+an embedding replace each other (only the newest is embedded).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
-from service.pipeline import SessionEstimator
+from service.pipeline import SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
 from service.settings import Settings
 from service.stream import StreamAdmission
@@ -35,6 +35,7 @@ from service.stream import StreamAdmission
 log = logging.getLogger(__name__)
 
 Publish = Callable[[str, dict, bool], Awaitable[None]]
+Notify = Callable[["Session"], None]  # tells the batcher a session has complete windows
 MAX_SEQ = 2**63  # a seq beyond int64 is garbage, and accepting it would make every later block a duplicate
 RETRY_AFTER_S = 1.0  # a saturated session has seconds of windows queued; retrying sooner only adds load
 
@@ -58,7 +59,7 @@ class Session:
 
     def __init__(self, session_id: str, name: str, credentials: SessionCredentials, runtime: Runtime,
                  settings: Settings, window_pool: Executor, visual_pool: Executor, publish: Publish,
-                 metrics: ServiceMetrics) -> None:
+                 metrics: ServiceMetrics, notify: Notify) -> None:
         self.id = session_id
         self.name = name
         self.credentials = credentials
@@ -79,12 +80,13 @@ class Session:
         self._visual_pool = visual_pool
         self._publish = publish
         self._metrics = metrics
+        self._notify = notify
         self._pending: list = []
-        self._wake = asyncio.Event()
         self._frame: np.ndarray | None = None
         self._told_waiting = False
-        self._worker = asyncio.create_task(self._work(), name=f"session-{session_id}")
         self._embedder: asyncio.Task | None = None
+        self.in_job = False  # set by the batcher while the session's blocks are being estimated
+        self.closed = False
 
     # ---- ingest (event loop) ---------------------------------------------------------------------
     def touch(self) -> None:
@@ -116,49 +118,51 @@ class Session:
         self.counters.blocks_accepted += 1
         backlog = self.admission.backlog()
         if backlog:
-            self._wake.set()
+            self._notify(self)
         return {"seq": block.seq, "duplicate": False, "windows_ready": backlog}
 
     def saturated(self) -> bool:
         return (self.admission.backlog() >= self.settings.session_queue_windows
                 or len(self._pending) >= self.settings.session_queue_blocks)
 
-    # ---- the worker ------------------------------------------------------------------------------
-    async def _work(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            await self._wake.wait()
-            self._wake.clear()
-            if self.runtime.needs_visual and self.visual is None:
-                if not self._told_waiting:
-                    self._told_waiting = True
-                    await self._status("waiting_for_frame",
-                                       f"model {self.runtime.model_name} needs a camera frame; windows wait for it")
-                continue
-            if not self._pending:
-                continue
-            blocks, self._pending = self._pending, []
-            try:
-                import os
-                if os.environ.get("HL_INLINE"):
-                    estimates, segment, taken = self.estimator.process(blocks, self.visual)
-                else:
-                    estimates, segment, taken = await loop.run_in_executor(
-                        self._window_pool, self.estimator.process, blocks, self.visual)
-            except Exception as exc:  # noqa: BLE001 - admission mirrors the preprocessor, so this is a bug: keep serving
-                log.exception("session %s: estimation failed", self.id)
-                self.counters.pipeline_errors += 1
-                self.admission.break_segment()
-                await self._status("error", f"estimation failed ({type(exc).__name__}: {exc}); the stream restarts at the next block")
-                continue
-            self.admission.note_taken(segment, taken)
-            for w in estimates:
-                event = window_event(self.id, self.runtime.model_name, w, time.perf_counter_ns())
-                await self._publish(self.id, event, False)
-                self._observe(event["latency_ms"])
-            self.counters.windows += len(estimates)
-            if self.admission.backlog():
-                self._wake.set()
+    # ---- estimation (called by the batcher) ------------------------------------------------------------
+    def waiting_for_frame(self) -> bool:
+        return self.runtime.needs_visual and self.visual is None
+
+    def take_job(self) -> SessionJob | None:
+        """Hand the pending blocks to an estimation job; None when there is nothing to do or a visual
+        model still waits for its first frame (the blocks then stay, counting against the bound)."""
+        if self.closed or not self._pending or self.waiting_for_frame():
+            return None
+        blocks, self._pending = self._pending, []
+        return SessionJob(self.estimator, blocks, self.visual)
+
+    async def tell_waiting(self) -> None:
+        """Tell operators, once, that windows wait for a camera frame."""
+        if not self._told_waiting:
+            self._told_waiting = True
+            await self._status("waiting_for_frame", f"model {self.runtime.model_name} needs a camera frame; windows wait for it")
+
+    async def apply_result(self, result: SessionResult) -> None:
+        """Publish a job's windows; after a failure the stream restarts cleanly at the next block."""
+        if self.closed:
+            return
+        if result.error is not None:
+            log.error("session %s: estimation failed: %r", self.id, result.error)
+            self.counters.pipeline_errors += 1
+            self.admission.break_segment()
+            await self._status("error", f"estimation failed ({type(result.error).__name__}: {result.error}); "
+                                        "the stream restarts at the next block")
+            return
+        self.admission.note_taken(result.segment, result.taken)
+        for w in result.estimates:
+            event = window_event(self.id, self.runtime.model_name, w, time.perf_counter_ns())
+            await self._publish(self.id, event, False)
+            self._observe(event["latency_ms"])
+        self.counters.windows += len(result.estimates)
+
+    def has_work(self) -> bool:
+        return not self.closed and bool(self._pending) and self.admission.backlog() > 0
 
     def _observe(self, latency_ms: dict[str, float]) -> None:
         self._metrics.windows.inc()
@@ -201,18 +205,17 @@ class Session:
             self.counters.frames_embedded += 1
             await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
                                embed_ms=round(seconds * 1e3, 1))
-            self._wake.set()
+            if self.has_work():
+                self._notify(self)
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def close(self) -> None:
-        """Stop the worker and the embedder; whatever they were computing is discarded."""
-        for task in (self._worker, self._embedder):
-            if task is not None and not task.done():
-                task.cancel()
-        for task in (self._worker, self._embedder):
-            if task is not None:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+        """Stop the embedder; an estimation job in flight finishes, but its windows are not published."""
+        self.closed = True
+        if self._embedder is not None and not self._embedder.done():
+            self._embedder.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._embedder
 
     def state(self) -> str:
         if self.runtime.needs_visual and self.visual is None:

@@ -64,7 +64,7 @@ class Settings(BaseSettings):
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
     session_idle_s: float = Field(600.0, gt=0, description="a session with no traffic for this long is ended")
     # ---- compute ----------------------------------------------------------------------------------
-    pool_threads: int = Field(2, ge=1, le=64, description="threads computing windows (features, model, lookup)")
+    pool_threads: int = Field(2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time")
     visual_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)")
     gil_switch_interval_s: float = Field(
         0.0005, gt=0, le=0.1,

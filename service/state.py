@@ -14,6 +14,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from service.batcher import WindowBatcher
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
 from service.broker import Broker, SessionRecord, Subscription, make_broker
 from service.errors import ServiceError
@@ -41,6 +42,7 @@ class ServiceState:
         self.load_error: str | None = None
         self.window_pool = ThreadPoolExecutor(settings.pool_threads, thread_name_prefix="hapticlink-window")
         self.visual_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-visual")
+        self.batcher = WindowBatcher(self.window_pool, max_jobs=settings.pool_threads)
         self._tasks: list[asyncio.Task] = []
         self._subscribers = 0
         self._last_publish_error = 0.0
@@ -51,6 +53,7 @@ class ServiceState:
         # whole switch interval (5 ms by default), per write. A short interval bounds that wait.
         sys.setswitchinterval(self.settings.gil_switch_interval_s)
         await self.broker.start()
+        self.batcher.start()
         self._tasks = [asyncio.create_task(self._load(), name="load-runtime"),
                        asyncio.create_task(self._reap_idle(), name="reap-idle-sessions")]
 
@@ -76,6 +79,7 @@ class ServiceState:
                 await task
         for sid in list(self.sessions):
             await self.end_session(sid, "the service is shutting down")
+        await self.batcher.close()
         await self.broker.close()
         self.window_pool.shutdown(wait=False, cancel_futures=True)
         self.visual_pool.shutdown(wait=False, cancel_futures=True)
@@ -108,7 +112,7 @@ class ServiceState:
         robot, operator, credentials = issue_credentials()
         name = name or session_id
         session = Session(session_id, name, credentials, runtime, self.settings, self.window_pool, self.visual_pool,
-                          self.publish, self.metrics)
+                          self.publish, self.metrics, self.batcher.notify)
         self.sessions[session_id] = session
         self.metrics.sessions_active.set(len(self.sessions))
         try:
@@ -138,8 +142,9 @@ class ServiceState:
             await session.close()
 
     async def _reap_idle(self) -> None:
+        every = min(REAP_EVERY_S, self.settings.session_idle_s / 2)
         while True:
-            await asyncio.sleep(REAP_EVERY_S)
+            await asyncio.sleep(every)
             now = time.monotonic()
             for sid, session in list(self.sessions.items()):
                 if now - session.last_activity > self.settings.session_idle_s:

@@ -14,6 +14,7 @@ A block whose t0 is off the expected continuation by more than GAP_TOLERANCE_S s
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,7 +139,7 @@ class StreamAdmission:
             rate = self._rate_of(stream, self.rates, self.motion)
             if rate is None:
                 return 0
-            counts.append(int(np.floor(self._samples[stream] * self.config.rate_hz / rate + 1e-6)))
+            counts.append(math.floor(self._samples[stream] * self.config.rate_hz / rate + 1e-6))
         return min(counts)
 
     def windows_complete(self) -> int:

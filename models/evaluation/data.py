@@ -4,16 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
 from models.datasets.format import Dataset
 from models.featurize import tactile_table
 from models.tactile.config import TactileConfig
+from models.visual.embedding import VisualPart, visual_slice
 
-VisualPart = Literal["both", "backbone", "glcm"]
-GLCM_DIM = 256
 
 
 @dataclass(frozen=True)
@@ -56,17 +54,6 @@ class TextureData:
 
     def with_targets(self, targets: np.ndarray | None) -> "TextureData":
         return replace(self, targets=None if targets is None else np.asarray(targets, np.float32))
-
-
-def visual_slice(dim: int, part: VisualPart) -> slice:
-    """Columns of a visual vector (backbone ⊕ GLCM 256) that `part` keeps."""
-    if part == "both":
-        return slice(0, dim)
-    if part == "backbone":
-        return slice(0, dim - GLCM_DIM)
-    if part == "glcm":
-        return slice(dim - GLCM_DIM, dim)
-    raise ValueError(f"visual part must be both, backbone or glcm, got {part!r}")
 
 
 def load_texture_data(

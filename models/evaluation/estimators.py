@@ -170,13 +170,15 @@ class RidgeEstimator(Estimator):
     def export(self, path, metadata: dict[str, str]):
         """ONNX of the per-window model. Linear, so averaging window predictions equals predicting
         from the texture's mean window — the texture-level fit serves window by window unchanged."""
-        from models.linear_onnx import InputBlock, export_linear
+        from models.onnx_graph import GraphBuilder
 
         if self.features.tactile_stats != ("mean",):
             raise ValueError("only ridge on mean tactile features can be exported (std is not linear per window)")
+        g = GraphBuilder()
         names = [n for n in ("visual", "tactile") if self.modality in (n, "both")]
-        blocks = [InputBlock(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size)) for n, s in zip(names, self.features.scalers)]
-        return export_linear(path, blocks, self.coef, self.y_mean, metadata)
+        z = g.concat([g.standardized(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size)) for n, s in zip(names, self.features.scalers)])
+        out = g.op("Add", g.op("MatMul", z, g.const(self.coef)), g.const(self.y_mean))
+        return g.save(path, out, metadata)
 
 
 class KNNEstimator(Estimator):
@@ -341,3 +343,46 @@ class ShuffledLabels(Estimator):
 
     def n_params(self) -> int:
         return self.inner.n_params()
+
+
+class StackedEstimator(Estimator):
+    """Per-attribute convex combination of base estimators, weights from out-of-fold predictions.
+
+    Inside fit: K-fold over the training textures gives each base's out-of-fold predictions;
+    non-negative least squares per attribute gives the weights (normalised to sum to 1); then
+    every base is refit on all training textures. Lets touch carry the attributes where it
+    helps (hard–soft) while vision carries the rest."""
+
+    def __init__(self, bases: tuple[str, ...] = ("svr-visual", "ridge-both", "knn-visual"), folds: int = 5):
+        self.bases = bases
+        self.folds = folds
+        self.name = "stack-" + "+".join(bases)
+        self.modality = "both"
+
+    def fit(self, data: TextureData, seed: int) -> "StackedEstimator":
+        from scipy.optimize import nnls
+        from sklearn.model_selection import KFold
+
+        from models.evaluation.registry import build_estimator
+
+        y = require_targets(data)
+        oof = np.zeros((len(self.bases), len(data), 4))
+        for tr, va in KFold(self.folds, shuffle=True, random_state=seed).split(y):
+            for b, name in enumerate(self.bases):
+                oof[b, va] = build_estimator(name).fit(data.take(tr), seed).predict(data.take(va).with_targets(None))
+        self.weights = np.zeros((4, len(self.bases)))
+        for j in range(4):
+            w, _ = nnls(oof[:, :, j].T, y[:, j])
+            self.weights[j] = w / w.sum() if w.sum() > 0 else np.full(len(self.bases), 1 / len(self.bases))
+        self.models = [build_estimator(name).fit(data, seed) for name in self.bases]
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        preds = np.stack([m.predict(data) for m in self.models])  # (bases, T, 4)
+        return np.einsum("btj,jb->tj", preds, self.weights)
+
+    def n_params(self) -> int:
+        return int(sum(m.n_params() for m in self.models) + self.weights.size)
+
+    def fit_info(self) -> dict:
+        return {"weights": {a: dict(zip(self.bases, map(float, w))) for a, w in zip(("rs", "fb", "ss", "hs"), self.weights)}}

@@ -8,6 +8,7 @@ import platform
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,31 @@ def hardware() -> dict:
     except ImportError:
         pass
     return info
+
+
+def window_latency(data: TextureData, spec: EstimatorSpec, seed: int = 0, n: int = 200) -> dict:
+    """Per-window inference cost of the model fit on all textures: onnxruntime (CPU, 1 thread, batch 1)
+    for models that export to ONNX; otherwise the estimator's own predict on one window (numpy/sklearn)."""
+    import tempfile
+
+    from models.nets.latency import onnx_latency
+
+    est = spec.build().fit(data, seed)
+    if hasattr(est, "export"):
+        with tempfile.TemporaryDirectory() as tmp:
+            path = est.export(Path(tmp) / "model.onnx", {})
+            return {**onnx_latency(path, n=n, threads=1), "runtime": "onnxruntime", "threads": 1, "batch": 1}
+    one = data.take([0])
+    one = replace(one, tactile=[one.tactile[0][:1]])
+    for _ in range(5):
+        est.predict(one)
+    times = []
+    for _ in range(min(n, 50)):
+        t0 = time.perf_counter_ns()
+        est.predict(one)
+        times.append((time.perf_counter_ns() - t0) / 1e3)
+    return {"p50_us": float(np.percentile(times, 50)), "p90_us": float(np.percentile(times, 90)),
+            "mean_us": float(np.mean(times)), "runtime": "python (no ONNX export)", "threads": 1, "batch": 1}
 
 
 def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
@@ -69,6 +95,7 @@ def evaluate(
     backend: str = "process",
     progress: bool = True,
     figures: bool = True,
+    latency: bool = True,
 ) -> dict:
     """LOOCV for every seed; writes out/results.json (+ figures) and returns the results dict."""
     out = Path(out)
@@ -85,9 +112,11 @@ def evaluate(
         "scale": "0-100 (bipolar error / 2)",
         **summarize_runs(data, runs),
         "n_params": runs[0].n_params,
+        "latency_us": window_latency(data, spec) if latency else None,
         "wall_s": time.perf_counter() - t0,
         "hardware": hardware(),
-        "features": {k: v for k, v in data.meta.items() if k != "tactile_config"},
+        "features": {**{k: v for k, v in data.meta.items() if k != "tactile_config"},
+                     "tactile_features": data.meta["tactile_config"]["feature_set"]},
         "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[0].endswith("hapticlink") else None,
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))

@@ -10,12 +10,14 @@ from models.evaluation.estimators import (
     MeanEstimator,
     RidgeEstimator,
     ShuffledLabels,
+    StackedEstimator,
     SVREstimator,
     WindowSVREstimator,
 )
 
 CLASSICAL = {
     "mean": lambda **kw: MeanEstimator(),
+    "stack-both": lambda **kw: StackedEstimator(**kw),
     "svr-tactile-windows": lambda **kw: WindowSVREstimator(**kw),
     **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
     **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},

@@ -1,4 +1,4 @@
-"""ONNX export of a trained network with its standardization folded in, and metadata reading.
+"""ONNX export of a trained network with its standardization folded in.
 
 The exported graph takes RAW features and returns bipolar ratings:
 
@@ -10,7 +10,7 @@ Only the inputs the model reads are graph inputs: a tactile-only model has just
 the session (and the ``inputs`` metadata entry says the same), so it never has to feed
 a dummy tensor. The autoencoder's reconstruction is not exported.
 
-`load_metadata` uses onnxruntime only, so the serving path needs no torch; torch is
+Metadata is written and read by `models.modelfile` (onnxruntime only, no torch); torch is
 imported inside `export_onnx`.
 """
 
@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from models.modelfile import write_metadata
 
 if TYPE_CHECKING:
     from torch import nn
@@ -184,26 +186,5 @@ def export_onnx(
             )
     finally:
         model.train(was_training)
-    _write_metadata(path, {**metadata, **own})
+    write_metadata(path, {**metadata, **own})
     return path
-
-
-def _write_metadata(path: Path, metadata: Mapping[str, str]) -> None:
-    import onnx
-
-    proto = onnx.load(str(path))
-    del proto.metadata_props[:]
-    for key, value in metadata.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = key, value
-    onnx.save(proto, str(path))
-
-
-def load_metadata(path: str | Path) -> dict[str, str]:
-    """The model file's metadata_props as a dict (onnxruntime only, no torch)."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.log_severity_level = 3
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    return dict(session.get_modelmeta().custom_metadata_map)

@@ -61,7 +61,7 @@ def perceptual_space(results: dict, path: Path) -> Path:
     _, truth, pred = _arrays(results)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True, sharex=True, sharey=True)
     for ax, arr, title in ((axes[0], truth, "human ratings"), (axes[1], pred, "predicted")):
-        size = 10 + 140 * (arr[:, 0] + 100) / 200
+        size = 10 + 140 * (np.clip(arr[:, 0], -100, 100) + 100) / 200
         sc = ax.scatter(arr[:, 3], arr[:, 1], s=size, c=arr[:, 2], cmap="coolwarm", vmin=-100, vmax=100, alpha=0.75, edgecolors="k", linewidths=0.3)
         ax.set_xlabel("hard −100 … +100 soft")
         ax.set_title(title)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -21,6 +21,18 @@ from models.visual.image import ImageSource, check_gray, load_image
 from models.visual.patches import extract_patches
 
 PROGRESS_THRESHOLD = 8  # views; below this a progress bar is noise
+VisualPart = Literal["both", "backbone", "glcm"]
+
+
+def visual_slice(dim: int, part: VisualPart, glcm_dim: int = 256) -> slice:
+    """Columns of a visual vector (backbone ⊕ GLCM, `dim` wide) that `part` keeps (feature ablations)."""
+    if part == "both":
+        return slice(0, dim)
+    if part == "backbone":
+        return slice(0, dim - glcm_dim)
+    if part == "glcm":
+        return slice(dim - glcm_dim, dim)
+    raise ValueError(f"visual part must be both, backbone or glcm, got {part!r}")
 
 
 class PatchEmbedder(Protocol):

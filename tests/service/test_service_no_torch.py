@@ -34,8 +34,8 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         block = SampleBlock(0.0, {{"accel": ChannelBlock(rng.standard_normal((600, 3)).astype(np.float32), 1000.0, "m/s^2"),
                                   "force": ChannelBlock(np.full(600, 1.5, np.float32), 1000.0, "N"),
                                   "speed": ChannelBlock(np.full(600, 80.0, np.float32), 1000.0, "mm/s")}}, 0)
-        windows, _, _ = est.process([adm.admit(block, 0)], visual)
-        assert len(windows) == 1, windows
+        result = est.process([adm.admit(block, 0)], visual)
+        assert result.error is None and len(result.estimates) == 1, result
         leaked = sorted(m for m in sys.modules if m == "torch" or m.startswith("torch."))
         print("LEAKED" if leaked else "CLEAN", leaked[:5])
     """)

@@ -9,7 +9,7 @@ import numpy as np
 from websockets.sync.client import connect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
-from models.evaluation.data import visual_slice
+from models.visual.embedding import visual_slice
 from models.predictor import Predictor
 from models.tactile.features import recording_features
 from models.visual.config import VisualConfig

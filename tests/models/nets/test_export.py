@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from models.nets import registry
-from models.nets.export import export_onnx, load_metadata, raw_model
+from models.modelfile import read_metadata as load_metadata
+from models.nets.export import export_onnx, raw_model
 
 F_DIM, V_DIM = 526, 64
 REPO = Path(__file__).resolve().parents[3]
@@ -136,7 +137,7 @@ def test_reading_metadata_needs_no_torch(tmp_path: Path) -> None:
     )
     code = (
         "import sys\n"
-        "from models.nets.export import load_metadata\n"
+        "from models.modelfile import read_metadata as load_metadata\n"
         "from models.nets.latency import onnx_latency\n"
         f"assert load_metadata({str(path)!r})['k'] == 'v'\n"
         f"onnx_latency({str(path)!r}, n=2)\n"

@@ -1,0 +1,105 @@
+"""Gathers sessions that have complete windows and estimates them together in the window pool.
+
+One job estimates the windows of up to `max_sessions_per_job` sessions in a single pool call
+(pipeline.estimate_batch: one window_features and one model call for all of them). At most
+`max_jobs` jobs run at once (the pool's threads), a session is in at most one job, and sessions
+are served oldest-ready first. Under light load a job holds one session and starts at once;
+under heavy load jobs grow, and each window gets cheaper.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from concurrent.futures import Executor
+
+from service.pipeline import SessionJob, SessionResult, estimate_batch
+from service.runtime import Runtime
+from service.session import Session
+
+log = logging.getLogger(__name__)
+
+MAX_SESSIONS_PER_JOB = 64
+
+
+class WindowBatcher:
+    def __init__(self, pool: Executor, max_jobs: int, max_sessions_per_job: int = MAX_SESSIONS_PER_JOB) -> None:
+        if max_jobs < 1 or max_sessions_per_job < 1:
+            raise ValueError(f"max_jobs and max_sessions_per_job must be ≥ 1, got {max_jobs}, {max_sessions_per_job}")
+        self.pool = pool
+        self.max_jobs = max_jobs
+        self.max_sessions_per_job = max_sessions_per_job
+        self._ready: dict[str, Session] = {}  # insertion order = oldest first; bounded by the number of sessions
+        self._wake = asyncio.Event()
+        self._jobs: set[asyncio.Task] = set()
+        self._runner: asyncio.Task | None = None
+
+    def start(self) -> None:
+        self._runner = asyncio.create_task(self._run(), name="window-batcher")
+
+    async def close(self) -> None:
+        tasks = [t for t in (self._runner, *self._jobs) if t is not None]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
+    def notify(self, session: Session) -> None:
+        """`session` has complete windows (called on the event loop; never blocks)."""
+        self._ready.setdefault(session.id, session)
+        self._wake.set()
+
+    async def _run(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while len(self._jobs) < self.max_jobs:
+                batch = await self._gather()
+                if not batch:
+                    break
+                job = asyncio.create_task(self._estimate(batch))
+                self._jobs.add(job)
+                job.add_done_callback(self._job_done)
+
+    def _job_done(self, job: asyncio.Task) -> None:
+        self._jobs.discard(job)
+        if not job.cancelled() and job.exception() is not None:
+            log.error("estimation job failed", exc_info=job.exception())
+        self._wake.set()  # a slot is free; sessions may have become ready meanwhile
+
+    async def _gather(self) -> list[tuple[Session, SessionJob]]:
+        """Take up to max_sessions_per_job ready sessions that are not in a job, with their jobs."""
+        batch = []
+        for sid, session in list(self._ready.items()):
+            if len(batch) >= self.max_sessions_per_job:
+                break
+            if session.in_job:
+                continue  # picked up again when its job is done
+            del self._ready[sid]
+            job = session.take_job()
+            if job is None:
+                if session.waiting_for_frame():
+                    await session.tell_waiting()
+                continue
+            session.in_job = True
+            batch.append((session, job))
+        return batch
+
+    async def _estimate(self, batch: list[tuple[Session, SessionJob]]) -> None:
+        sessions = [s for s, _ in batch]
+        runtime: Runtime = sessions[0].runtime
+        try:
+            loop = asyncio.get_running_loop()
+            results = await loop.run_in_executor(self.pool, estimate_batch, runtime, [j for _, j in batch])
+        except Exception as exc:  # noqa: BLE001 - features or the model failed for the whole batch
+            log.exception("estimating a batch of %d session(s) failed", len(sessions))
+            results = [SessionResult([], s.estimator.segment, s.estimator.taken, exc) for s in sessions]
+        finally:
+            for session in sessions:
+                session.in_job = False
+        for session, result in zip(sessions, results, strict=True):
+            await session.apply_result(result)
+            if session.has_work():
+                self.notify(session)

@@ -1,0 +1,83 @@
+"""Training on every rated texture, ONNX export with its card, prediction of withheld textures."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from models.datasets.build import build
+from models.evaluation.data import load_texture_data
+from models.evaluation.registry import build_estimator
+from models.modelfile import read_card
+from models.predictor import Predictor
+from models.tactile.config import TactileConfig
+from models.train import predict_dataset, train_and_export
+from service.cli import main as cli
+from texture_library.attributes import ATTRIBUTES
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return build("synthetic", tmp_path_factory.mktemp("ds") / "synthetic", n_textures=8, duration_s=3, withheld=2, image_size=256)
+
+
+@pytest.fixture(scope="module")
+def ridge_model(dataset, tmp_path_factory):
+    return train_and_export(dataset, "ridge-tactile", tmp_path_factory.mktemp("m") / "ridge.onnx", seed=3)
+
+
+def test_model_card_says_what_the_model_expects(ridge_model, dataset):
+    card = read_card(ridge_model)
+    assert card.model == "ridge-tactile" and card.modality == "tactile" and card.visual is None
+    assert card.tactile_hash == TactileConfig().hash()
+    assert TactileConfig(**card.tactile_config) == TactileConfig()
+    assert len(card.trained_on) == 6  # the 2 withheld textures are not trained on
+    assert card.seed == 3
+
+
+def test_onnx_equals_the_fitted_estimator_window_by_window(ridge_model, dataset):
+    data = load_texture_data(dataset, visual=False)
+    est = build_estimator("ridge-tactile").fit(data, 3)
+    predictor = Predictor(ridge_model)
+    for i in range(len(data)):
+        windows = data.tactile[i]
+        # linear: the model at the texture's mean window is the texture-level prediction
+        expected = np.clip(est.predict(data.take([i]))[0], -100, 100)
+        np.testing.assert_allclose(predictor.predict(windows.mean(axis=0)), expected[None], atol=1e-2)
+        assert predictor.predict(windows).shape == (len(windows), 4)
+
+
+def test_predict_writes_one_row_per_withheld_texture(ridge_model, dataset, tmp_path):
+    out = tmp_path / "withheld.csv"
+    assert cli(["predict", "--model", str(ridge_model), "--dataset", str(dataset), "--out", str(out), "--textures", "withheld"]) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert [r["texture"] for r in rows] == ["synth_006", "synth_007"]
+    assert list(rows[0]) == ["texture", *ATTRIBUTES]
+    textures, preds = predict_dataset(ridge_model, dataset, rated="withheld")
+    np.testing.assert_allclose([[float(r[a]) for a in ATTRIBUTES] for r in rows], preds, atol=0.01)
+    assert np.all(np.abs(preds) <= 100)
+
+
+def test_predictor_refuses_other_features(ridge_model):
+    other = TactileConfig(hop_s=0.25).hash()
+    with pytest.raises(ValueError, match="pipeline computes"):
+        Predictor(ridge_model, expected_tactile_hash=other)
+    predictor = Predictor(ridge_model)
+    with pytest.raises(ValueError, match=r"tactile must be \(N, 526\)"):
+        predictor.predict(np.zeros((2, 10), np.float32))
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        predictor.predict(np.full((1, 526), np.nan, np.float32))
+
+
+def test_models_without_export_say_so(dataset, tmp_path):
+    with pytest.raises(ValueError, match="has no ONNX export"):
+        train_and_export(dataset, "knn-tactile", tmp_path / "knn.onnx")
+
+
+def test_not_a_model_file(tmp_path):
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not onnx")
+    with pytest.raises(ValueError, match="not a loadable ONNX model"):
+        Predictor(bad)
+    with pytest.raises(ValueError, match="not found"):
+        Predictor(tmp_path / "missing.onnx")

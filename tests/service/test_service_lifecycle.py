@@ -1,0 +1,68 @@
+"""Sessions begin and end: explicit DELETE, idle timeout, the max_sessions bound; and the service's
+read-only routes (health, readiness, library, metrics)."""
+
+from __future__ import annotations
+
+import json
+
+import httpx
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
+from service.events import StatusEvent
+from texture_library.library import Library
+
+
+def test_ending_a_session_tells_its_operators_and_closes_their_sockets(kit, server, client):
+    session = kit.create_session(client)
+    url = f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
+    with connect(url) as sub:
+        sub.recv(timeout=5)
+        r = client.delete(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"})
+        assert r.status_code == 200 and r.json()["state"] == "ended"
+        last = StatusEvent.model_validate(json.loads(sub.recv(timeout=5)))
+        assert last.event == "session_ended" and last.message == "ended by request"
+        with pytest.raises(ConnectionClosed):
+            sub.recv(timeout=5)
+        assert sub.close_code == 1000
+
+
+def test_idle_sessions_are_ended_and_max_sessions_is_enforced(kit, base_settings):
+    settings = base_settings.model_copy(update={"session_idle_s": 0.4, "max_sessions": 2})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        first = kit.create_session(client)
+        kit.create_session(client)
+        refused = client.post("/sessions", json={})
+        assert refused.status_code == 503 and "max_sessions" in refused.json()["detail"]
+        url = f"{srv.ws_url}/sessions/{first['session_id']}/events?token={first['operator_token']}"
+        with connect(url) as sub:
+            sub.recv(timeout=5)
+            ended = json.loads(sub.recv(timeout=10))
+        assert ended["event"] == "session_ended" and "no traffic" in ended["message"]
+        kit.wait_for(lambda: client.post("/sessions", json={}).status_code == 201)  # room again
+
+
+def test_health_ready_library_and_metrics(kit, server, client, library_dir):
+    assert client.get("/health").json() == {"status": "ok", "instance": "test-a"}
+    ready = client.get("/ready").json()
+    assert ready["ready"] is True and ready["model"] == "ridge-tactile" and ready["library_entries"] == 6
+    lib = client.get("/library").json()
+    expected = Library.load(library_dir)
+    assert [e["id"] for e in lib["entries"]] == expected.ids
+    assert lib["entries"][0]["ratings"] == pytest.approx(dict(zip(
+        ("rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft"), expected.ratings[0])))
+
+    session = kit.create_session(client)
+    for block in kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 1.0)):
+        client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block),
+                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE})
+    kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 2)
+    metrics = client.get("/metrics")
+    assert metrics.headers["content-type"].startswith("text/plain; version=0.0.4")
+    text = metrics.text
+    assert "hapticlink_ready 1" in text
+    assert 'hapticlink_blocks_total{outcome="accepted"}' in text
+    assert 'hapticlink_window_latency_seconds_count{stage="total"}' in text
+    assert client.get("/console").headers["content-type"].startswith("text/html")
