@@ -203,7 +203,7 @@ class RobotClient:
     """Streams `source` to the service at `url` (http(s)://host:port[/prefix]).
 
     session_id + robot_token: stream into an existing session; neither: create one (its operator
-    console link is logged and kept in `session`). transport "ws" (blocks over one WebSocket,
+    token and console link are kept in `session`). transport "ws" (blocks over one WebSocket,
     up to `window` unacknowledged in flight) or "http" (one POST per block, in order);
     binary=False sends JSON blocks (WebSocket text messages) instead of the binary format. max_buffer_s: seconds of unacknowledged data kept for resending.
     backoff: (first, longest) wait in seconds between reconnection attempts. start_seq: seq of the
@@ -282,7 +282,8 @@ class RobotClient:
     async def open_session(self) -> SessionInfo:
         """Create a session (POST /sessions), retrying while the service is unreachable or failing.
 
-        Logs the operator token and console link; ServiceError if the service refuses (4xx).
+        The operator token and console link are in the result (and `self.session`), never in the log: logs
+        travel further than the people who should read the session. ServiceError if the service refuses (4xx).
         """
         if self.session_id is not None:
             raise RuntimeError("this client already has a session")
@@ -317,7 +318,7 @@ class RobotClient:
         console = f"{self.url}/console?{urlencode({'session': sid, 'token': operator})}" if operator else None
         self.session_id, self.robot_token = sid, robot
         self.session = SessionInfo(sid, robot, operator, console)
-        log.info("session %s created; operator token %s; console %s", sid, operator, console)
+        log.info("session %s created (operator console link: RobotClient.session.console_url)", sid)
         return self.session
 
     # ---- run ----------------------------------------------------------------------------------

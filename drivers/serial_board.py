@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.blocks import SampleBlock
-from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource
-from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE
+from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource, device_rate, layout_channel
+from texture_library.channels import UNIT_SCALE
 
 log = logging.getLogger(__name__)
 
@@ -62,24 +62,17 @@ def parse_header(line: str) -> BoardHeader:
         kind, cols, value = m["kind"], m["cols"], m["value"]
         if kind == "rate" and cols is None:
             try:
-                rate = float(value)
+                number = float(value)
             except ValueError:
                 raise ValueError(f"serial header: rate must be a number (Hz), got {value!r}") from None
-            if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
-                raise ValueError(f"serial header: rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {value}")
+            rate = device_rate(number, "serial header")
         elif kind == "wrap" and cols is None:
             if not value.isdigit() or int(value) < 2:
                 raise ValueError(f"serial header: wrap must be an integer ≥ 2, got {value!r}")
             wrap = int(value)
         elif kind in UNIT_SCALE:
             n = DEFAULT_COLUMNS[kind] if cols is None else int(cols)
-            if n not in CHANNEL_COLUMNS[kind]:
-                raise ValueError(f"serial header: {kind} has {list(CHANNEL_COLUMNS[kind])} column(s), got {n}")
-            if value not in UNIT_SCALE[kind]:
-                raise ValueError(f"serial header: {kind} units must be one of {list(UNIT_SCALE[kind])}, got {value!r}")
-            if any(k == kind for k, _, _ in layout):
-                raise ValueError(f"serial header: channel {kind!r} appears twice")
-            layout.append((kind, n, value))
+            layout.append(layout_channel(layout, kind, n, value, "serial header"))
         else:
             raise ValueError(f"serial header: unknown key {kind!r} (expected rate, wrap or one of {list(UNIT_SCALE)})")
     if rate is None:

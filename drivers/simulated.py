@@ -147,13 +147,13 @@ class SimulatedSource:
 
     @classmethod
     def from_library(cls, library_dir: str | Path, entry_id: str, image_path: str | Path | None = None, **kwargs) -> SimulatedSource:
-        """Stroke library entry `entry_id`; its image comes from image_path (PNG/JPEG/any Pillow
-        format), or from the entry's `image` field (relative to the library) once entries have one."""
+        """Stroke library entry `entry_id`; its image (PNG/JPEG/any Pillow format) comes from image_path, or
+        else from the entry's own image (`image` in library.json, relative to the library), if it has one."""
         lib = Library.load(library_dir)
         model = lib.model(entry_id)
         if image_path is None:
-            rel = getattr(lib.entry(entry_id), "image", None)
-            image_path = Path(library_dir) / rel if rel else None
+            rel = lib.entry(entry_id).image_path
+            image_path = lib.root / rel if rel else None
         image = None
         if image_path is not None:
             path = Path(image_path)

@@ -15,14 +15,14 @@ import logging
 import math
 import threading
 import time
-from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator, Mapping
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from drivers.blocks import MAX_BLOCK_SAMPLES, ChannelBlock, Frame, SampleBlock, validate_channel
-from texture_library.channels import check_channel
+from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE, check_channel
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +244,27 @@ class ThreadedSource:
 # ---- counter-stamped samples → blocks -----------------------------------------------------------
 #: column layout of a device's sample rows: (channel kind, columns, units), in column order
 Layout = tuple[tuple[str, int, str], ...]
+
+
+def device_rate(rate: object, where: str) -> float:
+    """A device's declared sample rate, checked against texture_library.channels' limits; ValueError says `where`."""
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+        raise ValueError(f"{where}: rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
+    return float(rate)
+
+
+def layout_channel(layout: Sequence[tuple[str, int, str]], kind: object, columns: object, units: object, where: str) -> tuple[str, int, str]:
+    """One (kind, columns, units) entry a device declares, checked against texture_library.channels (kinds,
+    units, column counts) and against the entries before it; ValueError says `where`."""
+    if kind not in UNIT_SCALE:
+        raise ValueError(f"{where}: channel kind must be one of {list(UNIT_SCALE)}, got {kind!r}")
+    if isinstance(columns, bool) or columns not in CHANNEL_COLUMNS[kind]:
+        raise ValueError(f"{where}: {kind} has {list(CHANNEL_COLUMNS[kind])} column(s), got {columns!r}")
+    if units not in UNIT_SCALE[kind]:
+        raise ValueError(f"{where}: {kind} units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
+    if any(k == kind for k, _, _ in layout):
+        raise ValueError(f"{where}: channel {kind!r} appears twice")
+    return kind, int(columns), units
 
 
 @dataclass

@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.blocks import SampleBlock
-from drivers.source import Item, Layout, StreamAssembler, StreamStats, ThreadedSource
-from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE
+from drivers.source import Item, Layout, StreamAssembler, StreamStats, ThreadedSource, device_rate, layout_channel
 
 log = logging.getLogger(__name__)
 
@@ -72,9 +71,7 @@ def parse_config(raw: bytes) -> DaqConfig:
         raise ValueError(f"USB DAQ config is not UTF-8 JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("protocol") != "HLD1":
         raise ValueError(f"USB DAQ config: protocol must be 'HLD1', got {doc.get('protocol') if isinstance(doc, dict) else doc!r}")
-    rate = doc.get("rate_hz")
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
-        raise ValueError(f"USB DAQ config: rate_hz must be a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], got {rate!r}")
+    rate = device_rate(doc.get("rate_hz"), "USB DAQ config")
     chans = doc.get("channels")
     if not isinstance(chans, list) or not chans:
         raise ValueError("USB DAQ config: channels must be a non-empty list")
@@ -82,20 +79,12 @@ def parse_config(raw: bytes) -> DaqConfig:
     for i, ch in enumerate(chans):
         if not isinstance(ch, dict):
             raise ValueError(f"USB DAQ config: channel {i} must be an object")
-        kind, units, cols, scale = ch.get("kind"), ch.get("units"), ch.get("columns"), ch.get("scale")
-        if kind not in UNIT_SCALE:
-            raise ValueError(f"USB DAQ config: channel {i} kind must be one of {list(UNIT_SCALE)}, got {kind!r}")
-        if units not in UNIT_SCALE[kind]:
-            raise ValueError(f"USB DAQ config: {kind} units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
-        if cols not in CHANNEL_COLUMNS[kind]:
-            raise ValueError(f"USB DAQ config: {kind} has {list(CHANNEL_COLUMNS[kind])} column(s), got {cols!r}")
+        kind, scale = ch.get("kind"), ch.get("scale")
+        layout.append(layout_channel(layout, kind, ch.get("columns"), ch.get("units"), f"USB DAQ config: channel {i}"))
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
             raise ValueError(f"USB DAQ config: {kind} scale must be a positive number, got {scale!r}")
-        if any(k == kind for k, _, _ in layout):
-            raise ValueError(f"USB DAQ config: channel {kind!r} appears twice")
-        layout.append((kind, cols, units))
         scales.append(float(scale))
-    return DaqConfig(float(rate), tuple(layout), tuple(scales))
+    return DaqConfig(rate, tuple(layout), tuple(scales))
 
 
 @dataclass

@@ -85,6 +85,8 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     _feature_args(e)
     e.add_argument("--max-epochs", type=int, help="networks: cap on epochs (default 200)")
     e.add_argument("--no-figures", action="store_true")
+    e.add_argument("--latency-only", action="store_true",
+                   help="only (re)measure the per-window latency into an existing OUT/results.json")
     e.set_defaults(func=_evaluate)
 
     t = sub.add_parser("train", help="train on every rated texture and export ONNX")
@@ -124,6 +126,22 @@ def _evaluate(args: argparse.Namespace) -> int:
     modality = spec.build().modality
     data = load_texture_data(args.dataset, tactile_config=TactileConfig(feature_set=args.tactile_features),
                              visual=modality in ("visual", "both"), visual_part=args.visual_part, workers=args.workers)
+    if args.latency_only:
+        import json
+        from pathlib import Path
+
+        from models.evaluation.evaluate import window_latency
+
+        path = Path(args.out) / "results.json"
+        if not path.is_file():
+            raise ValueError(f"--latency-only needs an existing {path}")
+        res = json.loads(path.read_text())
+        if res["model"] != args.model:
+            raise ValueError(f"{path} holds results of {res['model']!r}, not {args.model!r}")
+        res["latency_us"] = window_latency(data, spec)
+        path.write_text(json.dumps(res, indent=1))
+        print(f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})")
+        return 0
     res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
                    figures=not args.no_figures)
     mae, sd = res["mae"], res["mae_std"]

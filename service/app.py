@@ -131,13 +131,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
 
     @app.get("/sessions/{session_id}", response_model=SessionStatus, tags=["sessions"],
-             responses=_errors(401, 403, 404, 421), summary="A session's status and counters (operator token)")
+             responses=_errors(401, 403, 404, 421, 503), summary="A session's status and counters (operator token)")
     async def get_session(request: Request, session_id: str, credentials: Token) -> dict:
         session = await state_of(request).local_session(session_id, token_of(credentials), OPERATOR_ONLY)
         return session.status()
 
     @app.delete("/sessions/{session_id}", response_model=SessionStatus, tags=["sessions"],
-                responses=_errors(401, 403, 404, 421), summary="End a session (robot or operator token)")
+                responses=_errors(401, 403, 404, 421, 503), summary="End a session (robot or operator token)")
     async def delete_session(request: Request, session_id: str, credentials: Token) -> dict:
         state = state_of(request)
         await state.local_session(session_id, token_of(credentials), EITHER)
@@ -236,6 +236,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await websocket.accept()
         subscription = await state.subscribe(session_id)
         try:
+            try:
+                await state.credentials(session_id)
+            except ServiceError as exc:  # it ended while this socket was set up: its final event has passed
+                gone = exc.status == 404
+                await websocket.close(1000 if gone else 1011, "session ended" if gone else exc.detail[:120])
+                return
             await websocket.send_text(encode(status_event(session_id, "subscribed", "receiving events",
                                                           instance=state.settings.instance_id)))
             forward = asyncio.create_task(_forward(websocket, subscription, state))
@@ -294,6 +300,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
+
+
+def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
+    """uvicorn options for `settings` (uvicorn.run / uvicorn.Config keywords): what `hapticlink serve`, the demo
+    and the tests run with, so WebSocket messages get the same size limit as HTTP bodies everywhere."""
+    options: dict[str, Any] = {
+        "host": settings.host, "port": settings.port, "log_level": settings.log_level,
+        "ws_max_size": settings.max_body_bytes, "timeout_graceful_shutdown": 5,
+        "access_log": settings.log_level == "debug",  # access lines would carry the ?token= of WebSocket URLs
+    }
+    return {**options, **overrides}
 
 
 # ---- helpers ---------------------------------------------------------------------------------------

@@ -57,16 +57,6 @@ def role_of(credentials: SessionCredentials, token: str) -> Role | None:
     return None
 
 
-def bearer_token(authorization: str | None) -> str | None:
-    """The token of an `Authorization: Bearer <token>` header, or None."""
-    if not authorization:
-        return None
-    scheme, _, value = authorization.partition(" ")
-    if scheme.lower() != "bearer" or not value.strip():
-        return None
-    return value.strip()
-
-
 def authorize(credentials: SessionCredentials, token: str | None, allowed: frozenset[Role], session_id: str) -> Role:
     """The caller's role if it may do this; else 401 (no or unknown token) or 403 (the other role's token)."""
     if token is None:

@@ -91,15 +91,19 @@ class WindowBatcher:
         sessions = [s for s, _ in batch]
         runtime: Runtime = sessions[0].runtime
         try:
-            loop = asyncio.get_running_loop()
-            results = await loop.run_in_executor(self.pool, estimate_batch, runtime, [j for _, j in batch])
-        except Exception as exc:  # noqa: BLE001 - features or the model failed for the whole batch
-            log.exception("estimating a batch of %d session(s) failed", len(sessions))
-            results = [SessionResult([], s.estimator.segment, s.estimator.taken, exc) for s in sessions]
+            try:
+                loop = asyncio.get_running_loop()
+                results = await loop.run_in_executor(self.pool, estimate_batch, runtime, [j for _, j in batch])
+            except Exception as exc:  # noqa: BLE001 - features or the model failed for the whole batch
+                log.exception("estimating a batch of %d session(s) failed", len(sessions))
+                results = [SessionResult([], s.estimator.segment, s.estimator.taken, exc) for s in sessions]
+            for session, result in zip(sessions, results, strict=True):
+                # A session leaves the job only once its windows are published (publishing awaits the
+                # broker): released earlier, its next job could publish later windows first.
+                await session.apply_result(result)
+                session.in_job = False
+                if session.has_work():
+                    self.notify(session)
         finally:
             for session in sessions:
                 session.in_job = False
-        for session, result in zip(sessions, results, strict=True):
-            await session.apply_result(result)
-            if session.has_work():
-                self.notify(session)

@@ -144,9 +144,6 @@ class Broker(ABC):
         for sub in list(self._local.get(session_id, ())):
             sub.queue.offer(text, final)
 
-    def dropped_total(self) -> int:
-        return sum(s.dropped for subs in self._local.values() for s in subs)
-
     async def _listen(self, session_id: str) -> None:
         """Start receiving the session's events from elsewhere (no-op in memory)."""
 
@@ -232,8 +229,12 @@ class RedisBroker(Broker):
         assert self._pubsub is not None
         channel = CHANNEL_PREFIX + session_id
         confirmed = self._confirmed.setdefault(channel, asyncio.Event())
-        await self._pubsub.subscribe(channel)
-        await asyncio.wait_for(confirmed.wait(), timeout=10)
+        try:
+            await self._pubsub.subscribe(channel)
+            await asyncio.wait_for(confirmed.wait(), timeout=10)
+        except BaseException:  # no subscription is left listening to a channel nobody reads
+            await self._unlisten(session_id)
+            raise
 
     async def _unlisten(self, session_id: str) -> None:
         assert self._pubsub is not None

@@ -69,7 +69,7 @@ def settings_from_args(args: argparse.Namespace):
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from service.app import create_app
+    from service.app import create_app, server_options
 
     settings = settings_from_args(args)
     for label, path, flag in (("model", settings.model_path, "--model"), ("library", settings.library_dir, "--library")):
@@ -79,15 +79,7 @@ def _serve(args: argparse.Namespace) -> int:
             raise ValueError(f"{label} not found: {path}")
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # uvicorn handles SIGINT/SIGTERM: stop accepting, let open requests finish, run the lifespan shutdown.
-    uvicorn.run(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        ws_max_size=settings.max_body_bytes,
-        timeout_graceful_shutdown=5,
-        access_log=settings.log_level == "debug",
-    )
+    uvicorn.run(create_app(settings), **server_options(settings))
     return 0
 
 

@@ -132,12 +132,12 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     import uvicorn
 
     from drivers.robot import RobotClient
-    from service.app import create_app
+    from service.app import create_app, server_options
     from service.settings import Settings
 
     settings = Settings(model_path=assets.model, library_dir=assets.library, backbone_path=assets.backbone,
                         host=host, port=port, log_level="warning")
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host=host, port=port, log_level="warning"))
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), **server_options(settings)))
     serving = asyncio.create_task(server.serve())
     while not server.started:
         if serving.done():

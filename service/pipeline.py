@@ -79,10 +79,6 @@ class SessionEstimator:
         self._pre: TactilePreprocessor | None = None
         self._marks: deque[_Mark] = deque()
 
-    def process(self, blocks: Sequence[AdmittedBlock], visual: np.ndarray | None) -> "SessionResult":
-        """This session alone (a batch of one); see estimate_batch."""
-        return estimate_batch(self.runtime, [SessionJob(self, list(blocks), visual)])[0]
-
     def prepare(self, blocks: Sequence[AdmittedBlock], visual: np.ndarray | None) -> list["PreparedWindows"]:
         """Push the blocks (in order) and take every window they complete, per stream segment."""
         out = []

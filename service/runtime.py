@@ -6,18 +6,19 @@ up. Everything here is numpy + onnxruntime; nothing imports torch.
 
 from __future__ import annotations
 
+import io
 import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
-from models.visual.embedding import visual_slice
 from models.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
-from models.visual.embedding import visual_features
+from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from service.settings import Settings
@@ -25,6 +26,10 @@ from texture_library.library import Library
 from texture_library.nearest import PerceptualIndex
 
 log = logging.getLogger(__name__)
+
+#: largest camera frame decoded (a 4096×4096 image); a larger declared size is refused before decoding, so a
+#: small compressed body cannot expand into gigabytes (Pillow itself only warns below 179 Mpx)
+MAX_FRAME_PIXELS = 4096 * 4096
 
 
 @dataclass(frozen=True)
@@ -55,8 +60,23 @@ class Runtime:
         return self.predictor.needs_visual
 
     def decode_frame(self, image: bytes) -> np.ndarray:
-        """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable or smaller than a patch."""
-        return load_image(image, min_size=self.visual_config.patch_size)
+        """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable, smaller than a patch or
+        larger than MAX_FRAME_PIXELS."""
+        try:
+            with Image.open(io.BytesIO(image)) as probe:  # reads the header only
+                width, height = probe.size
+        except Image.DecompressionBombError as exc:
+            raise ValueError(f"image is too large: {exc}") from None
+        except Exception:  # noqa: BLE001 - not an image: load_image below says so
+            width = height = 0
+        if width * height > MAX_FRAME_PIXELS:
+            raise ValueError(f"image is {width}×{height} pixels; at most {MAX_FRAME_PIXELS} pixels are decoded")
+        try:
+            return load_image(image, min_size=self.visual_config.patch_size)
+        except ValueError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - decoders of untrusted bytes raise all kinds of errors
+            raise ValueError(f"not a readable image ({type(exc).__name__}: {exc})") from None
 
     def embed_frame(self, gray: np.ndarray) -> np.ndarray:
         """(H, W) grayscale → the model's visual input (D,) float32: backbone ⊕ GLCM, columns per the card."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.blocks import BINARY_CONTENT_TYPE
@@ -44,17 +46,20 @@ class FrameAck(BaseModel):
     height: int
 
 
-class Counters(BaseModel):
-    blocks_accepted: int
-    blocks_duplicate: int
-    blocks_rejected: int
-    blocks_refused: int
-    windows: int
-    frames_received: int
-    frames_rejected: int
-    frames_embedded: int
-    frames_superseded: int
-    pipeline_errors: int
+@dataclass
+class SessionCounters:
+    """A session's counts since it was opened (kept by service.session.Session, answered in its status)."""
+
+    blocks_accepted: int = 0
+    blocks_duplicate: int = 0
+    blocks_rejected: int = 0  # bad blocks (4xx, counted by the routes); nothing of them was taken
+    blocks_refused: int = 0  # refused while saturated (429 / 4429); safe to resend
+    windows: int = 0
+    frames_received: int = 0
+    frames_rejected: int = 0
+    frames_embedded: int = 0
+    frames_superseded: int = 0  # replaced by a newer frame before being embedded
+    pipeline_errors: int = 0
 
 
 class SessionStatus(BaseModel):
@@ -78,7 +83,7 @@ class SessionStatus(BaseModel):
     segments: int = Field(description="continuous stretches of stream (a time gap starts a new one)")
     windows_ready: int
     pending_blocks: int
-    counters: Counters
+    counters: SessionCounters
 
 
 class LibraryEntryOut(BaseModel):

@@ -18,7 +18,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
 from service.pipeline import SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
+from service.schemas import SessionCounters
 from service.settings import Settings
 from service.stream import StreamAdmission
 
@@ -38,20 +39,6 @@ Publish = Callable[[str, dict, bool], Awaitable[None]]
 Notify = Callable[["Session"], None]  # tells the batcher a session has complete windows
 MAX_SEQ = 2**63  # a seq beyond int64 is garbage, and accepting it would make every later block a duplicate
 RETRY_AFTER_S = 1.0  # a saturated session has seconds of windows queued; retrying sooner only adds load
-
-
-@dataclass
-class SessionCounters:
-    blocks_accepted: int = 0
-    blocks_duplicate: int = 0
-    blocks_rejected: int = 0  # bad blocks (4xx, counted by the routes); nothing of them was taken
-    blocks_refused: int = 0  # refused while saturated (429 / 4429); safe to resend
-    windows: int = 0
-    frames_received: int = 0
-    frames_rejected: int = 0
-    frames_embedded: int = 0
-    frames_superseded: int = 0  # replaced by a newer frame before being embedded
-    pipeline_errors: int = 0
 
 
 class Session:
@@ -103,11 +90,10 @@ class Session:
         if block.seq <= self.last_seq:
             self.counters.blocks_duplicate += 1
             return {"seq": block.seq, "duplicate": True, "windows_ready": self.admission.backlog()}
-        backlog = self.admission.backlog()
-        if backlog >= self.settings.session_queue_windows or len(self._pending) >= self.settings.session_queue_blocks:
+        if self.saturated():
             self.counters.blocks_refused += 1
             raise saturated(
-                f"session {self.id} is saturated ({backlog} windows, {len(self._pending)} blocks "
+                f"session {self.id} is saturated ({self.admission.backlog()} windows, {len(self._pending)} blocks "
                 f"waiting); resend block {block.seq} later", RETRY_AFTER_S)
         try:
             admitted = self.admission.admit(block, arrived_ns)
@@ -122,6 +108,7 @@ class Session:
         return {"seq": block.seq, "duplicate": False, "windows_ready": backlog}
 
     def saturated(self) -> bool:
+        """True when ingest must refuse (429 / close 4429) until the pipeline catches up."""
         return (self.admission.backlog() >= self.settings.session_queue_windows
                 or len(self._pending) >= self.settings.session_queue_blocks)
 

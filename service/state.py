@@ -61,9 +61,9 @@ class ServiceState:
         loop = asyncio.get_running_loop()
         try:
             self.runtime = await loop.run_in_executor(self.window_pool, load_runtime, self.settings)
-        except ValueError as exc:
-            self.load_error = str(exc)
-            log.error("cannot serve: %s", exc)
+        except Exception as exc:  # noqa: BLE001 - e.g. onnxruntime refusing a corrupt file: /ready must say so
+            self.load_error = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+            log.error("cannot serve: %s", self.load_error, exc_info=not isinstance(exc, ValueError))
             return
         rt = self.runtime
         self.metrics.ready.set(1 if rt.problem is None else 0)
@@ -117,9 +117,9 @@ class ServiceState:
         self.metrics.sessions_active.set(len(self.sessions))
         try:
             await self.broker.register(SessionRecord(session_id, name, self.settings.instance_id, credentials))
-        except Exception:
+        except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable
             await self._drop(session_id)
-            raise
+            raise _directory_unavailable(exc) from None
         await self.publish(session_id, status_event(session_id, "session_created", f"session {name!r} created",
                                                     model=runtime.model_name), False)
         return session, robot, operator
@@ -157,10 +157,16 @@ class ServiceState:
         session = self.sessions.get(session_id)
         if session is not None:
             return session.credentials, session
-        record = await self.broker.lookup(session_id)
+        record = await self._lookup(session_id)
         if record is None:
             raise session_not_found(session_id)
         return record.credentials, None
+
+    async def _lookup(self, session_id: str) -> SessionRecord | None:
+        try:
+            return await self.broker.lookup(session_id)
+        except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: 503, not 500
+            raise _directory_unavailable(exc) from None
 
     async def authorized(self, session_id: str, token: str | None, roles: frozenset[Role]) -> tuple[Role, Session | None]:
         creds, session = await self.credentials(session_id)
@@ -170,7 +176,7 @@ class ServiceState:
         """The session if it runs on this replica and `token` may do this; 421 if another replica runs it."""
         _, session = await self.authorized(session_id, token, roles)
         if session is None:
-            record = await self.broker.lookup(session_id)
+            record = await self._lookup(session_id)
             owner = record.instance if record else "another replica"
             raise ServiceError(421, f"session {session_id} runs on {owner}; route its traffic by session id")
         return session
@@ -197,3 +203,8 @@ class ServiceState:
         self._subscribers -= 1
         self.metrics.subscribers.set(self._subscribers)
         await self.broker.unsubscribe(sub)
+
+
+def _directory_unavailable(exc: Exception) -> ServiceError:
+    log.warning("the session directory (broker) failed: %s: %s", type(exc).__name__, exc)
+    return ServiceError(503, "the session directory is unavailable; try again", {"Retry-After": "1"})

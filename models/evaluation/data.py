@@ -87,4 +87,8 @@ def load_texture_data(
     if rated == "yes":
         means = ds.mean_ratings()
         targets = np.array([means[t.texture] for t in infos], np.float32)
+        # the synthetic world knows the noise-free ratings its raters were drawn around
+        truth = [ds.meta(t.texture).extra.get("true_ratings") for t in infos]
+        if all(x is not None for x in truth):
+            meta["true_ratings"] = np.array(truth, np.float32)
     return TextureData([t.texture for t in infos], [t.group for t in infos], tactile, vis, targets, meta)

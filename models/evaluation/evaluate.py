@@ -81,6 +81,8 @@ def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
         "predictions": {t: dict(zip(ATTRIBUTES, map(float, p))) for t, p in zip(data.textures, mean_pred)},
         "truth": {t: dict(zip(ATTRIBUTES, map(float, y))) for t, y in zip(data.textures, data.targets)},
         "group_mae": group_errors(mean_pred, data.targets, data.groups),
+        # synthetic world: how well the documented physics → rating mapping is recovered
+        "vs_true_mapping": error_table(mean_pred, data.meta["true_ratings"]) if "true_ratings" in data.meta else None,
         "fold_info": [r.fold_info for r in runs],
     }
 
@@ -115,7 +117,7 @@ def evaluate(
         "latency_us": window_latency(data, spec) if latency else None,
         "wall_s": time.perf_counter() - t0,
         "hardware": hardware(),
-        "features": {**{k: v for k, v in data.meta.items() if k != "tactile_config"},
+        "features": {**{k: v for k, v in data.meta.items() if k not in ("tactile_config", "true_ratings")},
                      "tactile_features": data.meta["tactile_config"]["feature_set"]},
         "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[0].endswith("hapticlink") else None,
     }

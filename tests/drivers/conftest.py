@@ -308,6 +308,19 @@ def concat(blocks: list[SampleBlock], kind: str) -> np.ndarray:
     return np.concatenate([b.channels[kind].data for b in blocks if kind in b.channels])
 
 
+async def take(source, n: int | None = None, *, samples: int | None = None) -> list:
+    """Items of `source` until `n` items or `samples` accel samples have come (None: to its end), then aclose() it."""
+    out, got = [], 0
+    async for item in source:
+        out.append(item)
+        if isinstance(item, SampleBlock) and "accel" in item.channels:
+            got += item.channels["accel"].data.shape[0]
+        if (n is not None and len(out) >= n) or (samples is not None and got >= samples):
+            break
+    await source.aclose()
+    return out
+
+
 @pytest.fixture
 def kit() -> SimpleNamespace:
     """The helpers above, for test modules (conftest is not importable under --import-mode=importlib)."""
@@ -319,4 +332,5 @@ def kit() -> SimpleNamespace:
         EndlessSource=EndlessSource,
         stroke_arrays=stroke_arrays,
         concat=concat,
+        take=take,
     )

@@ -20,22 +20,8 @@ from texture_library.procedural import make_world
 from texture_library.recording import Recording, make_channel, save_recording
 
 
-async def take(source, n: int | None = None) -> list:
-    out = []
-    async for item in source:
-        out.append(item)
-        if n is not None and len(out) >= n:
-            break
-    await source.aclose()
-    return out
-
-
 def blocks_of(items) -> list[SampleBlock]:
     return [i for i in items if isinstance(i, SampleBlock)]
-
-
-def concat(blocks, kind):
-    return np.concatenate([b.channels[kind].data for b in blocks if kind in b.channels])
 
 
 @pytest.fixture
@@ -57,28 +43,28 @@ def dataset(tmp_path):
     return tmp_path, rec, image
 
 
-def test_replay_sends_the_image_then_the_recording_in_canonical_units(dataset, caplog):
+def test_replay_sends_the_image_then_the_recording_in_canonical_units(kit, dataset, caplog):
     root, rec, image = dataset
     with caplog.at_level(logging.WARNING, logger="drivers.replay"):
         source = ReplaySource.from_dataset(root, "t1", realtime=False, block_s=0.05)
     assert "gone.png" in caplog.text, "a missing image is skipped with a warning"
-    items = asyncio.run(take(source))
+    items = asyncio.run(kit.take(source))
     assert isinstance(items[0], Frame) and items[0].image == image and items[0].content_type == "image/png"
     blocks = blocks_of(items)
     assert len(blocks) == 20 and [b.seq for b in blocks] == list(range(20))
     for kind, ch in rec.channels().items():
-        np.testing.assert_array_equal(concat(blocks, kind), ch.data.astype(np.float32))
+        np.testing.assert_array_equal(kit.concat(blocks, kind), ch.data.astype(np.float32))
     assert blocks[0].channels["accel"].units == "m/s^2", "the recording holds canonical units (g converted on load)"
     assert [b.channels["position"].data.shape for b in blocks[:2]] == [(13, 2), (12, 2)], "12.5 samples per block at 250 Hz: remainders carried"
 
 
-def test_replay_loops_with_running_time(dataset):
+def test_replay_loops_with_running_time(kit, dataset):
     root, _, _ = dataset
     source = ReplaySource.from_dataset(root, "t1", realtime=False, block_s=0.1, loop=True, with_images=False)
-    blocks = blocks_of(asyncio.run(take(source, 25)))
+    blocks = blocks_of(asyncio.run(kit.take(source, 25)))
     t0 = [b.t0 for b in blocks]
     assert t0 == pytest.approx([0.1 * k for k in range(25)]), "pass 2 starts where pass 1 ended"
-    first, second = concat(blocks[:10], "accel"), concat(blocks[10:20], "accel")
+    first, second = kit.concat(blocks[:10], "accel"), kit.concat(blocks[10:20], "accel")
     np.testing.assert_array_equal(first, second)
 
 
@@ -99,10 +85,10 @@ def texture():
     return make_world(1, seed=11)[0]
 
 
-def test_simulated_robot_strokes_the_texture_continuously(texture):
+def test_simulated_robot_strokes_the_texture_continuously(kit, texture):
     image = png_bytes(texture.image)
     source = SimulatedSource(texture.model, image, seed=3, realtime=False, chunk_s=1.0, duration_s=3.0, frame_every_s=1.0)
-    items = asyncio.run(take(source))
+    items = asyncio.run(kit.take(source))
     frames = [i for i in items if isinstance(i, Frame)]
     assert [f.t for f in frames] == [0.0, 1.0, 2.0] and isinstance(items[0], Frame) and frames[0].image == image
     blocks = blocks_of(items)
@@ -110,7 +96,7 @@ def test_simulated_robot_strokes_the_texture_continuously(texture):
     # contiguous across chunks: each block starts where the previous one ended
     ends = [b.t0 + b.channels["speed"].duration_s for b in blocks]
     assert [b.t0 for b in blocks[1:]] == pytest.approx(ends[:-1])
-    accel, force, speed = concat(blocks, "accel"), concat(blocks, "force"), concat(blocks, "speed")
+    accel, force, speed = kit.concat(blocks, "accel"), kit.concat(blocks, "force"), kit.concat(blocks, "speed")
     assert accel.shape == (3000, 3) and force.shape == (3000, 3) and speed.shape == (3000,)
     assert {(k, c.units, c.rate_hz) for b in blocks for k, c in b.channels.items()} == {
         ("accel", "m/s^2", 1000.0),
@@ -126,28 +112,32 @@ def test_simulated_robot_strokes_the_texture_continuously(texture):
     assert drift < 1.5, "a re-drawn mounting would turn gravity by ~10 m/s² between chunks"
 
 
-def test_simulated_source_is_reproducible_from_its_seed(texture):
+def test_simulated_source_is_reproducible_from_its_seed(kit, texture):
     def run(seed):
         src = SimulatedSource(texture.model, seed=seed, realtime=False, chunk_s=0.5, duration_s=1.2)
-        return concat(blocks_of(asyncio.run(take(src))), "accel")
+        return kit.concat(blocks_of(asyncio.run(kit.take(src))), "accel")
 
     a, b, c = run(5), run(5), run(6)
     np.testing.assert_array_equal(a, b)
     assert a.shape == c.shape and not np.array_equal(a, c)
 
 
-def test_simulated_from_library_with_an_image_file(texture, tmp_path):
+def test_simulated_from_library_with_an_image_file(kit, texture, tmp_path):
     lib_dir = tmp_path / "lib"
     entry = add_entry(
         lib_dir, "t-11", texture.model, name="t 11", group=texture.group, ratings=texture.truth,
-        ratings_source="ground-truth", provenance="procedural", licence="CC0",
+        ratings_source="ground-truth", provenance="procedural", licence="CC0", image_path="images/t-11.png",
     )
     Library(lib_dir, "test", [entry]).save()
+    (lib_dir / "images").mkdir()
+    (lib_dir / "images" / "t-11.png").write_bytes(png_bytes(texture.image))
+    own = asyncio.run(kit.take(SimulatedSource.from_library(lib_dir, "t-11", realtime=False, duration_s=0.1)))
+    assert own[0].content_type == "image/png" and own[0].image == png_bytes(texture.image), "the entry's own image"
     jpeg = io.BytesIO()
     Image.fromarray(texture.image).save(jpeg, format="JPEG")
     (tmp_path / "t11.jpg").write_bytes(jpeg.getvalue())
     source = SimulatedSource.from_library(lib_dir, "t-11", image_path=tmp_path / "t11.jpg", realtime=False, duration_s=0.1)
-    items = asyncio.run(take(source))
+    items = asyncio.run(kit.take(source))
     assert items[0].content_type == "image/jpeg" and items[0].image == jpeg.getvalue()
     assert sum(b.channels["accel"].data.shape[0] for b in blocks_of(items)) == 100
     assert source.name == "simulated:t-11"

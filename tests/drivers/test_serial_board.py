@@ -54,18 +54,7 @@ def play_board(master: int, lines: list[bytes]) -> tuple[threading.Thread, dict]
     return thread, seen
 
 
-async def collect(source, n_samples: int) -> list:
-    blocks, got = [], 0
-    async for block in source:
-        blocks.append(block)
-        got += block.channels["accel"].data.shape[0]
-        if got >= n_samples:
-            break
-    await source.aclose()
-    return blocks
-
-
-def test_values_gaps_and_garbled_lines_over_a_pty(pty_port):
+def test_values_gaps_and_garbled_lines_over_a_pty(kit, pty_port):
     master, port = pty_port
     lost = {30, 31, 32}  # lines lost on the wire
     lines = [b"boot noise without a header\n", (HEADER + "\r\n").encode(), b"# board v1.2 says hello\n"]
@@ -87,7 +76,7 @@ def test_values_gaps_and_garbled_lines_over_a_pty(pty_port):
     board, seen = play_board(master, lines)
 
     async def main():
-        return await asyncio.wait_for(collect(source, len(expected_counters)), 20)
+        return await asyncio.wait_for(kit.take(source, samples=len(expected_counters)), 20)
 
     blocks = asyncio.run(main())
     board.join(5)
@@ -119,13 +108,13 @@ def test_values_gaps_and_garbled_lines_over_a_pty(pty_port):
     assert seen["request"] == b"#?\n", "the host asked the board for its header when it opened the port"
 
 
-def test_a_bad_header_is_raised_with_its_reason(pty_port):
+def test_a_bad_header_is_raised_with_its_reason(kit, pty_port):
     master, port = pty_port
     source = SerialBoardSource(port)
     play_board(master, [b"#HL1 rate=1000 accel=furlongs\n"])
 
     async def main():
-        return await asyncio.wait_for(collect(source, 1), 10)
+        return await asyncio.wait_for(kit.take(source, samples=1), 10)
 
     with pytest.raises(ValueError, match="accel units must be one of"):
         asyncio.run(main())

@@ -133,18 +133,7 @@ class SimulatedDaq(usb.backend.IBackend):
         return n
 
 
-async def collect(source, n_samples: int) -> list:
-    blocks, got = [], 0
-    async for block in source:
-        blocks.append(block)
-        got += block.channels["accel"].data.shape[0]
-        if got >= n_samples:
-            break
-    await source.aclose()
-    return blocks
-
-
-def test_decoded_values_gaps_and_bad_packets():
+def test_decoded_values_gaps_and_bad_packets(kit):
     transfers = [
         packet(0, 25),
         packet(25, 25) + packet(50, 10),  # two packets in one transfer
@@ -153,7 +142,7 @@ def test_decoded_values_gaps_and_bad_packets():
     ]
     backend = SimulatedDaq(transfers)
     source = UsbDaqSource(VID, PID, backend=backend, block_s=0.02)
-    blocks = asyncio.run(asyncio.wait_for(collect(source, 95), 10))
+    blocks = asyncio.run(asyncio.wait_for(kit.take(source, samples=95), 10))
 
     present = [i for i in range(120) if not 60 <= i < 85]
     truth = raw_samples(0, 120)[present] * SCALES
@@ -172,11 +161,11 @@ def test_decoded_values_gaps_and_bad_packets():
     assert source.config.rate_hz == 1000.0
 
 
-def test_sample_index_wraps_without_a_gap():
+def test_sample_index_wraps_without_a_gap(kit):
     first = 2**32 - 30
     backend = SimulatedDaq([packet(first, 30), packet(2**32, 30)])  # the second starts at index 0 (mod 2³²)
     source = UsbDaqSource(VID, PID, backend=backend, block_s=0.02)
-    blocks = asyncio.run(asyncio.wait_for(collect(source, 60), 10))
+    blocks = asyncio.run(asyncio.wait_for(kit.take(source, samples=60), 10))
     assert source.stats.gaps == 0 and sum(b.channels["accel"].data.shape[0] for b in blocks) == 60
 
 

@@ -7,6 +7,8 @@ Helpers are handed out through the `kit` fixture (conftest is not importable und
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import socket
 import threading
 import time
@@ -18,10 +20,11 @@ import httpx
 import numpy as np
 import pytest
 import uvicorn
+from PIL import Image
 
-from drivers.blocks import SampleBlock
+from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, encode_json
 from drivers.source import blocks_from_arrays
-from service.app import create_app
+from service.app import create_app, server_options
 from service.settings import Settings
 from texture_library.library import Library
 from texture_library.recording import Recording, recording_from_stroke
@@ -55,8 +58,8 @@ class ServerThread:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", 0))
         self.port = sock.getsockname()[1]
-        config = uvicorn.Config(self.app, lifespan="on", log_level="warning", access_log=False,
-                                ws_max_size=self.settings.max_body_bytes, timeout_graceful_shutdown=3)
+        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level="warning",
+                                                           access_log=False, timeout_graceful_shutdown=3))
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
         self._thread.start()
@@ -128,6 +131,35 @@ def wait_for(predicate, timeout_s: float = 30.0, every_s: float = 0.02):
         if time.monotonic() > deadline:
             raise TimeoutError("condition not met in time")
         time.sleep(every_s)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def png(size: int = 256) -> bytes:
+    """A size×size RGB PNG (a valid camera frame from 224 px up)."""
+    buf = io.BytesIO()
+    Image.new("RGB", (size, size), (120, 80, 40)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def post_block(client: httpx.Client, session: dict, block: SampleBlock | bytes, content_type: str | None = None) -> httpx.Response:
+    """POST one block with the session's robot token: a SampleBlock encoded as `content_type` (binary by default,
+    or application/json), raw bytes as they are."""
+    content_type = content_type or BINARY_CONTENT_TYPE
+    if isinstance(block, SampleBlock):
+        block = json.dumps(encode_json(block)).encode() if content_type == "application/json" else encode_binary(block)
+    return client.post(f"/sessions/{session['session_id']}/blocks", content=block,
+                       headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": content_type})
+
+
+def socket_url(server: ServerThread, session: dict, route: str) -> str:
+    """ws:// URL of a session's WebSocket `route` with the token it takes (ingest: robot, events: operator)."""
+    token = session["robot_token" if route == "ingest" else "operator_token"]
+    return f"{server.ws_url}/sessions/{session['session_id']}/{route}?token={token}"
 
 
 def create_session(client: httpx.Client, name: str = "test") -> dict:
@@ -202,7 +234,7 @@ def client(server) -> Iterator[httpx.Client]:
         yield c
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def kit() -> SimpleNamespace:
     return SimpleNamespace(
         ServerThread=ServerThread,
@@ -212,5 +244,9 @@ def kit() -> SimpleNamespace:
         wait_for=wait_for,
         create_session=create_session,
         session_status=session_status,
+        post_block=post_block,
+        socket_url=socket_url,
+        png=png,
+        free_port=free_port,
         FIXED_SEED=FIXED_SEED,
     )

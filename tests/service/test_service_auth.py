@@ -2,20 +2,11 @@
 
 from __future__ import annotations
 
-import io
-
 import pytest
-from PIL import Image
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
-
-
-def png(size: int = 256) -> bytes:
-    buf = io.BytesIO()
-    Image.new("L", (size, size), 128).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 @pytest.fixture
@@ -27,7 +18,7 @@ def _requests(kit, library_dir, sid):
     block = encode_binary(kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))[0])
     return {
         "blocks": ("POST", f"/sessions/{sid}/blocks", {"content": block, "headers": {"Content-Type": BINARY_CONTENT_TYPE}}),
-        "frames": ("POST", f"/sessions/{sid}/frames", {"content": png(), "headers": {"Content-Type": "image/png"}}),
+        "frames": ("POST", f"/sessions/{sid}/frames", {"content": kit.png(), "headers": {"Content-Type": "image/png"}}),
         "status": ("GET", f"/sessions/{sid}", {}),
     }
 

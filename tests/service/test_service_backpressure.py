@@ -17,7 +17,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
+from drivers.blocks import encode_binary
 from drivers.robot import RobotClient
 from drivers.source import paced
 
@@ -46,11 +46,6 @@ class PoolStall:
         self.future.result(timeout=10)
 
 
-def _post(client, session, block):
-    return client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block),
-                       headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE})
-
-
 def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight_server, library_dir):
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 4.0))  # 200 blocks, 8 windows
     with httpx.Client(base_url=tight_server.url, timeout=10) as client:
@@ -58,7 +53,7 @@ def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight
         with PoolStall(tight_server):
             sent = 0
             for block in blocks:
-                r = _post(client, session, block)
+                r = kit.post_block(client, session, block)
                 if r.status_code == 429:
                     break
                 assert r.status_code == 202, r.text
@@ -72,7 +67,7 @@ def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight
             assert status["last_seq"] == blocks[sent - 1].seq  # nothing of the refused block was taken
             assert status["state"] == "saturated" and status["counters"]["blocks_refused"] == 1
         for block in blocks[sent:]:  # the robot resends from the refused block
-            while (r := _post(client, session, block)).status_code == 429:
+            while (r := kit.post_block(client, session, block)).status_code == 429:
                 time.sleep(0.01)  # drains within milliseconds once the pool is free
             assert r.status_code == 202 and r.json()["duplicate"] is False
         final = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 8 and s)
@@ -83,7 +78,7 @@ def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
     with httpx.Client(base_url=tight_server.url, timeout=10) as client:
         session = kit.create_session(client)
-        url = f"{tight_server.ws_url}/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
+        url = kit.socket_url(tight_server, session, "ingest")
         with PoolStall(tight_server), connect(url) as ws:
             acked = 0
             with pytest.raises(ConnectionClosed):
@@ -142,12 +137,12 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
 def test_a_subscriber_that_never_reads_does_not_hold_back_another(kit, server, client, library_dir):
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 20.0), block_s=0.5)
     session = kit.create_session(client)
-    url = f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
+    url = kit.socket_url(server, session, "events")
     # the idle client buffers one message and then stops reading its socket
     with connect(url, max_queue=1, close_timeout=0.2) as idle, connect(url) as reader:
         assert '"subscribed"' in idle.recv(timeout=5) and '"subscribed"' in reader.recv(timeout=5)
         for block in blocks:  # each block completes a window; sent as fast as the service takes them
-            while (r := _post(client, session, block)).status_code == 429:
+            while (r := kit.post_block(client, session, block)).status_code == 429:
                 time.sleep(0.02)
             assert r.status_code == 202
         windows = []

@@ -6,24 +6,18 @@ socket (WebSocket).
 
 from __future__ import annotations
 
-import io
 import json
 import struct
+import zlib
 
 import httpx
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from PIL import Image
 from websockets.sync.client import connect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, MAGIC, SampleBlock, encode_binary, encode_json
-
-
-def _post(client, session, body: bytes, content_type: str):
-    return client.post(f"/sessions/{session['session_id']}/blocks", content=body,
-                       headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": content_type})
 
 
 def _json(obj) -> bytes:
@@ -95,11 +89,11 @@ def test_each_bad_block_is_refused_clearly_and_nothing_accepted_is_lost(kit, ser
     for i, block in enumerate(blocks):
         if i % 5 == 2 and len(seen) < n_bad:  # a bad request carrying the next good block's seq, then that good block
             label, body, ctype, status, words = _bad_requests(block)[len(seen)]
-            r = _post(client, session, body, ctype)
+            r = kit.post_block(client, session, body, ctype)
             assert r.status_code == status, (label, r.text)
             assert words in r.json()["detail"], (label, r.json())
             seen.add(label)
-        r = _post(client, session, encode_binary(block), BINARY_CONTENT_TYPE)
+        r = kit.post_block(client, session, block)
         assert r.status_code == 202, r.text
         assert r.json()["duplicate"] is False
     assert len(seen) == n_bad, "not every bad request was sent"
@@ -110,24 +104,28 @@ def test_each_bad_block_is_refused_clearly_and_nothing_accepted_is_lost(kit, ser
     assert status["counters"]["pipeline_errors"] == 0
 
 
-def _png(size: int) -> bytes:
-    buf = io.BytesIO()
-    Image.new("RGB", (size, size), (120, 80, 40)).save(buf, format="PNG")
-    return buf.getvalue()
+def _png_header(width: int, height: int) -> bytes:
+    """A PNG that declares width × height pixels but holds (almost) none: what a decompression bomb looks like."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b"")
 
 
 @pytest.mark.parametrize("body, ctype, status, words", [
     (b"GIF89a not really", "image/gif", 415, "image/png or image/jpeg"),
     (b"hello", "text/plain", 415, "image/png"),
     (b"\x89PNG\r\n\x1a\n garbage", "image/png", 422, "not a readable image"),
-    (_png(100), "image/png", 422, "need at least 224"),
+    (100, "image/png", 422, "need at least 224"),  # an int: a real PNG of that size
+    (_png_header(30_000, 30_000), "image/png", 422, "too large"),
+    (_png_header(8_000, 8_000), "image/png", 422, "pixels are decoded"),
 ])
 def test_bad_frames_are_refused_with_a_message(kit, client, body, ctype, status, words):
     session = kit.create_session(client)
-    r = client.post(f"/sessions/{session['session_id']}/frames", content=body,
+    r = client.post(f"/sessions/{session['session_id']}/frames", content=kit.png(body) if isinstance(body, int) else body,
                     headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": ctype})
     assert r.status_code == status and words in r.json()["detail"], r.text
-    ok = client.post(f"/sessions/{session['session_id']}/frames", content=_png(256),
+    ok = client.post(f"/sessions/{session['session_id']}/frames", content=kit.png(256),
                      headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
     assert ok.status_code == 202 and ok.json() == {"accepted": True, "used": False, "width": 256, "height": 256}
 
@@ -151,9 +149,8 @@ def test_oversized_bodies_are_refused_before_they_are_read(kit, base_settings, l
                             headers={**headers, "Content-Type": "image/png"})
         assert frame.status_code == 413
         good = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))[0]
-        assert client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(good),
-                           headers=headers).status_code == 202
-        url = f"{srv.ws_url}/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
+        assert kit.post_block(client, session, good).status_code == 202
+        url = kit.socket_url(srv, session, "ingest")
         with connect(url, max_size=None) as ws:
             ws.send(b"\0" * (limit + 1))
             with pytest.raises(Exception):
@@ -202,9 +199,9 @@ def fuzz_session(server):
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True)
 @given(body=st.one_of(json_values.map(lambda v: json.dumps(v).encode()), plausible_blocks.map(lambda v: json.dumps(v).encode()),
                       st.binary(max_size=300)))
-def test_garbled_json_never_yields_a_server_error(server, fuzz_session, body):
+def test_garbled_json_never_yields_a_server_error(kit, server, fuzz_session, body):
     with httpx.Client(base_url=server.url, timeout=10) as client:
-        r = _post(client, fuzz_session, body, "application/json")
+        r = kit.post_block(client, fuzz_session, body, "application/json")
     assert r.status_code in (202, 400, 422, 429), r.text
     assert isinstance(r.json().get("detail", ""), str)
 
@@ -212,17 +209,17 @@ def test_garbled_json_never_yields_a_server_error(server, fuzz_session, body):
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True)
 @given(header=HEADERS, payload=st.binary(max_size=2000), delta=st.integers(min_value=-3, max_value=3),
        raw=st.booleans(), junk=st.binary(max_size=64))
-def test_garbled_binary_never_yields_a_server_error(server, fuzz_session, header, payload, delta, raw, junk):
+def test_garbled_binary_never_yields_a_server_error(kit, server, fuzz_session, header, payload, delta, raw, junk):
     body = (MAGIC + junk) if raw else _garbled_binary(header, payload, delta)
     with httpx.Client(base_url=server.url, timeout=10) as client:
-        r = _post(client, fuzz_session, body, BINARY_CONTENT_TYPE)
+        r = kit.post_block(client, fuzz_session, body)
     assert r.status_code in (202, 422, 429), r.text
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True)
 @given(messages=st.lists(st.binary(max_size=200) | plausible_blocks.map(json.dumps), min_size=1, max_size=5))
-def test_garbled_websocket_messages_are_answered_and_never_close_the_socket(server, fuzz_session, messages):
-    url = f"{server.ws_url}/sessions/{fuzz_session['session_id']}/ingest?token={fuzz_session['robot_token']}"
+def test_garbled_websocket_messages_are_answered_and_never_close_the_socket(kit, server, fuzz_session, messages):
+    url = kit.socket_url(server, fuzz_session, "ingest")
     with connect(url) as ws:
         for message in messages:
             ws.send(message)
@@ -238,7 +235,7 @@ def test_the_fuzzed_session_still_works(kit, server, client, fuzz_session, libra
     start = status["last_seq"] + 1
     t0 = 1e7  # after any t0 the fuzz may have had accepted: a new segment
     for block in kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 1.0), t0=t0, seq0=start):
-        r = _post(client, fuzz_session, encode_binary(block), BINARY_CONTENT_TYPE)
+        r = kit.post_block(client, fuzz_session, block)
         assert r.status_code == 202, r.text
     before = status["counters"]["windows"]
     kit.wait_for(lambda: kit.session_status(client, fuzz_session)["counters"]["windows"] >= before + 2)

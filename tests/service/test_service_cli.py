@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -33,14 +32,8 @@ def test_bad_settings_are_named_without_a_traceback(capsys, tmp_path):
     assert "port" in capsys.readouterr().err
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_serve_runs_and_stops_cleanly_on_ctrl_c(tactile_model, library_dir):
-    port = _free_port()
+def test_serve_runs_and_stops_cleanly_on_ctrl_c(kit, tactile_model, library_dir):
+    port = kit.free_port()
     env = {**os.environ, "HAPTICLINK_LOG_LEVEL": "info"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--model", str(tactile_model), "--library", str(library_dir),

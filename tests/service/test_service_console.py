@@ -11,7 +11,6 @@ import time
 import pytest
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
 from texture_library.attributes import ATTRIBUTES
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -69,13 +68,12 @@ def test_console_shows_live_ratings_texture_and_latency(kit, server, client, lib
 
     # a reference subscriber sees what the page should show
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_005", 3.0))
-    with connect(f"{server.ws_url}/sessions/{sid}/events?token={operator}") as ref:
+    with connect(kit.socket_url(server, session, "events")) as ref:
         ref.recv(timeout=5)
 
         def stream():
             for block in blocks:
-                client.post(f"/sessions/{sid}/blocks", content=encode_binary(block),
-                            headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE})
+                kit.post_block(client, session, block)
 
         sender = threading.Thread(target=stream)
         sender.start()

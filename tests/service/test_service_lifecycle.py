@@ -10,15 +10,13 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
 from service.events import StatusEvent
 from texture_library.library import Library
 
 
 def test_ending_a_session_tells_its_operators_and_closes_their_sockets(kit, server, client):
     session = kit.create_session(client)
-    url = f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
-    with connect(url) as sub:
+    with connect(kit.socket_url(server, session, "events")) as sub:
         sub.recv(timeout=5)
         r = client.delete(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"})
         assert r.status_code == 200 and r.json()["state"] == "ended"
@@ -36,8 +34,7 @@ def test_idle_sessions_are_ended_and_max_sessions_is_enforced(kit, base_settings
         kit.create_session(client)
         refused = client.post("/sessions", json={})
         assert refused.status_code == 503 and "max_sessions" in refused.json()["detail"]
-        url = f"{srv.ws_url}/sessions/{first['session_id']}/events?token={first['operator_token']}"
-        with connect(url) as sub:
+        with connect(kit.socket_url(srv, first, "events")) as sub:
             sub.recv(timeout=5)
             ended = json.loads(sub.recv(timeout=10))
         assert ended["event"] == "session_ended" and "no traffic" in ended["message"]
@@ -56,8 +53,7 @@ def test_health_ready_library_and_metrics(kit, server, client, library_dir):
 
     session = kit.create_session(client)
     for block in kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 1.0)):
-        client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block),
-                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE})
+        kit.post_block(client, session, block)
     kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 2)
     metrics = client.get("/metrics")
     assert metrics.headers["content-type"].startswith("text/plain; version=0.0.4")

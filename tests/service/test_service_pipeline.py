@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, encode_json
+from drivers.blocks import encode_binary, encode_json
 from models.predictor import Predictor
 from models.tactile.features import recording_features
 from service.events import StatusEvent, WindowEvent
@@ -22,24 +22,12 @@ from texture_library.nearest import HysteresisSelector, PerceptualIndex
 from texture_library.recording import Channel, Recording
 
 
-def post_block(client, session, block: SampleBlock, binary: bool = True):
-    headers = {"Authorization": f"Bearer {session['robot_token']}"}
-    if binary:
-        headers["Content-Type"] = BINARY_CONTENT_TYPE
-        return client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block), headers=headers)
-    return client.post(f"/sessions/{session['session_id']}/blocks", json=encode_json(block), headers=headers)
-
-
 def read_windows(sub, n: int, timeout_s: float = 20.0) -> tuple[list[dict], list[dict]]:
     windows, statuses = [], []
     while len(windows) < n:
         event = json.loads(sub.recv(timeout=timeout_s))
         (windows if event["type"] == "window" else statuses).append(event)
     return windows, statuses
-
-
-def events_url(server, session) -> str:
-    return f"{server.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
 
 
 def float32_recording(rec: Recording) -> Recording:
@@ -53,12 +41,12 @@ def test_events_equal_the_offline_features_and_model(kit, server, client, librar
     rec = kit.stroke_recording(library_dir, "synth_002", 4.2)
     blocks = kit.recording_blocks(rec, block_s=0.02, t0=100.0)
     session = kit.create_session(client)
-    with connect(events_url(server, session)) as sub:
+    with connect(kit.socket_url(server, session, "events")) as sub:
         first = json.loads(sub.recv(timeout=5))
         StatusEvent.model_validate(first)
         assert first["event"] == "subscribed"
         for i, block in enumerate(blocks):  # JSON and binary blocks mixed
-            r = post_block(client, session, block, binary=i % 3 != 0)
+            r = kit.post_block(client, session, block, None if i % 3 else "application/json")
             assert r.status_code == 202, r.text
             assert r.json()["seq"] == block.seq and r.json()["duplicate"] is False
         windows, _ = read_windows(sub, 8)
@@ -94,12 +82,12 @@ def test_duplicates_are_acknowledged_but_not_processed_again(kit, server, client
     blocks = kit.recording_blocks(rec)
     session = kit.create_session(client)
     for block in blocks[:60]:
-        assert post_block(client, session, block).status_code == 202
+        assert kit.post_block(client, session, block).status_code == 202
     for block in blocks[10:60]:  # a robot resending after an outage
-        r = post_block(client, session, block)
+        r = kit.post_block(client, session, block)
         assert r.status_code == 202 and r.json()["duplicate"] is True
     for block in blocks[60:]:
-        assert post_block(client, session, block).status_code == 202
+        assert kit.post_block(client, session, block).status_code == 202
     status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] == 3 and s)
     assert status["counters"]["blocks_duplicate"] == 50
     assert status["counters"]["blocks_accepted"] == len(blocks)
@@ -111,10 +99,10 @@ def test_any_block_size_gives_the_same_windows(kit, server, client, library_dir)
     results = []
     for block_s in (0.02, 0.007, 0.5, 2.0):
         session = kit.create_session(client)
-        with connect(events_url(server, session)) as sub:
+        with connect(kit.socket_url(server, session, "events")) as sub:
             sub.recv(timeout=5)
             for block in kit.recording_blocks(rec, block_s=block_s):
-                assert post_block(client, session, block).status_code == 202
+                assert kit.post_block(client, session, block).status_code == 202
             windows, _ = read_windows(sub, 4)
         results.append(np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows]))
     for other in results[1:]:  # equal up to float32 rounding of the batched features
@@ -126,10 +114,10 @@ def test_a_time_gap_starts_a_new_segment_and_no_window_straddles_it(kit, server,
     first = kit.recording_blocks(rec.crop(0, 0.75), t0=0.0)
     second = kit.recording_blocks(rec.crop(0.75, 2.0), t0=5.0, seq0=len(first))  # 4.25 s of data lost
     session = kit.create_session(client)
-    with connect(events_url(server, session)) as sub:
+    with connect(kit.socket_url(server, session, "events")) as sub:
         sub.recv(timeout=5)
         for block in first + second:
-            assert post_block(client, session, block).status_code == 202
+            assert kit.post_block(client, session, block).status_code == 202
         windows, _ = read_windows(sub, 3)
     assert [w["t_start_s"] for w in windows] == pytest.approx([0.0, 5.0, 5.5])
     status = kit.session_status(client, session)
@@ -140,8 +128,8 @@ def test_websocket_ingest_acknowledges_each_block_and_survives_bad_ones(kit, ser
     rec = kit.stroke_recording(library_dir, "synth_005", 1.0)
     blocks = kit.recording_blocks(rec)
     session = kit.create_session(client)
-    url = f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
-    with connect(url) as ws, connect(events_url(server, session)) as sub:
+    with connect(kit.socket_url(server, session, "ingest")) as ws, \
+         connect(kit.socket_url(server, session, "events")) as sub:
         sub.recv(timeout=5)
         for i, block in enumerate(blocks):
             if i == 10:  # garbage, then a well-formed block that lies about its rate: both refused, socket stays

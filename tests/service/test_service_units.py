@@ -10,7 +10,7 @@ import pytest
 
 from drivers.blocks import ChannelBlock, SampleBlock
 from models.tactile.config import TactileConfig
-from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, bearer_token, issue_credentials
+from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, issue_credentials
 from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
@@ -34,14 +34,6 @@ def test_tokens_open_only_their_role_and_session():
         assert err.value.status == status
     # only digests are kept
     assert robot not in repr(creds) and operator not in repr(creds)
-
-
-def test_bearer_header_parsing():
-    assert bearer_token("Bearer abc") == "abc"
-    assert bearer_token("bearer  abc ") == "abc"
-    assert bearer_token("Basic abc") is None
-    assert bearer_token("Bearer ") is None
-    assert bearer_token(None) is None
 
 
 # ---- smoothing and confidence ----------------------------------------------------------------------

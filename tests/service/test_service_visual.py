@@ -8,12 +8,10 @@ import httpx
 import numpy as np
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
-from models.visual.embedding import visual_slice
 from models.predictor import Predictor
 from models.tactile.features import recording_features
 from models.visual.config import VisualConfig
-from models.visual.embedding import visual_features
+from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from texture_library.attributes import ATTRIBUTES
@@ -31,13 +29,10 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
         assert ready["backbone"] == "efficientnet_lite0" and ready["modality"] == "both"
         session = kit.create_session(client)
         robot = {"Authorization": f"Bearer {session['robot_token']}"}
-        url = f"{srv.ws_url}/sessions/{session['session_id']}/events?token={session['operator_token']}"
-        with connect(url) as sub:
+        with connect(kit.socket_url(srv, session, "events")) as sub:
             assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
             for block in kit.recording_blocks(rec):
-                r = client.post(f"/sessions/{session['session_id']}/blocks", content=encode_binary(block),
-                                headers={**robot, "Content-Type": BINARY_CONTENT_TYPE})
-                assert r.status_code == 202
+                assert kit.post_block(client, session, block).status_code == 202
             waiting = json.loads(sub.recv(timeout=10))
             assert waiting["event"] == "waiting_for_frame" and "needs a camera frame" in waiting["message"]
             status = kit.session_status(client, session)

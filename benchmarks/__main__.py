@@ -1,0 +1,29 @@
+"""`python -m benchmarks` (make bench): every benchmark, each printing its numbers and writing reports/bench/*.json.
+
+The HaTT dataset build (about 10 minutes on 2 cores) runs only with --all.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from benchmarks import features, service, visual
+
+
+def main(argv: list[str]) -> int:
+    print("== tactile features: ours vs librosa ==", flush=True)
+    features.main([])
+    print("\n== visual embedding: torch vs onnxruntime ==", flush=True)
+    visual.main([])
+    print("\n== service: simulated robots on loopback ==", flush=True)
+    service.main([])
+    if "--all" in argv:
+        from benchmarks import dataset_build
+
+        print("\n== building the HaTT–TexNet dataset ==", flush=True)
+        dataset_build.main([])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
