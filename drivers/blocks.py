@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import CHANNEL_KINDS, check_channel
+from texture_library.channels import check_channel
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"

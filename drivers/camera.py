@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import io
 import logging
-import math
 import os
 import threading
 import time
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.blocks import Frame
-from drivers.source import Item, ThreadedSource, paced
+from drivers.source import Item, ThreadedSource, check_positive, paced
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +89,7 @@ class ImageFilesSource:
         missing = [str(p) for p in self.paths if not p.is_file()]
         if missing:
             raise ValueError(f"image file(s) not found: {missing}")
-        if not (math.isfinite(interval_s) and interval_s > 0):
-            raise ValueError(f"interval_s must be a positive number of seconds, got {interval_s!r}")
+        check_positive("interval_s", interval_s)
         self.interval_s = interval_s
         self.realtime = realtime
         self.loop = loop
@@ -128,8 +126,7 @@ class WatchedDirectorySource:
         self.directory = Path(directory)
         if not self.directory.is_dir():
             raise ValueError(f"not a directory: {self.directory}")
-        if not (math.isfinite(poll_s) and poll_s > 0):
-            raise ValueError(f"poll_s must be a positive number of seconds, got {poll_s!r}")
+        check_positive("poll_s", poll_s)
         self.poll_s = poll_s
         self.include_existing = include_existing
         self.name = f"camera-dir:{self.directory}"
@@ -215,8 +212,7 @@ class OpenCVCameraSource(ThreadedSource):
         except ImportError:
             raise ImportError("OpenCVCameraSource needs OpenCV: pip install opencv-python-headless (or use camera-dir / image files)") from None
         super().__init__(queue_size=4)
-        if not (math.isfinite(interval_s) and interval_s > 0):
-            raise ValueError(f"interval_s must be a positive number of seconds, got {interval_s!r}")
+        check_positive("interval_s", interval_s)
         if not 1 <= jpeg_quality <= 100:
             raise ValueError(f"jpeg_quality must lie in [1, 100], got {jpeg_quality}")
         self.index = index

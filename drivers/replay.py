@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
 
 from drivers.blocks import Frame
 from drivers.camera import frame_from_file
-from drivers.source import Item, blocks_from_arrays, paced
+from drivers.source import Item, blocks_from_arrays, check_positive, paced
 from texture_library.channels import CANONICAL_UNITS
 from texture_library.recording import Recording, load_recording
 
@@ -38,10 +37,8 @@ class ReplaySource:
         frames: Sequence[Frame] = (),
         name: str = "replay",
     ) -> None:
-        if not (isinstance(block_s, (int, float)) and math.isfinite(block_s) and block_s > 0):
-            raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
-        if not (math.isfinite(speed) and speed > 0):
-            raise ValueError(f"speed must be a positive finite factor, got {speed!r}")
+        check_positive("block_s", block_s)
+        check_positive("speed", speed, "finite factor")
         if loop and recording.duration_s < block_s:
             raise ValueError(f"recording of {recording.duration_s:.3f} s is shorter than one block; cannot loop it")
         self.recording = recording

@@ -25,7 +25,7 @@ from urllib.parse import quote, urlencode, urlsplit, urlunsplit
 import httpx
 
 from drivers.blocks import BINARY_CONTENT_TYPE, Frame, SampleBlock, encode_binary, encode_json
-from drivers.source import SensorSource
+from drivers.source import SensorSource, check_positive
 
 log = logging.getLogger(__name__)
 
@@ -116,8 +116,7 @@ class ResendBuffer:
     """
 
     def __init__(self, max_s: float) -> None:
-        if not (math.isfinite(max_s) and max_s > 0):
-            raise ValueError(f"max_buffer_s must be a positive number of seconds, got {max_s!r}")
+        check_positive("max_buffer_s", max_s)
         self.max_s = max_s
         self._items: deque[_Pending] = deque()
         self.held_s = 0.0
@@ -240,9 +239,8 @@ class RobotClient:
             raise ValueError(f"start_seq must be an integer ≥ 0, got {start_seq!r}")
         if window < 1:
             raise ValueError(f"window must be ≥ 1 block, got {window}")
-        for label, value in (("drain_timeout_s", drain_timeout_s), ("request_timeout_s", request_timeout_s)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a positive number of seconds, got {value!r}")
+        check_positive("drain_timeout_s", drain_timeout_s)
+        check_positive("request_timeout_s", request_timeout_s)
         self.url = url.rstrip("/")
         self.source = source
         self.session_id = session_id
@@ -336,8 +334,8 @@ class RobotClient:
         RobotAuthError / ServiceError when the service refuses the token or the session.
         Cancelling it stops at once: tasks and connections closed, the source closed, unsent
         blocks counted in stats.unsent."""
-        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
-            raise ValueError(f"duration_s must be a positive number of seconds, got {duration_s!r}")
+        if duration_s is not None:
+            check_positive("duration_s", duration_s)
         if self._ran:
             raise RuntimeError("a RobotClient runs once (its source is closed afterwards); make a new one")
         self._ran = True

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.blocks import SampleBlock
-from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource, device_rate, layout_channel
+from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource, check_positive, device_rate, layout_channel
 from texture_library.channels import UNIT_SCALE
 
 log = logging.getLogger(__name__)
@@ -100,8 +100,7 @@ class BoardDecoder:
     """
 
     def __init__(self, block_s: float = 0.02, header: BoardHeader | None = None) -> None:
-        if not (math.isfinite(block_s) and block_s > 0):
-            raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
+        check_positive("block_s", block_s)
         self.block_s = block_s
         self.stats = BoardStats()
         self._header: BoardHeader | None = None

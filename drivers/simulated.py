@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.blocks import Frame
 from drivers.camera import encode_image, sniff_content_type
-from drivers.source import Item, blocks_from_arrays, paced
+from drivers.source import Item, blocks_from_arrays, check_positive, paced
 from texture_library.library import Library
 from texture_library.stroke import StrokeSignals, random_rotation, stroke
 from texture_library.trajectory import Trajectory, freehand, model_ranges
@@ -62,12 +62,11 @@ class SimulatedSource:
         speed: float = 1.0,
         name: str | None = None,
     ) -> None:
-        for label, value in (("block_s", block_s), ("chunk_s", chunk_s)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a positive number of seconds, got {value!r}")
+        check_positive("block_s", block_s)
+        check_positive("chunk_s", chunk_s)
         for label, value in (("duration_s", duration_s), ("frame_every_s", frame_every_s)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a positive number of seconds or None, got {value!r}")
+            if value is not None:
+                check_positive(label, value)
         if chunk_s < block_s:
             raise ValueError(f"chunk_s ({chunk_s} s) must be at least one block ({block_s} s)")
         self.content_type = None

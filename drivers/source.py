@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import numbers
 import threading
 import time
 from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
@@ -44,6 +45,12 @@ class SensorSource(Protocol):
     async def aclose(self) -> None: ...
 
 
+def check_positive(label: str, value: object, what: str = "number of seconds") -> None:
+    """ValueError naming `label` unless `value` is a finite real number > 0 (`what` says what it counts)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{label} must be a positive {what}, got {value!r}")
+
+
 # ---- slicing ------------------------------------------------------------------------------------
 def _boundary(k: int, block_s: float, rate_hz: float) -> int:
     """Index of the first sample of block k: sample i (at i / rate s) belongs to the block whose
@@ -68,8 +75,7 @@ def blocks_from_arrays(
     is left out of that block, and a block with no samples at all is skipped (seq stays
     consecutive). Samples are validated once (texture_library.channels.check_channel).
     """
-    if not (isinstance(block_s, (int, float)) and math.isfinite(block_s) and block_s > 0):
-        raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
+    check_positive("block_s", block_s)
     if not channels:
         raise ValueError("blocks_from_arrays needs at least one channel")
     checked: dict[str, tuple[np.ndarray, float, str]] = {}
@@ -126,8 +132,7 @@ async def paced(
     once and is back on schedule. realtime=False yields as fast as the consumer takes them
     (still yielding to the event loop between items). speed > 1 plays faster than real time.
     """
-    if not (math.isfinite(speed) and speed > 0):
-        raise ValueError(f"speed must be a positive finite factor, got {speed!r}")
+    check_positive("speed", speed, "finite factor")
     origin: float | None = None
     wall0 = 0.0
     async for item in _aiter(items):
@@ -289,8 +294,7 @@ class StreamAssembler:
     """
 
     def __init__(self, rate_hz: float, layout: Layout, block_s: float, *, wrap: int = 2**32, time_offset: float = 0.0, seq0: int = 0, stats: StreamStats | None = None) -> None:
-        if not (math.isfinite(block_s) and block_s > 0):
-            raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
+        check_positive("block_s", block_s)
         if not layout:
             raise ValueError("a stream layout needs at least one channel")
         self.rate_hz = rate_hz

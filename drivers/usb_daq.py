@@ -22,7 +22,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.blocks import SampleBlock
-from drivers.source import Item, Layout, StreamAssembler, StreamStats, ThreadedSource, device_rate, layout_channel
+from drivers.source import (
+    Item,
+    Layout,
+    StreamAssembler,
+    StreamStats,
+    ThreadedSource,
+    check_positive,
+    device_rate,
+    layout_channel,
+)
 
 log = logging.getLogger(__name__)
 
@@ -150,8 +159,7 @@ class UsbDaqSource(ThreadedSource):
         for label, value in (("vid", vid), ("pid", pid)):
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
                 raise ValueError(f"{label} must be an integer in [0, 0xFFFF], got {value!r}")
-        if not (math.isfinite(block_s) and block_s > 0):
-            raise ValueError(f"block_s must be a positive number of seconds, got {block_s!r}")
+        check_positive("block_s", block_s)
         self.vid, self.pid = vid, pid
         self.backend = backend
         self.block_s = block_s

@@ -24,7 +24,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, decode_binary, decode_json
 from service import console
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY
-from service.errors import ServiceError
+from service.errors import ServiceError, saturated
 from service.events import encode, status_event
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
@@ -43,6 +43,7 @@ from service.schemas import (
     SessionCreated,
     SessionStatus,
 )
+from service.session import RETRY_AFTER_S, session_not_found
 from service.settings import Settings
 from service.state import ServiceState
 
@@ -86,6 +87,11 @@ def token_of(credentials: HTTPAuthorizationCredentials | None) -> str | None:
 
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorOut} for code in codes}
+
+
+def _try_later(description: str) -> dict[int | str, dict[str, Any]]:
+    """The documented 429 answer, with its Retry-After header."""
+    return {429: {"model": ErrorOut, "description": description, "headers": {"Retry-After": {"schema": {"type": "string"}}}}}
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -146,8 +152,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post("/sessions/{session_id}/blocks", status_code=202, response_model=BlockAck, tags=["ingest"],
               openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
               responses={**_errors(400, 401, 403, 404, 413, 415, 421, 422, 503),
-                         429: {"model": ErrorOut, "description": "the session is saturated; resend after Retry-After s",
-                               "headers": {"Retry-After": {"schema": {"type": "string"}}}}},
+                         **_try_later("the session is saturated; resend after Retry-After s")},
               summary="Send one sample block (robot token)")
     async def post_block(request: Request, session_id: str, credentials: Token) -> dict:
         state = state_of(request)
@@ -162,7 +167,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/sessions/{session_id}/frames", status_code=202, response_model=FrameAck, tags=["ingest"],
               openapi_extra={"requestBody": FRAME_REQUEST_BODY},
-              responses=_errors(401, 403, 404, 413, 415, 421, 422, 503),
+              responses={**_errors(401, 403, 404, 413, 415, 421, 422, 503),
+                         **_try_later("the session's previous frame is still being decoded; send the newest after Retry-After s")},
               summary="Send one camera frame (robot token)")
     async def post_frame(request: Request, session_id: str, credentials: Token) -> FrameAck:
         state = state_of(request)
@@ -173,13 +179,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             session.counters.frames_rejected += 1
             state.metrics.frames.inc(outcome="rejected")
             raise ServiceError(415, f"frames are {' or '.join(FRAME_TYPES)}, got {kind or 'no Content-Type'}")
-        payload = await request.body()
+        if session.decoding_frame:  # one frame per session in the pool at a time: a flood of frames is refused
+            state.metrics.frames.inc(outcome="refused")
+            raise saturated(f"session {session.id} is still decoding its previous frame; send the newest one later",
+                            RETRY_AFTER_S)
+        session.decoding_frame = True
         try:
+            payload = await request.body()
             gray = await asyncio.get_running_loop().run_in_executor(state.window_pool, runtime.decode_frame, payload)
         except ValueError as exc:
             session.counters.frames_rejected += 1
             state.metrics.frames.inc(outcome="rejected")
             raise ServiceError(422, f"frame: {exc}") from None
+        finally:
+            session.decoding_frame = False
+        if session.closed:  # ended while the frame was decoded
+            raise session_not_found(session.id)
         used = session.offer_frame(gray)
         state.metrics.frames.inc(outcome="used" if used else "ignored")
         height, width = gray.shape

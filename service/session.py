@@ -73,6 +73,7 @@ class Session:
         self._told_waiting = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
+        self.decoding_frame = False  # set by POST /frames while one of its frames is in the window pool
         self.closed = False
 
     # ---- ingest (event loop) ---------------------------------------------------------------------

@@ -8,6 +8,7 @@ its one window-pool thread (as a slow CPU would) and releases it later.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import threading
 import time
@@ -151,3 +152,21 @@ def test_a_subscriber_that_never_reads_does_not_hold_back_another(kit, server, c
             if event["type"] == "window":
                 windows.append(event["window_index"])
     assert windows == list(range(40))
+
+
+def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_server):
+    with httpx.Client(base_url=tight_server.url, timeout=10) as client, \
+            httpx.Client(base_url=tight_server.url, timeout=10) as other:
+        session = kit.create_session(client)
+        url = f"/sessions/{session['session_id']}/frames"
+        headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
+        state = tight_server.app.state.service.sessions[session["session_id"]]
+        with concurrent.futures.ThreadPoolExecutor(1) as sender:
+            with PoolStall(tight_server):
+                first = sender.submit(other.post, url, content=kit.png(), headers=headers)  # waits behind the stall
+                kit.wait_for(lambda: state.decoding_frame)
+                second = client.post(url, content=kit.png(), headers=headers)
+                assert second.status_code == 429 and "still decoding" in second.json()["detail"], second.text
+                assert second.headers["retry-after"] == "1"
+            assert first.result(timeout=10).status_code == 202
+        assert client.post(url, content=kit.png(), headers=headers).status_code == 202  # and the next one is taken

@@ -112,3 +112,11 @@ def test_the_image_installs_no_torch(compose):
     assert not re.search(r"\[[^\]]*train", instructions), "the image must not install the train extra"
     assert re.search(r'pip install [^\n]*"\.\[serve\]"', instructions)
     assert 'CMD ["hapticlink", "serve"]' in instructions
+
+
+def test_nginx_keeps_session_tokens_out_of_its_access_log(nginx):
+    """WebSocket URLs and the console link carry ?token=: the access log must not write query strings."""
+    fmt = re.search(r"log_format\s+(\w+)\s+(.*?);", nginx, re.S)
+    assert fmt, "nginx.conf defines no log_format (the default one logs $request, query string included)"
+    assert re.search(rf"access_log\s+\S+\s+{fmt.group(1)};", nginx)
+    assert not re.search(r"\$(request|request_uri|args|query_string|arg_\w+)\b", fmt.group(2))

@@ -15,7 +15,7 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         import service.app, service.commands, service.cli
         from service.app import create_app
         from service.cli import build_parser
-        from service.pipeline import SessionEstimator
+        from service.pipeline import SessionEstimator, SessionJob, estimate_batch
         from service.runtime import load_runtime
         from service.settings import Settings
         from service.stream import StreamAdmission
@@ -34,7 +34,7 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         block = SampleBlock(0.0, {{"accel": ChannelBlock(rng.standard_normal((600, 3)).astype(np.float32), 1000.0, "m/s^2"),
                                   "force": ChannelBlock(np.full(600, 1.5, np.float32), 1000.0, "N"),
                                   "speed": ChannelBlock(np.full(600, 80.0, np.float32), 1000.0, "mm/s")}}, 0)
-        result = est.process([adm.admit(block, 0)], visual)
+        (result,) = estimate_batch(rt, [SessionJob(est, [adm.admit(block, 0)], visual)])  # what the batcher runs
         assert result.error is None and len(result.estimates) == 1, result
         leaked = sorted(m for m in sys.modules if m == "torch" or m.startswith("torch."))
         print("LEAKED" if leaked else "CLEAN", leaked[:5])

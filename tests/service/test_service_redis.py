@@ -14,8 +14,6 @@ import redis
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
-
 REDIS = shutil.which("redis-server")
 pytestmark = pytest.mark.skipif(REDIS is None, reason="redis-server is not installed (apt-get install redis-server)")
 
@@ -53,21 +51,19 @@ def test_events_cross_replicas_through_redis(kit, base_settings, redis_url, libr
         session = kit.create_session(client_a)
         sid = session["session_id"]
         assert sid.startswith("replica-a.")
-        robot = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE}
 
         # B knows the session through the shared directory, and sends its traffic to its owner
-        misdirected = client_b.post(f"/sessions/{sid}/blocks", content=encode_binary(blocks[0]), headers=robot)
+        misdirected = kit.post_block(client_b, session, blocks[0])
         assert misdirected.status_code == 421 and "replica-a" in misdirected.json()["detail"]
         with pytest.raises(InvalidStatus) as err:
             connect(f"{b.ws_url}/sessions/{sid}/events?token={session['robot_token']}")
         assert err.value.response.status_code == 403
 
-        events = f"/sessions/{sid}/events?token={session['operator_token']}"
-        with connect(b.ws_url + events) as on_b, connect(a.ws_url + events) as on_a:
+        with connect(kit.socket_url(b, session, "events")) as on_b, connect(kit.socket_url(a, session, "events")) as on_a:
             assert json.loads(on_b.recv(timeout=5))["instance"] == "replica-b"
             assert json.loads(on_a.recv(timeout=5))["instance"] == "replica-a"
             for block in blocks:
-                assert client_a.post(f"/sessions/{sid}/blocks", content=encode_binary(block), headers=robot).status_code == 202
+                assert kit.post_block(client_a, session, block).status_code == 202
             received = {}
             for name, sub in (("a", on_a), ("b", on_b)):
                 windows = []
