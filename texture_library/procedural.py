@@ -71,17 +71,18 @@ def _unit_log(x: float, name: str) -> float:
 def true_ratings(p: PhysicalParams) -> np.ndarray:
     """The documented mapping from physics to bipolar ratings (4,), −100…100.
 
-    rough_smooth    = −100·tanh(1.6·log10(roughness_um / 15))     rougher → −100
-    flat_bumpy      = +100·tanh(2.0·(bump_height_mm − 0.5))        higher bumps → +100
-    sticky_slippery = −100·tanh(2.5·(mu − 0.6))                    more friction → −100
-    hard_soft       = −100·tanh(1.3·log10(stiffness_n_per_mm / 1)) stiffer → −100
+    rough_smooth    = −100·tanh(1.0·log10(roughness_um / 15))     rougher → −100
+    flat_bumpy      = +100·tanh(1.5·(bump_height_mm − 0.5))        higher bumps → +100
+    sticky_slippery = −100·tanh(2.0·(mu − 0.6))                    more friction → −100
+    hard_soft       = −100·tanh(0.9·log10(stiffness_n_per_mm / 1)) stiffer → −100
+Slopes are gentle enough that ratings spread over the scale instead of piling up at ±100.
     """
     return 100.0 * np.array(
         [
-            -np.tanh(1.6 * np.log10(p.roughness_um / 15.0)),
-            np.tanh(2.0 * (p.bump_height_mm - 0.5)),
-            -np.tanh(2.5 * (p.mu - 0.6)),
-            -np.tanh(1.3 * np.log10(p.stiffness_n_per_mm / 1.0)),
+            -np.tanh(1.0 * np.log10(p.roughness_um / 15.0)),
+            np.tanh(1.5 * (p.bump_height_mm - 0.5)),
+            -np.tanh(2.0 * (p.mu - 0.6)),
+            -np.tanh(0.9 * np.log10(p.stiffness_n_per_mm / 1.0)),
         ]
     )
 
@@ -120,14 +121,22 @@ def _contact_hz(p: PhysicalParams) -> float:
 
 
 def _arma_at(p: PhysicalParams, speed: float, force: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """(AR poly (7,), MA poly (3,), excitation variance) at one grid point."""
+    """(AR poly (9,), MA poly (3,), excitation variance) at one grid point.
+
+    Four resonances: the micro-texture at v/grain, the bumps at v/bump_period (sharper for
+    higher bumps), the tool–surface contact resonance (higher and sharper for stiffer
+    surfaces) and stick–slip at half the contact resonance (sharper for more friction).
+    The RMS level is set by roughness (and, less, by bumps), speed and force.
+    """
     v = max(speed, 1.0)
-    freqs = np.clip([v / p.grain_mm, v / p.bump_period_mm, _contact_hz(p)], 8.0, 460.0)
+    contact = _contact_hz(p)
+    freqs = np.clip([v / p.grain_mm, v / p.bump_period_mm, contact, 0.5 * contact + 10.0], 8.0, 460.0)
     radii = np.array(
         [
             0.90,
             0.80 + 0.18 * p.bump_height_mm / PARAM_RANGES["bump_height_mm"][1],
             0.75 + 0.20 * _unit_log(p.stiffness_n_per_mm, "stiffness_n_per_mm"),
+            0.60 + 0.35 * (p.mu - PARAM_RANGES["mu"][0]) / (PARAM_RANGES["mu"][1] - PARAM_RANGES["mu"][0]),
         ]
     )
     ar = poles_to_poly(freqs, radii, RATE_HZ)
@@ -136,7 +145,7 @@ def _arma_at(p: PhysicalParams, speed: float, force: float) -> tuple[np.ndarray,
         return ar, ma, 0.0
     rms = (
         (p.roughness_um / 30.0) ** 0.7 * (speed / 150.0) ** 0.8 * (force / 2.0) ** 0.5
-        + 0.8 * p.bump_height_mm * (speed / 150.0)
+        + 0.3 * p.bump_height_mm * (speed / 150.0)
     )
     impulse = np.zeros(2048)
     impulse[0] = 1.0

@@ -31,14 +31,14 @@ def test_neutral_points_rate_zero(params):
 @pytest.mark.parametrize(
     "change, attribute, expected",
     [
-        ({"roughness_um": 150.0}, RS, -100 * np.tanh(1.6)),  # log10(150/15) = 1
-        ({"roughness_um": 1.5}, RS, 100 * np.tanh(1.6)),
-        ({"bump_height_mm": 1.0}, FB, 100 * np.tanh(1.0)),
-        ({"bump_height_mm": 0.0}, FB, -100 * np.tanh(1.0)),
-        ({"mu": 1.0}, SS, -100 * np.tanh(1.0)),
-        ({"mu": 0.2}, SS, 100 * np.tanh(1.0)),
-        ({"stiffness_n_per_mm": 10.0}, HS, -100 * np.tanh(1.3)),
-        ({"stiffness_n_per_mm": 0.1}, HS, 100 * np.tanh(1.3)),
+        ({"roughness_um": 150.0}, RS, -100 * np.tanh(1.0)),  # log10(150/15) = 1
+        ({"roughness_um": 1.5}, RS, 100 * np.tanh(1.0)),
+        ({"bump_height_mm": 1.0}, FB, 100 * np.tanh(0.75)),
+        ({"bump_height_mm": 0.0}, FB, -100 * np.tanh(0.75)),
+        ({"mu": 1.0}, SS, -100 * np.tanh(0.8)),
+        ({"mu": 0.2}, SS, 100 * np.tanh(0.8)),
+        ({"stiffness_n_per_mm": 10.0}, HS, -100 * np.tanh(0.9)),
+        ({"stiffness_n_per_mm": 0.1}, HS, 100 * np.tanh(0.9)),
     ],
 )
 def test_true_ratings_follow_the_documented_formulas(params, change, attribute, expected):
