@@ -22,7 +22,7 @@ from drivers.blocks import Frame, SampleBlock
 from texture_library.attributes import ATTRIBUTES
 
 log = logging.getLogger("hapticlink.demo")
-DEMO_MODEL = "ridge-both"  # exportable, trains in seconds, reads touch and vision
+DEMO_MODEL = "ann"  # reads touch and vision, trains in seconds, best exportable model on the synthetic world (reports/synthetic)
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 
 

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Regenerates every number under reports/: datasets, leave-one-texture-out evaluations, report pages,
+# the exported model and the withheld-texture predictions. Run from the repository root after
+# `make test` (or `make demo`) has created .venv. About 3 hours on 2 CPU cores; each step is cached
+# or skippable by hand. Seeds are fixed; folds run in parallel processes.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+hl() { .venv/bin/hapticlink "$@"; }
+H=data/hatt-texnet
+S=data/synthetic-48
+
+# ---- datasets (HaTT–TexNet read from ../shared, never copied into the repo) --------------------
+[ -f $H/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $H
+hl dataset check $H
+[ -f $S/dataset.json ] || hl dataset build --source synthetic --n-textures 48 --duration 10 --out $S
+
+# ---- HaTT–TexNet: classical models and controls (3 seeds) ---------------------------------------
+for m in mean shuffled-ridge-both ridge-visual ridge-tactile ridge-both knn-visual knn-tactile knn-both \
+         svr-visual svr-tactile svr-both svr-tactile-windows stack-both; do
+  hl evaluate --dataset $H --model $m --out reports/hatt-texnet/$m --seeds 0 1 2
+done
+# ---- networks: the paper's baselines and the Visuo-tactile Net variants -------------------------
+for m in vision-1dcnn haptic-cnn tactile-cnn-lstm vtnet-visual vtnet-tiny vtnet-tactile vtnet-compact; do
+  hl evaluate --dataset $H --model $m --out reports/hatt-texnet/$m --seeds 0
+done
+hl evaluate --dataset $H --model ann --out reports/hatt-texnet/ann --seeds 0 1 2
+hl evaluate --dataset $H --model shuffled-ann --out reports/hatt-texnet/shuffled-ann --seeds 0
+# ---- feature ablation -----------------------------------------------------------------------------
+for part in backbone glcm both; do
+  hl evaluate --dataset $H --model svr-visual --visual-part $part --out reports/hatt-texnet/ablation/svr-visual-$part --seeds 0
+  hl evaluate --dataset $H --model ann --visual-part $part --out reports/hatt-texnet/ablation/ann-visual-$part --seeds 0
+done
+for feat in mfcc dwt dft; do
+  hl evaluate --dataset $H --model svr-tactile-windows --tactile-features $feat --out reports/hatt-texnet/ablation/svr-tactile-windows-$feat --seeds 0
+  hl evaluate --dataset $H --model ann --tactile-features $feat --out reports/hatt-texnet/ablation/ann-tactile-$feat --seeds 0
+done
+hl report --dataset $H --reports reports/hatt-texnet --regenerate "bash reports/regenerate.sh"
+
+# ---- the model for the service and the withheld textures -----------------------------------------
+hl train --dataset $H --model ann --seed 0 --metrics reports/hatt-texnet/ann/results.json --out artifacts/hatt-ann.onnx
+hl predict --model artifacts/hatt-ann.onnx --dataset $H --textures withheld --out reports/hatt-texnet/withheld_predictions.csv
+
+# ---- synthetic world: how much of the known mapping is recovered ---------------------------------
+for m in mean ridge-tactile ridge-visual ridge-both svr-tactile svr-visual svr-both knn-both ann; do
+  hl evaluate --dataset $S --model $m --out reports/synthetic/$m --seeds 0
+done
+for feat in dwt dft; do
+  hl evaluate --dataset $S --model ridge-tactile --tactile-features $feat --out reports/synthetic/ablation/ridge-tactile-$feat --seeds 0
+done
+hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
