@@ -6,12 +6,12 @@ position mm. Other units named in `UNIT_SCALE` are converted on construction.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from texture_library.npzfile import load_npz, save_npz
 from texture_library.channels import CANONICAL_UNITS, CHANNEL_KINDS, UNIT_SCALE, check_channel
 
 FILE_FORMAT = "hapticlink-recording"
@@ -90,54 +90,28 @@ def recording_from_stroke(accel: np.ndarray, force: np.ndarray, speed: np.ndarra
 # ---- recordings ---------------------------------------------------------------------------------
 def save_recording(path: str | Path, recording: Recording) -> Path:
     """Write a recording as .npz: one array per channel plus a JSON header of rates and units."""
-    path = Path(path)
     channels = recording.channels()
-    header = {
-        "format": FILE_FORMAT,
-        "version": FILE_VERSION,
-        "channels": {k: {"rate_hz": c.rate_hz, "units": CANONICAL_UNITS[k]} for k, c in channels.items()},
-    }
-    np.savez_compressed(path, header=np.array(json.dumps(header)), **{k: c.data.astype(np.float32) for k, c in channels.items()})
-    return path
+    header = {"channels": {k: {"rate_hz": c.rate_hz, "units": CANONICAL_UNITS[k]} for k, c in channels.items()}}
+    return save_npz(path, FILE_FORMAT, FILE_VERSION, header, {k: c.data.astype(np.float32) for k, c in channels.items()})
 
 
 def load_recording(path: str | Path) -> Recording:
     """Read a recording .npz; ValueError names the file and what is wrong."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"recording not found: {path}")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
-        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
-    with z:
-        if "header" not in z:
-            raise ValueError(f"{path}: no header (not a hapticlink recording)")
+    header, arrays = load_npz(path, FILE_FORMAT, FILE_VERSION)
+    specs = header.get("channels")
+    if not isinstance(specs, dict) or not all(isinstance(s, dict) for s in specs.values()):
+        raise ValueError(f"{path}: header 'channels' must map each channel to {{\"rate_hz\": …, \"units\": …}}")
+    chans: dict[str, Channel] = {}
+    for kind, spec in specs.items():
+        if kind not in CHANNEL_KINDS:
+            raise ValueError(f"{path}: unknown channel {kind!r}")
+        if kind not in arrays:
+            raise ValueError(f"{path}: header lists channel {kind!r} but the array is missing")
         try:
-            header = json.loads(str(z["header"]))
+            chans[kind] = make_channel(kind, arrays[kind], spec.get("rate_hz"), spec.get("units"))
         except ValueError as exc:
-            raise ValueError(f"{path}: header is not valid JSON ({exc})") from None
-        if not isinstance(header, dict):
-            raise ValueError(f"{path}: header must be a JSON object")
-        if header.get("format") != FILE_FORMAT or header.get("version") != FILE_VERSION:
-            raise ValueError(f"{path}: format {header.get('format')!r} version {header.get('version')!r} is not hapticlink-recording v{FILE_VERSION}")
-        specs = header.get("channels")
-        if not isinstance(specs, dict) or not all(isinstance(s, dict) for s in specs.values()):
-            raise ValueError(f"{path}: header 'channels' must map each channel to {{\"rate_hz\": …, \"units\": …}}")
-        chans: dict[str, Channel] = {}
-        for kind, spec in specs.items():
-            if kind not in CHANNEL_KINDS:
-                raise ValueError(f"{path}: unknown channel {kind!r}")
-            if kind not in z:
-                raise ValueError(f"{path}: header lists channel {kind!r} but the array is missing")
-            try:
-                data = z[kind]
-            except Exception as exc:  # noqa: BLE001 - a corrupt member (bad zip, bad zlib stream)
-                raise ValueError(f"{path}: cannot read channel {kind!r} ({exc})") from None
-            try:
-                chans[kind] = make_channel(kind, data, spec.get("rate_hz"), spec.get("units"))
-            except ValueError as exc:
-                raise ValueError(f"{path}: {exc}") from None
+            raise ValueError(f"{path}: {exc}") from None
     for needed in ("accel", "force"):
         if needed not in chans:
             raise ValueError(f"{path}: missing channel {needed!r}")

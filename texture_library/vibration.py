@@ -12,15 +12,16 @@ Units: speed mm/s, force N, acceleration m/s², rate 1000 Hz.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from texture_library.npzfile import load_npz, save_npz
 from texture_library.taps import TapSet
 
 RENDER_RATE_HZ = 1000.0
+FILE_FORMAT = "hapticlink-vibration-model"
 FORMAT_VERSION = 1
 
 
@@ -102,8 +103,6 @@ class VibrationModel:
     def save(self, path: str | Path) -> Path:
         path = Path(path)
         header = {
-            "format": "hapticlink-vibration-model",
-            "version": FORMAT_VERSION,
             "name": self.name,
             "mu": float(self.mu),
             "max_speed": float(self.max_speed),
@@ -125,39 +124,16 @@ class VibrationModel:
         if self.taps is not None:
             arrays["tap_speeds"] = self.taps.speeds
             arrays["tap_accel"] = self.taps.accel
-        np.savez_compressed(path, header=np.array(json.dumps(header)), **arrays)
-        return path
+        return save_npz(path, FILE_FORMAT, FORMAT_VERSION, header, arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> "VibrationModel":
         path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"vibration model file not found: {path}")
-        try:
-            z = np.load(path, allow_pickle=False)
-        except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
-            raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
-        with z:
-            if "header" not in z:
-                raise ValueError(f"{path}: not a hapticlink vibration model (no header)")
-            try:
-                header = json.loads(str(z["header"]))
-            except ValueError as exc:
-                raise ValueError(f"{path}: header is not valid JSON ({exc})") from None
-            if not isinstance(header, dict):
-                raise ValueError(f"{path}: header must be a JSON object")
-            if header.get("format") != "hapticlink-vibration-model":
-                raise ValueError(f"{path}: format is {header.get('format')!r}, expected 'hapticlink-vibration-model'")
-            if header.get("version") != FORMAT_VERSION:
-                raise ValueError(f"{path}: unsupported vibration model version {header.get('version')}")
-            missing = [k for k in ("name", "mu", "max_speed", "max_force", "rate_hz") if k not in header]
-            missing += [k for k in ("speeds", "forces", "triangles", "ar_lsf", "ma_lsf", "variance", "gain") if k not in z]
-            if missing:
-                raise ValueError(f"{path}: missing {missing}")
-            try:
-                arrays = {k: z[k] for k in z.files if k != "header"}
-            except Exception as exc:  # noqa: BLE001 - a corrupt member (bad zip, bad zlib stream)
-                raise ValueError(f"{path}: cannot read arrays ({exc})") from None
+        header, arrays = load_npz(path, FILE_FORMAT, FORMAT_VERSION)
+        missing = [k for k in ("name", "mu", "max_speed", "max_force", "rate_hz") if k not in header]
+        missing += [k for k in ("speeds", "forces", "triangles", "ar_lsf", "ma_lsf", "variance", "gain") if k not in arrays]
+        if missing:
+            raise ValueError(f"{path}: missing {missing}")
         try:
             taps = TapSet(arrays["tap_speeds"], arrays["tap_accel"]) if "tap_speeds" in arrays else None
             return cls(

@@ -97,7 +97,7 @@ def test_taps_are_validated():
 
 
 def test_load_names_what_is_wrong_with_the_file(model, tmp_path):
-    with pytest.raises(ValueError, match="vibration model file not found"):
+    with pytest.raises(ValueError, match="hapticlink-vibration-model file not found"):
         VibrationModel.load(tmp_path / "absent.npz")
 
     (tmp_path / "text.npz").write_text("not a zip")
@@ -121,7 +121,7 @@ def test_load_names_what_is_wrong_with_the_file(model, tmp_path):
 
     with pytest.raises(ValueError, match="format is 'other'"):
         VibrationModel.load(rewrite("fmt.npz", {"format": "other"}))
-    with pytest.raises(ValueError, match="unsupported vibration model version 2"):
+    with pytest.raises(ValueError, match="unsupported hapticlink-vibration-model version 2"):
         VibrationModel.load(rewrite("ver.npz", {"version": 2}))
     with pytest.raises(ValueError, match=r"missing \['ar_lsf'\]"):
         VibrationModel.load(rewrite("noar.npz", drop=("ar_lsf",)))
