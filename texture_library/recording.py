@@ -112,10 +112,15 @@ def load_recording(path: str | Path) -> Recording:
             chans[kind] = make_channel(kind, arrays[kind], spec.get("rate_hz"), spec.get("units"))
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
+    return recording_from_channels(chans, str(path))
+
+
+def recording_from_channels(chans: dict[str, Channel], source: str) -> Recording:
+    """A Recording from channels by kind; ValueError naming `source` if accel, force or speed/position is missing."""
     for needed in ("accel", "force"):
         if needed not in chans:
-            raise ValueError(f"{path}: missing channel {needed!r}")
+            raise ValueError(f"{source}: missing channel {needed!r}")
     try:
         return Recording(chans["accel"], chans["force"], chans.get("speed"), chans.get("position"))
     except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+        raise ValueError(f"{source}: {exc}") from None

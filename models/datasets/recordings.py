@@ -29,7 +29,7 @@ from models.datasets.format import (
     save_recording,
 )
 from texture_library.channels import CHANNEL_KINDS
-from texture_library.recording import Channel, Recording, make_channel
+from texture_library.recording import Channel, Recording, make_channel, recording_from_channels
 from texture_library.attributes import ATTRIBUTES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -70,13 +70,7 @@ def read_csv_recording(folder: Path) -> Recording:
             raise ValueError(f"{folder / 'channels.json'}: unknown channel(s) {unknown}; expected some of {list(CHANNEL_KINDS)}")
         units = {k: v.get("units") for k, v in spec.items()}
     chans = {k: _csv_channel(folder / f"{k}.csv", k, units.get(k)) for k in CHANNEL_KINDS if (folder / f"{k}.csv").is_file()}
-    for needed in ("accel", "force"):
-        if needed not in chans:
-            raise ValueError(f"{folder}: missing {needed}.csv")
-    try:
-        return Recording(chans["accel"], chans["force"], chans.get("speed"), chans.get("position"))
-    except ValueError as exc:
-        raise ValueError(f"{folder}: {exc}") from None
+    return recording_from_channels(chans, str(folder))
 
 
 def read_hdf5_recording(path: Path) -> Recording:
@@ -97,13 +91,7 @@ def read_hdf5_recording(path: Path) -> Recording:
                     chans[kind] = make_channel(kind, ds[()], float(ds.attrs["rate_hz"]), units)
                 except ValueError as exc:
                     raise ValueError(f"{path}: {exc}") from None
-    for needed in ("accel", "force"):
-        if needed not in chans:
-            raise ValueError(f"{path}: missing dataset {needed!r}")
-    try:
-        return Recording(chans["accel"], chans["force"], chans.get("speed"), chans.get("position"))
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    return recording_from_channels(chans, str(path))
 
 
 def read_any_recording(path: Path) -> Recording:

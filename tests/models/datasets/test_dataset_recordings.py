@@ -161,7 +161,7 @@ def test_non_uniform_time_column_is_refused(tmp_path):
         ("channels.json", '{"temperature": {"units": "K"}}', r"channels.json: unknown channel\(s\) \['temperature'\]"),
         ("channels.json", "{", r"channels.json: invalid JSON"),
         ("speed.csv", None, r"recording needs a speed or a position channel"),
-        ("accel.csv", None, r"missing accel.csv"),
+        ("accel.csv", None, r"missing channel 'accel'"),
     ],
 )
 def test_bad_csv_recordings_are_named(tmp_path, file, content, message):
