@@ -111,10 +111,49 @@ class NetEstimator(Estimator):
         return {"best_epoch": self.result.best_epoch, "val_rmse_std_units": self.result.val_loss,
                 "seconds": round(self.result.seconds, 2)}
 
-    def export(self, path: str | Path, metadata: dict[str, str]) -> Path:
-        from models.nets.export import export_onnx
+    def raw(self):
+        """The fitted net between raw-feature standardisation and bipolar output (see models.nets.export)."""
+        from models.nets.export import raw_model
 
-        return export_onnx(self.model, path,
-                           tactile_mean=self.t_scaler.mean, tactile_std=self.t_scaler.std,
-                           visual_mean=self.v_scaler.mean, visual_std=self.v_scaler.std,
-                           target_mean=self.y_scaler.mean, target_std=self.y_scaler.std, metadata=metadata)
+        return raw_model(self.model, tactile_mean=self.t_scaler.mean, tactile_std=self.t_scaler.std,
+                         visual_mean=self.v_scaler.mean, visual_std=self.v_scaler.std,
+                         target_mean=self.y_scaler.mean, target_std=self.y_scaler.std)
+
+    def widths(self) -> dict[str, int]:
+        return {"tactile": self.t_scaler.mean.size, "visual": self.v_scaler.mean.size}
+
+    def export(self, path: str | Path, metadata: dict[str, str]) -> Path:
+        from models.nets.export import export_raw
+
+        return export_raw(self.raw(), self.modality, path, metadata, self.widths())
+
+
+class NetEnsemble(Estimator):
+    """The mean of `members` copies of a network trained with seeds seed, seed+1, …; each member
+    draws its own validation split and initial weights inside the fold. Exports as one ONNX graph."""
+
+    def __init__(self, name: str, members: int = 3, **options):
+        if members < 2:
+            raise ValueError(f"an ensemble needs at least 2 members, got {members}")
+        self.members = [NetEstimator(name, **options) for _ in range(members)]
+        self.name = f"{name}-ensemble"
+        self.modality = self.members[0].modality
+
+    def fit(self, data: TextureData, seed: int) -> "NetEnsemble":
+        for k, member in enumerate(self.members):
+            member.fit(data, seed * len(self.members) + k)
+        return self
+
+    def predict(self, data: TextureData) -> np.ndarray:
+        return np.mean([m.predict(data) for m in self.members], axis=0)
+
+    def n_params(self) -> int:
+        return sum(m.n_params() for m in self.members)
+
+    def fit_info(self) -> dict:
+        return {"members": [m.fit_info() for m in self.members]}
+
+    def export(self, path: str | Path, metadata: dict[str, str]) -> Path:
+        from models.nets.export import export_raw, mean_of
+
+        return export_raw(mean_of([m.raw() for m in self.members]), self.modality, path, metadata, self.members[0].widths())

@@ -25,6 +25,7 @@ CLASSICAL = {
     **{f"svr-{m}-views": (lambda m: lambda **kw: SVREstimator(m, views="all", **kw))(m) for m in ("visual", "both")},
 }
 SHUFFLED_PREFIX = "shuffled-"
+ENSEMBLE_SUFFIX = "-ensemble"
 
 
 @dataclass(frozen=True)
@@ -41,11 +42,11 @@ class EstimatorSpec:
 def names() -> list[str]:
     from models.nets.registry import NAMES as NET_NAMES
 
-    return sorted(CLASSICAL) + list(NET_NAMES)
+    return sorted(CLASSICAL) + list(NET_NAMES) + [n + ENSEMBLE_SUFFIX for n in NET_NAMES]
 
 
 def build_estimator(name: str, **options) -> Estimator:
-    """`shuffled-<name>` wraps <name> in the shuffled-label control."""
+    """`shuffled-<name>` wraps <name> in the shuffled-label control; `<net>-ensemble` averages 3 seeds of a network."""
     if name.startswith(SHUFFLED_PREFIX):
         return ShuffledLabels(build_estimator(name[len(SHUFFLED_PREFIX):], **options))
     if name in CLASSICAL:
@@ -56,4 +57,8 @@ def build_estimator(name: str, **options) -> Estimator:
         from models.evaluation.net_estimator import NetEstimator
 
         return NetEstimator(name, **options)
+    if name.endswith(ENSEMBLE_SUFFIX) and name[: -len(ENSEMBLE_SUFFIX)] in NET_NAMES:
+        from models.evaluation.net_estimator import NetEnsemble
+
+        return NetEnsemble(name[: -len(ENSEMBLE_SUFFIX)], **options)
     raise ValueError(f"unknown model {name!r}; known: {', '.join(names())}")

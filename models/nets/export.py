@@ -118,6 +118,22 @@ def raw_model(
     return _wrap(model, modality, stats).eval()
 
 
+def mean_of(members: list[nn.Module]) -> nn.Module:
+    """One raw-IO module averaging the ratings of several (an ensemble of seeds): same inputs, same output."""
+    import torch
+    from torch import nn
+
+    class MeanOf(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.members = nn.ModuleList(members)
+
+        def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+            return torch.stack([m(*inputs) for m in self.members]).mean(dim=0)
+
+    return MeanOf().eval()
+
+
 def export_onnx(
     model: nn.Module,
     path: str | Path,
@@ -137,27 +153,9 @@ def export_onnx(
     entries ``modality`` and ``inputs`` (comma-separated graph input names) are added
     (a caller's value for them must agree). Returns ``path``.
     """
-    import torch
-
-    bad = [k for k, v in metadata.items() if not isinstance(k, str) or not isinstance(v, str)]
-    if bad:
-        raise ValueError(f"metadata keys and values must be strings; not so for {bad}")
     modality = getattr(model, "modality", None)
     if modality not in INPUTS_BY_MODALITY:
         raise ValueError(f"model has no valid modality attribute (got {modality!r})")
-    inputs = INPUTS_BY_MODALITY[modality]
-    own = {"modality": modality, "inputs": ",".join(inputs)}
-    clash = {k: metadata[k] for k in own if k in metadata and metadata[k] != own[k]}
-    if clash:
-        raise ValueError(f"metadata {clash} contradicts the model ({own})")
-
-    tactile_mean = np.asarray(tactile_mean).reshape(-1)
-    visual_mean = np.asarray(visual_mean).reshape(-1)
-    means = {"tactile": tactile_mean, "visual": visual_mean}
-    # tracing example: batch 2 of the mean vectors (the values do not matter, the batch is dynamic)
-    example = tuple(torch.from_numpy(np.repeat(means[n].astype(np.float32)[None], 2, axis=0)) for n in inputs)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     was_training = model.training
     try:
         wrapped = raw_model(
@@ -169,22 +167,47 @@ def export_onnx(
             target_mean=target_mean,
             target_std=target_std,
         )
-        with warnings.catch_warnings():
-            # the TorchScript exporter is deprecated but unrolls the ConvLSTM loop into a flat,
-            # fast graph; its tracer warnings about shape checks are expected
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                wrapped,
-                example,
-                str(path),
-                input_names=list(inputs),
-                output_names=[OUTPUT_NAME],
-                dynamic_axes={name: {0: "batch"} for name in (*inputs, OUTPUT_NAME)},
-                opset_version=OPSET,
-                dynamo=False,
-                do_constant_folding=True,
-            )
+        widths = {"tactile": np.size(tactile_mean), "visual": np.size(visual_mean)}
+        return export_raw(wrapped, modality, path, metadata, widths)
     finally:
         model.train(was_training)
+
+
+def export_raw(
+    wrapped: nn.Module, modality: str, path: str | Path, metadata: Mapping[str, str], widths: dict[str, int]
+) -> Path:
+    """Trace a raw-IO module (see `raw_model`; or several averaged) to ONNX and stamp its metadata.
+
+    widths: feature count of each graph input ("tactile", "visual") the module reads.
+    """
+    import torch
+
+    bad = [k for k, v in metadata.items() if not isinstance(k, str) or not isinstance(v, str)]
+    if bad:
+        raise ValueError(f"metadata keys and values must be strings; not so for {bad}")
+    inputs = INPUTS_BY_MODALITY[modality]
+    own = {"modality": modality, "inputs": ",".join(inputs)}
+    clash = {k: metadata[k] for k in own if k in metadata and metadata[k] != own[k]}
+    if clash:
+        raise ValueError(f"metadata {clash} contradicts the model ({own})")
+    # tracing example: batch 2 of zeros (the values do not matter, the batch is dynamic)
+    example = tuple(torch.zeros(2, int(widths[n])) for n in inputs)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():
+        # the TorchScript exporter is deprecated but unrolls the ConvLSTM loop into a flat,
+        # fast graph; its tracer warnings about shape checks are expected
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            wrapped.eval(),
+            example,
+            str(path),
+            input_names=list(inputs),
+            output_names=[OUTPUT_NAME],
+            dynamic_axes={name: {0: "batch"} for name in (*inputs, OUTPUT_NAME)},
+            opset_version=OPSET,
+            dynamo=False,
+            do_constant_folding=True,
+        )
     write_metadata(path, {**metadata, **own})
     return path

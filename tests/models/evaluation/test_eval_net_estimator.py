@@ -32,3 +32,18 @@ def test_net_fits_predicts_and_exports_the_same_numbers(linear_world, tmp_path):
 def test_net_needs_rated_textures(linear_world):
     with pytest.raises(ValueError, match="needs rated textures"):
         build_estimator("ann").fit(linear_world.with_targets(None), 0)
+
+
+def test_ensemble_averages_its_members_and_exports_one_graph(linear_world, tmp_path):
+    import onnxruntime as ort
+
+    train, test = linear_world.take(range(0, 24)), linear_world.take(range(24, 27))
+    ens = build_estimator("ann-ensemble", max_epochs=4, windows_per_texture=4).fit(train, seed=1)
+    members = np.stack([m.predict(test) for m in ens.members])
+    np.testing.assert_allclose(ens.predict(test), members.mean(axis=0), rtol=1e-6)
+    assert not np.allclose(members[0], members[1])  # different seeds, different members
+    path = ens.export(tmp_path / "ens.onnx", {})
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    feed = {"tactile": test.tactile[0], "visual": np.repeat(test.visual[0, :1], len(test.tactile[0]), axis=0)}
+    expected = np.mean([np.clip(m.predict_windows(test.take([0]))[0], -100, 100) for m in ens.members], axis=0)
+    np.testing.assert_allclose(sess.run(None, feed)[0], expected, atol=1e-2)
