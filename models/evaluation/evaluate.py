@@ -119,7 +119,7 @@ def evaluate(
         "hardware": hardware(),
         "features": {**{k: v for k, v in data.meta.items() if k not in ("tactile_config", "true_ratings")},
                      "tactile_features": data.meta["tactile_config"]["feature_set"]},
-        "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[0].endswith("hapticlink") else None,
+        "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None,
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))
     if figures:
