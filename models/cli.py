@@ -83,7 +83,7 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--workers", type=int, help="parallel folds (default: one per core)")
     e.add_argument("--backend", default="process", choices=["process", "serial", "ray"])
     _feature_args(e)
-    e.add_argument("--max-epochs", type=int, help="networks: cap on epochs (default 200)")
+    _net_args(e)
     e.add_argument("--no-figures", action="store_true")
     e.add_argument("--latency-only", action="store_true",
                    help="only (re)measure the per-window latency into an existing OUT/results.json")
@@ -96,7 +96,7 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--metrics", help="results.json of this model's LOOCV, recorded in the model file")
     _feature_args(t)
-    t.add_argument("--max-epochs", type=int)
+    _net_args(t)
     t.set_defaults(func=_train)
 
     p = sub.add_parser("predict", help="predict every texture of a dataset with an exported model → CSV")
@@ -112,8 +112,16 @@ def _feature_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
 
 
+def _net_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--max-epochs", type=int, help="networks: cap on epochs (default 200)")
+    parser.add_argument("--windows-per-texture", type=int,
+                        help="networks: tactile windows drawn per texture each epoch (default 16)")
+
+
 def _options(args: argparse.Namespace) -> dict:
-    return {} if getattr(args, "max_epochs", None) is None else {"max_epochs": args.max_epochs}
+    """Estimator options given on the command line (networks only; the rest keep their defaults)."""
+    names = ("max_epochs", "windows_per_texture")
+    return {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}
 
 
 def _evaluate(args: argparse.Namespace) -> int:

@@ -53,11 +53,15 @@ class GraphBuilder:
         return f"{hint}_{self._count}"
 
     # ---- shared pieces ------------------------------------------------------------------------
-    def standardized(self, name: str, mean: np.ndarray, std: np.ndarray, weight: float = 1.0) -> str:
-        """(x − mean) · (weight / std) for graph input `name`."""
+    def standardized(self, name: str, mean: np.ndarray, std: np.ndarray, weight: float = 1.0, clip: float | None = None) -> str:
+        """weight · z for graph input `name`, z = (x − mean) / std, clipped to ±clip when given."""
         x = self.input(name, int(np.size(mean)))
         centred = self.op("Sub", x, self.const(mean, f"{name}_mean"))
-        return self.op("Mul", centred, self.const(weight / np.asarray(std, float), f"{name}_scale"))
+        z = self.op("Mul", centred, self.const(weight / np.asarray(std, float), f"{name}_scale"))
+        if clip is None:
+            return z
+        bound = clip * weight
+        return self.op("Clip", z, self.const(np.array(-bound)), self.const(np.array(bound)))
 
     def concat(self, parts: list[str]) -> str:
         return parts[0] if len(parts) == 1 else self.op("Concat", *parts, axis=1)

@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 
 from models.evaluation.data import TextureData
+from models.standardize import Z_CLIP, Standardizer
 
 Modality = Literal["none", "tactile", "visual", "both"]
 
@@ -49,19 +50,6 @@ def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
     if data.visual is None:
         raise ValueError("this estimator needs visual features, but the data has none")
     return data.visual[:, view, :].astype(np.float64)
-
-
-class Standardizer:
-    """Column standardisation fit on training rows; constant columns pass through unscaled."""
-
-    def fit(self, X: np.ndarray) -> "Standardizer":
-        self.mean = X.mean(axis=0)
-        std = X.std(axis=0)
-        self.std = np.where(std > 1e-12, std, 1.0)
-        return self
-
-    def transform(self, X: np.ndarray) -> np.ndarray:
-        return (X - self.mean) / self.std
 
 
 class TextureFeatures:
@@ -168,15 +156,16 @@ class RidgeEstimator(Estimator):
         return {"alpha": self.alpha}
 
     def export(self, path, metadata: dict[str, str]):
-        """ONNX of the per-window model. Linear, so averaging window predictions equals predicting
-        from the texture's mean window — the texture-level fit serves window by window unchanged."""
+        """ONNX of the per-window model. Linear (within the z-clip), so averaging window predictions
+        equals predicting from the texture's mean window — the texture-level fit serves window by window."""
         from models.onnx_graph import GraphBuilder
 
         if self.features.tactile_stats != ("mean",):
             raise ValueError("only ridge on mean tactile features can be exported (std is not linear per window)")
         g = GraphBuilder()
         names = [n for n in ("visual", "tactile") if self.modality in (n, "both")]
-        z = g.concat([g.standardized(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size)) for n, s in zip(names, self.features.scalers)])
+        z = g.concat([g.standardized(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP)
+                      for n, s in zip(names, self.features.scalers)])
         out = g.op("Add", g.op("MatMul", z, g.const(self.coef)), g.const(self.y_mean))
         return g.save(path, out, metadata)
 

@@ -12,6 +12,7 @@ from tqdm import tqdm
 
 from models.evaluation.data import TextureData
 from models.evaluation.registry import EstimatorSpec
+from texture_library.attributes import RATING_MAX, RATING_MIN
 
 BACKENDS = ("process", "serial", "ray")
 _DATA: TextureData | None = None  # set once per worker process by _init_worker
@@ -52,6 +53,7 @@ def run_fold(data: TextureData, spec: EstimatorSpec, held_out: int, seed: int) -
     est = spec.build().fit(train, seed)
     # The held-out texture reaches predict without its ratings: nothing to leak, by construction.
     pred = est.predict(data.take([held_out]).with_targets(None))[0]
+    pred = np.clip(pred, RATING_MIN, RATING_MAX)  # as every exported model clips its output
     return pred, time.perf_counter() - t0, est.fit_info(), est.n_params()
 
 

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from models.evaluation.data import TextureData
-from models.evaluation.estimators import Estimator, Standardizer, require_targets
+from models.evaluation.estimators import Estimator, require_targets
+from models.standardize import Standardizer
 
 MIN_VAL_TEXTURES = 2
 
@@ -62,7 +63,7 @@ class NetEstimator(Estimator):
         views = self._visual(data)
         y = np.zeros((len(data), 4), np.float32) if targets is None else targets
         return TrainArrays(self.t_scaler.transform(X).astype(np.float32), idx,
-                           ((views - self.v_scaler.mean) / self.v_scaler.std).astype(np.float32),
+                           self.v_scaler.transform(views.reshape(-1, views.shape[2])).reshape(views.shape).astype(np.float32),
                            ((y - self.y_scaler.mean) / self.y_scaler.std).astype(np.float32))
 
     def fit(self, data: TextureData, seed: int) -> "NetEstimator":

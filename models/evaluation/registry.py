@@ -50,7 +50,10 @@ def build_estimator(name: str, **options) -> Estimator:
     if name.startswith(SHUFFLED_PREFIX):
         return ShuffledLabels(build_estimator(name[len(SHUFFLED_PREFIX):], **options))
     if name in CLASSICAL:
-        return CLASSICAL[name](**options)
+        try:
+            return CLASSICAL[name](**options)
+        except TypeError as exc:  # e.g. --max-epochs given to ridge
+            raise ValueError(f"model {name!r} does not take {', '.join(sorted(options))}: {exc}") from None
     from models.nets.registry import NAMES as NET_NAMES
 
     if name in NET_NAMES:

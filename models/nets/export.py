@@ -3,7 +3,8 @@
 The exported graph takes RAW features and returns bipolar ratings:
 
     inputs:  tactile (N, F) float32, visual (N, D) float32   (N dynamic)
-    output:  ratings (N, 4) float32 = clip(net((t − μ_t)/σ_t, (v − μ_v)/σ_v) · σ_y + μ_y, −100, 100)
+    output:  ratings (N, 4) float32 = clip(net(z_t, z_v) · σ_y + μ_y, −100, 100),
+             z = clip((x − μ)/σ, ±Z_CLIP) per input (models.standardize)
 
 Only the inputs the model reads are graph inputs: a tactile-only model has just
 ``tactile``, a visual-only one just ``visual``. The service reads the input names from
@@ -24,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from models.modelfile import write_metadata
+from models.standardize import Z_CLIP
 
 if TYPE_CHECKING:
     from torch import nn
@@ -54,6 +56,9 @@ def _wrap(model: nn.Module, modality: str, stats: dict[str, np.ndarray]) -> nn.M
     import torch
     from torch import nn
 
+    def _z(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+        return torch.clamp((x - mean) / std, -Z_CLIP, Z_CLIP)  # as models.standardize.Standardizer
+
     class RawIO(nn.Module):
         def __init__(self) -> None:
             super().__init__()
@@ -65,8 +70,8 @@ def _wrap(model: nn.Module, modality: str, stats: dict[str, np.ndarray]) -> nn.M
             # a branch the model does not read gets a 1-column placeholder: never touched
             batch_ref = tactile if tactile is not None else visual
             assert batch_ref is not None
-            t = (tactile - self.tactile_mean) / self.tactile_std if tactile is not None else batch_ref[:, :1]
-            v = (visual - self.visual_mean) / self.visual_std if visual is not None else batch_ref[:, :1]
+            t = _z(tactile, self.tactile_mean, self.tactile_std) if tactile is not None else batch_ref[:, :1]
+            v = _z(visual, self.visual_mean, self.visual_std) if visual is not None else batch_ref[:, :1]
             y = self.net(t, v)["ratings"] * self.target_std + self.target_mean
             return torch.clamp(y, -RATING_LIMIT, RATING_LIMIT)
 

@@ -37,15 +37,21 @@ def _table(rows: list[dict], metric: str, ceiling: dict | None) -> list[str]:
     lines = ["| model | modality | seeds | " + " | ".join(SHORT[k] for k in KEYS) + " |",
              "|---|---|---|" + "---:|" * len(KEYS)]
     for r in rows:
-        lines.append(f"| {r['model']} | {r['modality']} | {len(r['seeds'])} | " + " | ".join(_cell(r, metric, k) for k in KEYS) + " |")
+        lines.append(f"| {r['dir']} | {r['modality']} | {len(r['seeds'])} | " + " | ".join(_cell(r, metric, k) for k in KEYS) + " |")
     if ceiling is not None:
         lines.append("| *human split-half* | — | — | " + " | ".join(f"*{ceiling[metric][k]:.2f}*" for k in KEYS) + " |")
     return lines
 
 
 def _ablation_label(res: dict) -> str:
+    """The feature choice of a run, per modality it reads: e.g. "visual glcm + tactile mfcc"."""
     f = res.get("features", {})
-    return f"tactile {f.get('tactile_features', 'mfcc')}" if res["modality"] == "tactile" else f"visual {f.get('visual_part', 'both')}"
+    parts = []
+    if res["modality"] in ("visual", "both"):
+        parts.append(f"visual {f.get('visual_part', 'both')}")
+    if res["modality"] in ("tactile", "both"):
+        parts.append(f"tactile {f.get('tactile_features', 'mfcc')}")
+    return " + ".join(parts)
 
 
 def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "") -> Path:
@@ -97,7 +103,7 @@ def _targets(best: dict, mean_pred: dict | None) -> list[str]:
 
 
 def _speed_section(main: list[dict], folder: Path, mean_pred: dict | None, ceiling: dict | None) -> list[str]:
-    rows = [{"model": r["model"], "mae": r["mae"]["mean"], "latency_us": r["latency_us"]["p50_us"],
+    rows = [{"model": r["dir"], "mae": r["mae"]["mean"], "latency_us": r["latency_us"]["p50_us"],
              "n_params": r.get("n_params"), "runtime": r["latency_us"]["runtime"]}
             for r in main if r.get("latency_us") and not r["model"].startswith(("mean", "shuffled"))]
     if not rows:

@@ -1,6 +1,7 @@
 """Training on every rated texture, ONNX export with its card, prediction of withheld textures."""
 
 import csv
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -45,6 +46,17 @@ def test_onnx_equals_the_fitted_estimator_window_by_window(ridge_model, dataset)
         expected = np.clip(est.predict(data.take([i]))[0], -100, 100)
         np.testing.assert_allclose(predictor.predict(windows.mean(axis=0)), expected[None], atol=1e-2)
         assert predictor.predict(windows).shape == (len(windows), 4)
+
+
+def test_a_window_far_outside_the_training_range_gives_the_same_bounded_answer_in_onnx(ridge_model, dataset):
+    data = load_texture_data(dataset, visual=False)
+    est = build_estimator("ridge-tactile").fit(data, 3)
+    window = data.tactile[0].mean(axis=0).copy()
+    window[::7] += 1e4 * (np.abs(window[::7]) + 1.0)  # channels far beyond anything trained on
+    expected = np.clip(est.predict(replace(data.take([0]), tactile=[window[None]]))[0], -100, 100)
+    got = Predictor(ridge_model).predict(window)
+    np.testing.assert_allclose(got, expected[None], atol=1e-2)
+    assert np.all(np.abs(got) <= 100)
 
 
 def test_predict_writes_one_row_per_withheld_texture(ridge_model, dataset, tmp_path):

@@ -51,6 +51,8 @@ def test_process_backend_equals_serial(linear_world):
 def test_bad_arguments(linear_world):
     with pytest.raises(ValueError, match="unknown model"):
         build_estimator("no-such-model")
+    with pytest.raises(ValueError, match="'ridge-both' does not take max_epochs"):
+        build_estimator("ridge-both", max_epochs=3)
     with pytest.raises(ValueError, match="backend must be one of"):
         loocv(linear_world, EstimatorSpec("mean"), backend="threads")
     with pytest.raises(ValueError, match="at least 3 rated textures"):

@@ -9,7 +9,7 @@ from models.datasets.build import build
 from models.evaluation.evaluate import evaluate
 from models.evaluation.data import load_texture_data
 from models.evaluation.registry import EstimatorSpec
-from models.report.markdown import build_report
+from models.report.markdown import _ablation_label, build_report
 from models.report.speed_accuracy import pareto_front
 
 
@@ -30,6 +30,13 @@ def reports(tmp_path_factory):
     for name in ("mean", "ridge-tactile", "knn-tactile"):
         evaluate(data, EstimatorSpec(name), root / "reports" / name, seeds=(0,), workers=1, backend="serial", progress=False)
     return dataset, root / "reports"
+
+
+def test_ablation_label_names_the_features_of_every_modality_a_model_reads():
+    assert _ablation_label({"modality": "visual", "features": {"visual_part": "glcm"}}) == "visual glcm"
+    assert _ablation_label({"modality": "tactile", "features": {"tactile_features": "dwt"}}) == "tactile dwt"
+    both = {"modality": "both", "features": {"visual_part": "backbone", "tactile_features": "dft"}}
+    assert _ablation_label(both) == "visual backbone + tactile dft"
 
 
 def test_evaluate_writes_results_and_figures(reports):
