@@ -316,7 +316,7 @@ class RobotClient:
         console = f"{self.url}/console?{urlencode({'session': sid, 'token': operator})}" if operator else None
         self.session_id, self.robot_token = sid, robot
         self.session = SessionInfo(sid, robot, operator, console)
-        log.info("session %s created (operator console link: RobotClient.session.console_url)", sid)
+        log.info("session %s created", sid)
         return self.session
 
     # ---- run ----------------------------------------------------------------------------------

@@ -34,6 +34,8 @@ for part in backbone glcm both; do
 done
 for feat in mfcc dwt dft; do
   hl evaluate --dataset $H --model svr-tactile-windows --tactile-features $feat --out reports/hatt-texnet/ablation/svr-tactile-windows-$feat --seeds 0
+done
+for feat in dwt dft; do  # ann with MFCC is ablation/ann-visual-both
   hl evaluate --dataset $H --model ann --tactile-features $feat --out reports/hatt-texnet/ablation/ann-tactile-$feat --seeds 0
 done
 hl report --dataset $H --reports reports/hatt-texnet --regenerate "bash reports/regenerate.sh"
