@@ -1,13 +1,14 @@
 """Load benchmark of the real-time service: N simulated robots on loopback, each with an operator.
 
-Run from the repository root:  python -m benchmarks.service  [--robots 1 10 50 100] [--duration 20]
+Run from the repository root:  python -m benchmarks.service  [--robots 1 10 50 100] [--duration 20] [--replicas 1 2]
 
 For each N, the service runs in its own process (`hapticlink serve`, uvicorn), so the clients'
-load does not run on its interpreter. Each robot opens a session, streams 1 kHz accel (3 axes),
-force (3 axes) and speed in 20 ms binary blocks over WS /ingest at real-time pace (a block is
-sent when its span has ended, starts staggered over one window), rendered by the library's
-vibration models along freehand strokes (texture_library.stroke); an operator per session
-reads WS /events. Reported per N:
+load does not run on its interpreter; with --replicas R, in R processes, robot k pinned to
+replica k mod R as nginx pins sessions in deploy/ (one process is one GIL: one core at most).
+Each robot opens a session, streams 1 kHz accel (3 axes), force (3 axes) and speed in 20 ms
+binary blocks over WS /ingest at real-time pace (a block is sent when its span has ended,
+starts staggered over one window), rendered by the library's vibration models along freehand
+strokes (texture_library.stroke); an operator per session reads WS /events. Reported per N:
 
 - windows/s published and received; windows lost = expected (⌊duration / hop⌋ per robot) − received
 - latency, ms: end-to-end (subscriber receive − send of the block that completed the window, one
@@ -103,11 +104,11 @@ def free_port() -> int:
 class ServerProcess:
     """`hapticlink serve` in a child process; CPU and memory read from /proc/<pid>."""
 
-    def __init__(self, model: Path, library: Path, env: dict[str, str]) -> None:
+    def __init__(self, model: Path, library: Path, env: dict[str, str], instance_id: str = "bench") -> None:
         self.port = free_port()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service.cli", "serve", "--model", str(model), "--library", str(library),
-             "--port", str(self.port), "--log-level", "warning", "--instance-id", "bench"],
+             "--port", str(self.port), "--log-level", "warning", "--instance-id", instance_id],
             env={**os.environ, **env}, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )
         self.url = f"http://127.0.0.1:{self.port}"
@@ -202,16 +203,18 @@ async def run_robot(url: str, blocks: list[bytes], block_s: float, start: float,
             await asyncio.gather(reader, acker, return_exceptions=True)
 
 
-async def run_load(url: str, streams: list[list[bytes]], block_s: float, hop_s: float, seed: int) -> tuple[list[RobotResult], float]:
-    async with httpx.AsyncClient(base_url=url, timeout=30) as client:
-        sessions = [(await client.post("/sessions", json={"name": f"bench-{k}"})).json() for k in range(len(streams))]
+async def run_load(urls: list[str], streams: list[list[bytes]], block_s: float, hop_s: float, seed: int) -> tuple[list[RobotResult], float]:
+    """Robot k streams to replica k mod R (as nginx pins a session to the replica that created it)."""
+    robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
+    async with httpx.AsyncClient(timeout=30) as client:
+        sessions = [(await client.post(f"{u}/sessions", json={"name": f"bench-{k}"})).json() for k, u in enumerate(robot_urls)]
     rng = random.Random(seed)
     start = time.perf_counter() + 1.0 + 0.01 * len(streams)  # time to open every connection first
     results = [RobotResult() for _ in streams]
     done = [asyncio.Event() for _ in streams]
     offsets = [rng.uniform(0, hop_s) for _ in streams]  # robots do not start in lockstep
-    tasks = [asyncio.create_task(run_robot(url, s, block_s, start + off, r, sess, d))
-             for s, r, sess, d, off in zip(streams, results, sessions, done, offsets)]
+    tasks = [asyncio.create_task(run_robot(u, s, block_s, start + off, r, sess, d))
+             for u, s, r, sess, d, off in zip(robot_urls, streams, results, sessions, done, offsets)]
     await asyncio.gather(*tasks)
     return results, start
 
@@ -230,24 +233,34 @@ def percentile(values: list[float], q: float) -> float | None:
 
 
 def measure(n: int, model: Path, library: Path, streams: list[list[bytes]], duration_s: float, block_s: float,
-            hop_s: float, seed: int, server_env: dict[str, str]) -> dict:
-    server = ServerProcess(model, library, server_env)
+            hop_s: float, seed: int, server_env: dict[str, str], replicas: int = 1) -> dict:
+    """n robots against `replicas` server processes; CPU, memory and drops summed over them."""
+    servers: list[ServerProcess] = []
     try:
-        cpu0, client0, machine0, wall0 = server.cpu_seconds(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
-        results, start = _run(run_load(server.url, streams[:n], block_s, hop_s, seed))
-        cpu1, client1, machine1, wall1 = server.cpu_seconds(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
-        rss, peak = server.memory_mb()
-        metrics = httpx.get(f"{server.url}/metrics").text
+        for k in range(replicas):
+            servers.append(ServerProcess(model, library, server_env, instance_id=f"bench{k}"))
+
+        def server_cpu() -> float:
+            return sum(s.cpu_seconds() for s in servers)
+
+        cpu0, client0, machine0, wall0 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
+        results, start = _run(run_load([s.url for s in servers], streams[:n], block_s, hop_s, seed))
+        cpu1, client1, machine1, wall1 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
+        memory = [s.memory_mb() for s in servers]
+        rss, peak = sum(m[0] for m in memory), sum(m[1] for m in memory)
+        dropped_per_server = [_metric(httpx.get(f"{s.url}/metrics").text, "hapticlink_events_dropped_total") for s in servers]
     finally:
-        server.stop()
+        for s in servers:
+            s.stop()
     expected = n * int(duration_s / hop_s + 1e-9)
     received = sum(r.windows for r in results)
     e2e = [x for r in results for x in r.e2e_ms]
     lag = [x for r in results for x in r.send_lag_ms]
     stages = {s: [x for r in results for x in r.stages_ms[s]] for s in STAGES}
-    dropped = _metric(metrics, "hapticlink_events_dropped_total")
+    dropped = None if None in dropped_per_server else sum(dropped_per_server)
     return {
         "robots": n,
+        "replicas": replicas,
         "duration_s": duration_s,
         "windows_expected": expected,
         "windows_received": received,
@@ -330,13 +343,13 @@ def _metric(text: str, name: str) -> float | None:
 
 
 def print_table(rows: list[dict]) -> None:
-    head = (f"{'robots':>6} {'blocks/s':>8} {'win/s':>6} {'lost':>5} {'e2e p50':>8} {'e2e p99':>8} {'total p99':>9} "
+    head = (f"{'robots':>6} {'repl':>4} {'blocks/s':>8} {'win/s':>6} {'lost':>5} {'e2e p50':>8} {'e2e p99':>8} {'total p99':>9} "
             f"{'queue p99':>9} {'feat p99':>8} {'model p99':>9} {'cpu %':>6} {'rss MB':>7} {'send lag p99':>12} {'others %':>8}")
     print(head)
     print("-" * len(head))
     for r in rows:
         st = r["stages_ms"]
-        print(f"{r['robots']:>6} {r['blocks_per_s']:>8.0f} {r['windows_per_s']:>6.1f} {r['windows_lost']:>5} "
+        print(f"{r['robots']:>6} {r['replicas']:>4} {r['blocks_per_s']:>8.0f} {r['windows_per_s']:>6.1f} {r['windows_lost']:>5} "
               f"{r['e2e_ms']['p50']:>8.2f} {r['e2e_ms']['p99']:>8.2f} {st['total']['p99']:>9.2f} {st['queue']['p99']:>9.2f} "
               f"{st['features']['p99']:>8.2f} {st['model']['p99']:>9.2f} {r['server_cpu_percent']:>6.1f} "
               f"{r['server_rss_mb']:>7.1f} {r['client_send_lag_ms']['p99']:>12.2f} {r['others_cpu_percent']:>8.1f}")
@@ -351,11 +364,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--library", type=Path, help="a library (default: 12 synthetic textures)")
     p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
                    help="where the default model and library are built and cached")
+    p.add_argument("--replicas", type=int, nargs="+", default=[1],
+                   help="service processes, robots pinned round-robin as nginx pins sessions (default 1); "
+                        "each count runs every --robots N")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     if (args.model is None) != (args.library is None):
         p.error("give both --model and --library, or neither")
+    if min(args.replicas) < 1 or min(args.robots) < 1:
+        p.error("--robots and --replicas must be ≥ 1")
     model, library = (args.model, args.library) if args.model else prepare_assets(args.assets)
     hop_s = 0.5
     print(f"rendering {max(args.robots)} streams of {args.duration:g} s …", flush=True)
@@ -366,9 +384,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{capacity['blocks_per_s']:.0f} blocks/s; {capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot",
           flush=True)
     rows = []
-    for n in args.robots:
-        print(f"{n} robot(s) for {args.duration:g} s …", flush=True)
-        rows.append(measure(n, model, library, streams, args.duration, args.block_s, hop_s, args.seed, {}))
+    for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
+        print(f"{n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
+        rows.append(measure(n, model, library, streams, args.duration, args.block_s, hop_s, args.seed, {}, replicas))
         if rows[-1]["robots_stopped"]:
             print(f"  {rows[-1]['robots_stopped']} robot(s) were closed by the service "
                   f"({rows[-1]['closed_saturated']} with 4429: saturated) and stopped", flush=True)
