@@ -1,6 +1,7 @@
 """`python -m benchmarks` (make bench): every benchmark, each printing its numbers and writing reports/bench/*.json.
 
-The HaTT dataset build (about 10 minutes on 2 cores) runs only with --all.
+The HaTT dataset build (about 10 minutes on 2 cores) runs only with --all; the service
+benchmark runs one and two replicas.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ def main(argv: list[str]) -> int:
     print("\n== visual embedding: torch vs onnxruntime ==", flush=True)
     visual.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
-    service.main([])
+    service.main(["--replicas", "1", "2"])
     if "--all" in argv:
         from benchmarks import dataset_build
 
