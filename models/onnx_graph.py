@@ -1,7 +1,8 @@
-"""Build ONNX graphs for the non-torch estimators (ridge, SVR, k-NN and their stack) with onnx.helper.
+"""Build ONNX graphs for the non-torch estimators with onnx.helper (today: ridge; SVR, k-NN and
+the stack have no export and are timed in Python).
 
-Each estimator adds its nodes to a shared `GraphBuilder` and returns the name of its (N, 4)
-bipolar output; `save` clips to the rating range and writes the file with its metadata. The
+An estimator adds its nodes to a `GraphBuilder` and passes the name of its (N, 4) bipolar output
+to `save`; `save` clips to the rating range and writes the file with its metadata. The
 graph takes raw features: standardisation and block weights are part of it, as for the nets.
 """
 
@@ -65,14 +66,6 @@ class GraphBuilder:
 
     def concat(self, parts: list[str]) -> str:
         return parts[0] if len(parts) == 1 else self.op("Concat", *parts, axis=1)
-
-    def squared_distances(self, z: str, points: np.ndarray) -> str:
-        """(N, M) squared Euclidean distances from rows of z to `points` (M, K), via ‖z‖² − 2 z·pᵀ + ‖p‖²."""
-        zz = self.op("ReduceSumSquare", z, axes=[1], keepdims=1)
-        cross = self.op("MatMul", z, self.const(points.T))
-        d2 = self.op("Add", self.op("Sub", zz, self.op("Mul", cross, self.const(np.array(2.0)))),
-                     self.const((points**2).sum(axis=1)[None, :]))
-        return self.op("Max", d2, self.const(np.array(0.0)))  # round-off can dip below zero
 
     def save(self, path: str | Path, output: str, metadata: dict[str, str]) -> Path:
         import onnx

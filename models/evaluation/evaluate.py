@@ -38,7 +38,7 @@ def window_latency(data: TextureData, spec: EstimatorSpec, seed: int = 0, n: int
     for models that export to ONNX; otherwise the estimator's own predict on one window (numpy/sklearn)."""
     import tempfile
 
-    from models.nets.latency import onnx_latency
+    from models.nets.latency import call_latency, onnx_latency
 
     est = spec.build().fit(data, seed)
     if hasattr(est, "export"):
@@ -47,15 +47,8 @@ def window_latency(data: TextureData, spec: EstimatorSpec, seed: int = 0, n: int
             return {**onnx_latency(path, n=n, threads=1), "runtime": "onnxruntime", "threads": 1, "batch": 1}
     one = data.take([0])
     one = replace(one, tactile=[one.tactile[0][:1]])
-    for _ in range(5):
-        est.predict(one)
-    times = []
-    for _ in range(min(n, 50)):
-        t0 = time.perf_counter_ns()
-        est.predict(one)
-        times.append((time.perf_counter_ns() - t0) / 1e3)
-    return {"p50_us": float(np.percentile(times, 50)), "p90_us": float(np.percentile(times, 90)),
-            "mean_us": float(np.mean(times)), "runtime": "python (no ONNX export)", "threads": 1, "batch": 1}
+    timing = call_latency(lambda: est.predict(one), n=min(n, 50), warmup=5)
+    return {**timing, "runtime": "python (no ONNX export)", "threads": 1, "batch": 1}
 
 
 def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:

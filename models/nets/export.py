@@ -26,6 +26,7 @@ import numpy as np
 
 from models.modelfile import write_metadata
 from models.standardize import Z_CLIP
+from texture_library.attributes import RATING_MAX, RATING_MIN
 
 if TYPE_CHECKING:
     from torch import nn
@@ -36,7 +37,6 @@ INPUTS_BY_MODALITY: dict[str, tuple[str, ...]] = {
     "visual": ("visual",),
 }
 OUTPUT_NAME = "ratings"
-RATING_LIMIT = 100.0
 OPSET = 17
 
 
@@ -73,7 +73,7 @@ def _wrap(model: nn.Module, modality: str, stats: dict[str, np.ndarray]) -> nn.M
             t = _z(tactile, self.tactile_mean, self.tactile_std) if tactile is not None else batch_ref[:, :1]
             v = _z(visual, self.visual_mean, self.visual_std) if visual is not None else batch_ref[:, :1]
             y = self.net(t, v)["ratings"] * self.target_std + self.target_mean
-            return torch.clamp(y, -RATING_LIMIT, RATING_LIMIT)
+            return torch.clamp(y, RATING_MIN, RATING_MAX)
 
     class Both(RawIO):
         def forward(self, tactile: torch.Tensor, visual: torch.Tensor) -> torch.Tensor:

@@ -7,6 +7,7 @@ No torch import: `onnx_latency` runs on onnxruntime alone, `param_count` only wa
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +44,17 @@ def onnx_latency(path: str | Path, n: int = 200, threads: int = 1) -> dict[str, 
     options.log_severity_level = 3
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     feed = _input_feed(session, np.random.default_rng(0))
-    for _ in range(WARMUP_RUNS):
-        session.run(None, feed)
+    return call_latency(lambda: session.run(None, feed), n=n, warmup=WARMUP_RUNS)
+
+
+def call_latency(call: Callable[[], Any], n: int, warmup: int) -> dict[str, float]:
+    """`warmup` untimed calls, then `n` timed ones → {"p50_us", "p90_us", "mean_us"} in microseconds."""
+    for _ in range(warmup):
+        call()
     times = np.empty(n)
     for k in range(n):
         t0 = time.perf_counter_ns()
-        session.run(None, feed)
+        call()
         times[k] = (time.perf_counter_ns() - t0) / 1e3
     return {
         "p50_us": float(np.percentile(times, 50)),
