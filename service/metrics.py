@@ -136,6 +136,13 @@ class ServiceMetrics:
         self.events_dropped = Counter(
             "hapticlink_events_dropped_total", "Events dropped for slow operator connections (they keep the latest)."
         )
+        self.sessions_refused = Counter("hapticlink_sessions_refused_total",
+                                        "POST /sessions refused, by reason (api_key, rate).", ("reason",))
+        self.sessions_reaped = Counter("hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming.")
+        self.sockets_refused = Counter("hapticlink_ingest_sockets_refused_total",
+                                       "Ingest WebSocket handshakes refused, by HTTP-equivalent status.", ("status",))
+        self.robot_disconnects = Counter("hapticlink_robot_disconnects_total",
+                                         "Ingest WebSockets that closed, by reason.", ("reason",))
         self.publish_errors = Counter("hapticlink_publish_errors_total", "Events the broker failed to publish.")
         self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.")
         self.subscribers = Gauge("hapticlink_subscribers", "Open operator event connections on this replica.")

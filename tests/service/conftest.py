@@ -32,6 +32,8 @@ from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
 
 FIXED_SEED = 1234
+API_KEY = "test-fleet-key-0123456789"  # the fleet key every test server accepts
+FLEET = {"Authorization": f"Bearer {API_KEY}"}
 
 
 # ---- the real server -----------------------------------------------------------------------------
@@ -163,7 +165,7 @@ def socket_url(server: ServerThread, session: dict, route: str) -> str:
 
 
 def create_session(client: httpx.Client, name: str = "test") -> dict:
-    r = client.post("/sessions", json={"name": name})
+    r = client.post("/sessions", json={"name": name}, headers=FLEET)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -218,7 +220,7 @@ def base_settings(tactile_model, library_dir) -> Settings:
     # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
     # the backpressure tests set a tight one.
     return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600,
-                    session_queue_windows=64)
+                    session_first_block_s=600, session_queue_windows=64, api_keys=API_KEY, session_burst=10_000)
 
 
 @pytest.fixture(scope="session")
@@ -249,4 +251,6 @@ def kit() -> SimpleNamespace:
         png=png,
         free_port=free_port,
         FIXED_SEED=FIXED_SEED,
+        API_KEY=API_KEY,
+        FLEET=FLEET,
     )

@@ -21,7 +21,7 @@ from texture_library.recording import Channel, Recording
 
 def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, library_dir):
     settings = Settings(model_path=visual_model.model, library_dir=library_dir, backbone_path=visual_model.backbone,
-                        instance_id="visual")
+                        instance_id="visual", api_keys=kit.API_KEY)
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     rec = kit.stroke_recording(library_dir, "synth_003", 1.6)
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -61,11 +61,11 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
 
 
 def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual_model, library_dir):
-    settings = Settings(model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone")
+    settings = Settings(model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone", api_keys=kit.API_KEY)
     with kit.running(settings, wait_ready=False) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         r = kit.wait_for(lambda: (r := client.get("/ready")).json()["model"] and r)
         assert r.status_code == 503 and r.json()["ready"] is False
         assert "HAPTICLINK_BACKBONE_PATH" in r.json()["detail"] and "efficientnet_lite0" in r.json()["detail"]
         assert client.get("/health").status_code == 200
-        refused = client.post("/sessions", json={})
+        refused = client.post("/sessions", json={}, headers=kit.FLEET)
         assert refused.status_code == 503 and "not ready" in refused.json()["detail"]
