@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.blocks import BINARY_CONTENT_TYPE
+
+_T = TypeVar("_T")
+NonEmpty = Annotated[_T, Field(min_length=1)]
 
 SESSION_ID_EXAMPLE = "replica-a.Xq3v9PzR0kLm"
 TOKEN_EXAMPLE = "kY2f0rC4q2mZ1xP9wV7n3bT5hJ8sL6dA0gE4uR2iO1c"
@@ -130,7 +133,7 @@ class ReadyOut(BaseModel):
 class JsonChannel(BaseModel):
     rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
     units: str = Field(description="accel: m/s^2 | g; force: N; speed: mm/s | m/s; position: mm | m")
-    data: list[float] | list[list[float]] = Field(min_length=1, description="(n,) or (n, k) samples")
+    data: NonEmpty[list[float]] | NonEmpty[list[NonEmpty[list[float]]]] = Field(description="(n,) or (n, k) samples, n ≥ 1")
 
 
 class JsonBlock(BaseModel):

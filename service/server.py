@@ -106,6 +106,7 @@ def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
         "host": settings.host, "port": settings.port, "log_level": settings.log_level,
         "ws_max_size": settings.max_body_bytes, "timeout_graceful_shutdown": 5,
         "timeout_keep_alive": settings.timeout_keep_alive_s, "http": protocol,
+        "proxy_headers": True, "forwarded_allow_ips": settings.forwarded_allow_ips,
         "access_log": settings.log_level == "debug",  # lines without query strings (RedactQueries), but many
     }
     return {**options, **overrides}

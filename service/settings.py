@@ -59,6 +59,9 @@ class Settings(BaseSettings):
     session_rate_per_s: float = Field(0.5, gt=0, description="sessions a client (IP address) may open per second, sustained; "
                                       "beyond it `POST /sessions` answers 429 with Retry-After")
     session_burst: int = Field(10, ge=1, description="sessions a client may open at once before session_rate_per_s applies")
+    forwarded_allow_ips: str = Field(
+        "127.0.0.1", description="proxies whose X-Forwarded-For names the client (comma-separated IPs, or *), so the "
+        "session-creation rate applies per real client behind nginx")
     cors_origins: tuple[str, ...] = Field(
         (), description="origins allowed to call the API from a browser (JSON list; default none: no CORS headers)"
     )

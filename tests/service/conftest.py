@@ -40,8 +40,9 @@ FLEET = {"Authorization": f"Bearer {API_KEY}"}
 class ServerThread:
     """uvicorn serving create_app(settings) on 127.0.0.1:<free port> in a daemon thread."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, log_level: str = "warning") -> None:
         self.settings = settings
+        self.log_level = log_level
         self.app = create_app(settings)
         self.port = 0
         self._server: uvicorn.Server | None = None
@@ -60,7 +61,7 @@ class ServerThread:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", 0))
         self.port = sock.getsockname()[1]
-        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level="warning",
+        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level=self.log_level,
                                                            access_log=False, timeout_graceful_shutdown=3))
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
@@ -95,8 +96,8 @@ class ServerThread:
 
 
 @contextlib.contextmanager
-def running(settings: Settings, wait_ready: bool = True) -> Iterator[ServerThread]:
-    server = ServerThread(settings).start(wait_ready=wait_ready)
+def running(settings: Settings, wait_ready: bool = True, log_level: str = "warning") -> Iterator[ServerThread]:
+    server = ServerThread(settings, log_level).start(wait_ready=wait_ready)
     try:
         yield server
     finally:
@@ -212,7 +213,8 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("visual-model")
     dataset = build("synthetic", root / "dataset", n_textures=3, duration_s=3, image_size=256)
     model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
-    return SimpleNamespace(model=model, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+    tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")  # same features: the fallback
+    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
 
 
 @pytest.fixture(scope="session")

@@ -18,6 +18,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from drivers.protocol import Close
 from drivers.blocks import encode_binary
 from drivers.robot import RobotClient
 from drivers.source import paced
@@ -36,9 +37,9 @@ def tight_server(kit, base_settings):
 class PoolStall:
     """Occupies the server's window pool until released (the session's jobs queue up behind it)."""
 
-    def __init__(self, server) -> None:
+    def __init__(self, server, pool: str = "window_pool") -> None:
         self.release = threading.Event()
-        self.future = server.app.state.service.window_pool.submit(self.release.wait, 60)
+        self.future = getattr(server.app.state.service, pool).submit(self.release.wait, 60)
 
     def __enter__(self) -> "PoolStall":
         return self
@@ -89,7 +90,7 @@ def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_
                     ws.send(encode_binary(block))
                     assert json.loads(ws.recv(timeout=5))["ok"] is True
                     acked += 1
-            assert ws.close_code == 4429 and "saturated" in ws.close_reason
+            assert ws.close_code == Close.SATURATED and "saturated" in ws.close_reason
             assert acked == 25 * (QUEUE_WINDOWS + 1) - 1  # the block that would complete one window too many is refused
             assert kit.session_status(client, session)["last_seq"] == blocks[acked - 1].seq
         kit.wait_for(lambda: kit.session_status(client, session)["windows_ready"] == 0)
@@ -165,7 +166,7 @@ def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_se
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         state = tight_server.app.state.service.sessions[session["session_id"]]
         with concurrent.futures.ThreadPoolExecutor(1) as sender:
-            with PoolStall(tight_server):
+            with PoolStall(tight_server, "visual_pool"):  # frames are decoded in the visual pool
                 first = sender.submit(other.post, url, content=kit.png(), headers=headers)  # waits behind the stall
                 kit.wait_for(lambda: state.decoding_frame)
                 second = client.post(url, content=kit.png(), headers=headers)
