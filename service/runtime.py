@@ -1,7 +1,7 @@
 """What the service computes with: the model, its feature configuration, the library and the visual backbone.
 
-Loaded once at start-up (blocking: run it in a thread), checked against each other, warmed
-up. Everything here is numpy + onnxruntime; nothing imports torch.
+Loaded once at start-up (blocking: run it in a thread) and checked against each other;
+service/warmup.py then runs the whole serving path once. Everything here is numpy + onnxruntime; nothing imports torch.
 """
 
 from __future__ import annotations
@@ -107,7 +107,8 @@ def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:
 
 
 def load_runtime(settings: Settings) -> Runtime:
-    """Load, cross-check and warm up; ValueError names what is missing or inconsistent."""
+    """Load and cross-check (service.warmup runs it once afterwards); ValueError names what is missing or
+    inconsistent."""
     started = time.perf_counter()
     if settings.model_path is None:
         raise ValueError("no model configured: set HAPTICLINK_MODEL_PATH or pass --model")
@@ -126,9 +127,6 @@ def load_runtime(settings: Settings) -> Runtime:
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
         backbone, columns, problem = _load_backbone(predictor, visual_config, settings.backbone_path, settings.visual_threads)
-    predictor.warm_up()
-    if backbone is not None:
-        backbone.embed(np.zeros((1, visual_config.patch_size, visual_config.patch_size), np.float32))
     return Runtime(predictor, tactile, tactile_config, library, index, visual_config, backbone, columns, problem,
                    time.perf_counter() - started)
 
