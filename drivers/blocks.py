@@ -69,7 +69,8 @@ def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object
     """Check one channel (texture_library.channels.check_channel) and keep it as float32 in its own units."""
     if units is None:
         raise ValueError(f"{kind}: units are required")
-    arr, rate, units = check_channel(kind, data, rate_hz, units, dtype=np.float32)
+    # no copy: a binary block's samples stay a read-only view of its message
+    arr, rate, units = check_channel(kind, data, rate_hz, units, dtype=np.float32, copy=False)
     if arr.shape[0] > MAX_BLOCK_SAMPLES:
         raise ValueError(f"{kind}: a block holds at most {MAX_BLOCK_SAMPLES} samples per channel, got {arr.shape[0]}")
     return ChannelBlock(arr, rate, units)
@@ -160,7 +161,7 @@ def decode_binary(buf: bytes) -> SampleBlock:
         shape = spec.get("shape")
         if not (isinstance(shape, list) and 1 <= len(shape) <= 2 and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
             raise ValueError(f"{kind}: shape must be [n] or [n, k] with non-negative integers, got {shape!r}")
-        count = int(np.prod(shape))
+        count = math.prod(shape)
         if count > 4 * MAX_BLOCK_SAMPLES:
             raise ValueError(f"{kind}: shape {shape} is too large")
         end = offset + 4 * count

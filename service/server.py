@@ -105,6 +105,8 @@ def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
     options: dict[str, Any] = {
         "host": settings.host, "port": settings.port, "log_level": settings.log_level,
         "ws_max_size": settings.max_body_bytes, "timeout_graceful_shutdown": 5,
+        # small JSON messages on a LAN: compressing every event and ack costs more CPU than it saves
+        "ws_per_message_deflate": False,
         "timeout_keep_alive": settings.timeout_keep_alive_s, "http": protocol,
         "proxy_headers": True, "forwarded_allow_ips": settings.forwarded_allow_ips,
         "access_log": settings.log_level == "debug",  # lines without query strings (RedactQueries), but many

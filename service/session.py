@@ -55,14 +55,12 @@ def stream_contract(runtime: Runtime, settings: Settings) -> StreamContract:
 
 
 def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
-    """The block's channels converted from their units to canonical ones (m/s², N, mm/s, mm), float64."""
+    """The block's channels in canonical units (m/s², N, mm/s, mm): as they came when already canonical (the
+    preprocessor converts to float64 once, on the concatenated blocks), else scaled in float64."""
     out = {}
     for kind, c in block.channels.items():
         scale = UNIT_SCALE[kind][c.units]
-        data = c.data.astype(np.float64)
-        if scale != 1.0:
-            data *= scale
-        out[kind] = Channel(data, c.rate_hz)
+        out[kind] = Channel(c.data if scale == 1.0 else c.data.astype(np.float64) * scale, c.rate_hz)
     return out
 
 

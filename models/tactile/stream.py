@@ -65,6 +65,8 @@ STREAMS: tuple[StreamSpec, ...] = (
 )
 #: allowed column counts per input channel (1 means shape (n,))
 INPUT_COLUMNS: Mapping[str, tuple[int, ...]] = CHANNEL_COLUMNS
+#: input channel → the stream it can feed
+_FEEDS: Mapping[str, str] = {kind: spec.name for spec in STREAMS for kind in spec.sources}
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,8 @@ class StreamCursor:
     """Where a stream stands: what it has fixed and how much input its current segment holds.
 
     rates / columns: per input channel, fixed by its first block; sources: stream → the input
-    channel feeding it; samples: input samples per channel in the current segment; segment: index
+    channel feeding it; samples: input samples per channel in the current segment (the mappings are
+    never changed once a cursor holds them: a new cursor gets new ones); segment: index
     of the current segment (−1 before the first block); origin_t0: sender time (s) of the
     segment's first sample; next_t0: where the next block is expected to start (s).
     """
@@ -84,10 +87,11 @@ class StreamCursor:
     segment: int = -1
     origin_t0: float = 0.0
     next_t0: float | None = None
+    windows: int = 0  # complete windows of the current segment (set by the contract)
 
     def restarted(self) -> "StreamCursor":
         """The same stream with its segment broken: the next block starts a new one (after a failure)."""
-        return replace(self, samples={}, next_t0=math.nan)
+        return replace(self, samples={}, next_t0=math.nan, windows=0)
 
 
 @dataclass(frozen=True)
@@ -105,13 +109,6 @@ class Advance:
     @property
     def windows_added(self) -> int:
         return self.windows_after - self.windows_before
-
-
-def columns_of(data: np.ndarray) -> int:
-    """1 for (n,) or (n, 1), k for (n, k); −1 for anything else."""
-    if data.ndim == 1:
-        return 1
-    return data.shape[1] if data.ndim == 2 else -1
 
 
 class StreamContract:
@@ -139,6 +136,7 @@ class StreamContract:
         self.max_block_s = max_block_s
         self.max_block_windows = max_block_windows
         self.skip = int(round(skip_s * self.config.rate_hz))
+        self._length, self._hop, self._rate = self.config.window_length, self.config.hop_length, self.config.rate_hz
 
     def start(self) -> StreamCursor:
         return StreamCursor()
@@ -151,54 +149,65 @@ class StreamContract:
         t0=None: the block continues the current segment (the preprocessor, which sees no clock).
         ValueError names what the block contradicts; the cursor given is never changed.
         """
-        sources = dict(cursor.sources)
+        for kind in channels:
+            if kind not in _FEEDS:
+                raise ValueError(f"unknown channel(s) {sorted(k for k in channels if k not in _FEEDS)}; "
+                                 f"expected some of {sorted(INPUT_COLUMNS)}")
+        sources = cursor.sources
         used: dict[str, Channel] = {}
         for spec in STREAMS:
-            present = [k for k in spec.sources if k in channels]
             chosen = sources.get(spec.name)
-            if chosen is None and present:
-                chosen = sources[spec.name] = present[0]
-            for kind in present:
+            for kind in spec.sources:
+                if kind not in channels:
+                    continue
+                if chosen is None:  # the first of the spec's sources present in this block feeds the stream
+                    chosen = kind
+                    sources = {**sources, spec.name: kind}
                 if kind == chosen:
                     used[kind] = channels[kind]
                 elif spec.sources.index(kind) < spec.sources.index(chosen):  # a preferred source after a fallback
                     raise ValueError(f"{kind}: got a {kind} channel after {spec.name} was already being derived from {chosen}")
-        unknown = sorted(set(channels) - {k for spec in STREAMS for k in spec.sources})
-        if unknown:
-            raise ValueError(f"unknown channel(s) {unknown}; expected some of {sorted(INPUT_COLUMNS)}")
-        rates, columns = dict(cursor.rates), dict(cursor.columns)
+        rates, columns = cursor.rates, cursor.columns
         span = 0.0
+        counts = []
         for kind, ch in used.items():
-            data = np.asarray(ch.data)
-            cols = columns_of(data)
+            data = ch.data
+            shape = np.shape(data)
+            cols = 1 if len(shape) == 1 else (shape[1] if len(shape) == 2 else -1)
             if cols not in INPUT_COLUMNS[kind]:
                 allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in INPUT_COLUMNS[kind])
-                raise ValueError(f"{kind}: shape must be {allowed}, got {data.shape}")
+                raise ValueError(f"{kind}: shape must be {allowed}, got {shape}")
             rate = float(ch.rate_hz)
-            if kind in rates and rate != rates[kind]:
-                raise ValueError(f"{kind}: rate changed from {rates[kind]:g} Hz to {rate:g} Hz mid-stream")
-            if kind in columns and cols != columns[kind]:
+            known = rates.get(kind)
+            if known is None:
+                rates, columns = {**rates, kind: rate}, {**columns, kind: cols}
+            elif rate != known:
+                raise ValueError(f"{kind}: rate changed from {known:g} Hz to {rate:g} Hz mid-stream")
+            elif cols != columns[kind]:
                 raise ValueError(f"{kind}: column count changed from {columns[kind]} to {cols} mid-stream")
-            rates[kind], columns[kind] = rate, cols
-            span = max(span, data.shape[0] / rate)
-        new_segment = t0 is not None and (cursor.next_t0 is None or not abs(t0 - cursor.next_t0) <= self.gap_tolerance_s)
-        before = 0 if new_segment else self.windows(cursor)
-        samples = {} if new_segment else dict(cursor.samples)
-        for kind, ch in used.items():
-            samples[kind] = samples.get(kind, 0) + int(np.shape(ch.data)[0])
-        after = replace(cursor, rates=rates, columns=columns, sources=sources, samples=samples)
-        if t0 is not None:
-            after = replace(after, next_t0=t0 + span,
-                            segment=cursor.segment + 1 if new_segment else cursor.segment,
-                            origin_t0=t0 if new_segment else cursor.origin_t0)
+            counts.append((kind, shape[0]))
+            span = max(span, shape[0] / rate)
         if bounded and self.max_block_s is not None and span > self.max_block_s + 1e-9:
             raise ValueError(f"a block spans at most {self.max_block_s:g} s of stream time, got {span:g} s")
+        new_segment = t0 is not None and (cursor.next_t0 is None or not abs(t0 - cursor.next_t0) <= self.gap_tolerance_s)
+        before = 0 if new_segment else cursor.windows
+        samples = {} if new_segment else dict(cursor.samples)
+        for kind, n in counts:
+            samples[kind] = samples.get(kind, 0) + n
+        if t0 is None:
+            segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, cursor.next_t0
+        elif new_segment:
+            segment, origin_t0, next_t0 = cursor.segment + 1, t0, t0 + span
+        else:
+            segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, t0 + span
+        after = StreamCursor(rates, columns, sources, samples, segment, origin_t0, next_t0)
         self._check_lag(after)
-        adv = Advance(after, used, new_segment, before, self.windows(after), span)
-        if bounded and self.max_block_windows is not None and adv.windows_added > self.max_block_windows:
-            raise ValueError(f"this block would complete {adv.windows_added} windows; a block may complete at most "
+        windows = self.windows_in(self.covered(after))
+        object.__setattr__(after, "windows", windows)  # frozen: set once, here
+        if bounded and self.max_block_windows is not None and windows - before > self.max_block_windows:
+            raise ValueError(f"this block would complete {windows - before} windows; a block may complete at most "
                              f"{self.max_block_windows} (send every channel in every block, in shorter blocks)")
-        return adv
+        return Advance(after, used, new_segment, before, windows, span)
 
     def admit(self, cursor: StreamCursor, channels: Mapping[str, Channel], t0: float) -> Advance:
         """`advance` for one block as it arrives, with its cost bounded before it is accepted: at most
@@ -227,7 +236,7 @@ class StreamContract:
         kind = cursor.sources.get(spec.name)
         if kind is None:
             return 0
-        n = resampled_count(cursor.samples.get(kind, 0), cursor.rates[kind], self.config.rate_hz)
+        n = resampled_count(cursor.samples.get(kind, 0), cursor.rates[kind], self._rate)
         held = spec.held_back.get(kind, 0)
         return n if n > held else 0
 
@@ -237,9 +246,9 @@ class StreamContract:
 
     def windows_in(self, covered: int) -> int:
         """Complete windows among `covered` samples (windows start at skip + i·hop)."""
-        length, hop = self.config.window_length, self.config.hop_length
+        length, hop = self._length, self._hop
         return 0 if covered < self.skip + length else 1 + (covered - self.skip - length) // hop
 
     def windows(self, cursor: StreamCursor) -> int:
         """Windows of the current segment whose samples have all arrived."""
-        return self.windows_in(self.covered(cursor))
+        return cursor.windows
