@@ -114,9 +114,12 @@ def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: fl
 
 
 def frame_of(library_dir: Path, k: int) -> bytes:
+    """The photo of robot k's texture (encoded), its camera frame."""
     lib = Library.load(library_dir)
-    path = lib.image(lib.ids[k % len(lib.ids)])
-    return Path(path).read_bytes()
+    image = lib.image(lib.ids[k % len(lib.ids)])
+    if image is None:
+        raise ValueError(f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one")
+    return image
 
 
 # ---- CPU accounting ------------------------------------------------------------------------------
@@ -429,20 +432,18 @@ def measure_capacity(assets: Assets, blocks: list[SampleBlock], api_key: str, bl
     }
 
 
-def summarize_profile(path: Path, top: int = 15) -> list[tuple[str, float]]:
-    """py-spy raw (collapsed) stacks → the `top` functions by share of samples they appear in (inclusive), %."""
-    total, inclusive = 0, Counter()
+def summarize_profile(path: Path, top: int = 20) -> list[tuple[str, float]]:
+    """py-spy raw (collapsed) stacks → the `top` functions by self time (the stack's innermost frame), % of samples."""
+    total, own = 0, Counter()
     for line in path.read_text().splitlines():
         stack, _, count = line.rpartition(" ")
         if not stack:
             continue
-        n = int(count)
-        total += n
-        frames = {f.split(" (")[0] + " (" + f.split(" (")[1].split(":")[0].rsplit("/", 1)[-1] + ")" if " (" in f else f
-                  for f in stack.split(";")}
-        for f in frames:
-            inclusive[f] += n
-    return [(f, round(100 * c / total, 1)) for f, c in inclusive.most_common(top)] if total else []
+        total += int(count)
+        leaf = stack.split(";")[-1]
+        name, _, where = leaf.partition(" (")
+        own[f"{name} ({where.split(':')[0].rsplit('/', 1)[-1]})" if where else name] += int(count)
+    return [(f, round(100 * c / total, 1)) for f, c in own.most_common(top)] if total else []
 
 
 # ---- report --------------------------------------------------------------------------------------
@@ -496,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot", flush=True)
         if profile_path is not None and profile_path.is_file():
             profile = summarize_profile(profile_path)
-            print("  where the service's CPU went (share of samples, inclusive):")
+            print("  where the service's CPU went (share of samples, self time):")
             for name, share in profile:
                 print(f"    {share:5.1f} %  {name}")
     rows = []

@@ -100,7 +100,8 @@ FleetClient = Annotated[str, Depends(fleet_member)]
 
 
 async def socket_session(websocket: WebSocket, session_id: str, token: str | None, roles: frozenset[Role]) -> Session | None:
-    """The session a WebSocket's ?token= opens, or None after refusing the handshake (one WARNING line):
+    """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
+    raises Refused after refusing the handshake (one WARNING line):
 
     unknown session → HTTP 404 at the handshake; the robot's ingest socket closes 1008 on an auth failure,
     4421 when misdirected, 1013 when not ready; the events socket answers the handshake with the HTTP status.
@@ -120,14 +121,11 @@ async def socket_session(websocket: WebSocket, session_id: str, token: str | Non
         if robot:
             state.metrics.sockets_refused.inc(status=str(exc.status))
         await refuse(websocket, exc, robot=robot)
-        raise _Refused() from None
+        raise Refused() from None
 
 
-class _Refused(Exception):
-    """The handshake was refused (already answered)."""
-
-
-Refused = _Refused
+class Refused(Exception):
+    """The WebSocket handshake was refused (and already answered): the route just returns."""
 
 
 async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> None:

@@ -2,7 +2,7 @@
 
     ingest (loop) ─▶ admit: seq rules, StreamContract.admit, bounds ─▶ pending AdmittedBlocks
         ─(a window is complete)─▶ WindowBatcher ─▶ pipeline.estimate_batch (window pool) ─▶ apply_result ─▶ broker
-    frames: decode (window pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
+    frames: decode + scene-change test (frame pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
 
 Bounds, checked before anything is taken: a block that would leave more than
 session_queue_windows complete-but-unpublished windows, or more than session_queue_blocks pending
@@ -68,7 +68,7 @@ class Session:
     """A session's state on its owner replica (see the module docstring)."""
 
     def __init__(self, session_id: str, name: str, credentials: SessionCredentials, runtime: Runtime,
-                 settings: Settings, window_pool: Executor, visual_pool: Executor, publish: Publish,
+                 settings: Settings, visual_pool: Executor, publish: Publish,
                  metrics: ServiceMetrics, notify: Notify, visual_done: Callable[[], None] = lambda: None) -> None:
         self.id = session_id
         self.name = name
@@ -86,7 +86,6 @@ class Session:
             top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin, hysteresis_hold=settings.hysteresis_hold,
         )
         self.visual: np.ndarray | None = None
-        self._window_pool = window_pool
         self._visual_pool = visual_pool
         self._publish = publish
         self._metrics = metrics
@@ -101,7 +100,7 @@ class Session:
         self._told_waiting = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
-        self.decoding_frame = False  # set by POST /frames while one of its frames is in the window pool
+        self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
         self.closed = False
 
     # ---- ingest (event loop) ---------------------------------------------------------------------

@@ -20,8 +20,7 @@ from starlette.requests import Request
 from service.batcher import WindowBatcher
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
 from service.broker import Broker, SessionRecord, Subscription, make_broker
-from service.errors import ServiceError
-from service.errors import saturated
+from service.errors import ServiceError, saturated
 from service.events import encode, status_event
 from service.fleet import ApiKeys, TokenBucket
 from service.metrics import ServiceMetrics
@@ -49,7 +48,9 @@ class ServiceState:
         self.runtime: Runtime | None = None
         self.load_error: str | None = None
         self.window_pool = ThreadPoolExecutor(settings.pool_threads, thread_name_prefix="hapticlink-window")
-        # frames are decoded and embedded here, never in the window pool: windows do not wait behind images
+        # the visual path has pools of its own, never the window pool: windows do not wait behind images.
+        # Decoding (milliseconds) has its own thread so that it never waits behind an embedding (up to a second).
+        self.frame_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-frames")
         self.visual_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-visual")
         self.visual_load = 0  # frames being decoded or waiting for/in an embedding, all sessions (≤ visual_queue)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
@@ -100,8 +101,8 @@ class ServiceState:
             await self.end_session(sid, "the service is shutting down")
         await self.batcher.close()
         await self.broker.close()
-        self.window_pool.shutdown(wait=False, cancel_futures=True)
-        self.visual_pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self.window_pool, self.frame_pool, self.visual_pool):
+            pool.shutdown(wait=False, cancel_futures=True)
 
     def readiness(self) -> tuple[bool, str]:
         """(ready, why): ready once the model and library are loaded, cross-checked and warmed up."""
@@ -130,7 +131,7 @@ class ServiceState:
         session_id = f"{self.settings.instance_id}.{secrets.token_urlsafe(9)}"
         robot, operator, credentials = issue_credentials()
         name = name or session_id
-        session = Session(session_id, name, credentials, runtime, self.settings, self.window_pool, self.visual_pool,
+        session = Session(session_id, name, credentials, runtime, self.settings, self.visual_pool,
                           self.publish, self.metrics, self.batcher.notify, self._visual_done)
         self.sessions[session_id] = session
         self.metrics.sessions_active.set(len(self.sessions))
@@ -222,7 +223,7 @@ class ServiceState:
         self.visual_load += 1
         try:
             payload = await request.body()
-            gray, thumb = await asyncio.get_running_loop().run_in_executor(self.visual_pool, _decode, runtime, payload)
+            gray, thumb = await asyncio.get_running_loop().run_in_executor(self.frame_pool, _decode, runtime, payload)
         except ValueError as exc:
             session.counters.frames_rejected += 1
             self.metrics.frames.inc(outcome="rejected")
@@ -274,7 +275,7 @@ class ServiceState:
 
 
 def _decode(runtime: Runtime, payload: bytes):
-    """Visual pool: frame bytes → (grey image, its thumbnail)."""
+    """Frame pool: frame bytes → (grey image, its thumbnail)."""
     gray = runtime.decode_frame(payload)
     return gray, thumbnail(gray)
 

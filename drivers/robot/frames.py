@@ -38,7 +38,7 @@ async def send_frames(client: "RobotClient") -> None:
             r = await http.post(url, content=frame.image, headers={**bearer(str(client.robot_token)), "Content-Type": frame.content_type})
         except httpx.TransportError as exc:
             delay = client._frame_backoff.next()
-            log.warning("POST frame: %s; retrying in %.2f s", exc, delay)
+            log.warning("POST frame: %s: %s; retrying in %.2f s", type(exc).__name__, exc, delay)
             await asyncio.sleep(delay)
             continue
         status = r.status_code

@@ -41,7 +41,8 @@ async def send_http(client: "RobotClient") -> None:
                 client._count_send(entry.seq)  # it may have arrived: the resend will tell
             outage = True
             delay = client._block_backoff.next()
-            log.warning("POST block %d: %s; retrying in %.2f s (%d block(s) buffered)", entry.seq, exc, delay, len(buffer))
+            log.warning("POST block %d: %s: %s; retrying in %.2f s (%d block(s) buffered)", entry.seq, type(exc).__name__, exc,
+                        delay, len(buffer))
             await asyncio.sleep(delay)
             continue
         client._count_send(entry.seq)

@@ -166,7 +166,7 @@ def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_se
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         state = tight_server.app.state.service.sessions[session["session_id"]]
         with concurrent.futures.ThreadPoolExecutor(1) as sender:
-            with PoolStall(tight_server, "visual_pool"):  # frames are decoded in the visual pool
+            with PoolStall(tight_server, "frame_pool"):  # frames are decoded in the frame pool
                 first = sender.submit(other.post, url, content=kit.png(), headers=headers)  # waits behind the stall
                 kit.wait_for(lambda: state.decoding_frame)
                 second = client.post(url, content=kit.png(), headers=headers)

@@ -15,7 +15,6 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary, encode_json
-from drivers.protocol import Close
 from service.app import create_app
 from service.fleet import ApiKeys, TokenBucket
 from service.settings import Settings
@@ -132,7 +131,7 @@ def test_publishing_many_windows_yields_to_the_event_loop(base_settings):
         published.append(event["window_index"])
 
     async def main():
-        session = Session("s", "s", None, runtime, base_settings, None, None, publish, _Metrics(), lambda s: None)  # type: ignore[arg-type]
+        session = Session("s", "s", None, runtime, base_settings, None, publish, _Metrics(), lambda s: None)  # type: ignore[arg-type]
 
         async def ticker():
             while True:

@@ -132,7 +132,7 @@ def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_mode
             httpx.Client(base_url=srv.url, timeout=30) as client:
         state = srv.app.state.service
         release = threading.Event()
-        stall = state.visual_pool.submit(release.wait, 60)  # the visual pool is busy (as with a slow embedding)
+        stall = state.frame_pool.submit(release.wait, 60)  # the frame decoder is busy
         first, second = kit.create_session(client, "first"), kit.create_session(client, "second")
 
         def post(session) -> httpx.Response:
