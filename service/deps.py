@@ -19,6 +19,7 @@ from starlette.websockets import WebSocket
 from drivers.protocol import Close
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
 from service.errors import ServiceError
+from service.events import status_event
 from service.fleet import NOT_CONFIGURED
 from service.runtime import Runtime
 from service.session import Session
@@ -120,6 +121,10 @@ async def socket_session(websocket: WebSocket, session_id: str, token: str | Non
                     client_of(websocket), exc.status, exc.detail)
         if robot:
             state.metrics.sockets_refused.inc(status=str(exc.status))
+            known = state.sessions.get(session_id)
+            if known is not None and exc.status in (401, 403):  # someone tried this session's ingest: say so
+                await state.publish(session_id, status_event(session_id, "robot_refused",
+                                                             f"an ingest connection was refused: {exc.detail}"), False)
         await refuse(websocket, exc, robot=robot)
         raise Refused() from None
 

@@ -24,6 +24,7 @@ StatusKind = Literal[
     "visual_updated",  # the visual embedding now used for the scene's windows changed
     "waiting_for_frame",  # a visual model without a tactile-only model holds windows until the first frame is embedded
     "robot_disconnected",  # the robot's ingest socket closed (the message says why)
+    "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
 ]
 

@@ -237,6 +237,12 @@ def test_operators_are_told_when_the_robot_disconnects(kit, server, client):
             ws.recv(timeout=5)
         event = json.loads(sub.recv(timeout=5))
         assert event["event"] == "robot_disconnected" and "closed" in event["message"]
+        with pytest.raises(ConnectionClosed):  # the operator's token is no robot token
+            with connect(f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['operator_token']}") as ws:
+                ws.recv(timeout=5)
+        event = json.loads(sub.recv(timeout=5))
+        assert event["event"] == "robot_refused" and "refused" in event["message"]
+        assert session["operator_token"] not in event["message"]
 
 
 # ---- slow and half-open connections -----------------------------------------------------------------------
