@@ -357,6 +357,8 @@ def measure(n: int, assets: Assets, streams: list[list[SampleBlock]], duration_s
         "windows_expected": expected,
         "windows_received": received,
         "windows_lost": expected - received,
+        # of those, windows that accepted blocks had completed: overload must never cost these
+        "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics)) - received,
         "windows_tactile_only": inputs.get("tactile", 0) if assets.frames else None,
         "blocks_refused": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="refused") for m in metrics)),
         "blocks_rejected": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="rejected") for m in metrics)),

@@ -136,6 +136,8 @@ class ServiceMetrics:
     def __init__(self) -> None:
         self.blocks = Counter("hapticlink_blocks_total", "Sample blocks received, by outcome.", ("outcome",))
         self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.")
+        self.windows_admitted = Counter("hapticlink_windows_admitted_total",
+                                        "Windows completed by accepted blocks (each is published, or its loss counted).")
         self.frames = Counter("hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",))
         self.events_dropped = Counter(
             "hapticlink_events_dropped_total", "Events dropped for slow operator connections (they keep the latest)."

@@ -138,6 +138,8 @@ class Session:
                                            advance.channels, advance.windows_after, arrived_ns))
         self._pending_windows += advance.windows_added
         self._windows_admitted += advance.windows_added
+        if advance.windows_added:
+            self._metrics.windows_admitted.inc(advance.windows_added)
         self.last_seq = block.seq
         self.counters.blocks_accepted += 1
         if self._pending_windows:
