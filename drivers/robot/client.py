@@ -223,7 +223,8 @@ class RobotClient:
         for task in done:
             task.result()
         if pending:
-            log.error("gave up delivering after %.0f s: %d block(s) still unacknowledged", self.drain_timeout_s, len(self._buffer))
+            log.error("gave up delivering after %.0f s: %d block(s) still unacknowledged, %d frame(s) unsent",
+                      self.drain_timeout_s, len(self._buffer), len(self._frames))
 
     # ---- source → buffer ------------------------------------------------------------------------
     async def _read_source(self) -> None:
