@@ -169,8 +169,9 @@ class ServerProcess:
         if assets.backbone is not None:
             argv += ["--backbone", str(assets.backbone)]
         env = {"HAPTICLINK_API_KEYS": api_key,
-               # one benchmark process is one client address for every robot: lift the per-client session rate
-               "HAPTICLINK_SESSION_BURST": "100000", **(extra or {})}
+               # one benchmark process is one client address for every robot: lift the per-client session rate;
+               # every session is opened before any streams: give them time to start
+               "HAPTICLINK_SESSION_BURST": "100000", "HAPTICLINK_SESSION_FIRST_BLOCK_S": "300", **(extra or {})}
         if assets.tactile is not None:
             env["HAPTICLINK_TACTILE_MODEL_PATH"] = str(assets.tactile)
         return cls(argv, env)
@@ -239,10 +240,21 @@ class OperatorView:
     first_features_ms: float | None = None
     stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     inputs: Counter = field(default_factory=Counter)
+    error: str | None = None
 
 
 async def operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
-    """An operator: reads the session's events until `done`, measuring each window against its block's yield time."""
+    """An operator: reads the session's events until `done`, measuring each window against its block's yield time.
+    An operator that cannot attach is recorded (view.error) and its windows count as lost."""
+    try:
+        await _operate(url, session, source, view, ready, done)
+    except Exception as exc:  # noqa: BLE001 - e.g. the handshake timed out on a starved machine
+        view.error = f"{type(exc).__name__}: {exc}"
+    finally:
+        ready.set()
+
+
+async def _operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
     from websockets.asyncio.client import connect
 
     async with connect(ws_url(url, session.session_id, "events", str(session.operator_token)), max_size=2**20) as ws:
@@ -289,7 +301,11 @@ async def run_load(urls: list[str], streams: list[list[SampleBlock]], frames: li
     operators = [asyncio.create_task(operate(u, c.session, src, v, r, done))
                  for u, c, src, v, r in zip(robot_urls, clients, sources, views, readies)]
     await asyncio.gather(*(r.wait() for r in readies))
-    stats = await asyncio.gather(*(c.run() for c in clients))
+    outcomes = await asyncio.gather(*(c.run() for c in clients), return_exceptions=True)
+    for k, o in enumerate(outcomes):
+        if isinstance(o, BaseException):
+            print(f"  robot {k} stopped: {type(o).__name__}: {o}", flush=True)
+    stats = [c.stats for c in clients]  # a robot that stopped keeps the counts it had
     await asyncio.sleep(2.0)  # the last windows are in flight
     done.set()
     await asyncio.gather(*operators, return_exceptions=True)
@@ -360,6 +376,7 @@ def measure(n: int, assets: Assets, streams: list[list[SampleBlock]], duration_s
         # of those, windows that accepted blocks had completed: overload must never cost these
         "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics)) - received,
         "windows_tactile_only": inputs.get("tactile", 0) if assets.frames else None,
+        "operators_failed": sum(v.error is not None for v in views),
         "blocks_refused": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="refused") for m in metrics)),
         "blocks_rejected": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="rejected") for m in metrics)),
         "frames_refused": int(sum(_metric_sum(m, "hapticlink_frames_total", outcome="refused") for m in metrics)),
