@@ -1,0 +1,318 @@
+"""deploy/ run for real without Docker: Redis, two replicas and nginx exactly as docker-compose.yml and nginx.conf
+wire them (deploy/local.py rewrites only addresses and paths), real robots (RobotClient, binary blocks over
+WebSocket, a camera frame by HTTP) through nginx, each robot's operator on the *other* replica, so every event
+crosses Redis. Checks session pinning, the fan-out, and what killing a replica (SIGKILL) does to whom.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import subprocess
+from pathlib import Path
+
+import httpx
+import pytest
+
+pytest.importorskip("yaml", reason="PyYAML is not installed (dev extra)")
+
+from deploy.local import DeployFiles, Topology, find_program, nginx_command, nginx_config, replica_environment, synthetic_assets  # noqa: E402
+from drivers.robot import RobotClient  # noqa: E402
+from drivers.simulated import SimulatedSource  # noqa: E402
+
+NGINX, REDIS = find_program("nginx"), find_program("redis-server")
+MISSING = [name for name, path in (("nginx", NGINX), ("redis-server", REDIS)) if path is None]
+needs_programs = pytest.mark.skipif(
+    bool(MISSING), reason=f"{' and '.join(MISSING)} not installed (apt-get install {' '.join(MISSING)}; .ci/run installs them)")
+STREAM_S = 4.0  # stream time per robot in the pinning test: ~7 windows each
+ROBOTS = 4  # sessions opened through nginx one after another: least_conn spreads them over both replicas
+GUARD_S = 60.0  # hang guard of every wait (never a timing assertion)
+
+
+# ---- the topology ----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def assets(tmp_path_factory) -> Path:
+    return synthetic_assets(tmp_path_factory.mktemp("deploy-assets"))
+
+
+@pytest.fixture(scope="module")
+def topology(assets):
+    topo = Topology(assets)
+    try:
+        topo.start()
+        yield topo
+    finally:
+        topo.stop()
+
+
+def library_of(topology: Topology) -> Path:
+    return topology.assets / "library"
+
+
+def instance_of(session_id: str) -> str:
+    return session_id.split(".", 1)[0]
+
+
+def make_robot(topology: Topology, k: int) -> RobotClient:
+    """A simulated robot (1 kHz accel/force/speed in 20 ms blocks at real-time pace, and its texture's image as a
+    camera frame) streaming to nginx, as a robot outside the compose network does."""
+    library = library_of(topology)
+    entry = json.loads((library / "library.json").read_text())["entries"][k % 6]["id"]
+    source = SimulatedSource.from_library(library, entry, seed=k, realtime=True)
+    return RobotClient(topology.url, source, seed=k, backoff=(0.1, 1.0), **topology.robot_options)
+
+
+class Operator:
+    """One operator WebSocket on one replica: the window indices it received, the final event, how it closed."""
+
+    def __init__(self, ws_base: str, session_id: str, token: str) -> None:
+        self.url = f"{ws_base}/sessions/{session_id}/events?token={token}"
+        self.session_id = session_id
+        self.windows: list[int] = []
+        self.final: dict | None = None
+        self.instance: str | None = None
+        self.close_code: int | None = None
+        self._task: asyncio.Task | None = None
+
+    async def start(self) -> Operator:
+        from websockets.asyncio.client import connect
+
+        ws = await connect(self.url, open_timeout=10, max_size=2**20)
+        first = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        assert first["event"] == "subscribed", first
+        self.instance = first["instance"]
+        self._task = asyncio.create_task(self._read(ws))
+        return self
+
+    async def _read(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            async for message in ws:
+                event = json.loads(message)
+                assert event["session_id"] == self.session_id
+                if event["type"] == "window":
+                    self.windows.append(event["window_index"])
+                elif event.get("event") == "session_ended":
+                    self.final = event
+        except ConnectionClosed:
+            pass
+        finally:
+            self.close_code = ws.close_code if ws.close_code is not None else -1
+            await ws.close()
+
+    @property
+    def closed(self) -> bool:
+        return self.close_code is not None
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+
+
+async def until(predicate, what: str, timeout_s: float = GUARD_S):
+    """Poll an async or plain predicate until truthy (a hang guard, not a timing assertion)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while True:
+        value = predicate()
+        if asyncio.iscoroutine(value):
+            value = await value
+        if value:
+            return value
+        if loop.time() > deadline:
+            raise AssertionError(f"not within {timeout_s:g} s: {what}")
+        await asyncio.sleep(0.05)
+
+
+async def status_on(http: httpx.AsyncClient, base: str, session_id: str, token: str) -> httpx.Response:
+    return await http.get(f"{base}/sessions/{session_id}", headers={"Authorization": f"Bearer {token}"})
+
+
+async def all_windows_delivered(http, topology, robot: RobotClient, operator: Operator) -> bool:
+    """The owner has no complete window waiting and the operator holds as many windows as the owner made."""
+    info = robot.session
+    owner = topology.replicas[instance_of(info.session_id)]
+    status = (await status_on(http, owner.url, info.session_id, info.operator_token)).json()
+    return status["windows_ready"] == 0 and len(operator.windows) == status["counters"]["windows"]
+
+
+def metric(text: str, name: str, labels: str = "") -> float:
+    found = re.search(rf"^{re.escape(name)}{re.escape(labels)} (\S+)$", text, re.M)
+    return float(found.group(1)) if found else 0.0
+
+
+def access_log(topology: Topology) -> list[tuple[str, str, int]]:
+    """(method, uri, status) of every request nginx logged (its own no_query format)."""
+    text = (topology.workdir / "logs" / "access.log").read_text()
+    return [(m.group(1), m.group(2), int(m.group(3))) for m in re.finditer(r'"(\w+) (\S+) HTTP/[\d.]+" (\d{3})', text)]
+
+
+# ---- the rewriting is only addresses and paths ----------------------------------------------------------
+def test_the_local_nginx_config_differs_from_deploys_only_in_addresses_and_paths(tmp_path):
+    files = DeployFiles.read()
+    lb = files.load_balancer()
+    ports = {name: 20000 + k for k, name in enumerate(files.services) if name != lb}
+    local = nginx_config(files.nginx_conf, ports, files.published_port(lb)[1], 18000, tmp_path)
+    original = files.nginx_conf.splitlines()
+    changed = [line for line in local.splitlines() if line not in original]
+    for line in changed:
+        assert re.search(r"127\.0\.0\.1:\d+|" + re.escape(str(tmp_path)), line), f"rewrote more than an address or path: {line}"
+    assert [line for line in original if line not in local.splitlines()] == [
+        line for line in original if re.search(r"\bserver [\w-]+:\d+|\blisten \d+|access_log /", line)]
+    for name in ports:  # no container host name is left for nginx to resolve
+        assert not re.search(rf"\b{name}:\d+", local)
+    if NGINX is not None:  # and nginx itself accepts the result
+        check = subprocess.run([*nginx_command(NGINX, local, tmp_path), "-t"], capture_output=True, text=True)
+        assert check.returncode == 0, check.stderr
+
+
+def test_each_replica_runs_with_composes_environment_only_addresses_and_mounts_rewritten(tmp_path):
+    files = DeployFiles.read()
+    ports = {name: 20000 + k for k, name in enumerate(files.services)}
+    host_env = {"HAPTICLINK_ASSETS": str(tmp_path)}
+    for name in files.replicas():
+        declared = files.environment(name, host_env)
+        local = replica_environment(files, name, 21000, {n: p for n, p in ports.items() if n != name}, host_env)
+        assert local.keys() == declared.keys()
+        for key, value in declared.items():
+            if local[key] != value:  # only an address, a port or a path inside the mounted folder may differ
+                assert (key in ("HAPTICLINK_HOST", "HAPTICLINK_PORT") or "127.0.0.1:" in local[key]
+                        or local[key].startswith(str(tmp_path))), (key, value, local[key])
+        assert local["HAPTICLINK_MODEL_PATH"] == str(tmp_path / "model.onnx")
+        assert local["HAPTICLINK_BROKER"] == "redis" and local["HAPTICLINK_REDIS_URL"].startswith("redis://127.0.0.1:")
+        assert files.command(name) == ["hapticlink", "serve"]  # the image's CMD (compose sets no command)
+
+
+# ---- pinning and fan-out ------------------------------------------------------------------------------------
+@pytest.mark.slow
+@needs_programs
+def test_sessions_are_pinned_by_nginx_and_every_window_reaches_the_operator_on_the_other_replica(topology):
+    asyncio.run(_pinning_and_fan_out(topology))
+
+
+async def _pinning_and_fan_out(topology: Topology) -> None:
+    instances = sorted(topology.replicas)
+    other = {a: b for a, b in zip(instances, reversed(instances))}
+    robots = [make_robot(topology, k) for k in range(ROBOTS)]
+    for robot in robots:  # through nginx: POST /sessions goes to the least busy replica
+        await robot.open_session()
+    owners = [instance_of(r.session.session_id) for r in robots]
+    assert set(owners) == set(instances), f"nginx put every new session on one replica: {owners}"
+    operators = [await Operator(topology.replicas[other[o]].ws_url, r.session.session_id, r.session.operator_token).start()
+                 for r, o in zip(robots, owners)]
+    assert [op.instance for op in operators] == [other[o] for o in owners]  # attached to the other replica
+
+    stats = await asyncio.gather(*(r.run(duration_s=STREAM_S) for r in robots))
+    async with httpx.AsyncClient(timeout=10) as http:
+        for robot, operator in zip(robots, operators):
+            await until(lambda: all_windows_delivered(http, topology, robot, operator), f"the windows of {robot.session_id}")
+        accepted_by = dict.fromkeys(instances, 0)
+        for robot, st, owner, operator in zip(robots, stats, owners, operators):
+            info = robot.session
+            # the robot saw a clean stream: every block acknowledged once, never misrouted (421) or refused
+            assert st.read > 100 and st.acked == st.read and st.resent == 0, st
+            assert st.rejected == st.lost == st.unsent == st.reconnects == st.saturated == 0, st
+            assert st.frames_sent == 1 and st.frames_rejected == 0, st
+            # ... and all of it landed on the replica its id names
+            status = (await status_on(http, topology.replicas[owner].url, info.session_id, info.operator_token)).json()
+            assert status["instance"] == owner
+            assert status["counters"]["blocks_accepted"] == st.read and status["counters"]["frames_received"] == 1
+            accepted_by[owner] += st.read
+            misdirected = await status_on(http, topology.replicas[other[owner]].url, info.session_id, info.operator_token)
+            assert misdirected.status_code == 421 and owner in misdirected.json()["detail"]
+            # nginx's routing by path and by ?session= (the console's link)
+            for _ in range(4):
+                via_lb = await status_on(http, topology.url, info.session_id, info.operator_token)
+                assert via_lb.status_code == 200 and via_lb.json()["instance"] == owner
+                health = await http.get(f"{topology.url}/health", params={"session": info.session_id})
+                assert health.json()["instance"] == owner
+            # the fan-out: the operator on the other replica got every window, in order, through Redis
+            windows = status["counters"]["windows"]
+            assert windows >= 5 and operator.windows == list(range(windows)), (windows, operator.windows)
+        for instance, replica in topology.replicas.items():
+            text = (await http.get(f"{replica.url}/metrics")).text
+            assert metric(text, "hapticlink_blocks_total", '{outcome="accepted"}') == accepted_by[instance]
+        unpinned = {(await http.get(f"{topology.url}/health")).json()["instance"] for _ in range(8)}
+        assert unpinned == set(instances)  # so the pinned answers above are nginx's routing, not luck
+    for operator in operators:
+        await operator.stop()
+    session_requests = [(m, u, s) for m, u, s in access_log(topology) if u.startswith("/sessions")]
+    assert session_requests and all(s in (101, 200, 201, 202) for _, _, s in session_requests), \
+        [r for r in session_requests if r[2] not in (101, 200, 201, 202)]
+
+
+# ---- a replica dies ----------------------------------------------------------------------------------------
+@pytest.mark.slow
+@needs_programs
+def test_killing_a_replica_leaves_the_others_sessions_alone_and_its_robots_start_over(topology):
+    """Runs last in this module: it kills one replica of the shared topology."""
+    asyncio.run(_kill_a_replica(topology))
+
+
+async def _kill_a_replica(topology: Topology) -> None:
+    instances = sorted(topology.replicas)
+    victim, survivor = instances
+    robots = [make_robot(topology, 10 + k) for k in range(ROBOTS)]
+    for robot in robots:
+        await robot.open_session()
+    owners = [instance_of(r.session.session_id) for r in robots]
+    assert set(owners) == set(instances), owners
+    # each session: an operator through nginx (pinned to the owner) and one on the other replica
+    pinned = [await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
+              for r in robots]
+    across = [await Operator(topology.replicas[survivor if o == victim else victim].ws_url, r.session.session_id,
+                             r.session.operator_token).start() for r, o in zip(robots, owners)]
+    runs = [asyncio.create_task(r.run()) for r in robots]
+    await until(lambda: all(len(op.windows) >= 2 for op in pinned), "two windows for every session")
+
+    topology.kill(topology.replicas[victim].name)  # SIGKILL: no shutdown, no goodbye to Redis
+
+    lost = [k for k, o in enumerate(owners) if o == victim]
+    kept = [k for k, o in enumerate(owners) if o == survivor]
+    # the victim's robots: a clear, final error from run()
+    done, _ = await asyncio.wait([runs[k] for k in lost], timeout=GUARD_S)
+    assert len(done) == len(lost), "the dead replica's robots are still retrying"
+    for k in lost:
+        error = runs[k].exception()
+        assert error is not None, f"robot {k}'s run ended without an error: {runs[k].result()}"
+        assert "open a new session" in str(error) and victim in str(error), repr(error)
+        # its operator on the survivor was told, and nginx answers for the session with the same reason
+        await until(lambda: across[k].final is not None, f"session_ended for the operator of robot {k}")
+        assert victim in across[k].final["message"]
+    async with httpx.AsyncClient(timeout=10) as http:
+        for k in lost:
+            info = robots[k].session
+            gone = await status_on(http, topology.url, info.session_id, info.operator_token)
+            assert gone.status_code == 410 and "open a new session" in gone.json()["detail"], gone.text
+
+        # the survivor's sessions go on untouched: more windows after the kill, none lost, no reconnect
+        marks = {k: len(pinned[k].windows) for k in kept}
+        await until(lambda: all(len(pinned[k].windows) >= marks[k] + 3 for k in kept), "windows after the kill")
+        for k in kept:
+            robots[k].stop()
+        kept_stats = await asyncio.gather(*(runs[k] for k in kept))
+        for k, st in zip(kept, kept_stats):
+            assert st.acked == st.read and st.reconnects == st.lost == st.unsent == st.rejected == 0, st
+            await until(lambda: all_windows_delivered(http, topology, robots[k], pinned[k]), f"robot {k}'s windows")
+            status = (await status_on(http, topology.url, robots[k].session.session_id, robots[k].session.operator_token)).json()
+            assert pinned[k].windows == list(range(status["counters"]["windows"]))
+            assert pinned[k].final is None
+
+        # the victim's robots open new sessions through nginx, which land on the survivor, and stream again
+        again = [make_robot(topology, 20 + k) for k in lost]
+        for robot in again:
+            await robot.open_session()
+            assert instance_of(robot.session.session_id) == survivor
+        watchers = [await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
+                    for r in again]
+        stats = await asyncio.gather(*(r.run(duration_s=2.5) for r in again))
+        for robot, st, op in zip(again, stats, watchers):
+            assert st.acked == st.read > 0 and st.reconnects == st.lost == st.unsent == 0, st
+            await until(lambda: all_windows_delivered(http, topology, robot, op), "the new session's windows")
+            assert len(op.windows) >= 3
+    for op in pinned + across + watchers:
+        await op.stop()
