@@ -46,6 +46,14 @@ class RobotAuthError(ServiceError, PermissionError):
     """The robot token was refused (HTTP 401/403, WebSocket close 1008)."""
 
 
+class SessionLostError(ServiceError):
+    """The service lost the session (HTTP 410: the replica that held it is gone); only a new session goes on."""
+
+
+def _lost(session_id: str | None, detail: str) -> SessionLostError:
+    return SessionLostError(f"the service cannot resume session {session_id} (HTTP 410): {detail}")
+
+
 @dataclass
 class RobotStats:
     """Counts of one run. Every block read ends up acked, rejected, lost or unsent."""
@@ -191,11 +199,16 @@ def _retry_after(response: httpx.Response) -> float | None:
 
 
 def _detail(response: httpx.Response) -> str:
+    return _body_detail(response.content)
+
+
+def _body_detail(content: bytes | None) -> str:
+    """The `detail` of a JSON error body, else its first 200 characters."""
     try:
-        body = response.json()
+        body = json.loads(content or b"")
         return str(body.get("detail", body)) if isinstance(body, dict) else str(body)
     except ValueError:
-        return response.text[:200]
+        return (content or b"")[:200].decode(errors="replace")
 
 
 class RobotClient:
@@ -499,6 +512,8 @@ class RobotClient:
                     raise RobotAuthError(f"the service refused the robot token (HTTP {status})") from None
                 if status == 404:
                     raise ServiceError(f"the service has no session {self.session_id!r} (HTTP 404)") from None
+                if status == 410:
+                    raise _lost(self.session_id, _body_detail(exc.response.body)) from None
                 if status == 429:
                     self.stats.saturated += 1
                 why = f"HTTP {status}"
@@ -614,6 +629,8 @@ class RobotClient:
                 raise RobotAuthError(f"the service refused the robot token (HTTP {status}: {_detail(r)})")
             elif status == 404:
                 raise ServiceError(f"the service has no session {self.session_id!r} (HTTP 404: {_detail(r)})")
+            elif status == 410:
+                raise _lost(self.session_id, _detail(r))
             elif 400 <= status < 500 and status not in RETRY_STATUSES:
                 self._reject(entry.seq, f"HTTP {status}: {_detail(r)}")
             else:  # 5xx, 408, 421, 425: the service cannot take it now
@@ -644,6 +661,8 @@ class RobotClient:
             status = r.status_code
             if status in (401, 403):
                 raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {_detail(r)})")
+            if status == 410:
+                raise _lost(self.session_id, _detail(r))
             if status == 429 or status >= 500 or status in RETRY_STATUSES:
                 delay = (_retry_after(r) if status == 429 else None) or self._frame_backoff.next()
                 await asyncio.sleep(delay)

@@ -68,7 +68,8 @@ texture-rendering model of the library, streamed to operators. See docs/service.
   layout) or text-JSON blocks; each is answered with `{"seq", "ok": true, "duplicate"}` or
   `{"seq": int|null, "ok": false, "error"}` (a bad block does not close the socket). Close code
   **4429**: the session is saturated, reconnect after a backoff and resend from the oldest
-  unacknowledged block; **1008**: authentication failed; **1013**: not ready yet.
+  unacknowledged block; **1008**: authentication failed; **1013**: not ready yet. A handshake for a session no
+  replica knows is answered HTTP 404, for a lost one (its replica is gone) HTTP 410: open a new session.
 * `WS /sessions/{session_id}/events?token=<operator_token>` — JSON events: `{"type": "window", …}`
   per analysed window and `{"type": "status", "event": …}` (subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, error). A slow connection
@@ -137,13 +138,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
 
     @app.get("/sessions/{session_id}", response_model=SessionStatus, tags=["sessions"],
-             responses=_errors(401, 403, 404, 421, 503), summary="A session's status and counters (operator token)")
+             responses=_errors(401, 403, 404, 410, 421, 503), summary="A session's status and counters (operator token)")
     async def get_session(request: Request, session_id: str, credentials: Token) -> dict:
         session = await state_of(request).local_session(session_id, token_of(credentials), OPERATOR_ONLY)
         return session.status()
 
     @app.delete("/sessions/{session_id}", response_model=SessionStatus, tags=["sessions"],
-                responses=_errors(401, 403, 404, 421, 503), summary="End a session (robot or operator token)")
+                responses=_errors(401, 403, 404, 410, 421, 503), summary="End a session (robot or operator token)")
     async def delete_session(request: Request, session_id: str, credentials: Token) -> dict:
         state = state_of(request)
         await state.local_session(session_id, token_of(credentials), EITHER)
@@ -151,7 +152,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/sessions/{session_id}/blocks", status_code=202, response_model=BlockAck, tags=["ingest"],
               openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
-              responses={**_errors(400, 401, 403, 404, 413, 415, 421, 422, 503),
+              responses={**_errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
                          **_try_later("the session is saturated; resend after Retry-After s")},
               summary="Send one sample block (robot token)")
     async def post_block(request: Request, session_id: str, credentials: Token) -> dict:
@@ -167,7 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/sessions/{session_id}/frames", status_code=202, response_model=FrameAck, tags=["ingest"],
               openapi_extra={"requestBody": FRAME_REQUEST_BODY},
-              responses={**_errors(401, 403, 404, 413, 415, 421, 422, 503),
+              responses={**_errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
                          **_try_later("the session's previous frame is still being decoded; send the newest after Retry-After s")},
               summary="Send one camera frame (robot token)")
     async def post_frame(request: Request, session_id: str, credentials: Token) -> FrameAck:
@@ -398,10 +399,10 @@ def _peek_seq(payload: bytes, binary: bool) -> int | None:
 
 
 async def _refuse_ws(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> None:
-    """Refuse a WebSocket: unknown session → HTTP 404 at the handshake; the robot's ingest socket closes
-    1008 on an auth failure (the contract), 4421 when misdirected, 1013 when not ready; events answer
-    the handshake with the HTTP status."""
-    if robot and exc.status != 404:
+    """Refuse a WebSocket: unknown session → HTTP 404 at the handshake, lost session → HTTP 410; the robot's
+    ingest socket closes 1008 on an auth failure (the contract), 4421 when misdirected, 1013 when not ready;
+    events answer the handshake with the HTTP status."""
+    if robot and exc.status not in (404, 410):
         code = {401: 1008, 403: 1008, 421: WS_MISDIRECTED}.get(exc.status, WS_TRY_AGAIN)
         await websocket.accept()
         await websocket.close(code, exc.detail[:120])

@@ -232,3 +232,8 @@ class Session:
 
 def session_not_found(session_id: str) -> ServiceError:
     return ServiceError(404, f"no session {session_id!r}")
+
+
+def session_lost(session_id: str, reason: str) -> ServiceError:
+    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
+    return ServiceError(410, f"session {session_id} is lost: {reason}; open a new session")

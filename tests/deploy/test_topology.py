@@ -70,6 +70,7 @@ class Operator:
     def __init__(self, ws_base: str, session_id: str, token: str) -> None:
         self.url = f"{ws_base}/sessions/{session_id}/events?token={token}"
         self.session_id = session_id
+        self.token = token
         self.windows: list[int] = []
         self.final: dict | None = None
         self.instance: str | None = None
@@ -134,9 +135,9 @@ async def status_on(http: httpx.AsyncClient, base: str, session_id: str, token: 
 
 async def all_windows_delivered(http, topology, robot: RobotClient, operator: Operator) -> bool:
     """The owner has no complete window waiting and the operator holds as many windows as the owner made."""
-    info = robot.session
-    owner = topology.replicas[instance_of(info.session_id)]
-    status = (await status_on(http, owner.url, info.session_id, info.operator_token)).json()
+    sid = robot.session_id
+    owner = topology.replicas[instance_of(sid)]
+    status = (await status_on(http, owner.url, sid, operator.token)).json()
     return status["windows_ready"] == 0 and len(operator.windows) == status["counters"]["windows"]
 
 
@@ -145,10 +146,16 @@ def metric(text: str, name: str, labels: str = "") -> float:
     return float(found.group(1)) if found else 0.0
 
 
-def access_log(topology: Topology) -> list[tuple[str, str, int]]:
-    """(method, uri, status) of every request nginx logged (its own no_query format)."""
+def access_log(topology: Topology) -> list[tuple[str, str, int, str]]:
+    """(method, uri, status, upstream addresses tried) of every request nginx logged (its own no_query format)."""
     text = (topology.workdir / "logs" / "access.log").read_text()
-    return [(m.group(1), m.group(2), int(m.group(3))) for m in re.finditer(r'"(\w+) (\S+) HTTP/[\d.]+" (\d{3})', text)]
+    return [(m.group(1), m.group(2), int(m.group(3)), m.group(4))
+            for m in re.finditer(r'"(\w+) (\S+) HTTP/[\d.]+" (\d{3}) .*? upstream="([^"]*)"', text)]
+
+
+def nginx_logs(topology: Topology) -> str:
+    return "".join(p.read_text(errors="replace") for p in (topology.workdir / "logs").iterdir()
+                   if p.name in ("access.log", "error.log", f"{topology.lb_name}.log"))
 
 
 # ---- the rewriting is only addresses and paths ----------------------------------------------------------
@@ -162,7 +169,7 @@ def test_the_local_nginx_config_differs_from_deploys_only_in_addresses_and_paths
     for line in changed:
         assert re.search(r"127\.0\.0\.1:\d+|" + re.escape(str(tmp_path)), line), f"rewrote more than an address or path: {line}"
     assert [line for line in original if line not in local.splitlines()] == [
-        line for line in original if re.search(r"\bserver [\w-]+:\d+|\blisten \d+|access_log /", line)]
+        line for line in original if re.search(r"\bserver [\w-]+:\d+|\blisten \d+|(access|error)_log /", line)]
     for name in ports:  # no container host name is left for nginx to resolve
         assert not re.search(rf"\b{name}:\d+", local)
     if NGINX is not None:  # and nginx itself accepts the result
@@ -240,9 +247,17 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
         assert unpinned == set(instances)  # so the pinned answers above are nginx's routing, not luck
     for operator in operators:
         await operator.stop()
-    session_requests = [(m, u, s) for m, u, s in access_log(topology) if u.startswith("/sessions")]
-    assert session_requests and all(s in (101, 200, 201, 202) for _, _, s in session_requests), \
-        [r for r in session_requests if r[2] not in (101, 200, 201, 202)]
+    # nginx's own record: every request of a session went to its owner's address, and succeeded
+    address = {instance: f"127.0.0.1:{replica.port}" for instance, replica in topology.replicas.items()}
+    sids = {r.session_id for r in robots}
+    routed = [(uri, status, upstream) for _, uri, status, upstream in access_log(topology)
+              if uri.split("/")[2:3] and uri.split("/")[2] in sids]
+    assert len(routed) >= 4 * ROBOTS  # frames, ingest, status × 4 per session at least
+    for uri, status, upstream in routed:
+        assert upstream == address[instance_of(uri.split("/")[2])] and status in (101, 200, 202), (uri, status, upstream)
+    tokens = [t for r in robots for t in (r.session.robot_token, r.session.operator_token)]
+    logs = nginx_logs(topology)
+    assert not [t for t in tokens if t in logs], "a session token reached nginx's logs"
 
 
 # ---- a replica dies ----------------------------------------------------------------------------------------
@@ -302,11 +317,16 @@ async def _kill_a_replica(topology: Topology) -> None:
             assert pinned[k].windows == list(range(status["counters"]["windows"]))
             assert pinned[k].final is None
 
+        survivor_metrics = (await http.get(f"{topology.replicas[survivor].url}/metrics")).text
+        assert metric(survivor_metrics, "hapticlink_sessions_lost_total") == len(lost)
+
         # the victim's robots open new sessions through nginx, which land on the survivor, and stream again
         again = [make_robot(topology, 20 + k) for k in lost]
         for robot in again:
             await robot.open_session()
             assert instance_of(robot.session.session_id) == survivor
+        created = [status for method, uri, status, _ in access_log(topology) if (method, uri) == ("POST", "/sessions")]
+        assert created == [201] * len(created), created  # each answered at once: never nginx's 502 from the dead one
         watchers = [await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
                     for r in again]
         stats = await asyncio.gather(*(r.run(duration_s=2.5) for r in again))
@@ -316,3 +336,14 @@ async def _kill_a_replica(topology: Topology) -> None:
             assert len(op.windows) >= 3
     for op in pinned + across + watchers:
         await op.stop()
+    # nginx tried the dead owner, then let the survivor answer for its sessions (@owner_unreachable) ...
+    dead, alive = (f"127.0.0.1:{topology.replicas[i].port}" for i in (victim, survivor))
+    lost_sids = {robots[k].session_id for k in lost}
+    answered = [(status, upstream) for _, uri, status, upstream in access_log(topology)
+                if uri.split("/")[2:3] and uri.split("/")[2] in lost_sids and status == 410]
+    assert answered and all(upstream.endswith(alive) for _, upstream in answered), answered
+    assert any(dead in upstream for _, upstream in answered), answered
+    # ... and logged those failures without a token (nginx's error lines quote the request line, ?token= included)
+    tokens = [t for r in robots for t in (r.session.robot_token, r.session.operator_token)]
+    logs = nginx_logs(topology)
+    assert not [t for t in tokens if t in logs], "a session token reached nginx's logs"
