@@ -1,6 +1,6 @@
 """What each part of the deploy topology costs per block: nginx, the replicas and Redis, in CPU time.
 
-Run from the repository root:  python -m benchmarks.deploy  [--robots 20] [--duration 15]
+Run from the repository root:  python -m benchmarks.deploy  [--robots 20] [--duration 30]
 
 Brings up deploy/'s topology on loopback (deploy/local.py: nginx, two replicas and Redis exactly as
 docker-compose.yml wires them, the benchmark's synthetic ridge-tactile model and library). N simulated robots —
@@ -126,7 +126,7 @@ async def _stream(topology: Topology, robots: int, warmup_s: float, duration_s: 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=20, help="simulated robots through nginx (default 20)")
-    p.add_argument("--duration", type=float, default=15.0, help="seconds measured, after --warmup (default 15)")
+    p.add_argument("--duration", type=float, default=30.0, help="seconds measured, after --warmup (default 30)")
     p.add_argument("--warmup", type=float, default=3.0, help="seconds streamed before measuring (default 3)")
     p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
                    help="where the synthetic model and library are built and cached (as benchmarks.service)")

@@ -1,7 +1,8 @@
 """deploy/'s topology on loopback, without Docker: Redis, the service replicas and nginx, wired as
 `docker-compose.yml` and `nginx.conf` say.
 
-    python -m deploy.local                   # a small synthetic model + library, then everything up; Ctrl-C stops it
+    python -m deploy.local                   # (from the repository root) a small synthetic model + library, then
+                                             # everything up; Ctrl-C stops it
     python -m deploy.local --assets DIR      # serve DIR instead (model.onnx, library/: see deploy/assets/README.md)
 
 Everything comes from the deploy files: each replica's environment (the Dockerfile's ENV under the compose
@@ -27,22 +28,23 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
+from benchmarks.service import free_port
+from service.settings import ENV_PREFIX, env_name
+
 DEPLOY_DIR = Path(__file__).resolve().parent
 REPO_DIR = DEPLOY_DIR.parent  # replicas run this checkout's code (`python -m` puts the working folder first)
 LOOPBACK = "127.0.0.1"
-ENV_PREFIX = "HAPTICLINK_"
 #: pyproject's [project.scripts], as `python -m` modules: the image's CMD runs them by these names
 CONSOLE_SCRIPTS = {"hapticlink": "service.cli"}
 NGINX_TEMP_PATHS = ("client_body_temp_path", "proxy_temp_path", "fastcgi_temp_path", "uwsgi_temp_path", "scgi_temp_path")
@@ -245,8 +247,8 @@ def replica_environment(files: DeployFiles, name: str, port: int, ports: Mapping
     """The replica's container environment with addresses and mounted paths made local (and nothing else)."""
     mounts = files.mounts(name, host_env)
     env = {k: rewrite_mounts(rewrite_addresses(v, ports), mounts) for k, v in files.environment(name, host_env).items()}
-    env[ENV_PREFIX + "HOST"] = LOOPBACK  # the container's 0.0.0.0: every interface of its own network namespace
-    env[ENV_PREFIX + "PORT"] = str(port)
+    env[env_name("host")] = LOOPBACK  # the container's 0.0.0.0: every interface of its own network namespace
+    env[env_name("port")] = str(port)
     return env
 
 
@@ -280,12 +282,6 @@ def nginx_command(program: str, conf: str, workdir: Path) -> list[str]:
 
 
 # ---- processes ---------------------------------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((LOOPBACK, 0))
-        return s.getsockname()[1]
-
-
 @dataclass
 class Service:
     """One running service of the topology: its process, loopback port and log file."""
@@ -356,7 +352,7 @@ class Topology:
         return f"redis://{LOOPBACK}:{self.ports[self.redis_name]}/0"
 
     def instance_of(self, name: str) -> str:
-        return self.files.environment(name, self.host_env)[ENV_PREFIX + "INSTANCE_ID"]
+        return self.files.environment(name, self.host_env)[env_name("instance_id")]
 
     def _plan(self, name: str) -> Service:
         log_path = self.workdir / "logs" / f"{name}.log"
@@ -515,12 +511,6 @@ def synthetic_assets(root: Path) -> Path:
         if not link.exists():
             link.symlink_to(target.resolve())
     return assets
-
-
-@contextlib.contextmanager
-def running(assets: Path, **kwargs) -> Iterator[Topology]:
-    with Topology(assets, **kwargs) as topology:
-        yield topology
 
 
 def main(argv: list[str] | None = None) -> int:
