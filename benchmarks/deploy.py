@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{part:>10}: {result['cpu_us_per_block'][part]:>7.1f} µs CPU per block")
     print(f"     redis: {result['redis_cpu_us_per_window_event']:>7.1f} µs CPU per window event")
     print(f"per robot (50 blocks/s), % of a core: {result['core_percent_per_robot']}")
-    report = {"benchmark": "deploy", "command": "python -m benchmarks.deploy " + " ".join(argv or sys.argv[1:]),
+    report = {"benchmark": "deploy", "command": " ".join(["python -m benchmarks.deploy", *(argv or sys.argv[1:])]),
               "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                           "loadavg_1_5_15": list(os.getloadavg())},

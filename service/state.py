@@ -189,9 +189,13 @@ class ServiceState:
         record = await self._lookup(session_id)
         if record is None:
             raise session_not_found(session_id)
-        if record.lost is None and not await self.broker.alive(record):
-            await self._mark_lost(record)
-            record = await self._lookup(session_id) or record
+        if record.lost is None:
+            try:
+                if not await self.broker.alive(record):
+                    await self._mark_lost(record)
+                    record = await self.broker.lookup(session_id) or record
+            except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: 503, not 500
+                raise _directory_unavailable(exc) from None
         if record.lost is not None:
             raise session_lost(session_id, record.lost)
         return record.credentials, None
