@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.set_defaults(func=_dataset_check)
     register_models(sub)
     register_report(sub)
+    from models.tradeoffs.cli import register as register_tradeoffs
+
+    register_tradeoffs(sub)
 
 
 def _dataset_build(args: argparse.Namespace) -> int:
