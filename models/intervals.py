@@ -35,7 +35,7 @@ FORMAT = "hapticlink-interval-calibration"
 VERSION = 1
 LEVELS: tuple[float, ...] = tuple(round(0.5 + 0.01 * k, 2) for k in range(50))  # 0.50 … 0.99
 TARGETS = ("window", "ema", "texture")
-SCALES = ("none", "distance", "ensemble")
+SCALES = ("none", "distance")
 
 
 def conformal_quantile(scores: np.ndarray, level: float, groups: np.ndarray | None = None) -> float:
@@ -78,6 +78,16 @@ def ema(preds: np.ndarray, alpha: float) -> np.ndarray:
         state = x if state is None else alpha * x + (1 - alpha) * state
         out[t] = state
     return out
+
+
+OOD_EMA_THRESHOLD = 0.1  # a flagged window's weight in the EMA state below which it no longer taints it
+
+
+def ema_flags(flags: np.ndarray, alpha: float) -> np.ndarray:
+    """Flags of the EMA-smoothed estimate: an estimate is flagged while flagged windows still carry
+    more than OOD_EMA_THRESHOLD of its weight (α = 0.5: the flagged window and the next three)."""
+    f = np.asarray(flags, float).reshape(-1, 1)
+    return ema(f, alpha)[:, 0] > OOD_EMA_THRESHOLD
 
 
 @dataclass(frozen=True)

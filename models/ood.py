@@ -278,9 +278,15 @@ class OODDetector:
 
     def check_frame(self, gray: np.ndarray) -> list[str]:
         """Reasons a frame (H, W) in [0, 1] looks unlike the training photos (empty: fine, or no ranges fitted)."""
+        return self.frame_reasons(frame_statistics(gray))
+
+    def frame_reasons(self, stats: np.ndarray) -> list[str]:
+        """Reasons from a frame's `frame_statistics` (5,) (empty: fine, or no ranges fitted)."""
         if self.frame_lo is None or self.frame_hi is None:
             return []
-        stats = frame_statistics(gray)
+        stats = np.asarray(stats, float)
+        if stats.shape != (len(FRAME_STATS),):
+            raise ValueError(f"stats must be ({len(FRAME_STATS)},), got {stats.shape}")
         out = set()
         for k, name in enumerate(FRAME_STATS):
             if stats[k] < self.frame_lo[k] and (name, "low") in FRAME_REASONS:
@@ -289,7 +295,8 @@ class OODDetector:
                 out.add(FRAME_REASONS[(name, "high")])
         return sorted(out)
 
-    def scale(self, result: OODResult) -> np.ndarray:
+    @staticmethod
+    def scale(result: OODResult) -> np.ndarray:
         """(n,) interval scale from a check: √distance (≈ 1 on typical data, growing off-distribution)."""
         return np.sqrt(result.distance)
 

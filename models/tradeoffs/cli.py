@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from models.tradeoffs.common import DEFAULT_REPORT
+from models.tradeoffs.common import DEFAULT_REPORT, DEFAULT_WORK
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,6 +27,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--out", default=None, help=f"JSON (default {DEFAULT_REPORT}/frontier-<model>.json)")
     _net_options(f)
     f.set_defaults(func=_frontier)
+
+    a = tsub.add_parser("faults", help="compute (and cache) every texture's faulted touch and camera inputs")
+    a.add_argument("--dataset", required=True)
+    a.add_argument("--work", default=str(DEFAULT_WORK), help=f"cache folder (default {DEFAULT_WORK}, git-ignored)")
+    a.add_argument("--workers", type=int, default=2)
+    a.add_argument("--no-visual", action="store_true", help="touch faults only")
+    a.set_defaults(func=_faults)
+
+
+def _faults(args: argparse.Namespace) -> int:
+    from models.evaluation.data import load_texture_data
+    from models.tradeoffs.faulted import faulted_inputs
+
+    textures = load_texture_data(args.dataset, visual=False).textures
+    inputs = faulted_inputs(args.dataset, textures, Path(args.work), visual=not args.no_visual, workers=args.workers)
+    n_t = len(inputs.tactile)
+    print(f"faulted inputs of {len(textures)} textures: {n_t} touch variants"
+          + ("" if inputs.visual is None else f", {inputs.visual.shape[1]} camera variants") + f" (cached in {args.work})")
+    return 0
 
 
 def _net_options(parser: argparse.ArgumentParser) -> None:
