@@ -90,6 +90,36 @@ def ema_flags(flags: np.ndarray, alpha: float) -> np.ndarray:
     return ema(f, alpha)[:, 0] > OOD_EMA_THRESHOLD
 
 
+class EmaUncertainty:
+    """Per-stream state for the interval of the EMA-smoothed estimate: the distance and the flag are
+    smoothed exactly like the ratings (equal to `ema` / `ema_flags` over the same sequence)."""
+
+    def __init__(self, alpha: float) -> None:
+        if not 0 < alpha <= 1:
+            raise ValueError(f"alpha must lie in (0, 1], got {alpha}")
+        self.alpha = alpha
+        self._distance: float | None = None
+        self._flag = 0.0
+
+    def update(self, flagged: bool, distance: float = 1.0) -> tuple[bool, float]:
+        """One window's flag and distance → (is the smoothed estimate flagged, smoothed distance)."""
+        if not (math.isfinite(distance) and distance > 0):
+            raise ValueError(f"distance must be finite and > 0, got {distance}")
+        first = self._distance is None
+        self._distance = distance if first else self.alpha * distance + (1 - self.alpha) * self._distance
+        self._flag = float(flagged) if first else self.alpha * float(flagged) + (1 - self.alpha) * self._flag
+        return self._flag > OOD_EMA_THRESHOLD, self._distance
+
+
+def calibrations_from_card(intervals: dict | None) -> dict[str, "IntervalCalibration"]:
+    """A model card's `intervals` field → {target: IntervalCalibration} ({} for a card without one)."""
+    if intervals is None:
+        return {}
+    if not isinstance(intervals, dict):
+        raise ValueError(f"card intervals must be a dict of target → calibration, got {type(intervals).__name__}")
+    return {target: IntervalCalibration.from_dict(obj) for target, obj in intervals.items()}
+
+
 @dataclass(frozen=True)
 class IntervalCalibration:
     """Conformal quantiles per level and attribute; see the module docstring.

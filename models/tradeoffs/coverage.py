@@ -15,32 +15,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.intervals import IntervalCalibration, ema, ema_flags
+from models.calibrate import EMA_ALPHA, Prediction, calibrate, rows_of
+from models.intervals import IntervalCalibration, ema_flags
 from models.tradeoffs.detection import Check
 from models.tradeoffs.faulted import CLEAN
 from models.tradeoffs.folds import calibration_sources
-from models.tradeoffs.study import Prediction, StudyRun
+from models.tradeoffs.study import StudyRun
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 TARGETS = ("window", "ema", "texture")
 SCALE_KINDS = ("none", "distance")
 LEVELS = (0.8, 0.9)
-EMA_ALPHA = 0.5
 CLEAN_TOLERANCE = 0.05
 FAULT_TOLERANCE = 0.10
-
-
-def rows_of(pred: Prediction, truth: np.ndarray, distance: np.ndarray, target: str):
-    """(pred (m, 4), truth (m, 4), distance (m,)) of one texture's estimates for a target."""
-    if target == "window":
-        p, d = pred.windows, distance
-    elif target == "ema":
-        p, d = ema(pred.windows, EMA_ALPHA), ema(distance[:, None], EMA_ALPHA)[:, 0]
-    elif target == "texture":
-        p, d = pred.texture[None], np.array([float(np.mean(distance))])
-    else:
-        raise ValueError(f"unknown target {target!r}")
-    return p, np.repeat(truth[None], len(p), axis=0), d
 
 
 def flags_of(check: Check, target: str) -> np.ndarray:
@@ -49,21 +36,6 @@ def flags_of(check: Check, target: str) -> np.ndarray:
     if target == "ema":
         return ema_flags(check.flags, EMA_ALPHA)
     return np.array([check.flags.mean() > 0.5])
-
-
-def calibrate(material: list[tuple[int, Prediction, np.ndarray]], truth: np.ndarray, prior: np.ndarray,
-              target: str, scale_kind: str) -> IntervalCalibration:
-    """material: [(texture j, its out-of-fold prediction, distances of its windows)]."""
-    parts = [rows_of(p, truth[j], d, target) + (np.full(len(p.windows) if target != "texture" else 1, j),)
-             for j, p, d in material]
-    pred = np.concatenate([x[0] for x in parts])
-    tru = np.concatenate([x[1] for x in parts])
-    dist = np.concatenate([x[2] for x in parts])
-    groups = np.concatenate([x[3] for x in parts])
-    return IntervalCalibration.fit(pred, tru, groups=groups, scale=np.sqrt(dist) if scale_kind == "distance" else None,
-                                   scale_kind=scale_kind, prior_ratings=prior, target=target,
-                                   ema_alpha=EMA_ALPHA if target == "ema" else None, levels=LEVELS,
-                                   method="out-of-fold (models.tradeoffs.folds)")
 
 
 def score(cal: IntervalCalibration, pred: Prediction, truth: np.ndarray, check: Check, level: float) -> dict:
@@ -100,7 +72,7 @@ def coverage_study(run: StudyRun, truth: np.ndarray, part: np.ndarray, checks: d
         prior = truth[np.arange(n) != i]
         for target in TARGETS:
             for scale_kind in SCALE_KINDS:
-                cal = calibrate(material, truth, prior, target, scale_kind)
+                cal = calibrate(material, truth, prior, target, scale_kind, LEVELS, "out-of-fold (models.tradeoffs.folds)")
                 for key, preds in run.loocv.items():
                     if preds[i] is None or key not in checks or len(checks[key][i].flags) == 0:
                         continue
@@ -114,7 +86,7 @@ def coverage_study(run: StudyRun, truth: np.ndarray, part: np.ndarray, checks: d
             material = [(j, p, np.ones(len(p.windows))) for j, p in oof.items()]
             prior = truth[garr != g]
             for target in TARGETS:
-                cal = calibrate(material, truth, prior, target, "none")
+                cal = calibrate(material, truth, prior, target, "none", LEVELS, "inner 5-fold inside the training groups")
                 for i in np.flatnonzero(garr == g):
                     for level in LEVELS:
                         collected.setdefault(("shift", target, "none", level), []).append(

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm.auto import tqdm
 
+from models import calibrate
 from models.evaluation.data import TextureData
 from models.ood import OODDetector
 from models.tradeoffs.faulted import CLEAN, FaultedInputs
@@ -32,9 +33,10 @@ class Check:
 
 
 def fit_detector(data: TextureData, inputs: FaultedInputs, train: np.ndarray, seed: int = 0) -> OODDetector:
-    frames = inputs.frames_of(CLEAN)[train] if inputs.frames is not None else None  # (T, 5) or None
-    return OODDetector.fit([data.tactile[i] for i in train], None if data.visual is None else data.visual[train],
-                           frames, windows_per_texture=DETECTOR_WINDOWS, seed=seed)
+    """The detector of the model trained on textures `train` (their photos' statistics included when computed)."""
+    frames = inputs.frames_of(CLEAN)
+    return calibrate.fit_detector(data.take(train), None if frames is None else frames[train],
+                                  windows_per_texture=DETECTOR_WINDOWS, seed=seed)
 
 
 def _check(det: OODDetector, tactile: np.ndarray, visual: np.ndarray | None, frame_stats: np.ndarray | None) -> Check:

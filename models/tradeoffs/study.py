@@ -25,22 +25,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from tqdm.auto import tqdm
 
+from models.calibrate import Prediction, predict
 from models.evaluation.data import TextureData
 from models.evaluation.registry import EstimatorSpec
 from models.tradeoffs.faulted import AUG_BLUR_SIGMA_PX, AUG_NOISE_SNR_DB, CLEAN, FaultedInputs, variant
 from models.tradeoffs.folds import calibration_keys, inner_folds, key_excludes
-from texture_library.attributes import RATING_MAX, RATING_MIN
 
 SHIFT_INNER_FOLDS = 5
 AUGMENTED_FAULTS = ("noise", "blur")  # the variants an augmented fit is asked to predict
-
-
-@dataclass
-class Prediction:
-    """texture: (4,) bipolar (the texture-level prediction); windows: (n, 4) per window."""
-
-    texture: np.ndarray
-    windows: np.ndarray
 
 
 @dataclass
@@ -57,34 +49,7 @@ class StudyRun:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-# ---- prediction helpers -----------------------------------------------------------------------------
-def one_texture(data: TextureData, tactile: np.ndarray, visual: np.ndarray | None) -> TextureData:
-    """A one-texture TextureData (no ratings) of given windows (n, F) and visual vector (D,) or None."""
-    vis = None if visual is None else np.asarray(visual, np.float32).reshape(1, 1, -1)
-    return TextureData(["held-out"], ["?"], [np.asarray(tactile, np.float32)], vis, None, data.meta)
-
-
-def per_window(data: TextureData, tactile: np.ndarray, visual: np.ndarray | None) -> TextureData:
-    """Each window as its own pseudo-texture, so texture-level estimators predict window by window."""
-    n = len(tactile)
-    vis = None if visual is None else np.repeat(np.asarray(visual, np.float32).reshape(1, 1, -1), n, axis=0)
-    return TextureData(["w"] * n, ["?"] * n, [np.asarray(tactile[k:k + 1], np.float32) for k in range(n)], vis, None,
-                       data.meta)
-
-
-def predict(est, data: TextureData, tactile: np.ndarray, visual: np.ndarray | None, *,
-            texture_tactile: np.ndarray | None = None) -> Prediction | None:
-    """Texture-level prediction (from `texture_tactile`, default the same windows) and per-window predictions."""
-    if len(tactile) == 0:
-        return None
-    needs_visual = est.modality in ("visual", "both")
-    v = visual if needs_visual else None
-    whole = tactile if texture_tactile is None else texture_tactile
-    texture = est.predict(one_texture(data, whole, v))[0]
-    windows = est.predict(per_window(data, tactile, v))
-    return Prediction(np.clip(texture, RATING_MIN, RATING_MAX), np.clip(windows, RATING_MIN, RATING_MAX))
-
-
+# ---- augmentation ------------------------------------------------------------------------------------
 def augment(train: TextureData, inputs: FaultedInputs, index: np.ndarray) -> TextureData:
     """Training textures with their noisy windows (every AUG_NOISE_SNR_DB) added to their windows and their
     blurred photos (every AUG_BLUR_SIGMA_PX) added as image views. Texture-level models (ridge: mean
