@@ -50,7 +50,7 @@ def load_state() -> dict:
 def write_json(path: Path, payload: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(payload, indent=1, default=_plain) + "\n")
+    tmp.write_text(json.dumps(payload, indent=1, default=_plain, allow_nan=False) + "\n")  # strict JSON
     tmp.replace(path)
     return path
 

@@ -7,6 +7,7 @@ reports/tradeoffs/ hold aggregates only (no per-texture ratings).
 from __future__ import annotations
 
 import hashlib
+import math
 import json
 import pickle
 from dataclasses import replace
@@ -24,6 +25,10 @@ from models.tradeoffs.faulted import CLEAN, FaultedInputs, faulted_inputs
 from models.tradeoffs.folds import CALIBRATION_GROUPS, partition
 from models.tradeoffs.study import AUGMENTED_FAULTS, StudyRun, run_study
 from models.visual.config import VisualConfig
+
+
+def _finite(x: float) -> float | None:
+    return None if math.isinf(x) else x
 
 
 def _pickle(path: Path, make):
@@ -93,9 +98,12 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
             if not any(k.startswith(name + "@") for k in model_runs[0].loocv):
                 continue
             curve = analysis.fault_curve(model_runs, truth, name)
-            for pt in curve:
-                robustness.append({"model": model, "fault": name, "strength": pt["strength"], "mae": pt["mae"],
-                                   "ci": pt["ci"], "seed_std": pt["seed_std"], "n_textures": pt["n_textures"]})
+            for k, pt in enumerate(curve):
+                # SNR ∞ (clean noise) is no JSON number: None, with "clean" saying which point is the origin
+                robustness.append({"model": model, "fault": name,
+                                   "strength": None if math.isinf(pt["strength"]) else pt["strength"], "clean": k == 0,
+                                   "mae": pt["mae"], "ci": pt["ci"], "seed_std": pt["seed_std"],
+                                   "n_textures": pt["n_textures"]})
             bp = analysis.breaking_point(curve, reference)
             breaking.append({"model": model, "fault": name, "breaking_point": bp, "reached": bp is not None,
                              "worst_mae": max(p["mae"] for p in curve[1:]) if len(curve) > 1 else None})
@@ -106,8 +114,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
             before = analysis.fault_curve([r for r in model_runs if r.seed in {a.seed for a in aug_runs}], truth, name)
             after = analysis.fault_curve(aug_runs, truth, name, source="aug")
             augmentation.append({"model": model, "fault": name, "seeds": [r.seed for r in aug_runs],
-                                 "before": [{"strength": p["strength"], "mae": p["mae"]} for p in before],
-                                 "after": [{"strength": p["strength"], "mae": p["mae"]} for p in after],
+                                 "before": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in before],
+                                 "after": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in after],
                                  "breaking_before": analysis.breaking_point(before, reference),
                                  "breaking_after": analysis.breaking_point(after, reference)})
         for r in model_runs:

@@ -92,3 +92,53 @@ def test_spread_and_shift_are_numbers(summary):
     assert s["shift"]["ridge-both"]["mae"] > 0 and set(s["shift"]["ridge-both"]["per_group"]) == set(data.groups)
     err = per_texture_error(analysis.seed_mean(runs["ridge-both"], CLEAN)[0], data.targets)
     assert s["clean"]["ridge-both"]["mae"] == pytest.approx(float(err.mean()))
+
+
+def _frontier_rows():
+    """Rendering input for the report test (hand-made rows; the frontier's own numbers come from its run)."""
+    rows = []
+    for label, ms, mae, pareto in (("effnet-lite0 7×7 @ native + GLCM", 480.0, 5.7, True),
+                                   ("effnet-lite0 1×1 @ 448", 40.0, 5.9, True), ("effnet-lite0 3×3 @ 640", 120.0, 6.1, False)):
+        ci = {"mean": mae, "lo": mae - 0.5, "hi": mae + 0.5}
+        rows.append({"config": label + " · 1 thread", "label": label, "backbone": "efficientnet_lite0",
+                     "weights": "ImageNet weights", "grid": 7, "resize": None, "glcm": "GLCM" in label, "threads": 1,
+                     "frame_ms": ms, "prep_ms": 1.0, "embed_ms": ms - 2, "glcm_ms": 1.0, "mae": mae, "mae_ci": ci,
+                     "window_us": 300.0, "model_us": 20.0, "vs_best": {"mean": mae - 5.7, "lo": -0.2, "hi": 0.6},
+                     "pareto": pareto})
+    rows.append({**rows[0], "backbone": "resnet50", "label": "resnet50 7×7 @ native + GLCM", "mae": None, "pareto": False,
+                 "window_us": None, "frame_ms": 1900.0})
+    return {"model": "ridge-both", "seeds": [0], "views_per_image": 1, "n_textures": 24, "tactile_window_us": 280.0,
+            "timing_repeats": 3, "timing_image": {"texture": "t00", "shape": [1024, 1024]}, "frontier": rows,
+            "recommendation": {"config": rows[1]["label"], "mae": 5.9, "mae_ci": rows[1]["mae_ci"], "frame_ms_1thread": 40.0,
+                               "best_config": rows[0]["label"], "best_mae": 5.7, "target_met": True, "rule": "the rule",
+                               "nested": {"folds": 5, "mae": {"mean": 6.0, "lo": 5.5, "hi": 6.5}, "picked": {rows[1]["label"]: 24}}},
+            "load_before": {"loadavg_1_5_15": [1, 1, 1]}, "load_after": {"loadavg_1_5_15": [1, 1, 1]}, "note": "under load"}
+
+
+def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
+    import json
+
+    from models.tradeoffs.common import write_json
+    from models.tradeoffs.report import build_tradeoffs_report
+
+    _, _, s = summary
+    write_json(tmp_path / "robustness.json", s)
+    write_json(tmp_path / "frontier-ridge-both.json", _frontier_rows())
+    page = build_tradeoffs_report(tmp_path).read_text()
+    for heading in ("## 1. The frontier", "## 2. Stability", "## 3. Intervals", "## 4. Adaptive serving", "*Pending*"):
+        assert heading in page
+    for png in ("frontier-ridge-both.png", "robustness-touch.png", "robustness-camera.png", "augmentation.png",
+                "coverage-ridge-both.png"):
+        assert (tmp_path / png).stat().st_size > 5000 and png in page
+    text = (tmp_path / "results.json").read_text()
+    assert "Infinity" not in text and "NaN" not in text  # strict JSON
+    results = json.loads(text)
+    assert set(results) >= {"frontier", "robustness", "coverage", "adaptive"}
+    assert {"config", "mae", "window_us", "frame_ms", "pareto"} <= set(results["frontier"][0])
+    assert {"model", "fault", "strength", "mae"} <= set(results["robustness"][0])
+    assert {"model", "condition", "nominal", "empirical"} <= set(results["coverage"][0])
+    assert results["adaptive"]["pending"]
+    write_json(tmp_path / "adaptive.json", {"compute_ratio": 6.0, "mae_full": 5.2, "mae_adaptive": 5.3, "choice_agreement": 0.97})
+    page = build_tradeoffs_report(tmp_path).read_text()
+    assert "compute ratio 6.00×" in page and "*Pending*" not in page
+    assert json.loads((tmp_path / "results.json").read_text())["adaptive"]["compute_ratio"] == 6.0
