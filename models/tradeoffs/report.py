@@ -89,6 +89,8 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
             b = next((b for b in rb["breaking_points"] if b["model"] == m and b["fault"] == f), None)
             if b is None:
                 cells.append("")
+            elif b.get("broken_when_clean"):
+                cells.append("at or above the mean when clean")
             elif b["reached"]:
                 cells.append(f"**{b['breaking_point']:.3g}**")
             else:

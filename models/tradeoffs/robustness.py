@@ -31,6 +31,10 @@ def _finite(x: float) -> float | None:
     return None if math.isinf(x) else x
 
 
+def _finite_or_none(x: float | None) -> float | None:
+    return None if x is None else _finite(x)
+
+
 def _pickle(path: Path, make):
     if path.is_file():
         with open(path, "rb") as fh:
@@ -105,7 +109,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
                                    "mae": pt["mae"], "ci": pt["ci"], "seed_std": pt["seed_std"],
                                    "n_textures": pt["n_textures"]})
             bp = analysis.breaking_point(curve, reference)
-            breaking.append({"model": model, "fault": name, "breaking_point": bp, "reached": bp is not None,
+            breaking.append({"model": model, "fault": name, "breaking_point": None if bp is None else _finite(bp),
+                             "reached": bp is not None, "broken_when_clean": curve[0]["mae"] >= reference,
                              "worst_mae": max(p["mae"] for p in curve[1:]) if len(curve) > 1 else None})
         aug_runs = [r for r in model_runs if r.aug]
         for name in AUGMENTED_FAULTS:
@@ -116,8 +121,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
             augmentation.append({"model": model, "fault": name, "seeds": [r.seed for r in aug_runs],
                                  "before": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in before],
                                  "after": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in after],
-                                 "breaking_before": analysis.breaking_point(before, reference),
-                                 "breaking_after": analysis.breaking_point(after, reference)})
+                                 "breaking_before": _finite_or_none(analysis.breaking_point(before, reference)),
+                                 "breaking_after": _finite_or_none(analysis.breaking_point(after, reference))})
         for r in model_runs:
             if r.calib:
                 rows = coverage_study(r, truth, part, tables["folds"], tables["calibration"], tables["shift"], data.groups)
