@@ -46,6 +46,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     _net_options(r)
     r.set_defaults(func=_robustness)
 
+    p = tsub.add_parser("report", help="reports/tradeoffs/README.md, its charts and results.json from the studies' JSON")
+    p.add_argument("--reports", default=str(DEFAULT_REPORT), help=f"folder of the studies' JSON (default {DEFAULT_REPORT})")
+    p.set_defaults(func=_report)
+
 
 DEFAULT_RUNS = ("mean:0", "ridge-both:0:cal+aug", "knn-both:0:cal", "svr-both:0,1,2:cal", "ann:0:cal+aug", "ann:1,2",
                 "ann-ensemble:0:cal", "ann-ensemble:1", "vtnet-compact:0")
@@ -86,6 +90,13 @@ def _robustness(args: argparse.Namespace) -> int:
     out = Path(args.out)
     write_json(out, {**summary, "runs": args.runs, "command": _command(args)})
     print(f"wrote {out}")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from models.tradeoffs.report import build_tradeoffs_report
+
+    print(f"wrote {build_tradeoffs_report(args.reports)}")
     return 0
 
 
