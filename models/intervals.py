@@ -186,13 +186,23 @@ class IntervalCalibration:
 
     # ---- use ---------------------------------------------------------------------------------------
     def quantile(self, level: float) -> tuple[np.ndarray, np.ndarray]:
-        """(model quantile (A,), prior quantile (A,)) at `level`, linear between calibrated levels."""
-        lv = np.asarray(self.levels)
-        if not lv[0] - 1e-9 <= level <= lv[-1] + 1e-9:
-            raise ValueError(f"level {level} lies outside the calibrated {lv[0]:g}…{lv[-1]:g}")
-        q = np.array([np.interp(level, lv, self.quantiles[:, j]) for j in range(self.quantiles.shape[1])])
-        p = np.array([np.interp(level, lv, self.prior_quantiles[:, j]) for j in range(self.prior_quantiles.shape[1])])
-        return q, p
+        """(model quantile (A,), prior quantile (A,)) at `level`, linear between calibrated levels (memoised:
+        a service asks for the same level every window)."""
+        memo = self.__dict__.setdefault("_memo", {})
+        if level not in memo:
+            lv = np.asarray(self.levels)
+            if not lv[0] - 1e-9 <= level <= lv[-1] + 1e-9:
+                raise ValueError(f"level {level} lies outside the calibrated {lv[0]:g}…{lv[-1]:g}")
+            k = int(np.clip(np.searchsorted(lv, level), 1, max(lv.size - 1, 1)))
+            if lv.size == 1:
+                w, k = 0.0, 0
+            else:
+                w = float(np.clip((level - lv[k - 1]) / (lv[k] - lv[k - 1]), 0.0, 1.0))
+            lo = max(k - 1, 0)
+            memo[level] = ((1 - w) * self.quantiles[lo] + w * self.quantiles[k],
+                           (1 - w) * self.prior_quantiles[lo] + w * self.prior_quantiles[k])
+        q, p = memo[level]
+        return q.copy(), p.copy()
 
     def interval(self, pred: np.ndarray, scale: np.ndarray | None = None, level: float = 0.9,
                  ood: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -97,15 +97,17 @@ class Subspace:
         return cls(*basis, _wquantile(t2, w, quantile), _wquantile(q, w, quantile),
                    _wquantile(t2, w, 0.5), _wquantile(q, w, 0.5))
 
-    def score(self, X: np.ndarray) -> np.ndarray:
-        """(n,) the larger of T²/limit and Q/limit: > 1 is an outlier."""
+    def evaluate(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(score (n,), distance (n,)): score is the larger of T²/limit and Q/limit (> 1: outlier); distance
+        the mean of T² and Q relative to their held-out medians (≈ 1 for typical held-out rows)."""
         t2, q = self._raw(np.atleast_2d(np.asarray(X, float)), self.mean, self.std, self.components, self.variances)
-        return np.maximum(t2 / self.t2_limit, q / self.q_limit)
+        return np.maximum(t2 / self.t2_limit, q / self.q_limit), 0.5 * (t2 / self.t2_typical + q / self.q_typical)
+
+    def score(self, X: np.ndarray) -> np.ndarray:
+        return self.evaluate(X)[0]
 
     def distance(self, X: np.ndarray) -> np.ndarray:
-        """(n,) mean of T² and Q relative to their held-out medians (≈ 1 for typical held-out rows)."""
-        t2, q = self._raw(np.atleast_2d(np.asarray(X, float)), self.mean, self.std, self.components, self.variances)
-        return 0.5 * (t2 / self.t2_typical + q / self.q_typical)
+        return self.evaluate(X)[1]
 
     def to_dict(self) -> dict:
         return {"mean": jsonarrays.encode(self.mean), "std": jsonarrays.encode(self.std),
@@ -161,6 +163,16 @@ class OODResult:
     tactile_score: np.ndarray
     visual_score: float | None
     distance: np.ndarray
+
+
+@dataclass(frozen=True)
+class FrameCheck:
+    """What one camera frame contributes to every window until the next frame: reasons (frame_*,
+    visual_outlier, no_frame), the visual score (None without a frame) and the visual distance."""
+
+    reasons: tuple[str, ...]
+    visual_score: float | None
+    visual_distance: float | None
 
 
 @dataclass(frozen=True)
@@ -231,11 +243,27 @@ class OODDetector:
         return cls(sub_t, lo - pad, hi + pad, sub_v, flo, fhi, len(tactile), settings)
 
     # ---- serving -----------------------------------------------------------------------------------
+    def check_visual(self, visual: np.ndarray | None, frame_reasons: list[str] | tuple[str, ...] = ()) -> FrameCheck:
+        """Once per frame: visual (D,) the frame's visual vector (None: no frame); frame_reasons: `check_frame`."""
+        reasons = set(frame_reasons)
+        if self.visual is None:
+            return FrameCheck(tuple(sorted(reasons)), None, None)
+        if visual is None:
+            return FrameCheck(tuple(sorted(reasons | {"no_frame"})), None, None)
+        v = np.asarray(visual, float).reshape(-1)
+        if v.size != self.n_visual or not np.all(np.isfinite(v)):
+            raise ValueError(f"visual must be a finite ({self.n_visual},) vector, got {np.shape(visual)}")
+        score, distance = self.visual.evaluate(v)
+        if score[0] > 1:
+            reasons.add("visual_outlier")
+        return FrameCheck(tuple(sorted(reasons)), float(score[0]), float(distance[0]))
+
     def check(self, tactile: np.ndarray, visual: np.ndarray | None = None, *,
-              frame_reasons: list[str] | tuple[str, ...] = ()) -> OODResult:
+              frame_reasons: list[str] | tuple[str, ...] = (), frame: FrameCheck | None = None) -> OODResult:
         """tactile: (n, F) window features (the model's input); visual: (D,) the frame's visual vector,
-        None when there is no frame; frame_reasons: `check_frame`'s answer for that frame (computed
-        once per frame). Returns flags, reasons and distances per window."""
+        None when there is no frame; frame_reasons: `check_frame`'s answer for that frame. Or, cheaper per
+        window, frame: `check_visual`'s answer computed once when the frame arrived (then visual and
+        frame_reasons are ignored). Returns flags, reasons and distances per window."""
         X = np.asarray(tactile, float)
         if X.ndim == 1:
             X = X[None, :]
@@ -244,36 +272,22 @@ class OODDetector:
         if not np.all(np.isfinite(X)):
             raise ValueError("tactile contains NaN or Inf")
         n = X.shape[0]
-        t_score = self.tactile.score(X)
-        distance = self.tactile.distance(X)
-        common: list[str] = sorted(set(frame_reasons))
-        v_score = None
-        if self.visual is not None:
-            if visual is None:
-                common.append("no_frame")
-            else:
-                v = np.asarray(visual, float).reshape(-1)
-                if v.size != self.n_visual or not np.all(np.isfinite(v)):
-                    raise ValueError(f"visual must be a finite ({self.n_visual},) vector, got {np.shape(visual)}")
-                v_score = float(self.visual.score(v)[0])
-                distance = 0.5 * (distance + float(self.visual.distance(v)[0]))
-                if v_score > 1:
-                    common.append("visual_outlier")
+        t_score, distance = self.tactile.evaluate(X)
+        f = frame if frame is not None else self.check_visual(visual, frame_reasons)
+        common = list(f.reasons)
+        v_score = f.visual_score
+        if f.visual_distance is not None:
+            distance = 0.5 * (distance + f.visual_distance)
         stats = X[:, -len(STAT_NAMES):]
         outside = (stats < self.stat_lo) | (stats > self.stat_hi)
         speed_bad = outside[:, :3].any(axis=1)
         force_bad = outside[:, 3:].any(axis=1)
         reasons = []
         for i in range(n):
-            r = list(common)
-            if t_score[i] > 1:
-                r.append("tactile_outlier")
-            if speed_bad[i]:
-                r.append("speed_out_of_range")
-            if force_bad[i]:
-                r.append("force_out_of_range")
-            reasons.append(sorted(set(r)))
-        flags = np.array([bool(r) for r in reasons])
+            r = common + [name for name, bad in (("force_out_of_range", force_bad[i]), ("speed_out_of_range", speed_bad[i]),
+                                                  ("tactile_outlier", t_score[i] > 1)) if bad]
+            reasons.append(sorted(r))
+        flags = np.array([bool(r) for r in reasons], dtype=bool)
         return OODResult(flags, reasons, t_score, v_score, np.maximum(distance, 1e-6))
 
     def check_frame(self, gray: np.ndarray) -> list[str]:

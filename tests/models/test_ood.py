@@ -100,3 +100,14 @@ def test_bad_inputs_are_named(fitted):
         Subspace.fit(np.zeros((4, 3)), np.array([0, 0, 1, 1]), k=1, quantile=0.9)
     with pytest.raises(ValueError, match="≥ 3 training textures"):
         OODDetector.fit([np.zeros((3, 20))] * 2)
+
+
+def test_a_frame_checked_once_gives_the_same_answer_per_window(fitted):
+    det, _, _ = fitted
+    tactile, visual, _, _ = world(n_textures=1, seed=12)
+    frame = det.check_visual(visual[0, 0], ["frame_blurred"])
+    a = det.check(tactile[0], visual[0, 0], frame_reasons=["frame_blurred"])
+    b = det.check(tactile[0], frame=frame)
+    assert a.reasons == b.reasons and all("frame_blurred" in r for r in b.reasons)
+    np.testing.assert_allclose(a.distance, b.distance)
+    assert det.check_visual(None).reasons == ("no_frame",)
