@@ -25,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--nested-folds", type=int, default=5, help="inner folds of the nested check of the pick rule (0: skip)")
     f.add_argument("--workers", type=int, default=1, help="parallel LOOCV folds (1: in this process)")
     f.add_argument("--out", default=None, help=f"JSON (default {DEFAULT_REPORT}/frontier-<model>.json)")
+    f.add_argument("--work", default=str(DEFAULT_WORK), help="where the timing run is kept for reuse")
+    f.add_argument("--retime", action="store_true", help="time again even if a matching timing run is kept")
     _net_options(f)
     f.set_defaults(func=_frontier)
 
@@ -74,6 +76,9 @@ def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool]]:
 
 
 def _robustness(args: argparse.Namespace) -> int:
+    from models.tradeoffs.common import one_blas_thread
+
+    one_blas_thread()
     from models.tradeoffs.common import write_json
     from models.tradeoffs.robustness import run_model, study_inputs, summarise
 
@@ -101,6 +106,9 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _faults(args: argparse.Namespace) -> int:
+    from models.tradeoffs.common import one_blas_thread
+
+    one_blas_thread()
     from models.evaluation.data import load_texture_data
     from models.tradeoffs.faulted import faulted_inputs
 
@@ -122,6 +130,9 @@ def _options(args: argparse.Namespace) -> dict:
 
 
 def _frontier(args: argparse.Namespace) -> int:
+    from models.tradeoffs.common import one_blas_thread
+
+    one_blas_thread()
     from models.tradeoffs.common import write_json
     from models.tradeoffs.frontier import run_frontier
 
@@ -129,7 +140,8 @@ def _frontier(args: argparse.Namespace) -> int:
     result = run_frontier(args.dataset, model=args.model, options=_options(args), seeds=tuple(args.seeds),
                           grids=tuple(args.grids), resizes=resizes, backbones=tuple(args.backbones),
                           threads=tuple(args.threads), repeats=args.repeats, nested_folds=args.nested_folds,
-                          workers=args.workers, backend="serial" if args.workers == 1 else "process")
+                          workers=args.workers, backend="serial" if args.workers == 1 else "process",
+                          timing_cache=Path(args.work) / "frontier-timing.json", retime=args.retime)
     out = Path(args.out or DEFAULT_REPORT / f"frontier-{args.model}.json")
     write_json(out, {**result, "command": _command(args)})
     rec = result["recommendation"]

@@ -64,8 +64,10 @@ def _segment_features(rec, config: TactileConfig) -> np.ndarray:
 
 
 def _tactile_job(job: dict) -> dict[str, np.ndarray]:
+    from models.tradeoffs.common import one_blas_thread
     from texture_library.vibration import VibrationModel
 
+    one_blas_thread()
     ds = Dataset(job["root"])
     texture, cfg = job["texture"], TactileConfig(**job["config"])
     rec = ds.recordings(texture)[0]
@@ -97,8 +99,10 @@ def _visual_job(job: dict) -> tuple[np.ndarray, np.ndarray]:
     from models.visual.cache import FeatureCache
     from models.visual.embedding import visual_features
     from models.visual.image import load_image
+    from models.tradeoffs.common import one_blas_thread
     from models.visual.onnx_backbone import OnnxBackbone
 
+    one_blas_thread()
     cfg = VisualConfig(**job["config"])
     backbone = OnnxBackbone(backbone_onnx(cfg), intra_op_threads=1, expected_config_hash=cfg.hash())
     cache = FeatureCache(cache_root() / "visual")

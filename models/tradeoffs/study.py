@@ -102,6 +102,9 @@ _STATE: dict = {}
 
 
 def _init(data: TextureData, inputs: FaultedInputs, spec: EstimatorSpec, part: np.ndarray, threads: int) -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=threads)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
         import torch
