@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from models.tradeoffs.common import DEFAULT_REPORT, DEFAULT_WORK
+from models.tradeoffs import DEFAULT_REPORT, DEFAULT_WORK
 
 
 def register(sub: argparse._SubParsersAction) -> None:

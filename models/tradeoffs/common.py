@@ -15,8 +15,7 @@ from models.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice
 
-DEFAULT_WORK = Path("artifacts") / "tradeoffs"  # per-texture intermediates: git-ignored, never committed
-DEFAULT_REPORT = Path("reports") / "tradeoffs"
+from models.tradeoffs import DEFAULT_REPORT, DEFAULT_WORK  # noqa: F401  (re-exported)
 
 
 def views_for(model: str) -> int:
