@@ -106,6 +106,40 @@ def coverage_study(run: StudyRun, truth: np.ndarray, part: np.ndarray, checks: d
     return rows
 
 
+WINDOW_COUNTS = (1, 2, 4, 5, 10, 20)
+
+
+def coverage_after_n_windows(run: StudyRun, truth: np.ndarray, part: np.ndarray,
+                             counts: tuple[int, ...] = WINDOW_COUNTS) -> list[dict]:
+    """Clean coverage and width of intervals on the mean of n consecutive windows (non-overlapping blocks of the
+    20-window segment), calibrated the same way on the calibration textures' blocks; unnormalised."""
+    from models.calibrate import Prediction as P
+
+    def blocks(p: P, n: int) -> P:
+        m = len(p.windows) // n
+        return P(p.texture, p.windows[: m * n].reshape(m, n, -1).mean(axis=1))
+
+    rows = []
+    size = len(truth)
+    shortest = min(min(len(p.windows) for p in run.loocv[CLEAN]),
+                   min(len(p.windows) for by_key in run.calib.values() for p in by_key.values()))
+    for n in [n for n in counts if n <= shortest]:
+        scores = {lv: [] for lv in LEVELS}
+        for i in range(size):
+            material = [(j, blocks(run.calib[key][j], n), np.ones(len(run.calib[key][j].windows) // n))
+                        for j, key in calibration_sources(part, i)]
+            cal = calibrate(material, truth, truth[np.arange(size) != i], "window", "none", LEVELS)
+            test = blocks(run.loocv[CLEAN][i], n)
+            check = Check(np.zeros(len(test.windows), bool), [[] for _ in test.windows], np.ones(len(test.windows)))
+            for lv in LEVELS:
+                scores[lv].append(score(cal, test, truth[i], check, lv))
+        for lv in LEVELS:
+            agg = _aggregate(scores[lv])
+            rows.append({"model": run.model, "windows": n, "seconds": n * 0.5, "nominal": lv,
+                         "empirical": agg["empirical"], "per_attribute": agg["per_attribute"], "width": agg["width"]})
+    return rows
+
+
 def recommend(rows: list[dict]) -> dict:
     """The (target, scale) to serve: clean coverage within ±5 points at every level and attribute; then the
     most fault conditions meeting their target; then the narrowest. Targets per window or EMA (what the

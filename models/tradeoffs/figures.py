@@ -153,3 +153,26 @@ def coverage_chart(rows: list[dict], model: str, scale: str, path: Path) -> Path
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def windows_chart(rows: list[dict], path: Path) -> Path:
+    """Coverage and width of intervals on the mean of n windows, per model, at 80 and 90 %."""
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    for k, model in enumerate(sorted({r["model"] for r in rows})):
+        for level, style in ((0.8, "o--"), (0.9, "s-")):
+            pts = sorted([r for r in rows if r["model"] == model and r["nominal"] == level], key=lambda r: r["windows"])
+            x = [r["seconds"] for r in pts]
+            a1.plot(x, [r["empirical"] for r in pts], style, color=f"C{k}", ms=3, label=f"{model} {int(level * 100)} %")
+            a2.plot(x, [r["width"] for r in pts], style, color=f"C{k}", ms=3)
+    for level in (0.8, 0.9):
+        a1.axhspan(level - 0.05, level + 0.05, color="0.9", zorder=0)
+    a1.set_xscale("log")
+    a2.set_xscale("log")
+    a1.set_xlabel("seconds of stroking averaged (n × 0.5 s windows)")
+    a2.set_xlabel("seconds of stroking averaged (n × 0.5 s windows)")
+    a1.set_ylabel("clean coverage")
+    a2.set_ylabel("mean interval width (0–100)")
+    a1.legend(fontsize=7)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -147,6 +147,19 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
                          f"{'—' if r['unflagged_empirical'] is None else format(r['unflagged_empirical'], '.1%')} | "
                          f"{r['width']:.1f} | {'✓' if r['meets_target'] else '✗'} |")
         lines.append("")
+    nrows = rb.get("coverage_after_n_windows") or []
+    if nrows:
+        png = figures.windows_chart(nrows, folder / "coverage-vs-windows.png")
+        lines += ["**After n windows of one texture** (clean; intervals on the mean of n consecutive windows, "
+                  "calibrated the same way): coverage holds while the band narrows as the estimate averages out:", "",
+                  f"![coverage after n windows]({png.name})", "",
+                  "| model | windows (s) | 80 %: coverage, width | 90 %: coverage, width |", "|---|---:|---|---|"]
+        for model in sorted({r["model"] for r in nrows}):
+            for n in sorted({r["windows"] for r in nrows}):
+                c = {r["nominal"]: r for r in nrows if r["model"] == model and r["windows"] == n}
+                lines.append(f"| {model} | {n} ({n * 0.5:g}) | {c[0.8]['empirical']:.1%}, {c[0.8]['width']:.1f} | "
+                             f"{c[0.9]['empirical']:.1%}, {c[0.9]['width']:.1f} |")
+        lines.append("")
     rate = rb.get("flag_rate", {})
     if "clean" in rate:
         lines += [f"The detector flags {rate['clean']:.1%} of clean held-out windows (its limits sit at the 99.5th "

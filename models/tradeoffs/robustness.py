@@ -19,7 +19,7 @@ from models.evaluation.bootstrap import bootstrap_mean, per_texture_error
 from models.faults.catalog import FAULTS
 from models.tradeoffs import analysis
 from models.tradeoffs.common import load_state, tactile_data, views_for, with_visual
-from models.tradeoffs.coverage import coverage_study, recommend
+from models.tradeoffs.coverage import coverage_after_n_windows, coverage_study, recommend
 from models.tradeoffs.detection import calibration_distances, fold_checks, shift_checks
 from models.tradeoffs.faulted import CLEAN, FaultedInputs, faulted_inputs
 from models.tradeoffs.folds import CALIBRATION_GROUPS, partition
@@ -91,6 +91,7 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
     reference = analysis.variant_mae(mean_runs, truth, CLEAN)["mae"]
     clean_all = {}
     robustness, breaking, spread, shift, augmentation, coverage, recommended = [], [], {}, {}, [], [], {}
+    by_windows: list[dict] = []
     for model, model_runs in runs.items():
         full, _ = analysis.seed_mean(model_runs, CLEAN)
         err = per_texture_error(np.stack([p.texture for p in model_runs[0].loocv[CLEAN]]) if len(model_runs) == 1
@@ -128,8 +129,10 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
                 rows = coverage_study(r, truth, part, tables["folds"], tables["calibration"], tables["shift"], data.groups)
                 coverage += rows
                 recommended[model] = recommend(rows)
+                by_windows += coverage_after_n_windows(r, truth, part)
                 break  # one seed's intervals per model
     flags = {k: float(np.mean([c.flags.mean() for c in v if len(c.flags)])) for k, v in tables["folds"].items()}
     return {"reference_mean_mae": reference, "clean": clean_all, "robustness": robustness, "breaking_points": breaking,
             "spread": spread, "shift": shift, "augmentation": augmentation, "coverage": coverage,
-            "recommended_intervals": recommended, "flag_rate": flags, "load": load_state()}
+            "recommended_intervals": recommended, "coverage_after_n_windows": by_windows, "flag_rate": flags,
+            "load": load_state()}

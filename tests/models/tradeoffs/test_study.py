@@ -128,6 +128,7 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     for heading in ("## 1. The frontier", "## 2. Stability", "## 3. Intervals", "## 4. Adaptive serving", "*Pending*"):
         assert heading in page
     for png in ("frontier-ridge-both.png", "robustness-touch.png", "robustness-camera.png", "augmentation.png",
+                "coverage-vs-windows.png",
                 "coverage-ridge-both.png"):
         assert (tmp_path / png).stat().st_size > 5000 and png in page
     text = (tmp_path / "results.json").read_text()
