@@ -167,6 +167,39 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
     return lines
 
 
+def targets_section(frontiers: list[dict], rb: dict | None) -> list[str]:
+    """The issue's targets, each with the number that decides it."""
+    lines = ["## Against the targets", ""]
+    for fr in frontiers:
+        rec = fr.get("recommendation")
+        if rec:
+            lines.append(f"- **Frontier** ({fr['model']}): `{rec['config']}` costs {rec['frame_ms_1thread']:.0f} ms per "
+                         f"frame on 1 thread at MAE {rec['mae']:.2f} vs best {rec['best_mae']:.2f} — target ≤ "
+                         f"{TARGET_FRAME_MS:g} ms within +{TARGET_MAE_MARGIN}: **{'met' if rec['target_met'] else 'not met'}**.")
+    if rb:
+        for model, rec in rb["recommended_intervals"].items():
+            rows = [r for r in rb["coverage"] if r["model"] == model and r["target"] == rec["target"]
+                    and r["scale"] == rec["scale"]]
+            clean = [r for r in rows if r["condition"] == "clean"]
+            worst = max(abs(v - r["nominal"]) for r in clean for v in r["per_attribute"].values())
+            faults = [r for r in rows if r["condition"] != "clean" and r["nominal"] == 0.9]
+            misses = [r["condition"] for r in faults if not r["meets_target"]]
+            lines.append(f"- **Intervals** ({model}, {rec['target']}, scale {rec['scale']}): clean coverage at 80/90 % "
+                         f"within {worst * 100:.1f} points of nominal on every attribute (target ±5: "
+                         f"**{'met' if rec['clean_ok'] else 'not met'}**); under faults {len(faults) - len(misses)} of "
+                         f"{len(faults)} conditions meet the target at 90 %"
+                         + (f" (misses: {', '.join(misses)})." if misses else "."))
+        broken = {}
+        for b in rb["breaking_points"]:
+            if b["reached"] or b.get("broken_when_clean"):
+                broken.setdefault(b["model"], []).append(b["fault"])
+        for model in rb["clean"]:
+            if model != "mean":
+                lines.append(f"- **Breaking points** ({model}): reaches predict-the-mean under "
+                             f"{', '.join(broken.get(model, [])) or 'no studied fault'}.")
+    return lines + [""]
+
+
 def build_tradeoffs_report(folder: str | Path) -> Path:
     folder = Path(folder)
     frontiers = [json.loads(p.read_text()) for p in sorted(folder.glob("frontier-*.json"))]
@@ -180,6 +213,7 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
              f"Regenerate everything on this page: `{REGENERATE}` (the long steps cache their work under "
              "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on a shared 2-core machine: "
              "ratios within one run hold, absolute milliseconds do not. No per-texture rating appears in this folder.", ""]
+    lines += targets_section(frontiers, rb)
     lines += ["## 1. The frontier of the whole serving path", ""]
     for fr in frontiers:
         lines += frontier_section(fr, folder)
