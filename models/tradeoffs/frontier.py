@@ -293,6 +293,8 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
                 mode="json", exclude={"backbone", "resnet50_weights"}), "glcm": chosen["glcm"],
             "mae": chosen["mae"], "mae_ci": chosen["mae_ci"], "frame_ms_1thread": chosen["frame_ms"],
             "best_config": min(one, key=lambda k: one[k]["mae"]), "best_mae": best,
+            # as measured in this run (under load the milliseconds are inflated; the report also judges the
+            # target on a quiet-equivalent scale, see models.tradeoffs.report.quiet_scale)
             "target_met": bool(chosen["frame_ms"] <= TARGET_FRAME_MS and chosen["mae"] <= best + TARGET_MAE_MARGIN),
             "rule": f"cheapest 1-thread EfficientNet configuration with MAE ≤ best + {TARGET_MAE_MARGIN}",
         }
