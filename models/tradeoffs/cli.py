@@ -21,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="shorter side in pixels, or 'native' (1×1 @ 224 is always added)")
     f.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "resnet50"])
     f.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="onnxruntime intra-op threads to time")
+    f.add_argument("--glcm", default="both", choices=["both", "on", "off"], help="configurations with GLCM, without, or both")
     f.add_argument("--repeats", type=int, default=5, help="timed frames per configuration (interleaved)")
     f.add_argument("--nested-folds", type=int, default=5, help="inner folds of the nested check of the pick rule (0: skip)")
     f.add_argument("--workers", type=int, default=1, help="parallel LOOCV folds (1: in this process)")
@@ -141,7 +142,8 @@ def _frontier(args: argparse.Namespace) -> int:
                           grids=tuple(args.grids), resizes=resizes, backbones=tuple(args.backbones),
                           threads=tuple(args.threads), repeats=args.repeats, nested_folds=args.nested_folds,
                           workers=args.workers, backend="serial" if args.workers == 1 else "process",
-                          timing_cache=Path(args.work) / "frontier-timing.json", retime=args.retime)
+                          timing_cache=Path(args.work), retime=args.retime,
+                          glcm={"both": (True, False), "on": (True,), "off": (False,)}[args.glcm])
     out = Path(args.out or DEFAULT_REPORT / f"frontier-{args.model}.json")
     write_json(out, {**result, "command": _command(args)})
     rec = result["recommendation"]

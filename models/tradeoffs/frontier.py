@@ -21,6 +21,8 @@ the procedure itself.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import random
 import time
 from dataclasses import dataclass
@@ -221,11 +223,12 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
                  resizes: tuple[int | None, ...] = RESIZES, backbones: tuple[str, ...] = ("efficientnet_lite0", "resnet50"),
                  threads: tuple[int, ...] = (1, 2), repeats: int = 5, nested_folds: int = 5,
                  workers: int | None = 1, backend: str = "serial", embed_threads: int = 1,
-                 timing_cache: Path | None = None, retime: bool = False) -> dict:
+                 timing_cache: Path | None = None, retime: bool = False,
+                 glcm: tuple[bool, ...] = (True, False)) -> dict:
     """The whole §1 study → a JSON-able dict (no per-texture values).
 
-    timing_cache: a JSON file keeping the interleaved timing run (the long part on a busy machine), reused
-    when its configurations match, unless `retime`."""
+    timing_cache: a folder keeping each interleaved timing run (the long part on a busy machine) by its
+    configurations, reused when they match, unless `retime`."""
     from models.visual.image import load_image
     from models.visual.onnx_backbone import OnnxBackbone
 
@@ -237,12 +240,16 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
     image = load_image(_first_image(root, data0.textures[0]))
     timing_key = {"patchings": [p.label for p in patchings], "backbones": {b: p.name for b, p in paths.items()},
                   "threads": list(threads), "repeats": repeats, "texture": data0.textures[0]}
-    cached = None if retime or timing_cache is None else _read_timing(timing_cache, timing_key)
+    cache_file = None
+    if timing_cache is not None:
+        digest = hashlib.sha256(json.dumps(timing_key, sort_keys=True).encode()).hexdigest()[:12]
+        cache_file = Path(timing_cache) / f"frontier-timing-{digest}.json"
+    cached = None if retime or cache_file is None else _read_timing(cache_file, timing_key)
     if cached is None:
         cached = {"key": timing_key, "rows": time_frames(image, patchings, onnx_sessions(paths, threads), repeats),
                   "tactile_us": time_tactile_window(root, data0.textures[0]), "load": load_state()}
-        if timing_cache is not None:
-            write_json(timing_cache, cached)
+        if cache_file is not None:
+            write_json(cache_file, cached)
     timing, tactile_us = cached["rows"], cached["tactile_us"]
 
     n_views = views_for(model)
@@ -250,26 +257,26 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
     if "efficientnet_lite0" in paths:
         embedder = OnnxBackbone(paths["efficientnet_lite0"], intra_op_threads=embed_threads)
         for p in tqdm(patchings, desc=f"LOOCV {model} per configuration", unit="config"):
-            for glcm in (True, False):
-                label = config_label("efficientnet_lite0", p, glcm)
-                d = with_visual(data0, root, p.visual_config(), n_views=n_views, part="both" if glcm else "backbone",
+            for with_glcm in glcm:
+                label = config_label("efficientnet_lite0", p, with_glcm)
+                d = with_visual(data0, root, p.visual_config(), n_views=n_views, part="both" if with_glcm else "backbone",
                                 backbone=embedder)
                 preds[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
                 datas[label] = d
                 rows.append({"label": label, "backbone": "efficientnet_lite0", "grid": p.grid, "resize": p.resize,
-                             "glcm": glcm, "model_us": model_us})
+                             "glcm": with_glcm, "model_us": model_us})
     errors = {k: per_texture_error(v, data0.targets) for k, v in preds.items()}
     best_label = min(errors, key=lambda k: errors[k].mean()) if errors else None
     frontier = []
     for t in timing:
-        for glcm in (True, False):
-            label = config_label(t["backbone"], Patching(t["grid"], t["resize"]), glcm)
+        for with_glcm in glcm:
+            label = config_label(t["backbone"], Patching(t["grid"], t["resize"]), with_glcm)
             acc = next((r for r in rows if r["label"] == label), None)
-            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if glcm else 0.0)
+            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if with_glcm else 0.0)
             row = {"config": f"{label} · {t['threads']} thread{'s' if t['threads'] > 1 else ''}", "label": label,
                    "backbone": t["backbone"], "weights": BACKBONE_NOTES[t["backbone"]], "grid": t["grid"],
-                   "resize": t["resize"], "glcm": glcm, "threads": t["threads"], "frame_ms": frame_ms,
-                   "prep_ms": t["prep_ms"], "embed_ms": t["embed_ms"], "glcm_ms": t["glcm_ms"] if glcm else 0.0,
+                   "resize": t["resize"], "glcm": with_glcm, "threads": t["threads"], "frame_ms": frame_ms,
+                   "prep_ms": t["prep_ms"], "embed_ms": t["embed_ms"], "glcm_ms": t["glcm_ms"] if with_glcm else 0.0,
                    "mae": None, "window_us": None, "pareto": False}
             if acc is not None:
                 e = errors[label]
@@ -317,8 +324,6 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
 
 
 def _read_timing(path: Path, key: dict) -> dict | None:
-    import json
-
     if not path.is_file():
         return None
     cached = json.loads(path.read_text())
