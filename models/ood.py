@@ -133,6 +133,9 @@ def _wquantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
 
 # ---- frames -----------------------------------------------------------------------------------------
 FRAME_STATS = ("brightness", "contrast", "sharpness", "dark_fraction", "bright_fraction")
+# least widening of each training range: photos of a collection can all share a value (none has a black
+# pixel: dark_fraction ∈ [0, 0]) that one stray pixel of a good frame would otherwise leave
+FRAME_MIN_PAD = np.array([0.05, 0.02, 0.2, 0.02, 0.02])
 FRAME_REASONS = {  # (statistic, side) → reason
     ("brightness", "low"): "frame_underexposed", ("brightness", "high"): "frame_overexposed",
     ("bright_fraction", "high"): "frame_overexposed", ("dark_fraction", "high"): "frame_dark_region",
@@ -236,7 +239,7 @@ class OODDetector:
             frames = np.asarray(frames, float)
             if frames.shape != (len(tactile), len(FRAME_STATS)):
                 raise ValueError(f"frames must be ({len(tactile)}, {len(FRAME_STATS)}), got {frames.shape}")
-            fpad = margin * (frames.max(axis=0) - frames.min(axis=0))
+            fpad = np.maximum(margin * (frames.max(axis=0) - frames.min(axis=0)), FRAME_MIN_PAD)
             flo, fhi = frames.min(axis=0) - fpad, frames.max(axis=0) + fpad
         settings = {"k_tactile": k_tactile, "k_visual": k_visual, "quantile": quantile, "margin": margin,
                     "windows_per_texture": windows_per_texture, "folds": folds, "seed": seed}
