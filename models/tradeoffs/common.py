@@ -15,7 +15,6 @@ from models.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice
 
-from models.tradeoffs import DEFAULT_REPORT, DEFAULT_WORK  # noqa: F401  (re-exported)
 
 
 def views_for(model: str) -> int:
