@@ -1,4 +1,4 @@
-"""What the studies share: the reference data, a model's options, the work folder."""
+"""What the studies share: the reference data, image views per model, strict JSON, one BLAS thread."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from models.evaluation.registry import CLASSICAL
 from models.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice
-
 
 
 def views_for(model: str) -> int:
