@@ -24,7 +24,9 @@ OUTPUT = "ratings"
 @dataclass(frozen=True)
 class ModelCard:
     """model: registry name; modality: tactile | visual | both; tactile_config: TactileConfig.to_dict();
-    visual: {"backbone", "dim", "config_hash", "part"} or None; metrics: LOOCV summary (0–100 scale)."""
+    visual: {"backbone", "dim", "config_hash", "part"} or None; metrics: LOOCV summary (0–100 scale);
+    intervals: {"window" | "ema" | "texture": models.intervals.IntervalCalibration.to_dict()} or None;
+    ood: models.ood.OODDetector.to_dict() or None (both written by `hapticlink train`)."""
 
     model: str
     modality: str
@@ -36,6 +38,8 @@ class ModelCard:
     n_params: int
     trained_on: list[str]
     seed: int
+    intervals: dict | None = None
+    ood: dict | None = None
 
     def to_metadata(self) -> dict[str, str]:
         return {
@@ -53,6 +57,8 @@ class ModelCard:
             "n_params": str(self.n_params),
             "trained_on": json.dumps(self.trained_on),
             "seed": str(self.seed),
+            **({} if self.intervals is None else {"intervals": json.dumps(self.intervals, sort_keys=True)}),
+            **({} if self.ood is None else {"ood": json.dumps(self.ood, sort_keys=True)}),
         }
 
     @classmethod
@@ -75,6 +81,8 @@ class ModelCard:
                 n_params=int(meta.get("n_params", 0)),
                 trained_on=json.loads(meta.get("trained_on", "[]")),
                 seed=int(meta.get("seed", 0)),
+                intervals=json.loads(meta["intervals"]) if "intervals" in meta else None,
+                ood=json.loads(meta["ood"]) if "ood" in meta else None,
             )
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: incomplete model metadata ({exc})") from None

@@ -52,3 +52,6 @@ for feat in dwt dft; do
   hl evaluate --dataset $S --model ridge-tactile --tactile-features $feat --out reports/synthetic/ablation/ridge-tactile-$feat --seeds 0
 done
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
+
+# ---- speed–accuracy frontier, robustness, calibrated intervals (issue 7) -------------------------
+bash reports/tradeoffs/regenerate.sh
