@@ -18,6 +18,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 
 from service.errors import ServiceError
+from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.routes import events, ingest, ops, sessions
 from service.schemas import JsonBlock
@@ -45,7 +46,9 @@ robot or operator token.
   **1013**: not ready yet; **1000**: the session ended. A handshake for a session no replica knows is answered
   HTTP 404, for a lost one (the replica that held it is gone) HTTP 410: open a new session.
 * `WS /sessions/{session_id}/events?token=<operator_token>` — JSON events: `{"type": "window", …}`
-  per analysed window and `{"type": "status", "event": …}` (subscribed, session_created,
+  per analysed window (schema: `WindowEvent` in the components — ratings with their per-attribute
+  prediction `interval` at the configured level, `out_of_distribution` with its `ood_reasons`, and
+  `steadiness`) and `{"type": "status", "event": …}` (`StatusEvent`: subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, robot_disconnected, error).
   A slow connection gets the latest events; older ones are dropped.
 """
@@ -109,13 +112,18 @@ async def _invalid(request: Request, exc: RequestValidationError) -> JSONRespons
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:
-    """FastAPI's schema plus the JSON block models the raw request bodies refer to."""
+    """FastAPI's schema plus the JSON block models the raw request bodies refer to, and the events the operators'
+    WebSocket sends (WindowEvent, StatusEvent: a WebSocket is no OpenAPI operation, so they are components)."""
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
         block = JsonBlock.model_json_schema(ref_template="#/components/schemas/{model}")
         components = schema.setdefault("components", {}).setdefault("schemas", {})
         components.update(block.pop("$defs", {}))
         components["JsonBlock"] = block
+        for model in (WindowEvent, StatusEvent):
+            event = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(event.pop("$defs", {}))
+            components[model.__name__] = event
         body = schema["paths"]["/sessions/{session_id}/blocks"]["post"]["requestBody"]["content"]["application/json"]
         body["schema"] = {"$ref": "#/components/schemas/JsonBlock"}
         body["example"] = JsonBlock.model_config["json_schema_extra"]["examples"][0]  # type: ignore[index]

@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.pipeline import WindowEstimate
+from service.uncertainty import Assessment
 from texture_library.attributes import ATTRIBUTES
 
 StatusKind = Literal[
@@ -39,14 +40,39 @@ class Ratings(BaseModel):
     hard_soft: float
 
 
-class Confidence(BaseModel):
-    """Per-attribute stability 0…1: 1 − (sd of the last n raw window ratings) / 57.7, clipped."""
+class Steadiness(BaseModel):
+    """Per-attribute steadiness 0…1 — how stable the estimate is, not how right: 1 − (sd of the last n raw window
+    ratings) / 57.7, clipped. How far to trust the estimate is its `interval`."""
 
     model_config = ConfigDict(extra="forbid")
     rough_smooth: float = Field(ge=0, le=1)
     flat_bumpy: float = Field(ge=0, le=1)
     sticky_slippery: float = Field(ge=0, le=1)
     hard_soft: float = Field(ge=0, le=1)
+
+
+class Bounds(BaseModel):
+    """One attribute's interval, bipolar −100…100, lo ≤ hi."""
+
+    model_config = ConfigDict(extra="forbid")
+    lo: float = Field(ge=-100, le=100)
+    hi: float = Field(ge=-100, le=100)
+
+
+class Interval(BaseModel):
+    """Conformal prediction interval of the smoothed `ratings`, per attribute, at nominal coverage `level`
+    (models/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training textures).
+    target: the calibration used — "ema" (of the smoothed estimate at the service's alpha) or "window" (of one
+    window's estimate; used when the service smooths with another alpha). Widens to include the population band
+    while the estimate is out of distribution."""
+
+    model_config = ConfigDict(extra="forbid")
+    level: float = Field(gt=0, lt=1, description="nominal coverage, e.g. 0.9")
+    target: Literal["ema", "window"]
+    rough_smooth: Bounds
+    flat_bumpy: Bounds
+    sticky_slippery: Bounds
+    hard_soft: Bounds
 
 
 class MatchOut(BaseModel):
@@ -79,11 +105,23 @@ class WindowEvent(BaseModel):
     block_seq: int = Field(description="seq of the block whose samples completed this window")
     ratings: Ratings = Field(description="EMA-smoothed ratings")
     raw_ratings: Ratings = Field(description="this window's model output")
-    confidence: Confidence
+    interval: Interval | None = Field(
+        description="prediction interval of `ratings` per attribute; null when the served model's card carries no "
+        "interval calibration (models exported before calibration, or trained on < 8 textures): never a made-up one")
+    out_of_distribution: bool | None = Field(
+        description="the estimate rests on input unlike the model's training data (a flagged window, or one still "
+        "weighing in the smoothed ratings); null when the model's card carries no OOD detector")
+    ood_reasons: list[str] = Field(
+        description="why: force_out_of_range, speed_out_of_range, tactile_outlier, visual_outlier, no_frame, "
+        "frame_underexposed, frame_overexposed, frame_dark_region, frame_low_contrast, frame_blurred; "
+        "recent_window_flagged (this window is clean, earlier flagged ones still weigh in the smoothed ratings: their "
+        "reasons follow)")
+    steadiness: Steadiness
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
     latency_ms: Latency
-    model: str = Field(description="the model that produced raw_ratings")
+    model: str = Field(description="the model that produced raw_ratings (under the adaptive policy: the cheap model, or "
+                       "the full one where the cheap estimate was not good enough)")
     inputs: Literal["tactile", "tactile+visual"] = Field(
         description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
         "has not been embedded yet, estimated by the tactile-only model)")
@@ -104,6 +142,14 @@ def _ratings(x: np.ndarray, digits: int = 2) -> dict[str, float]:
     return {a: round(float(v), digits) for a, v in zip(ATTRIBUTES, x, strict=True)}
 
 
+def _interval(a: Assessment) -> dict | None:
+    i = a.interval
+    if i is None:
+        return None
+    return {"level": i.level, "target": i.target,
+            **{name: {"lo": round(float(lo), 2), "hi": round(float(hi), 2)} for name, lo, hi in zip(ATTRIBUTES, i.lo, i.hi, strict=True)}}
+
+
 def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
     """The window event for `w` (the one place it is built), with its total latency measured to `published_ns`."""
     ms = 1e-6
@@ -116,7 +162,10 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         "block_seq": w.completed_by,
         "ratings": _ratings(w.smoothed),
         "raw_ratings": _ratings(w.raw),
-        "confidence": _ratings(w.confidence, 3),
+        "interval": _interval(w.assessment),
+        "out_of_distribution": w.assessment.out_of_distribution,
+        "ood_reasons": list(w.assessment.ood_reasons),
+        "steadiness": _ratings(w.steadiness, 3),
         "matches": [{"id": m.id, "distance": round(m.distance, 3)} for m in w.matches],
         "chosen": w.chosen,
         "latency_ms": {

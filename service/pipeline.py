@@ -5,8 +5,10 @@
     window batch  AdmittedBlocks of a session ─▶ PreparedWindows             (prepare_windows, pool thread)
     features    every session's windows at once ─▶ FeatureRows               (featurize: window_features)
     model       FeatureRows ─▶ RawRatings (the main model where the session's visual embedding has
-                landed, the tactile-only model elsewhere)                   (predict)
-    lookup      RawRatings ─▶ WindowEstimate per window: EMA, confidence,
+                landed, the tactile-only model elsewhere; under the adaptive policy the cheap
+                model first and the full one where it is not good enough) and each window's
+                out-of-distribution check by the detector of the model that estimated it (predict)
+    lookup      RawRatings ─▶ WindowEstimate per window: EMA, steadiness, interval and flag,
                 nearest library entries, hysteresis                          (lookup)
     publish     WindowEstimate ─▶ window event ─▶ broker                     (service.session, event loop)
 
@@ -21,17 +23,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
+from models.ood import FrameCheck
 from models.tactile.features import window_features
 from models.tactile.preprocess import TactilePreprocessor, WindowBatch
 from models.tactile.stream import StreamContract
 from service.runtime import Runtime
-from service.smoothing import ExponentialSmoother, SpreadConfidence
-from texture_library.nearest import HysteresisSelector, Match
+from service.smoothing import ExponentialSmoother, Steadiness
+from service.uncertainty import Assessment, ServedModel, SessionUncertainty
+from texture_library.nearest import HysteresisSelector, Match, decision_margin
 from texture_library.recording import Channel
 
 #: what a window's estimate was computed from (the window event's "inputs")
@@ -59,12 +63,14 @@ class AdmittedBlock:
 @dataclass(frozen=True)
 class SessionJob:
     """A session's share of a batch: its estimator, its admitted blocks, its visual input (None: tactile-only)
-    and how many windows those blocks complete."""
+    and how many windows those blocks complete; frame_checks: the visual input's FrameCheck per model name
+    (service.runtime.Runtime.frame_checks; empty without a visual input)."""
 
     estimator: "SessionEstimator"
     blocks: list[AdmittedBlock]
     visual: np.ndarray | None
     windows: int
+    frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -78,6 +84,7 @@ class PreparedWindows:
     completed_by: list[tuple[int, int]]
     visual: np.ndarray | None
     preprocess_ns: int
+    frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
 
     @property
     def inputs(self) -> Inputs:
@@ -93,10 +100,24 @@ class FeatureRows:
 
 
 @dataclass(frozen=True)
+class WindowCheck:
+    """One window's out-of-distribution check (models.ood.OODDetector.check): flag, reasons, distance (> 0)."""
+
+    flagged: bool
+    reasons: list[str]
+    distance: float
+
+
+@dataclass(frozen=True)
 class RawRatings:
-    """The model's output per window (n, 4) bipolar, in FeatureRows order; ms: inference cost."""
+    """The models' output per window (n, 4) bipolar, in FeatureRows order; models: the model that estimated
+    each window; checks: each window's check by that model's detector (None: it has none); escalated: windows
+    the full model re-estimated after the cheap one; ms: inference and check cost."""
 
     ratings: np.ndarray
+    models: list[ServedModel]
+    checks: list[WindowCheck | None]
+    escalated: int
     ms: float
 
 
@@ -115,7 +136,8 @@ class WindowEstimate:
     t_end_s: float
     raw: np.ndarray
     smoothed: np.ndarray
-    confidence: np.ndarray
+    steadiness: np.ndarray
+    assessment: Assessment
     matches: list[Match]
     chosen: str
     completed_by: int
@@ -140,21 +162,29 @@ class SessionResult:
 
 # ---- per-session compute state -------------------------------------------------------------------
 class SessionEstimator:
-    """Per-session compute state: preprocessor (per stream segment), smoother, confidence, selector."""
+    """Per-session compute state: preprocessor (per stream segment), smoother, steadiness, uncertainty, selector."""
 
-    def __init__(self, runtime: Runtime, contract: StreamContract, *, alpha: float, confidence_windows: int,
+    def __init__(self, runtime: Runtime, contract: StreamContract, *, alpha: float, steadiness_windows: int,
                  top_k: int, hysteresis_margin: float, hysteresis_hold: int) -> None:
         self.runtime = runtime
         self.contract = contract
         self.config = contract.config
         self.top_k = top_k
         self.smoother = ExponentialSmoother(alpha)
-        self.confidence = SpreadConfidence(confidence_windows)
+        self.steadiness = Steadiness(steadiness_windows)
+        self.uncertainty = SessionUncertainty(alpha, runtime.interval_level)
         self.selector = HysteresisSelector(hysteresis_margin, hysteresis_hold)
         self.segment = -1
         self.taken = 0  # windows taken from the current segment
         self.next_index = 0  # session-wide window counter
         self._pre: TactilePreprocessor | None = None
+
+    @classmethod
+    def from_settings(cls, runtime: Runtime, contract: StreamContract, settings) -> "SessionEstimator":
+        """With the service Settings' smoothing, steadiness, top-k and hysteresis."""
+        return cls(runtime, contract, alpha=settings.smoothing_alpha, steadiness_windows=settings.steadiness_windows,
+                   top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin,
+                   hysteresis_hold=settings.hysteresis_hold)
 
     def restart(self) -> None:
         """Forget the current segment (after a failure left the preprocessor's state unknown)."""
@@ -178,7 +208,8 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
             continue
         completed_by = [_completing(group, est.taken + i) for i in range(len(batch))]
         est.taken += len(batch)
-        out.append(PreparedWindows(est, batch, first.origin_t0, completed_by, job.visual, time.perf_counter_ns() - t0))
+        out.append(PreparedWindows(est, batch, first.origin_t0, completed_by, job.visual, time.perf_counter_ns() - t0,
+                                   job.frame_checks))
     return out
 
 
@@ -192,46 +223,90 @@ def featurize(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> FeatureR
 
 def predict(runtime: Runtime, features: FeatureRows, prepared: Sequence[PreparedWindows]) -> RawRatings:
     """Model step: rows whose session has a visual embedding go to the main model with it (repeated per
-    window); the others to the tactile model (the main one if it reads no images). One call per model."""
+    window); the others to the tactile model (the main one if it reads no images). Under the adaptive policy
+    with a cheap model, the cheap model estimates first and the full model re-estimates the rows the policy
+    sends it (runtime.policy.needs_full: a wide interval, an out-of-distribution flag, or a library decision
+    boundary near). One call per model; each row is checked by the detector of the model that estimated it."""
     t0 = time.perf_counter_ns()
     sizes = [len(p.batch) for p in prepared]
     bounds = np.cumsum([0] + sizes)
-    out = np.empty((features.rows.shape[0], 4), dtype=np.float64)
+    n = features.rows.shape[0]
+    out = np.empty((n, 4), dtype=np.float64)
+    models: list[ServedModel] = [runtime.main] * n
+    checks: list[WindowCheck | None] = [None] * n
+    escalated = 0
     for uses_visual in (True, False):
         chosen = [i for i, p in enumerate(prepared) if (p.visual is not None) == uses_visual]
         if not chosen:
             continue
         rows = np.concatenate([np.arange(bounds[i], bounds[i + 1]) for i in chosen])
-        predictor = runtime.predictor_for(uses_visual)
+        owner = np.concatenate([np.full(sizes[i], i) for i in chosen])  # the prepared item of each row
         visual = None
         if uses_visual:
             visual = np.concatenate([np.repeat(prepared[i].visual[None, :], sizes[i], axis=0) for i in chosen])  # type: ignore[index]
-        tactile = features.rows[rows] if predictor.needs_tactile else None
-        out[rows] = predictor.predict(tactile, visual)
-    return RawRatings(out, (time.perf_counter_ns() - t0) / 1e6)
+        first, full = runtime.first_model(uses_visual), runtime.full_model(uses_visual)
+        out[rows] = _run(first, features.rows[rows], visual)
+        _check(first, features.rows, prepared, rows, owner, models, checks)
+        if first is full:
+            continue
+        flagged = distance = None
+        if first.detector is not None:
+            flagged = np.array([checks[r].flagged for r in rows])  # type: ignore[union-attr]
+            distance = np.array([checks[r].distance for r in rows])  # type: ignore[union-attr]
+        width = first.window_width(out[rows], flagged, distance, runtime.interval_level)
+        margin = decision_margin(runtime.index.distances_many(out[rows]))
+        need = runtime.policy.needs_full(width, margin, flagged)
+        if need.any():
+            again = rows[need]
+            out[again] = _run(full, features.rows[again], None if visual is None else visual[need])
+            _check(full, features.rows, prepared, again, owner[need], models, checks)
+            escalated += int(need.sum())
+    return RawRatings(out, models, checks, escalated, (time.perf_counter_ns() - t0) / 1e6)
 
 
-def lookup(p: PreparedWindows, raw: np.ndarray, started_ns: int, features_ms: float, model_ms: float) -> list[WindowEstimate]:
-    """Lookup step: smoothing, confidence and the library's nearest entries of one session's windows, in order.
-    raw: (n, 4) for p's windows."""
+def _run(model: ServedModel, tactile: np.ndarray, visual: np.ndarray | None) -> np.ndarray:
+    p = model.predictor
+    return p.predict(tactile if p.needs_tactile else None, visual if p.needs_visual else None)
+
+
+def _check(model: ServedModel, rows_features: np.ndarray, prepared: Sequence[PreparedWindows], rows: np.ndarray,
+           owner: np.ndarray, models: list[ServedModel], checks: list[WindowCheck | None]) -> None:
+    """Record `model` as the estimator of `rows` and its detector's check of them, one call per session segment
+    (each has its own frame)."""
+    for i in np.unique(owner):
+        mine = rows[owner == i]
+        result = model.check(rows_features[mine], prepared[int(i)].frame_checks.get(model.name))
+        for k, r in enumerate(mine):
+            models[r] = model
+            checks[r] = None if result is None else WindowCheck(bool(result.flags[k]), result.reasons[k],
+                                                                float(result.distance[k]))
+
+
+def lookup(p: PreparedWindows, raw: np.ndarray, models: Sequence[ServedModel], checks: Sequence[WindowCheck | None],
+           started_ns: int, features_ms: float, model_ms: float) -> list[WindowEstimate]:
+    """Lookup step: smoothing, steadiness, interval and flag, and the library's nearest entries of one session's
+    windows, in order. raw: (n, 4) for p's windows; models, checks: (n,) who estimated each and its check."""
     est, rt = p.estimator, p.estimator.runtime
-    model = rt.predictor_for(p.visual is not None).card.model
     out = []
     window_s = est.config.window_s
     for i, (seq, arrived_ns) in enumerate(p.completed_by):
         t0 = time.perf_counter_ns()
         smoothed = est.smoother.update(raw[i])
-        confidence = est.confidence.update(raw[i])
-        matches = rt.index.query(smoothed, est.top_k)
-        chosen = est.selector.update(rt.index, smoothed)
+        steadiness = est.steadiness.update(raw[i])
+        c = checks[i]
+        assessment = est.uncertainty.update(models[i], smoothed, None if c is None else c.flagged,
+                                            None if c is None else c.reasons, None if c is None else c.distance)
+        distances = rt.index.distances(smoothed)  # once, for the matches and the choice
+        matches = rt.index.query(smoothed, est.top_k, distances)
+        chosen = est.selector.update(rt.index, smoothed, distances)
         lookup_ms = (time.perf_counter_ns() - t0) / 1e6
         t_start = p.origin_t0 + float(p.batch.t_start_s[i])
         out.append(WindowEstimate(
             index=est.next_index, t_start_s=t_start, t_end_s=t_start + window_s,
-            raw=raw[i].astype(np.float64), smoothed=smoothed, confidence=confidence,
+            raw=raw[i].astype(np.float64), smoothed=smoothed, steadiness=steadiness, assessment=assessment,
             matches=matches, chosen=chosen, completed_by=seq, ingest_ns=arrived_ns,
             started_ns=started_ns, features_ms=p.preprocess_ns / 1e6 + features_ms, model_ms=model_ms,
-            lookup_ms=lookup_ms, inputs=p.inputs, model=model,
+            lookup_ms=lookup_ms, inputs=p.inputs, model=models[i].name,
         ))
         est.next_index += 1
     return out
@@ -251,19 +326,19 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
             prepared.append([])
             errors.append(exc)
     flat = [p for per_session in prepared for p in per_session]
-    raw_rows: list[np.ndarray] = []
+    parts: list[tuple[np.ndarray, list[ServedModel], list[WindowCheck | None]]] = []
     features_ms = model_ms = 0.0
     if flat:
         features = featurize(runtime, flat)
         raw = predict(runtime, features, flat)
         features_ms, model_ms = features.ms, raw.ms
         bounds = np.cumsum([0] + [len(p.batch) for p in flat])
-        raw_rows = [raw.ratings[bounds[i]:bounds[i + 1]] for i in range(len(flat))]
+        parts = [(raw.ratings[a:b], raw.models[a:b], raw.checks[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
     results, row = [], 0
     for job, per_session, error in zip(jobs, prepared, errors, strict=True):
         estimates: list[WindowEstimate] = []
         for p in per_session:
-            estimates += lookup(p, raw_rows[row], started, features_ms, model_ms)
+            estimates += lookup(p, *parts[row], started, features_ms, model_ms)
             row += 1
         results.append(SessionResult(estimates, job.windows, error))
     return results

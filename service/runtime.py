@@ -15,13 +15,16 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from models.ood import FrameCheck
 from models.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
 from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
+from service.adaptive import ServingPolicy
 from service.settings import Settings
+from service.uncertainty import ServedModel
 from texture_library.library import Library
 from texture_library.nearest import PerceptualIndex
 
@@ -34,17 +37,23 @@ MAX_FRAME_PIXELS = 4096 * 4096
 
 @dataclass(frozen=True)
 class Runtime:
-    """The loaded model and library.
+    """The loaded models and library.
 
-    tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
-    tactile: an optional tactile-only model that estimates windows while a session has no visual
+    main: the served model with its card's uncertainty (service.uncertainty.ServedModel);
+    fallback: an optional tactile-only model that estimates windows while a session has no visual
     embedding yet (same feature configuration as the main model; None: such windows wait);
+    cheap: an optional cheap model the adaptive policy asks first (service.adaptive);
+    policy: how much model each window and frame gets (always-full | adaptive);
+    interval_level: nominal coverage of the published intervals (and of those the adaptive policy reads);
+    tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
     backbone / visual_columns: set when the model reads visual features and a backbone is configured;
     problem: why the service cannot estimate (None when it can), shown by GET /ready.
     """
 
-    predictor: Predictor
-    tactile: Predictor | None
+    main: ServedModel
+    fallback: ServedModel | None
+    cheap: ServedModel | None
+    policy: ServingPolicy
     tactile_config: TactileConfig
     library: Library
     index: PerceptualIndex
@@ -53,6 +62,16 @@ class Runtime:
     visual_columns: slice | None
     problem: str | None
     load_s: float
+    interval_level: float = 0.9
+
+    @property
+    def predictor(self) -> Predictor:
+        return self.main.predictor
+
+    @property
+    def tactile(self) -> Predictor | None:
+        """The tactile-only fallback model's predictor (None when none is configured)."""
+        return None if self.fallback is None else self.fallback.predictor
 
     @property
     def model_name(self) -> str:
@@ -65,15 +84,36 @@ class Runtime:
     @property
     def can_estimate_without_frame(self) -> bool:
         """True when windows of a session without a visual embedding can be estimated (tactile-only)."""
-        return not self.needs_visual or self.tactile is not None
+        return not self.needs_visual or self.fallback is not None
 
-    def predictor_for(self, visual: bool) -> Predictor:
-        """The model for windows with (True) or without (False) a visual embedding."""
+    def full_model(self, visual: bool) -> ServedModel:
+        """The full model for windows with (True) or without (False) a visual embedding."""
         if visual or not self.needs_visual:
-            return self.predictor
-        if self.tactile is None:
+            return self.main
+        if self.fallback is None:
             raise ValueError(f"model {self.model_name} needs a camera frame first and no tactile-only model is configured")
-        return self.tactile
+        return self.fallback
+
+    def first_model(self, visual: bool) -> ServedModel:
+        """The model a window asks first: the cheap one under the adaptive policy (where it can read what the
+        window has), else the full one."""
+        if self.policy.adaptive and self.cheap is not None and (visual or not self.cheap.predictor.needs_visual):
+            return self.cheap
+        return self.full_model(visual)
+
+    def served_models(self) -> list[ServedModel]:
+        return [m for m in (self.main, self.fallback, self.cheap) if m is not None]
+
+    def visual_models(self) -> list[ServedModel]:
+        return [m for m in self.served_models() if m.predictor.needs_visual]
+
+    def embed_and_inspect(self, gray: np.ndarray) -> tuple[np.ndarray, dict[str, list[str]]]:
+        """Visual pool: (H, W) grayscale → (its embedding (D,), each visual model's frame reasons by name)."""
+        return self.embed_frame(gray), {m.name: m.frame_reasons(gray) for m in self.visual_models()}
+
+    def frame_checks(self, reasons: dict[str, list[str]], visual: np.ndarray) -> dict[str, FrameCheck | None]:
+        """A session's visual input (D,) and its newest frame's reasons → each visual model's FrameCheck by name."""
+        return {m.name: m.frame_check(reasons.get(m.name, []), visual) for m in self.visual_models()}
 
     def decode_frame(self, image: bytes) -> np.ndarray:
         """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable, smaller than a patch or
@@ -121,14 +161,23 @@ def load_runtime(settings: Settings) -> Runtime:
         tactile = Predictor(settings.tactile_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
         if tactile.needs_visual:
             raise ValueError(f"{settings.tactile_model_path}: the tactile-only model ({tactile.card.model}) reads images")
+    cheap = None
+    if settings.cheap_model_path is not None:
+        cheap = Predictor(settings.cheap_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
+        if cheap.needs_visual and (not predictor.needs_visual or cheap.card.visual != predictor.card.visual):
+            raise ValueError(f"{settings.cheap_model_path}: the cheap model ({cheap.card.model}) reads visual features "
+                             f"{cheap.card.visual}; the main model reads {predictor.card.visual}")
+    alpha = settings.smoothing_alpha
     library = Library.load(settings.library_dir)
     index = PerceptualIndex(library.ids, library.ratings, np.asarray(settings.nearest_weights))
     visual_config = VisualConfig()
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
         backbone, columns, problem = _load_backbone(predictor, visual_config, settings.backbone_path, settings.visual_threads)
-    return Runtime(predictor, tactile, tactile_config, library, index, visual_config, backbone, columns, problem,
-                   time.perf_counter() - started)
+    return Runtime(ServedModel.load(predictor, alpha), None if tactile is None else ServedModel.load(tactile, alpha),
+                   None if cheap is None else ServedModel.load(cheap, alpha), ServingPolicy.from_settings(settings),
+                   tactile_config, library, index, visual_config, backbone, columns, problem, time.perf_counter() - started,
+                   settings.interval_level)
 
 
 def _load_backbone(

@@ -2,7 +2,8 @@
 
     ingest (loop) ─▶ admit: seq rules, StreamContract.admit, bounds ─▶ pending AdmittedBlocks
         ─(a window is complete)─▶ WindowBatcher ─▶ pipeline.estimate_batch (window pool) ─▶ apply_result ─▶ broker
-    frames: decode + scene-change test (frame pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
+    frames: decode + scene-change test (frame pool) ─▶ the serving policy: embed it? ─▶ latest-frame slot
+        ─▶ embed + frame checks (visual pool, one at a time) ─▶ the scene's pooled visual input
 
 Bounds, checked before anything is taken: a block that would leave more than
 session_queue_windows complete-but-unpublished windows, or more than session_queue_blocks pending
@@ -26,7 +27,9 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.protocol import SESSION_LOST
+from models.ood import FrameCheck
 from models.tactile.stream import StreamContract
+from models.visual.pooling import ViewPool
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
@@ -82,11 +85,11 @@ class Session:
         self.counters = SessionCounters()
         self.contract = stream_contract(runtime, settings)
         self.cursor = self.contract.start()
-        self.estimator = SessionEstimator(
-            runtime, self.contract, alpha=settings.smoothing_alpha, confidence_windows=settings.confidence_windows,
-            top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin, hysteresis_hold=settings.hysteresis_hold,
-        )
-        self.visual: np.ndarray | None = None
+        self.estimator = SessionEstimator.from_settings(runtime, self.contract, settings)
+        self.visual: np.ndarray | None = None  # the current scene's pooled visual input (policy.views_pooled frames)
+        self.frame_checks: dict[str, FrameCheck | None] = {}  # of self.visual, per visual model
+        self._views = ViewPool(runtime.policy.views_pooled)
+        self._scene_taken = 0  # frames of the current scene taken for embedding
         self._visual_pool = visual_pool
         self._publish = publish
         self._metrics = metrics
@@ -97,7 +100,7 @@ class Session:
         self._pending_windows = 0  # windows the pending blocks complete
         self._windows_admitted = 0  # complete windows admitted, all segments
         self._windows_done = 0  # of those, estimated and published (or lost to a failed job)
-        self._frame: np.ndarray | None = None
+        self._frame: tuple[np.ndarray, bool] | None = None  # (gray, starts a new scene) waiting for the embedder
         self._told_waiting = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
@@ -168,7 +171,7 @@ class Session:
             return None
         blocks, windows = self._pending, self._pending_windows
         self._pending, self._pending_windows = [], 0
-        return SessionJob(self.estimator, blocks, self.visual, windows)
+        return SessionJob(self.estimator, blocks, self.visual, windows, self.frame_checks)
 
     async def tell_waiting(self) -> None:
         """Tell operators, once, why windows wait."""
@@ -212,25 +215,32 @@ class Session:
 
     # ---- frames ----------------------------------------------------------------------------------
     def offer_frame(self, gray: np.ndarray, thumb: np.ndarray) -> FrameOutcome:
-        """A decoded frame (and its scene_change.thumbnail): embedded only when the scene changed.
+        """A decoded frame (and its scene_change.thumbnail): embedded when the serving policy says so (adaptive:
+        a changed scene and its first pool_frames frames; always-full: every frame).
 
-        ignored: the model reads no images; unchanged: same scene as the last frame taken for embedding;
-        embedding: an embedding job starts (the caller counts it against the visual queue until
+        ignored: the model reads no images; unchanged: the policy does not embed it (same scene, already
+        pooled); embedding: an embedding job starts (the caller counts it against the visual queue until
         `visual_done`); superseded: replaces a frame waiting for the running embedding job."""
         self.touch()
         self.counters.frames_received += 1
         if not self.runtime.needs_visual:
             return "ignored"
-        if not scene_changed(self._scene, thumb, self.settings.frame_change):
+        policy = self.runtime.policy
+        changed = scene_changed(self._scene, thumb, self.settings.frame_change)
+        if changed:
+            self._scene, self._scene_taken = thumb, 0
+        if not policy.embed_frame(changed, self._scene_taken):
             self.counters.frames_unchanged += 1
             return "unchanged"
-        self._scene = thumb
+        self._scene_taken += 1
         if self._embedder is not None and not self._embedder.done():
+            new_scene = changed
             if self._frame is not None:
                 self.counters.frames_superseded += 1
-            self._frame = gray
+                new_scene = new_scene or self._frame[1]
+            self._frame = (gray, new_scene)
             return "superseded"
-        self._frame = gray
+        self._frame = (gray, changed)
         self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
         return "embedding"
 
@@ -238,10 +248,10 @@ class Session:
         loop = asyncio.get_running_loop()
         try:
             while self._frame is not None:
-                gray, self._frame = self._frame, None
+                (gray, new_scene), self._frame = self._frame, None
                 started = time.perf_counter()
                 try:
-                    vector = await loop.run_in_executor(self._visual_pool, self.runtime.embed_frame, gray)
+                    vector, reasons = await loop.run_in_executor(self._visual_pool, self.runtime.embed_and_inspect, gray)
                 except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
                     log.exception("session %s: embedding a frame failed", self.id)
                     self.counters.pipeline_errors += 1
@@ -251,10 +261,15 @@ class Session:
                 seconds = time.perf_counter() - started
                 self._metrics.visual_seconds.observe(seconds)
                 first = self.visual is None
-                self.visual = vector
+                if new_scene:
+                    self._views.reset()
+                self._views.add(vector)
+                self.visual = self._views.value()
+                self.frame_checks = self.runtime.frame_checks(reasons, self.visual)
                 self.counters.frames_embedded += 1
+                flagged = sorted({r for c in self.frame_checks.values() if c is not None for r in c.reasons})
                 await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
-                                   embed_ms=round(seconds * 1e3, 1))
+                                   embed_ms=round(seconds * 1e3, 1), views=len(self._views), frame_reasons=flagged)
                 if self.has_work():
                     self._notify(self)
         finally:

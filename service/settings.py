@@ -40,6 +40,20 @@ class Settings(BaseSettings):
         None, description="optional tactile-only model (same feature configuration) that estimates a visual model's "
         "windows until the session's first frame is embedded (events say `\"inputs\": \"tactile\"`); without it those windows wait",
     )
+    cheap_model_path: Path | None = Field(
+        None, description="optional cheap model (same feature configuration; if it reads images, the same visual features) "
+        "the adaptive policy asks first; the full model then runs only where the cheap estimate is not good enough")
+    serving_policy: Literal["adaptive", "always-full"] = Field(
+        "adaptive", description="`adaptive`: embed a frame only when the scene changes (and pool_frames of each scene), "
+        "the cheap model first; `always-full`: embed every frame, the full model on every window (service/adaptive.py)")
+    pool_frames: int = Field(1, ge=1, le=32, description="adaptive: embeddings of one scene pooled (mean) into its visual input")
+    full_model_width: float = Field(
+        40.0, ge=0, le=200, description="adaptive: the full model runs on a window whose cheap estimate's interval is wider "
+        "than this on some attribute (bipolar; at interval_level)")
+    full_model_margin: float = Field(
+        5.0, ge=0, le=400, description="adaptive: the full model runs on a window whose cheap estimate lies within this "
+        "distance margin (bipolar) of a library decision boundary")
+    interval_level: float = Field(0.9, ge=0.5, le=0.99, description="nominal coverage of the intervals in window events")
     # ---- network ----------------------------------------------------------------------------------
     host: str = Field("127.0.0.1", description="address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
@@ -68,7 +82,7 @@ class Settings(BaseSettings):
     # ---- estimation -------------------------------------------------------------------------------
     hop_s: float = Field(0.5, gt=0, le=10, description="window hop for serving; the model's TactileConfig fixes the rest")
     smoothing_alpha: float = Field(0.5, gt=0, le=1, description="EMA weight of the newest window (1: no smoothing)")
-    confidence_windows: int = Field(5, ge=2, le=100, description="recent windows whose spread gives the confidence")
+    steadiness_windows: int = Field(5, ge=2, le=100, description="recent windows whose spread gives the steadiness")
     top_k: int = Field(3, ge=1, le=50, description="library matches per window event")
     nearest_weights: tuple[float, float, float, float] = Field(
         (1.0, 1.0, 1.0, 1.0), description="per-attribute weights of the perceptual distance (JSON list in the environment)"

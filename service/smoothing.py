@@ -1,15 +1,15 @@
-"""Per-session temporal state of the ratings: EMA smoothing and a spread-based confidence.
+"""Per-session temporal state of the ratings: EMA smoothing and steadiness.
 
-Confidence (per attribute, 0…1) measures how *stable* the estimate is, not how accurate:
+Steadiness (per attribute, 0…1) measures how *stable* the estimate is, not how accurate (how far to
+trust an estimate is its interval: service/uncertainty.py):
 
-    confidence_a = clip(1 − sd_a / SD_UNIFORM, 0, 1)
+    steadiness_a = clip(1 − sd_a / SD_UNIFORM, 0, 1)
 
 where sd_a is the standard deviation of the last `n` raw (unsmoothed) window predictions
 of attribute a and SD_UNIFORM = 200/√12 ≈ 57.7 is the standard deviation of ratings spread
 uniformly over the whole bipolar range. 1 means the last n windows agree exactly; 0 means
 they scatter as much as random ratings would. With fewer than two windows it is 0 (unknown).
-The model's LOOCV error (its card's metrics) is a fixed property of the model and is shown
-beside the ratings, not folded into this number.
+A steady estimate can be steadily wrong: an operator reads it beside the interval, never instead.
 """
 
 from __future__ import annotations
@@ -39,16 +39,16 @@ class ExponentialSmoother:
         return self.state.copy()
 
 
-class SpreadConfidence:
-    """Confidence from the spread of the last `n` raw predictions (see the module docstring)."""
+class Steadiness:
+    """Steadiness from the spread of the last `n` raw predictions (see the module docstring)."""
 
     def __init__(self, n: int) -> None:
         if n < 2:
-            raise ValueError(f"confidence needs at least 2 windows, got {n}")
+            raise ValueError(f"steadiness needs at least 2 windows, got {n}")
         self.recent: deque[np.ndarray] = deque(maxlen=n)
 
     def update(self, raw: np.ndarray) -> np.ndarray:
-        """Add one raw prediction (4,) → confidence (4,) in [0, 1]."""
+        """Add one raw prediction (4,) → steadiness (4,) in [0, 1]."""
         self.recent.append(np.asarray(raw, dtype=np.float64))
         if len(self.recent) < 2:
             return np.zeros(len(ATTRIBUTES))

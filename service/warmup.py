@@ -31,31 +31,33 @@ def warm_up(runtime: Runtime, settings: Settings, seed: int = 0) -> float:
     """Run the serving path on synthetic input; returns the seconds it took. Raises what the path raises."""
     started = time.perf_counter()
     rng = np.random.default_rng(seed)
-    visual = None
+    visual, checks = None, {}
     if runtime.backbone is not None:
         frame = rng.uniform(0, 1, size=(WARM_UP_FRAME_PX, WARM_UP_FRAME_PX)).astype(np.float32)
-        visual = runtime.embed_frame(frame)
+        visual, reasons = runtime.embed_and_inspect(frame)
+        checks = runtime.frame_checks(reasons, visual)
     contract = stream_contract(runtime, settings)
     inputs = [None] + ([visual] if visual is not None else [])
     if runtime.needs_visual and runtime.tactile is None:
         inputs = inputs[1:]  # no tactile-only model: windows are only ever estimated with an embedding
     for batch_sessions in (1, 3):  # one session alone, and a batch of several (other array shapes)
-        jobs = [_job(runtime, settings, contract, rng, v) for v in inputs for _ in range(batch_sessions)]
+        jobs = [_job(runtime, settings, contract, rng, v, checks if v is not None else {}) for v in inputs
+                for _ in range(batch_sessions)]
         for result in estimate_batch(runtime, jobs):
             if result.error is not None:
                 raise result.error
+    for model in runtime.served_models():  # the adaptive policy may not have needed every model above
+        model.predictor.warm_up()
     gc.collect()
     return time.perf_counter() - started
 
 
-def _job(runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual) -> SessionJob:
+def _job(runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual, checks: dict) -> SessionJob:
     rate = runtime.tactile_config.rate_hz
     n = int(round(rate * (runtime.tactile_config.window_s + (WARM_UP_WINDOWS - 1) * runtime.tactile_config.hop_s)))
     channels = {"accel": Channel(rng.normal(0, 1, size=(n, 3)), rate), "force": Channel(np.full(n, 1.5), rate),
                 "speed": Channel(np.full(n, 80.0), rate)}
-    est = SessionEstimator(runtime, contract, alpha=settings.smoothing_alpha, confidence_windows=settings.confidence_windows,
-                           top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin,
-                           hysteresis_hold=settings.hysteresis_hold)
+    est = SessionEstimator.from_settings(runtime, contract, settings)
     adv = contract.advance(contract.start(), channels, 0.0)
     block = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, time.perf_counter_ns())
-    return SessionJob(est, [block], visual, adv.windows_added)
+    return SessionJob(est, [block], visual, adv.windows_added, checks)

@@ -2,7 +2,10 @@
 
 Distance is weighted Euclidean in the 4-D bipolar rating space. A hysteresis
 selector keeps the rendering model from flickering between neighbours when
-successive windows' estimates wobble around a boundary.
+successive windows' estimates wobble around a boundary. `decision_margin` says how close an
+estimate is to such a boundary (the service's adaptive policy asks the full model there). Each of
+these takes the distances once computed (`distances`, `distances_many`), so one estimate's
+distances are computed once for its matches, its choice and its margin.
 """
 
 from __future__ import annotations
@@ -40,13 +43,39 @@ class PerceptualIndex:
             raise ValueError(f"rating must be {len(ATTRIBUTES)} finite values, got {rating!r}")
         return np.sqrt(((self.ratings - q) ** 2 * self.weights).sum(axis=1))
 
-    def query(self, rating: np.ndarray, k: int = 3) -> list[Match]:
-        """The k nearest entries, nearest first."""
+    def distances_many(self, ratings: np.ndarray) -> np.ndarray:
+        """(n, M) weighted distances from n bipolar ratings (n, 4)."""
+        q = np.asarray(ratings, float)
+        if q.ndim != 2 or q.shape[1] != len(ATTRIBUTES) or not np.all(np.isfinite(q)):
+            raise ValueError(f"ratings must be finite (n, {len(ATTRIBUTES)}), got shape {q.shape}")
+        return np.sqrt((((self.ratings[None, :, :] - q[:, None, :]) ** 2) * self.weights).sum(axis=2))
+
+    def query(self, rating: np.ndarray, k: int = 3, distances: np.ndarray | None = None) -> list[Match]:
+        """The k nearest entries, nearest first (distances: this rating's `distances`, if already computed)."""
         if k < 1:
             raise ValueError(f"k must be ≥ 1, got {k}")
-        d = self.distances(rating)
+        d = self.distances(rating) if distances is None else self._checked(distances)
         order = np.argsort(d, kind="stable")[:k]
         return [Match(self.ids[i], float(d[i])) for i in order]
+
+    def _checked(self, distances: np.ndarray) -> np.ndarray:
+        d = np.asarray(distances, float)
+        if d.shape != (len(self.ids),):
+            raise ValueError(f"distances must be ({len(self.ids)},) for this index, got {d.shape}")
+        return d
+
+
+def decision_margin(distances: np.ndarray) -> np.ndarray:
+    """How far an estimate is from a library decision boundary: distance to the second-nearest entry minus the
+    distance to the nearest (bipolar, ≥ 0; 0 on the boundary). distances: (M,) or (n, M) → () or (n,); inf
+    when the library holds one entry (no boundary)."""
+    d = np.asarray(distances, float)
+    if d.ndim not in (1, 2) or d.shape[-1] < 1:
+        raise ValueError(f"distances must be (M,) or (n, M) with M ≥ 1, got shape {d.shape}")
+    if d.shape[-1] == 1:
+        return np.full(d.shape[:-1], np.inf)
+    two = np.partition(d, 1, axis=-1)[..., :2]
+    return two[..., 1] - two[..., 0]
 
 
 class HysteresisSelector:
@@ -61,8 +90,9 @@ class HysteresisSelector:
         self._challenger: str | None = None
         self._streak = 0
 
-    def update(self, index: PerceptualIndex, rating: np.ndarray) -> str:
-        d = index.distances(rating)
+    def update(self, index: PerceptualIndex, rating: np.ndarray, distances: np.ndarray | None = None) -> str:
+        """The entry to render after this estimate (distances: the rating's `index.distances`, if computed)."""
+        d = index.distances(rating) if distances is None else index._checked(distances)
         best = index.ids[int(np.argmin(d))]
         if self.current is None or self.current not in index.ids:
             # first window, or the library no longer holds the current choice

@@ -1,9 +1,10 @@
-"""The operator console in a real headless Chromium: it connects, and its bars, bubble, chosen texture,
-matches and latencies follow the window events."""
+"""The operator console in a real headless Chromium: it connects, and its bars (with their intervals), bubble,
+chosen texture, matches, latencies, out-of-distribution flag and last-minute plot follow the window events."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import threading
 import time
@@ -87,7 +88,19 @@ def test_console_shows_live_ratings_texture_and_latency(kit, server, client, lib
     _wait(browser, lambda d: _text(d, "window") == "5")
     for attr in ATTRIBUTES:
         assert _text(browser, f"val-{attr}") == f"{last['ratings'][attr]:.1f}"
-        assert _text(browser, f"conf-{attr}") == f"conf {last['confidence'][attr]:.2f}"
+        assert _text(browser, f"steady-{attr}") == f"steady {last['steadiness'][attr]:.2f}"
+        lo, hi = last["interval"][attr]["lo"], last["interval"][attr]["hi"]
+        assert _text(browser, f"int-{attr}") == f"[{lo:.1f}, {hi:.1f}]"
+        left, width = _band(browser, attr)
+        assert left == pytest.approx(50 + lo / 2, abs=0.01) and width == pytest.approx((hi - lo) / 2, abs=0.01)
+        # the last minute: one point per window so far, the band's upper edge and lower edge back
+        line = browser.find_element("id", f"plot-line-{attr}").get_attribute("points").split()
+        assert len(line) == 6
+        assert float(line[-1].split(",")[0]) == pytest.approx(60.0) and float(line[-1].split(",")[1]) == pytest.approx(-last["ratings"][attr], abs=0.01)
+        band = browser.find_element("id", f"plot-band-{attr}").get_attribute("points").split()
+        assert len(band) == 12 and float(band[5].split(",")[1]) == pytest.approx(-hi, abs=0.01)
+    assert _text(browser, "interval-level") == "90 %"
+    assert _text(browser, "ood") == ("OUT OF DISTRIBUTION" if last["out_of_distribution"] else "in distribution")
     assert _text(browser, "chosen") == last["chosen"]
     items = [li.text for li in browser.find_elements("css selector", "#matches li")]
     assert items == [f"{m['id']} — {m['distance']:.1f}" for m in last["matches"]]
@@ -103,6 +116,46 @@ def test_console_shows_live_ratings_texture_and_latency(kit, server, client, lib
 
     client.delete(f"/sessions/{sid}", headers={"Authorization": f"Bearer {operator}"})
     _wait(browser, lambda d: _text(d, "conn") == "ended")
+
+
+def _band(driver, attr: str) -> tuple[float, float]:
+    """(left %, width %) of an attribute's interval band on its bar."""
+    style = driver.find_element("id", f"band-{attr}").get_attribute("style")
+    left = re.search(r"left:\s*([-\d.]+)%", style)
+    width = re.search(r"width:\s*([-\d.]+)%", style)
+    assert left and width, style
+    return float(left.group(1)), float(width.group(1))
+
+
+def test_console_flags_out_of_distribution_input_and_widens_the_band(kit, server, client, library_dir, browser):
+    """A tool pressed 4× harder than in training: the page says OUT OF DISTRIBUTION with the reason, and the
+    bars' bands are as wide as the events' flagged intervals."""
+    from texture_library.recording import Channel, Recording
+
+    session = kit.create_session(client, "console ood")
+    browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
+    _wait(browser, lambda d: _text(d, "conn") == "live")
+    rec = kit.stroke_recording(library_dir, "synth_003", 2.0)
+    rec = Recording(rec.accel, Channel(rec.force.data * 4.0, rec.force.rate_hz), rec.speed)
+    with connect(kit.socket_url(server, session, "events")) as ref:
+        ref.recv(timeout=5)
+        for block in kit.recording_blocks(rec):
+            kit.post_block(client, session, block)
+        last = None
+        while last is None or last["window_index"] < 3:
+            event = json.loads(ref.recv(timeout=20))
+            if event["type"] == "window":
+                last = event
+    assert last["out_of_distribution"] is True
+    _wait(browser, lambda d: _text(d, "window") == "3")
+    assert _text(browser, "ood") == "OUT OF DISTRIBUTION"
+    assert "force_out_of_range" in _text(browser, "ood-reasons")
+    assert browser.find_element("id", "ood").get_attribute("data-state") == "ood"
+    for attr in ATTRIBUTES:
+        _, width = _band(browser, attr)
+        assert width == pytest.approx((last["interval"][attr]["hi"] - last["interval"][attr]["lo"]) / 2, abs=0.01)
+    # every window of the last minute is shaded as flagged in the plot
+    assert len(browser.find_elements("css selector", f"#plot-ood-{ATTRIBUTES[0]} rect")) == 4
 
 
 def test_console_without_a_token_says_how_to_open_it(server, browser):

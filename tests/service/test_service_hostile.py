@@ -19,6 +19,7 @@ from service.app import create_app
 from service.fleet import ApiKeys, TokenBucket
 from service.settings import Settings
 from service.state import reap_due
+from service.uncertainty import Assessment
 
 
 # ---- credentials and session creation ---------------------------------------------------------------
@@ -141,8 +142,9 @@ def test_publishing_many_windows_yields_to_the_event_loop(base_settings):
         tick = asyncio.create_task(ticker())
         await asyncio.sleep(0)
         z = np.zeros(4)
-        estimates = [WindowEstimate(i, 0.5 * i, 0.5 * i + 0.5, z, z, z, [], "x", i, 0, 0, 1.0, 1.0, 1.0, "tactile", "m")
-                     for i in range(40)]
+        unknown = Assessment(None, None, ())
+        estimates = [WindowEstimate(i, 0.5 * i, 0.5 * i + 0.5, z, z, z, unknown, [], "x", i, 0, 0, 1.0, 1.0, 1.0,
+                                    "tactile", "m") for i in range(40)]
         await session.apply_result(SessionResult(estimates, 40))
         tick.cancel()
 

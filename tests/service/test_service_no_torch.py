@@ -28,7 +28,7 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         image = open({str(library_dir / "images" / "synth_000.png")!r}, "rb").read()
         visual = rt.embed_frame(rt.decode_frame(image))
         contract = stream_contract(rt, Settings())
-        est = SessionEstimator(rt, contract, alpha=0.5, confidence_windows=5, top_k=3, hysteresis_margin=5,
+        est = SessionEstimator(rt, contract, alpha=0.5, steadiness_windows=5, top_k=3, hysteresis_margin=5,
                                hysteresis_hold=2)
         rng = np.random.default_rng(0)
         block = SampleBlock(0.0, {{"accel": ChannelBlock(rng.standard_normal((600, 3)).astype(np.float32), 1000.0, "m/s^2"),

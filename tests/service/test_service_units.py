@@ -1,4 +1,4 @@
-"""The service's small parts on their own: auth, smoothing/confidence, stream admission, broker queues, metrics, settings."""
+"""The service's small parts on their own: auth, smoothing/steadiness, stream admission, broker queues, metrics, settings."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
 from service.settings import Settings, env_name, settings_table
-from service.smoothing import SD_UNIFORM, ExponentialSmoother, SpreadConfidence
+from service.smoothing import SD_UNIFORM, ExponentialSmoother, Steadiness
 from models.tactile.stream import StreamContract
 from service.session import canonical_channels
 
@@ -37,7 +37,7 @@ def test_tokens_open_only_their_role_and_session():
     assert robot not in repr(creds) and operator not in repr(creds)
 
 
-# ---- smoothing and confidence ----------------------------------------------------------------------
+# ---- smoothing and steadiness ----------------------------------------------------------------------
 def test_ema_passes_the_first_window_then_blends():
     ema = ExponentialSmoother(0.25)
     assert np.allclose(ema.update(np.array([40.0, 0, 0, 0])), [40, 0, 0, 0])
@@ -46,16 +46,16 @@ def test_ema_passes_the_first_window_then_blends():
         ExponentialSmoother(0.0)
 
 
-def test_confidence_is_one_for_agreement_and_falls_with_spread():
-    conf = SpreadConfidence(4)
+def test_steadiness_is_one_for_agreement_and_falls_with_spread():
+    conf = Steadiness(4)
     assert np.all(conf.update(np.full(4, 10.0)) == 0)  # one window: unknown
     assert np.allclose(conf.update(np.full(4, 10.0)), 1.0)
-    spread = SpreadConfidence(2)
+    spread = Steadiness(2)
     spread.update(np.array([-100.0, 0, 0, 0]))
     c = spread.update(np.array([100.0, 0, 0, 0]))
     assert c[0] == 0.0  # sd 100 > the uniform sd → clipped at 0
     assert np.allclose(c[1:], 1.0)
-    mild = SpreadConfidence(2)
+    mild = Steadiness(2)
     mild.update(np.zeros(4))
     assert np.isclose(mild.update(np.array([20.0, 0, 0, 0]))[0], 1 - 10 / SD_UNIFORM)
 
