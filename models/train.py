@@ -33,6 +33,7 @@ def train_and_export(
     options: dict | None = None,
     calibration_folds: int = 10,
     interval_scale: str = "none",
+    exclude: tuple[str, ...] = (),
 ) -> Path:
     """Train `model` on all rated textures of `dataset` and write an ONNX file with its card.
 
@@ -40,12 +41,19 @@ def train_and_export(
     calibration_folds: K of the cross-validation that calibrates the card's prediction intervals
     and goes with its out-of-distribution detector (models.calibrate.cv_uncertainty; K more fits);
     0 leaves both out. interval_scale: "none" or "distance" (see models.intervals).
+    exclude: rated textures left out of everything (training, calibration, detector), e.g. the textures a
+    benchmark then streams as unseen.
     """
     est = build_estimator(model, **(options or {}))
     if not hasattr(est, "export"):
         raise ValueError(f"model {model!r} has no ONNX export; export a network or a ridge model")
     needs_visual = est.modality in ("visual", "both")
     data = load_texture_data(dataset, tactile_config=tactile_config, visual=needs_visual, visual_part=visual_part)
+    if exclude:
+        unknown = sorted(set(exclude) - set(data.textures))
+        if unknown:
+            raise ValueError(f"cannot exclude {unknown}: not rated textures of {dataset}")
+        data = data.take([i for i, t in enumerate(data.textures) if t not in set(exclude)])
     est.fit(data, seed)
     loocv = {}
     if metrics is not None:

@@ -15,7 +15,8 @@ Two modes (`HAPTICLINK_SERVING_POLICY`):
   is flagged out of distribution, or the estimate lies within `full_model_margin` of a library decision
   boundary (the two nearest library models' distances differ by less than that: the choice could flip).
 
-Pure: the policy decides, the session and the pipeline do.
+`ServingPolicy` decides; `SceneViews` is one session's camera state under it (which frames to embed, the
+pooled visual input), used alike by the service's sessions and by `benchmarks/adaptive.py`.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from typing import Literal
 
 import numpy as np
 
-from models.visual.pooling import pool_views
+from models.visual.pooling import ViewPool
+from service.scene_change import scene_changed
 
 PolicyMode = Literal["always-full", "adaptive"]
 POLICY_MODES: tuple[str, ...] = ("always-full", "adaptive")
@@ -84,3 +86,43 @@ class ServingPolicy:
         if flagged is not None:
             need |= np.asarray(flagged, bool)
         return need
+
+
+class SceneViews:
+    """One session's camera scene under a policy: which frames to embed, and the pooled visual input.
+
+    offer(thumbnail) → (embed it?, does it start a new scene?) for each decoded frame, in arrival order;
+    add(embedding (D,), new_scene) → the session's visual input (D,) float32 once it is embedded;
+    forget() after a failed embedding, so the next frame is tried whatever it shows."""
+
+    def __init__(self, policy: ServingPolicy, change_threshold: float) -> None:
+        if not 0 <= change_threshold <= 1:
+            raise ValueError(f"change_threshold must lie in [0, 1], got {change_threshold!r}")
+        self.policy = policy
+        self.threshold = change_threshold
+        self._scene: np.ndarray | None = None  # thumbnail of the scene's first frame
+        self._taken = 0  # frames of the current scene taken for embedding
+        self._views = ViewPool(policy.views_pooled)
+
+    def offer(self, thumb: np.ndarray) -> tuple[bool, bool]:
+        changed = scene_changed(self._scene, thumb, self.threshold)
+        if changed:
+            self._scene, self._taken = thumb, 0
+        if not self.policy.embed_frame(changed, self._taken):
+            return False, changed
+        self._taken += 1
+        return True, changed
+
+    def add(self, embedding: np.ndarray, new_scene: bool) -> np.ndarray:
+        if new_scene:
+            self._views.reset()
+        self._views.add(embedding)
+        return self._views.value()
+
+    @property
+    def views(self) -> int:
+        """Embeddings in the current visual input."""
+        return len(self._views)
+
+    def forget(self) -> None:
+        self._scene = None

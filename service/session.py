@@ -29,14 +29,13 @@ from drivers.blocks import SampleBlock
 from drivers.protocol import SESSION_LOST
 from models.ood import FrameCheck
 from models.tactile.stream import StreamContract
-from models.visual.pooling import ViewPool
+from service.adaptive import SceneViews
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
-from service.scene_change import scene_changed
 from service.schemas import SessionCounters
 from service.settings import Settings
 from texture_library.channels import UNIT_SCALE
@@ -88,14 +87,12 @@ class Session:
         self.estimator = SessionEstimator.from_settings(runtime, self.contract, settings)
         self.visual: np.ndarray | None = None  # the current scene's pooled visual input (policy.views_pooled frames)
         self.frame_checks: dict[str, FrameCheck | None] = {}  # of self.visual, per visual model
-        self._views = ViewPool(runtime.policy.views_pooled)
-        self._scene_taken = 0  # frames of the current scene taken for embedding
+        self._scene = SceneViews(runtime.policy, settings.frame_change)
         self._visual_pool = visual_pool
         self._publish = publish
         self._metrics = metrics
         self._notify = notify
         self._visual_done = visual_done
-        self._scene: np.ndarray | None = None  # thumbnail of the newest frame taken for embedding
         self._pending: list[AdmittedBlock] = []
         self._pending_windows = 0  # windows the pending blocks complete
         self._windows_admitted = 0  # complete windows admitted, all segments
@@ -225,14 +222,10 @@ class Session:
         self.counters.frames_received += 1
         if not self.runtime.needs_visual:
             return "ignored"
-        policy = self.runtime.policy
-        changed = scene_changed(self._scene, thumb, self.settings.frame_change)
-        if changed:
-            self._scene, self._scene_taken = thumb, 0
-        if not policy.embed_frame(changed, self._scene_taken):
+        take, changed = self._scene.offer(thumb)
+        if not take:
             self.counters.frames_unchanged += 1
             return "unchanged"
-        self._scene_taken += 1
         if self._embedder is not None and not self._embedder.done():
             new_scene = changed
             if self._frame is not None:
@@ -255,21 +248,18 @@ class Session:
                 except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
                     log.exception("session %s: embedding a frame failed", self.id)
                     self.counters.pipeline_errors += 1
-                    self._scene = None  # the next frame is tried whatever it shows
+                    self._scene.forget()  # the next frame is tried whatever it shows
                     await self._status("error", f"embedding the frame failed ({type(exc).__name__}: {exc})")
                     continue
                 seconds = time.perf_counter() - started
                 self._metrics.visual_seconds.observe(seconds)
                 first = self.visual is None
-                if new_scene:
-                    self._views.reset()
-                self._views.add(vector)
-                self.visual = self._views.value()
+                self.visual = self._scene.add(vector, new_scene)
                 self.frame_checks = self.runtime.frame_checks(reasons, self.visual)
                 self.counters.frames_embedded += 1
                 flagged = sorted({r for c in self.frame_checks.values() if c is not None for r in c.reasons})
                 await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
-                                   embed_ms=round(seconds * 1e3, 1), views=len(self._views), frame_reasons=flagged)
+                                   embed_ms=round(seconds * 1e3, 1), views=self._scene.views, frame_reasons=flagged)
                 if self.has_work():
                     self._notify(self)
         finally:
