@@ -218,6 +218,23 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
 
 
 @pytest.fixture(scope="session")
+def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
+    """ridge-both on 8 synthetic textures (enough for `hapticlink train` to calibrate intervals and fit the OOD
+    detector, frame ranges included), its ridge-tactile fallback, the backbone, and the dataset (8 s of stroking
+    per texture: tests stream a texture's own recording as the in-distribution case)."""
+    from models.datasets.build import build
+    from models.featurize import backbone_onnx
+    from models.train import train_and_export
+    from models.visual.config import VisualConfig
+
+    root = tmp_path_factory.mktemp("calibrated-visual-model")
+    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=8, image_size=256)
+    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
+    tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
+    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+
+
+@pytest.fixture(scope="session")
 def base_settings(tactile_model, library_dir) -> Settings:
     # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
     # the backpressure tests set a tight one.
