@@ -41,7 +41,7 @@ def warm_up(runtime: Runtime, settings: Settings, seed: int = 0) -> float:
     if runtime.needs_visual and runtime.tactile is None:
         inputs = inputs[1:]  # no tactile-only model: windows are only ever estimated with an embedding
     for batch_sessions in (1, 3):  # one session alone, and a batch of several (other array shapes)
-        jobs = [_job(runtime, settings, contract, rng, v, checks if v is not None else {}) for v in inputs
+        jobs = [synthetic_job(runtime, settings, contract, rng, v, checks if v is not None else {}) for v in inputs
                 for _ in range(batch_sessions)]
         for result in estimate_batch(runtime, jobs):
             if result.error is not None:
@@ -52,7 +52,9 @@ def warm_up(runtime: Runtime, settings: Settings, seed: int = 0) -> float:
     return time.perf_counter() - started
 
 
-def _job(runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual, checks: dict) -> SessionJob:
+def synthetic_job(runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual, checks: dict) -> SessionJob:
+    """A fresh session's job of WARM_UP_WINDOWS windows of random vibration at constant speed and force
+    (warm-up, and benchmarks.uncertainty's per-window cost)."""
     rate = runtime.tactile_config.rate_hz
     n = int(round(rate * (runtime.tactile_config.window_s + (WARM_UP_WINDOWS - 1) * runtime.tactile_config.hop_s)))
     channels = {"accel": Channel(rng.normal(0, 1, size=(n, 3)), rate), "force": Channel(np.full(n, 1.5), rate),
