@@ -113,6 +113,17 @@ def _fmt(ratings: dict) -> str:
     return " ".join(f"{a.split('_')[0][:5]}→{a.split('_')[1][:5]} {ratings[a]:+6.1f}" for a in ATTRIBUTES)
 
 
+def _interval(event: dict) -> str:
+    """The event's interval and flag in one line (or why there is none)."""
+    i = event.get("interval")
+    band = ("no interval (the model card has no calibration)" if i is None else
+            f"{round(100 * i['level'])} % interval " + " ".join(f"[{i[a]['lo']:+.0f}, {i[a]['hi']:+.0f}]" for a in ATTRIBUTES))
+    ood = event.get("out_of_distribution")
+    flag = ("" if ood is None else
+            f"; OUT OF DISTRIBUTION ({', '.join(event['ood_reasons'])})" if ood else "; in distribution")
+    return band + flag
+
+
 async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0) -> None:
     """Subscribe like the console does and print a line every few seconds."""
     import websockets
@@ -128,6 +139,7 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
             truth = tour.library.entry(tour.current).ratings if tour.current else None
             print(f"[{event['t_end_s']:6.1f} s] stroking {tour.current}: estimate {_fmt(event['ratings'])}\n"
                   f"{'':10s}truth of {tour.current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
+                  f"{'':10s}{_interval(event)}\n"
                   f"{'':10s}nearest library texture: {event['chosen']} "
                   f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
                   f"pipeline {event['latency_ms']['total']:.1f} ms", flush=True)
