@@ -124,7 +124,7 @@ class WindowEvent(BaseModel):
                        "the full one where the cheap estimate was not good enough)")
     inputs: Literal["tactile", "tactile+visual"] = Field(
         description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
-        "has not been embedded yet, estimated by the tactile-only model)")
+        "has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap model's estimate)")
 
 
 class StatusEvent(BaseModel):

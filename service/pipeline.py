@@ -86,10 +86,6 @@ class PreparedWindows:
     preprocess_ns: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
 
-    @property
-    def inputs(self) -> Inputs:
-        return "tactile" if self.visual is None else "tactile+visual"
-
 
 @dataclass(frozen=True)
 class FeatureRows:
@@ -306,7 +302,8 @@ def lookup(p: PreparedWindows, raw: np.ndarray, models: Sequence[ServedModel], c
             raw=raw[i].astype(np.float64), smoothed=smoothed, steadiness=steadiness, assessment=assessment,
             matches=matches, chosen=chosen, completed_by=seq, ingest_ns=arrived_ns,
             started_ns=started_ns, features_ms=p.preprocess_ns / 1e6 + features_ms, model_ms=model_ms,
-            lookup_ms=lookup_ms, inputs=p.inputs, model=models[i].name,
+            lookup_ms=lookup_ms, model=models[i].name,
+            inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
         ))
         est.next_index += 1
     return out
