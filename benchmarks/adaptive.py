@@ -83,6 +83,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--cheap", default="ridge-both", help="the cheap model (default ridge-both)")
     parser.add_argument("--pool-frames", type=int, nargs="+", default=[1, 3], help="adaptive variants (default 1 3)")
     parser.add_argument("--calibration-folds", type=int, default=10, help="K-fold calibration of both models (default 10)")
+    parser.add_argument("--full-calibration-folds", type=int, default=None,
+                        help="K of the full model's calibration if other than --calibration-folds (a network costs K more fits)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--synthetic", action="store_true", help="use the synthetic world even if hatt-texnet exists")
     parser.add_argument("--hatt-source", type=Path, default=HATT_SOURCE,
@@ -99,8 +101,9 @@ def main(argv: list[str] | None = None) -> dict:
     source, dataset, library = _data(args)
     streamed = _pick(dataset, args.textures, args.seed)
     print(f"data: {source}; streamed (unseen by both models): {', '.join(streamed)}", flush=True)
-    full = _model(dataset, args.full, streamed, args, "none")
-    cheap = _model(dataset, args.cheap, streamed, args, "distance")
+    full_folds = args.calibration_folds if args.full_calibration_folds is None else args.full_calibration_folds
+    full = _model(dataset, args.full, streamed, args, "none", full_folds)
+    cheap = _model(dataset, args.cheap, streamed, args, "distance", args.calibration_folds)
     backbone = backbone_onnx(VisualConfig())
     stream = _stream(dataset, streamed, args.seconds, args.fps, args.seed)
     print(f"stream: {len(streamed)} × {args.seconds:g} s, {len(stream.blocks)} blocks, {len(stream.frames)} frames", flush=True)
@@ -126,6 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
                    "stream_s": round(len(streamed) * args.seconds, 3), "frames": len(stream.frames),
                    "blocks": len(stream.blocks)},
         "models": {"full": args.full, "cheap": args.cheap, "calibration_folds": args.calibration_folds,
+                   "full_calibration_folds": full_folds,
                    "trained_on": "every rated texture but the streamed ones"},
         "command": "python -m benchmarks.adaptive " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
@@ -170,19 +174,19 @@ def _pick(dataset: Path, n: int, seed: int) -> list[str]:
     return sorted(np.random.default_rng(seed).choice(rated, size=n, replace=False).tolist())
 
 
-def _model(dataset: Path, name: str, streamed: list[str], args, scale: str) -> Path:
+def _model(dataset: Path, name: str, streamed: list[str], args, scale: str, folds: int) -> Path:
     """The model trained without the streamed textures (cached by its recipe)."""
     from models.train import train_and_export
 
-    key = f"{Path(dataset).name}-{name}-{scale}-k{args.calibration_folds}-s{args.seed}-" + "-".join(streamed)
+    key = f"{Path(dataset).name}-{name}-{scale}-k{folds}-s{args.seed}-" + "-".join(streamed)
     out = Path("cache") / "adaptive" / "models" / f"{hashlib.sha256(key.encode()).hexdigest()[:12]}-{name}.onnx"
     recipe = out.with_suffix(".json")
     if out.is_file() and recipe.is_file() and json.loads(recipe.read_text()).get("key") == key:
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
-    print(f"training {name} on the other rated textures (calibration: {args.calibration_folds}-fold, {scale}) …", flush=True)
+    print(f"training {name} on the other rated textures (calibration: {folds}-fold, {scale}) …", flush=True)
     started = time.perf_counter()
-    train_and_export(dataset, name, out, seed=args.seed, calibration_folds=args.calibration_folds,
+    train_and_export(dataset, name, out, seed=args.seed, calibration_folds=folds,
                      interval_scale=scale, exclude=tuple(streamed))
     recipe.write_text(json.dumps({"key": key, "train_s": round(time.perf_counter() - started, 1)}))
     return out
