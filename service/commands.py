@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", type=Path, metavar="PATH", help="exported model .onnx (HAPTICLINK_MODEL_PATH)")
     p.add_argument("--library", type=Path, metavar="DIR", help="texture library directory (HAPTICLINK_LIBRARY_DIR)")
     p.add_argument("--backbone", type=Path, metavar="PATH", help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)")
+    p.add_argument("--cheap-model", type=Path, metavar="PATH",
+                   help="cheap model the adaptive policy asks first (HAPTICLINK_CHEAP_MODEL_PATH)")
+    p.add_argument("--policy", choices=("adaptive", "always-full"), help="serving policy (HAPTICLINK_SERVING_POLICY)")
     p.add_argument("--host", help="address to listen on (HAPTICLINK_HOST, default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (HAPTICLINK_PORT, default 8000)")
     p.add_argument("--broker", choices=("memory", "redis"), help="event fan-out (HAPTICLINK_BROKER)")
@@ -43,6 +46,8 @@ FLAG_TO_FIELD = {
     "model": "model_path",
     "library": "library_dir",
     "backbone": "backbone_path",
+    "cheap_model": "cheap_model_path",
+    "policy": "serving_policy",
     "host": "host",
     "port": "port",
     "broker": "broker",

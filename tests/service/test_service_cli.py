@@ -23,6 +23,11 @@ def test_flags_override_the_environment(monkeypatch, tmp_path):
     args = build_parser().parse_args(["serve", "--model", str(tmp_path / "m.onnx"), "--port", "9100"])
     settings = settings_from_args(args)
     assert settings.port == 9100 and settings.host == "0.0.0.0" and settings.model_path == tmp_path / "m.onnx"
+    assert settings.serving_policy == "adaptive" and settings.cheap_model_path is None  # the defaults
+    monkeypatch.setenv("HAPTICLINK_SERVING_POLICY", "adaptive")
+    args = build_parser().parse_args(["serve", "--policy", "always-full", "--cheap-model", str(tmp_path / "c.onnx")])
+    settings = settings_from_args(args)
+    assert settings.serving_policy == "always-full" and settings.cheap_model_path == tmp_path / "c.onnx"
 
 
 def test_bad_settings_are_named_without_a_traceback(capsys, tmp_path):
