@@ -96,8 +96,8 @@ class SceneViews:
     forget() after a failed embedding, so the next frame is tried whatever it shows."""
 
     def __init__(self, policy: ServingPolicy, change_threshold: float) -> None:
-        if not 0 <= change_threshold <= 1:
-            raise ValueError(f"change_threshold must lie in [0, 1], got {change_threshold!r}")
+        if not 0 <= change_threshold <= 2:
+            raise ValueError(f"change_threshold must lie in [0, 2], got {change_threshold!r}")
         self.policy = policy
         self.threshold = change_threshold
         self._scene: np.ndarray | None = None  # thumbnail of the scene's first frame

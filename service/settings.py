@@ -110,8 +110,9 @@ class Settings(BaseSettings):
     visual_queue: int = Field(
         4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429")
     frame_change: float = Field(
-        0.05, ge=0, le=1, description="a frame is embedded only when its thumbnail differs from the last embedded one by more "
-        "than this (mean absolute grey difference, 0…1); 0 embeds every frame")
+        0.015, ge=0, le=2, description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
+        "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of each, summed; "
+        "service/scene_change.py)")
     timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
     request_read_timeout_s: float = Field(
         10.0, gt=0, description="a request's headers and body must arrive within this, s (half-open requests are closed)")

@@ -1,4 +1,5 @@
-"""scene_change: a camera looking at one surface is one scene; another surface, a moved view or a change of light is not."""
+"""scene_change: a camera looking at one surface is one scene; another surface (even of the same brightness), a moved
+view or a change of light is not."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import pytest
 from service.scene_change import frame_difference, scene_changed, thumbnail
 
 
-def test_thumbnail_is_the_block_means():
+def test_thumbnail_is_the_block_means_and_standard_deviations():
     gray = np.zeros((32, 48), np.float32)
     gray[:16, :24] = 1.0  # top-left quarter white
+    gray[16:, 24:][::2] = 1.0  # bottom-right quarter: white and black rows, mean 0.5, sd 0.5
     t = thumbnail(gray, size=2)
-    assert t.shape == (2, 2) and np.allclose(t, [[1, 0], [0, 0]])
+    assert t.shape == (2, 2, 2)
+    assert np.allclose(t[0], [[1, 0], [0, 0.5]]) and np.allclose(t[1], [[0, 0], [0, 0.5]])
     with pytest.raises(ValueError, match="H, W ≥ 16"):
         thumbnail(np.zeros((8, 300)))
     with pytest.raises(ValueError, match="shape"):
@@ -21,18 +24,22 @@ def test_thumbnail_is_the_block_means():
 
 def test_noise_is_the_same_scene_another_surface_is_not():
     rng = np.random.default_rng(0)
+    camera = lambda img: np.clip(img + rng.normal(0, 0.03, img.shape), 0, 1).astype(np.float32)  # noqa: E731
     surface = np.kron(rng.uniform(0.2, 0.8, size=(14, 14)), np.ones((32, 32))).astype(np.float32)  # coarse texture
-    noisy = np.clip(surface + rng.normal(0, 0.03, surface.shape), 0, 1).astype(np.float32)  # sensor noise
     other = np.kron(rng.uniform(0.2, 0.8, size=(14, 14)), np.ones((32, 32))).astype(np.float32)
-    darker = surface * 0.7
-    a, b = thumbnail(surface), thumbnail(noisy)
-    assert frame_difference(a, b) < 0.01
-    assert not scene_changed(a, b, 0.05)
-    assert scene_changed(a, thumbnail(other), 0.05)
-    assert scene_changed(a, thumbnail(darker), 0.05)  # the light changed
-    assert scene_changed(None, a, 0.05)  # no scene yet
+    # the same mean brightness everywhere, another grain: block means cannot tell, block deviations can
+    fine = np.tile(np.array([[0.3, 0.7], [0.7, 0.3]], np.float32), (224, 224))
+    flat = np.full((448, 448), 0.5, np.float32)
+    a, b = thumbnail(camera(surface)), thumbnail(camera(surface))  # two frames of one surface, one camera
+    assert frame_difference(a, b) < 0.005
+    assert not scene_changed(a, b, 0.015)
+    assert scene_changed(a, thumbnail(camera(other)), 0.015)
+    assert scene_changed(a, thumbnail(camera(surface * 0.7)), 0.015)  # the light changed
+    assert np.allclose(thumbnail(fine)[0], thumbnail(flat)[0])
+    assert scene_changed(thumbnail(camera(fine)), thumbnail(camera(flat)), 0.015)
+    assert scene_changed(None, a, 0.015)  # no scene yet
     assert scene_changed(a, b, 0.0) == (frame_difference(a, b) > 0)
     with pytest.raises(ValueError, match="threshold"):
-        scene_changed(a, b, 2.0)
+        scene_changed(a, b, 3.0)
     with pytest.raises(ValueError, match="same shape"):
         frame_difference(a, thumbnail(surface, size=8))
