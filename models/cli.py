@@ -85,6 +85,9 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     _feature_args(e)
     _net_args(e)
     e.add_argument("--no-figures", action="store_true")
+    e.add_argument("--no-truth", action="store_true",
+                   help="leave the per-texture ratings out of results.json (licensed ratings must not be "
+                        "committed); implies --no-figures, which draw them")
     e.add_argument("--latency-only", action="store_true",
                    help="only (re)measure the per-window latency into an existing OUT/results.json")
     e.set_defaults(func=_evaluate)
@@ -108,8 +111,19 @@ def register_models(sub: argparse._SubParsersAction) -> None:
 
 
 def _feature_args(parser: argparse.ArgumentParser) -> None:
+    from models.tactile.config import EXTRA_GROUPS
+
     parser.add_argument("--tactile-features", default="mfcc", choices=["mfcc", "dwt", "dft"])
+    parser.add_argument("--extra-groups", nargs="*", default=[], choices=list(EXTRA_GROUPS), metavar="GROUP",
+                        help=f"tactile feature groups added to the feature set: any of {', '.join(EXTRA_GROUPS)} "
+                             "(friction needs 3-column force; taps needs tap transients per texture)")
     parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+
+
+def _tactile_config(args: argparse.Namespace):
+    from models.tactile.config import TactileConfig
+
+    return TactileConfig(feature_set=args.tactile_features, extra_groups=tuple(args.extra_groups))
 
 
 def _net_args(parser: argparse.ArgumentParser) -> None:
@@ -128,11 +142,10 @@ def _evaluate(args: argparse.Namespace) -> int:
     from models.evaluation.data import load_texture_data
     from models.evaluation.evaluate import evaluate
     from models.evaluation.registry import EstimatorSpec
-    from models.tactile.config import TactileConfig
 
     spec = EstimatorSpec(args.model, _options(args))
     modality = spec.build().modality
-    data = load_texture_data(args.dataset, tactile_config=TactileConfig(feature_set=args.tactile_features),
+    data = load_texture_data(args.dataset, tactile_config=_tactile_config(args),
                              visual=modality in ("visual", "both"), visual_part=args.visual_part, workers=args.workers)
     if args.latency_only:
         import json
@@ -151,7 +164,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})")
         return 0
     res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
-                   figures=not args.no_figures)
+                   figures=not (args.no_figures or args.no_truth), truth=not args.no_truth)
     mae, sd = res["mae"], res["mae_std"]
     print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
     for k in mae:
@@ -161,11 +174,10 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from models.tactile.config import TactileConfig
     from models.train import train_and_export
 
     path = train_and_export(args.dataset, args.model, args.out, seed=args.seed,
-                            tactile_config=TactileConfig(feature_set=args.tactile_features),
+                            tactile_config=_tactile_config(args),
                             visual_part=args.visual_part, metrics=args.metrics, options=_options(args))
     print(f"wrote {path}")
     return 0

@@ -19,6 +19,7 @@ from models.datasets.build import run_jobs
 from models.datasets.format import Dataset
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
+from models.tactile.taps import tap_features
 from models.visual.config import VisualConfig
 
 DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
@@ -65,15 +66,28 @@ def _crop_s(ds: Dataset) -> float:
     return float(ds.header.get("build", {}).get("crop_s", 0.0))
 
 
+def texture_tap_features(ds: Dataset, texture: str) -> np.ndarray:
+    """(3,) tap features of a texture's recorded taps (models.tactile.taps); ValueError if it has none."""
+    taps = ds.taps(texture)
+    if taps is None:
+        raise ValueError(f"texture {texture!r} has no tap transients (its vibration.npz holds none); "
+                         "use a feature configuration without the taps group")
+    try:
+        return tap_features(taps.speeds, taps.accel)
+    except ValueError as exc:
+        raise ValueError(f"texture {texture!r}: {exc}") from None
+
+
 def _tactile_job(job: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     ds = Dataset(job["root"])
     cfg = TactileConfig(**job["config"])
     out = []
     crop = job["crop_s"]
     names = ds.meta(job["texture"]).recordings
+    taps = texture_tap_features(ds, job["texture"]) if "taps" in cfg.extra_groups else None
     for name, rec in zip(names, ds.recordings(job["texture"])):
         try:
-            feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop)
+            feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop, taps=taps)
         except ValueError as exc:
             raise ValueError(f"texture {job['texture']!r}, {name} (crop_s={crop:g} s at both ends): {exc}") from None
         out.append((feats, t0))

@@ -45,6 +45,28 @@ def tactile_summary(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> np
     return np.stack([np.concatenate([funcs[s](w, axis=0) for s in stats]) for w in data.tactile]).astype(np.float64)
 
 
+def tactile_groups(data: TextureData) -> list[slice]:
+    """Column slices of the tactile feature groups (TactileConfig.group_slices: the base set, then each
+    extra group), or one slice over every column when the data does not name its configuration."""
+    width = data.tactile[0].shape[1]
+    if "tactile_config" not in data.meta:
+        return [slice(0, width)]
+    from models.tactile.config import TactileConfig
+
+    slices = list(TactileConfig(**data.meta["tactile_config"]).group_slices().values())
+    if slices[-1].stop != width:
+        raise ValueError(f"tactile features have {width} columns, their configuration says {slices[-1].stop}")
+    return slices
+
+
+def tactile_blocks(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> list[np.ndarray]:
+    """tactile_summary split into one block per feature group, each with its columns of every statistic."""
+    summary = tactile_summary(data, stats)
+    width = data.tactile[0].shape[1]
+    return [np.concatenate([summary[:, k * width + g.start : k * width + g.stop] for k in range(len(stats))], axis=1)
+            for g in tactile_groups(data)]
+
+
 def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
     """(T, D): one view of each texture's image (view 0 is the original)."""
     if data.visual is None:
@@ -53,8 +75,11 @@ def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
 
 
 class TextureFeatures:
-    """Builds the standardised design matrix of a modality; blocks are weighted so each
-    modality carries equal total variance in a fusion (otherwise the larger block dominates)."""
+    """Builds the standardised design matrix of a modality; blocks are weighted so each block
+    carries equal total variance in a fusion (otherwise the larger block dominates). The blocks
+    are the visual vector and each tactile feature group (the 526 MFCC features and statistics
+    are one group; friction, spatial and taps are one each), so two friction columns weigh as
+    much as 526 MFCC columns."""
 
     def __init__(self, modality: Modality, tactile_stats: tuple[str, ...] = ("mean",)):
         if modality not in ("tactile", "visual", "both"):
@@ -67,7 +92,7 @@ class TextureFeatures:
         if self.modality in ("visual", "both"):
             blocks.append(visual_matrix(data, view))
         if self.modality in ("tactile", "both"):
-            blocks.append(tactile_summary(data, self.tactile_stats))
+            blocks += tactile_blocks(data, self.tactile_stats)
         return blocks
 
     def fit_transform(self, data: TextureData) -> np.ndarray:
@@ -163,9 +188,17 @@ class RidgeEstimator(Estimator):
         if self.features.tactile_stats != ("mean",):
             raise ValueError("only ridge on mean tactile features can be exported (std is not linear per window)")
         g = GraphBuilder()
-        names = [n for n in ("visual", "tactile") if self.modality in (n, "both")]
-        z = g.concat([g.standardized(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP)
-                      for n, s in zip(names, self.features.scalers)])
+        scalers = list(self.features.scalers)
+        parts = []
+        if self.modality in ("visual", "both"):
+            s = scalers.pop(0)
+            parts.append(g.standardized("visual", s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP))
+        if scalers:  # the tactile groups: contiguous column blocks of the one tactile input, each its own weight
+            z = g.standardized("tactile", np.concatenate([s.mean for s in scalers]),
+                               np.concatenate([s.std for s in scalers]), 1.0, clip=Z_CLIP)
+            weights = np.concatenate([np.full(s.mean.size, 1.0 / np.sqrt(s.mean.size)) for s in scalers])
+            parts.append(g.op("Mul", z, g.const(weights)))
+        z = g.concat(parts)
         out = g.op("Add", g.op("MatMul", z, g.const(self.coef)), g.const(self.y_mean))
         return g.save(path, out, metadata)
 

@@ -51,8 +51,9 @@ def window_latency(data: TextureData, spec: EstimatorSpec, seed: int = 0, n: int
     return {**timing, "runtime": "python (no ONNX export)", "threads": 1, "batch": 1}
 
 
-def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
-    """Seed-averaged metrics (mean ± std over seeds) and the seed-averaged predictions."""
+def summarize_runs(data: TextureData, runs: list[LoocvRun], *, truth: bool = True) -> dict:
+    """Seed-averaged metrics (mean ± std over seeds) and the seed-averaged predictions
+    (with the per-texture ratings unless truth=False)."""
     per_seed = []
     for run in runs:
         e = error_table(run.predictions, data.targets)
@@ -72,7 +73,8 @@ def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
         "per_seed": per_seed,
         "ensemble_of_seeds": error_table(mean_pred, data.targets),
         "predictions": {t: dict(zip(ATTRIBUTES, map(float, p))) for t, p in zip(data.textures, mean_pred)},
-        "truth": {t: dict(zip(ATTRIBUTES, map(float, y))) for t, y in zip(data.textures, data.targets)},
+        **({"truth": {t: dict(zip(ATTRIBUTES, map(float, y))) for t, y in zip(data.textures, data.targets)}}
+           if truth else {}),
         "group_mae": group_errors(mean_pred, data.targets, data.groups),
         # synthetic world: how well the documented physics → rating mapping is recovered
         "vs_true_mapping": error_table(mean_pred, data.meta["true_ratings"]) if "true_ratings" in data.meta else None,
@@ -91,8 +93,12 @@ def evaluate(
     progress: bool = True,
     figures: bool = True,
     latency: bool = True,
+    truth: bool = True,
 ) -> dict:
-    """LOOCV for every seed; writes out/results.json (+ figures) and returns the results dict."""
+    """LOOCV for every seed; writes out/results.json (+ figures) and returns the results dict.
+    truth=False leaves the per-texture ratings out of results.json (no figures then: they draw them)."""
+    if figures and not truth:
+        raise ValueError("figures draw the per-texture ratings: they need truth=True")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -105,13 +111,14 @@ def evaluate(
         "n_textures": len(data),
         "seeds": list(seeds),
         "scale": "0-100 (bipolar error / 2)",
-        **summarize_runs(data, runs),
+        **summarize_runs(data, runs, truth=truth),
         "n_params": runs[0].n_params,
         "latency_us": window_latency(data, spec) if latency else None,
         "wall_s": time.perf_counter() - t0,
         "hardware": hardware(),
         "features": {**{k: v for k, v in data.meta.items() if k not in ("tactile_config", "true_ratings")},
-                     "tactile_features": data.meta["tactile_config"]["feature_set"]},
+                     "tactile_features": data.meta["tactile_config"]["feature_set"],
+                     "extra_groups": list(data.meta["tactile_config"].get("extra_groups", []))},
         "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None,
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))
