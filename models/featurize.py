@@ -176,9 +176,11 @@ def visual_table(
     return table
 
 
-def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True) -> str:
-    """Fill the feature caches of a dataset; returns a one-line summary."""
-    t = tactile_table(root, workers=workers)
+def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True,
+                      tactile_config: TactileConfig | None = None) -> str:
+    """Fill the feature caches of a dataset (tactile: the given configuration, default the paper's);
+    returns a one-line summary."""
+    t = tactile_table(root, tactile_config, workers=workers)
     summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
     if visual:
         v = visual_table(root)

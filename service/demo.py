@@ -1,10 +1,14 @@
 """`hapticlink demo`: the whole loop on one machine, from nothing.
 
 1. Prepare assets once (cached in artifacts/demo): a synthetic-world dataset, a model trained on
-   it and exported to ONNX, the visual backbone's ONNX, the texture library (the same world), and
-   a few *unseen* probe textures (another seed) for the simulated robot to stroke.
+   it with the physics feature groups the wire carries today (DEMO_FEATURES: MFCC + friction +
+   spatial) and exported to ONNX, the visual backbone's ONNX, the texture library (the same
+   world), and a few *unseen* probe textures (another seed) for the simulated robot to stroke.
+   Assets from another world version, model or feature set are rebuilt.
 2. Start the service, a simulated robot that strokes each probe texture in turn (sending its
-   camera frame first), and a terminal subscriber that prints what the operator console shows.
+   camera frame first), and a terminal subscriber that prints what the operator console shows
+   and, REPORT_AFTER_S into each probe's stroke, the estimate next to the probe's ground truth
+   with the error (0–100 scale, mean over the four attributes).
 3. Print the console URL; Ctrl-C ends everything cleanly.
 """
 
@@ -18,12 +22,18 @@ import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
+import numpy as np
+
 from drivers.blocks import Frame, SampleBlock
-from texture_library.attributes import ATTRIBUTES
+from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 log = logging.getLogger("hapticlink.demo")
-DEMO_MODEL = "ann"  # reads touch and vision, trains in seconds, best exportable model on the synthetic world (reports/synthetic)
+DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
+#: tactile feature groups of the demo's model: those the wire carries today (taps need the tap procedure)
+DEMO_GROUPS = ("friction", "spatial")
+DEMO_TEXTURES = 48  # the world the model learns from (the library holds the first 24 of them)
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
+REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,8 +45,26 @@ class DemoAssets:
     probes: Path
 
 
-def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed: int = 0) -> DemoAssets:
-    """Build whatever is missing under root (needs the train extra the first time)."""
+def demo_features():
+    """The demo model's TactileConfig: the paper's MFCC set + DEMO_GROUPS."""
+    from models.tactile.config import TactileConfig
+
+    return TactileConfig(extra_groups=DEMO_GROUPS)
+
+
+def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> dict:
+    from texture_library.procedural import WORLD_VERSION
+
+    return {"world_version": WORLD_VERSION, "model": DEMO_MODEL, "tactile_hash": demo_features().hash(),
+            "n_textures": n_textures, "library_textures": library_textures, "n_probes": n_probes, "seed": seed}
+
+
+def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int = 4, seed: int = 0,
+                   library_textures: int = 24) -> DemoAssets:
+    """Build whatever is missing under root (needs the train extra the first time); assets made for
+    another world version, model, feature set or size are rebuilt."""
+    import shutil
+
     from models.datasets.build import build
     from models.featurize import backbone_onnx, featurize_dataset
     from models.train import train_and_export
@@ -45,14 +73,23 @@ def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed:
 
     root.mkdir(parents=True, exist_ok=True)
     assets = DemoAssets(root / "dataset", root / "model.onnx", Path(), root / "library", root / "probes")
+    stamp_path, stamp = root / "assets.json", _stamp(n_textures, library_textures, n_probes, seed)
+    if stamp_path.is_file() and json.loads(stamp_path.read_text()) != stamp or not stamp_path.is_file() and assets.model.is_file():
+        print("  · assets were made for another world or model: rebuilding them", flush=True)
+        for path in (assets.dataset, assets.library, assets.probes):
+            shutil.rmtree(path, ignore_errors=True)
+        assets.model.unlink(missing_ok=True)
+    features = demo_features()
+    library_textures = min(library_textures, n_textures)
     steps = [
         (not (assets.dataset / "dataset.json").is_file(), f"building a synthetic world of {n_textures} textures",
          lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed)),
-        (True, "computing features (cached after the first run)", lambda: featurize_dataset(assets.dataset)),
-        (not assets.model.is_file(), f"training {DEMO_MODEL} on it and exporting ONNX",
-         lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed)),
+        (True, "computing features (cached after the first run)",
+         lambda: featurize_dataset(assets.dataset, tactile_config=features)),
+        (not assets.model.is_file(), f"training {DEMO_MODEL} on it (MFCC + {' + '.join(DEMO_GROUPS)}) and exporting ONNX",
+         lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features)),
         (not (assets.library / "library.json").is_file(), "writing the texture library",
-         lambda: build_synthetic_library(assets.library, n_textures=n_textures, seed=seed)),
+         lambda: build_synthetic_library(assets.library, n_textures=library_textures, seed=seed)),
         (not (assets.probes / "library.json").is_file(), f"making {n_probes} unseen probe textures",
          lambda: build_synthetic_library(assets.probes, n_textures=n_probes, seed=seed + 1)),
     ]
@@ -60,6 +97,7 @@ def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed:
         if needed:
             print(f"  · {what} …", flush=True)
             step()
+    stamp_path.write_text(json.dumps(stamp))
     return dataclasses.replace(assets, backbone=backbone_onnx(VisualConfig()))
 
 
@@ -108,8 +146,55 @@ def _fmt(ratings: dict) -> str:
     return " ".join(f"{a.split('_')[0][:5]}→{a.split('_')[1][:5]} {ratings[a]:+6.1f}" for a in ATTRIBUTES)
 
 
-async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0) -> None:
-    """Subscribe like the console does and print a line every few seconds."""
+def rating_error(estimate: dict, truth: dict) -> float:
+    """Mean absolute error over the four attributes on the 0–100 scale (bipolar difference ÷ 2)."""
+    return float(np.mean([abs(estimate[a] - truth[a]) for a in ATTRIBUTES]) * REPORT_SCALE)
+
+
+class ProbeReport:
+    """Collects each probe's window estimates over its first `after_s` seconds of stroking (the probe
+    and the time into its stroke follow from the window's end on the robot's clock: probe k strokes
+    from k·(per_texture_s + SCENE_GAP_S) for per_texture_s) and, once a window ends past `after_s`,
+    returns the lines comparing the estimates with the probe's truth. Keeps the errors for a summary."""
+
+    def __init__(self, ids: list[str], truth: dict[str, dict], per_texture_s: float, after_s: float = REPORT_AFTER_S):
+        self.ids, self.truth, self.per_texture_s, self.after_s = ids, truth, per_texture_s, after_s
+        self.raw: dict[int, list[dict]] = {}
+        self.done: set[int] = set()
+        self.errors: list[tuple[str, float, float]] = []  # (probe, error of the console estimate, of the mean)
+
+    def add(self, t_end_s: float, ratings: dict, raw_ratings: dict) -> list[str]:
+        period = self.per_texture_s + SCENE_GAP_S
+        k = int(t_end_s // period)
+        into = t_end_s - k * period
+        if k in self.done or into > self.per_texture_s + 1e-6:
+            return []
+        self.raw.setdefault(k, []).append(raw_ratings)
+        if into < self.after_s - 1e-6:
+            return []
+        self.done.add(k)
+        probe = self.ids[k % len(self.ids)]
+        truth = self.truth[probe]
+        mean = {a: float(np.mean([r[a] for r in self.raw.pop(k)])) for a in ATTRIBUTES}
+        e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
+        self.errors.append((probe, e_now, e_mean))
+        return [f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "
+                f"4 attributes, 0–100 scale)",
+                f"{'':10s}console estimate  {_fmt(ratings)}   error {e_now:5.1f}",
+                f"{'':10s}mean of windows   {_fmt(mean)}   error {e_mean:5.1f}",
+                f"{'':10s}truth             {_fmt(truth)}"]
+
+    def summary(self) -> str | None:
+        if not self.errors:
+            return None
+        now, mean = np.mean([e[1] for e in self.errors]), np.mean([e[2] for e in self.errors])
+        return (f"after {self.after_s:g} s of each of {len(self.errors)} probe stroke(s): mean error {now:.1f} "
+                f"(console estimate), {mean:.1f} (mean of windows) points on 0–100")
+
+
+async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0,
+                       report: ProbeReport | None = None) -> None:
+    """Subscribe like the console does and print a line every few seconds, and each probe's report."""
     import websockets
 
     ws_url = url.replace("http", "ws", 1) + f"/sessions/{session}/events?token={token}"
@@ -117,7 +202,13 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
     async with websockets.connect(ws_url) as ws:
         async for message in ws:
             event = json.loads(message)
-            if event.get("type") != "window" or time.monotonic() - last < every_s:
+            if event.get("type") != "window":
+                continue
+            if report is not None:
+                lines = report.add(event["t_end_s"], event["ratings"], event["raw_ratings"])
+                if lines:
+                    print("\n".join(lines), flush=True)
+            if time.monotonic() - last < every_s:
                 continue
             last = time.monotonic()
             truth = tour.library.entry(tour.current).ratings if tour.current else None
@@ -128,7 +219,8 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
                   f"pipeline {event['latency_ms']['total']:.1f} ms", flush=True)
 
 
-async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: float, duration_s: float | None) -> None:
+async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: float, duration_s: float | None,
+                   report_after_s: float = REPORT_AFTER_S) -> None:
     import uvicorn
 
     from drivers.robot import RobotClient
@@ -150,13 +242,18 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     info = await robot.open_session()
     print(f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
           f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n", flush=True)
-    printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour))
+    truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
+    report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
+    printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour, report=report))
     try:
         await robot.run(duration_s)
+        await asyncio.sleep(0.5)  # the last windows' events are still on their way
     finally:
         printer.cancel()
         server.should_exit = True
         await asyncio.gather(printer, serving, return_exceptions=True)
+        if report.summary():
+            print(report.summary(), flush=True)
     print(f"robot stats: {robot.stats.as_dict()}")
 
 

@@ -44,6 +44,8 @@ from texture_library.surface import SurfaceProfile
 from texture_library.taps import TapSet
 from texture_library.vibration import VibrationModel
 
+#: bumped whenever the world's physics change: datasets record it, demo assets of another version are rebuilt
+WORLD_VERSION = 2
 RATE_HZ = 1000.0
 GRID_MAX_SPEED = 350.0  # mm/s
 GRID_MAX_FORCE = 5.0  # N

@@ -9,6 +9,7 @@ import numpy as np
 
 from models.datasets.format import Dataset
 from models.evaluation.metrics import split_half_ceiling
+from models.report.feature_groups import feature_group_section
 from models.report.speed_accuracy import pareto_front, speed_accuracy_chart
 from texture_library.attributes import ATTRIBUTES
 
@@ -79,6 +80,7 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
                   "|---|---|" + "---:|" * len(KEYS)]
         lines += [f"| {r['model']} | {_ablation_label(r)} | " + " | ".join(_cell(r, 'mae', k) for k in KEYS) + " |" for r in ablation]
         lines.append("")
+    lines += feature_group_section(dataset, folder)
     lines += _speed_section(main, folder, mean_pred, ceiling)
     lines += [f"## The best model: {best['model']}", "",
               f"![actual vs predicted]({best['dir']}/actual_vs_predicted.png)", "",
