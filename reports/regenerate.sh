@@ -7,12 +7,15 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 hl() { .venv/bin/hapticlink "$@"; }
 H=data/hatt-texnet
-S=data/synthetic-48
+S=data/physics-synthetic-48     # the synthetic world (world_version 2: bumps, friction and taps the sensors can read)
+P=data/physics-hatt-texnet      # HaTT–TexNet rebuilt for the feature-group study (friction from each model's mu, HaTT's taps)
+GROUPSETS=("" "friction" "spatial" "taps" "friction spatial" "friction spatial taps")
 
 # ---- datasets (HaTT–TexNet read from ../shared, never copied into the repo) --------------------
 [ -f $H/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $H
 hl dataset check $H
 [ -f $S/dataset.json ] || hl dataset build --source synthetic --n-textures 48 --duration 10 --out $S
+[ -f $P/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $P
 
 # ---- HaTT–TexNet: classical models and controls (3 seeds) ---------------------------------------
 for m in mean shuffled-ridge-both ridge-visual ridge-tactile ridge-both knn-visual knn-tactile knn-both \
@@ -51,4 +54,23 @@ done
 for feat in dwt dft; do
   hl evaluate --dataset $S --model ridge-tactile --tactile-features $feat --out reports/synthetic/ablation/ridge-tactile-$feat --seeds 0
 done
+# the physics feature groups: the demo's model (friction + spatial, what the wire carries) and every group
+hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial --out reports/synthetic/ridge-both+friction+spatial --seeds 0 1 2
+hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial taps --out reports/synthetic/ridge-both+friction+spatial+taps --seeds 0 1 2
+# ---- feature groups: each group's contribution per attribute, 3 seeds (both datasets) -------------
+# HaTT–TexNet's ratings are licensed: --no-truth keeps them out of the committed results
+groups_study() {  # dataset, reports folder, extra options
+  local ds=$1 out=$2; shift 2
+  hl evaluate --dataset $ds --model mean --out $out/feature-groups/mean --seeds 0 --no-figures "$@"
+  for m in ridge-tactile ridge-both svr-both ann; do
+    for g in "${GROUPSETS[@]}"; do
+      name=${g// /+}
+      # shellcheck disable=SC2086  # $g is a list of group names
+      hl evaluate --dataset $ds --model $m --extra-groups $g --out $out/feature-groups/$m/${name:-mfcc} \
+        --seeds 0 1 2 --no-figures "$@"
+    done
+  done
+}
+groups_study $S reports/synthetic
+groups_study $P reports/physics-hatt-texnet --no-truth
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"

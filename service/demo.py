@@ -175,7 +175,8 @@ class ProbeReport:
         self.done.add(k)
         probe = self.ids[k % len(self.ids)]
         truth = self.truth[probe]
-        mean = {a: float(np.mean([r[a] for r in self.raw.pop(k)])) for a in ATTRIBUTES}
+        windows = self.raw.pop(k)
+        mean = {a: float(np.mean([r[a] for r in windows])) for a in ATTRIBUTES}
         e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
         self.errors.append((probe, e_now, e_mean))
         return [f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "

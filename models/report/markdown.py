@@ -61,6 +61,8 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
     if not results:
         raise ValueError(f"no results.json under {folder}; run `hapticlink evaluate … --out {folder}/<model>` first")
     main = sorted((r for r in results if "/" not in r["dir"]), key=lambda r: r["mae"]["mean"])
+    if not any(not r["model"].startswith(("mean", "shuffled")) for r in main):
+        return _feature_group_page(dataset, folder, results, regenerate)
     ablation = sorted((r for r in results if r["dir"].startswith("ablation/")), key=lambda r: (r["model"], _ablation_label(r)))
     _, _, table = Dataset(dataset).rating_table()
     ceiling = split_half_ceiling(table) if table.shape[1] >= 2 else None
@@ -88,6 +90,19 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
               f"![perceptual space]({best['dir']}/perceptual_space.png)", ""]
     out = folder / "README.md"
     out.write_text("\n".join(lines))
+    return out
+
+
+def _feature_group_page(dataset: str | Path, folder: Path, results: list[dict], regenerate: str) -> Path:
+    """A page of the feature-group study alone (a folder with no main model runs)."""
+    section = feature_group_section(dataset, folder)
+    if not section:
+        raise ValueError(f"{folder} holds no model runs to report (only {sorted({r['model'] for r in results})})")
+    lines = [f"# {results[0]['dataset']}: feature groups, leave-one-texture-out", ""]
+    if regenerate:
+        lines += ["Regenerate everything on this page with:", "", "```", regenerate, "```", ""]
+    out = folder / "README.md"
+    out.write_text("\n".join(lines + section))
     return out
 
 

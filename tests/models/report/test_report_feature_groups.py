@@ -64,3 +64,15 @@ def test_no_truth_conflicts_with_figures(group_reports, tmp_path):
     data = load_texture_data(dataset, visual=False)
     with pytest.raises(ValueError, match="need truth"):
         evaluate(data, EstimatorSpec("mean"), tmp_path, seeds=(0,), truth=False, figures=True, progress=False)
+
+
+def test_a_folder_of_feature_groups_alone_gets_its_own_page(group_reports, tmp_path):
+    import shutil
+
+    dataset, reports = group_reports
+    only = tmp_path / "only"
+    shutil.copytree(reports / "feature-groups", only / "feature-groups")
+    page = build_report(dataset, only).read_text()
+    assert page.startswith("# ") and "feature groups" in page.splitlines()[0] and "### ridge-tactile" in page
+    with pytest.raises(ValueError, match="no results.json"):
+        build_report(dataset, tmp_path / "empty")
