@@ -101,6 +101,15 @@ def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int
     return dataclasses.replace(assets, backbone=backbone_onnx(VisualConfig()))
 
 
+def probe_clock(t_s: float, per_texture_s: float) -> tuple[int, float]:
+    """(k, seconds into probe k's stroke) at stream time t_s: the tour strokes probe k from
+    k·(per_texture_s + SCENE_GAP_S) for per_texture_s seconds (a window ending exactly at a
+    stroke's end belongs to that stroke)."""
+    period = per_texture_s + SCENE_GAP_S
+    k = int(max(t_s - 1e-9, 0.0) // period)
+    return k, t_s - k * period
+
+
 class ProbeTour:
     """A sensor source that strokes each probe texture for `per_texture_s`, in a loop (or `rounds` times)."""
 
@@ -138,6 +147,11 @@ class ProbeTour:
     def __aiter__(self) -> AsyncIterator[SampleBlock | Frame]:
         return self._items()
 
+    def probe_at(self, t_s: float) -> str:
+        """The probe stroked at stream time t_s (e.g. a window's end)."""
+        k, _ = probe_clock(t_s, self.per_texture_s)
+        return self.library.ids[k % len(self.library.ids)]
+
     async def aclose(self) -> None:
         self._closing = True
 
@@ -164,9 +178,7 @@ class ProbeReport:
         self.errors: list[tuple[str, float, float]] = []  # (probe, error of the console estimate, of the mean)
 
     def add(self, t_end_s: float, ratings: dict, raw_ratings: dict) -> list[str]:
-        period = self.per_texture_s + SCENE_GAP_S
-        k = int(t_end_s // period)
-        into = t_end_s - k * period
+        k, into = probe_clock(t_end_s, self.per_texture_s)
         if k in self.done or into > self.per_texture_s + 1e-6:
             return []
         self.raw.setdefault(k, []).append(raw_ratings)
@@ -212,9 +224,11 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
             if time.monotonic() - last < every_s:
                 continue
             last = time.monotonic()
-            truth = tour.library.entry(tour.current).ratings if tour.current else None
-            print(f"[{event['t_end_s']:6.1f} s] stroking {tour.current}: estimate {_fmt(event['ratings'])}\n"
-                  f"{'':10s}truth of {tour.current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
+            # the probe this window belongs to, from its time (the robot may be ahead, stroking the next)
+            current = tour.probe_at(event["t_end_s"])
+            truth = tour.library.entry(current).ratings
+            print(f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
+                  f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
                   f"{'':10s}nearest library texture: {event['chosen']} "
                   f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
                   f"pipeline {event['latency_ms']['total']:.1f} ms", flush=True)
