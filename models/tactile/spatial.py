@@ -85,28 +85,44 @@ def _band_weights(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int
     return members * inv[:, None]
 
 
-def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray | None:
-    """One-sided power spectrum over spatial frequency (n_fft//2 + 1,) of a signal against position.
+def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray:
+    """One-sided power spectra over spatial frequency of signals against position, n windows at once.
 
-    signal: (L, c), constant over each sample; x_edges: (L + 1,) strictly increasing positions of the
-    samples' edges, mm. Spectrum of the cell means on a dx_mm grid (detrended, Hann, zero-padded to
-    n_fft), summed over the c columns, normalised to sum to the mean square. None if the samples
-    cover fewer than MIN_CELLS cells.
+    signal: (n, L, c), constant over each sample; x_edges: (n, L + 1) strictly increasing positions of
+    the samples' edges, mm, starting at 0. Per window: the cell means on a dx_mm grid over the
+    distance it covers (at most n_fft cells), a Hann-weighted least-squares line removed, Hann,
+    zero-padded to n_fft → power (n, n_fft//2 + 1, c), normalised to sum to the mean square;
+    all zeros for a window covering fewer than MIN_CELLS cells.
     """
-    cells = min(int(x_edges[-1] / dx_mm), n_fft)
-    if cells < MIN_CELLS:
-        return None
-    integral = np.concatenate([np.zeros((1, signal.shape[1])), np.cumsum(signal * np.diff(x_edges)[:, None], axis=0)])
-    grid = np.arange(cells + 1) * dx_mm
-    at = np.stack([np.interp(grid, x_edges, integral[:, a]) for a in range(signal.shape[1])], axis=1)
-    means = np.diff(at, axis=0) / dx_mm  # (cells, c)
-    w = np.hanning(cells + 2)[1:-1]  # no zero end points: every covered cell counts
-    t = np.linspace(-1.0, 1.0, cells)
-    basis = np.stack([w, w * t], axis=1)  # Hann-weighted least-squares line through each column
-    coef, *_ = np.linalg.lstsq(basis, w[:, None] * means, rcond=None)
-    tapered = w[:, None] * means - basis @ coef
-    spec = scipy.fft.rfft(tapered, n=n_fft, axis=0)
-    return 2.0 * np.sum(spec.real**2 + spec.imag**2, axis=1) / (n_fft * np.sum(w * w))
+    n, length, c = signal.shape
+    cells = np.minimum((x_edges[:, -1] / dx_mm).astype(np.int64), n_fft)  # (n,)
+    n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
+    integral = np.concatenate([np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1)
+    # one np.interp per column for every window: rows are laid end to end, `gap` mm apart
+    gap = float(x_edges[:, -1].max()) + (n_grid + 2) * dx_mm
+    offset = (np.arange(n) * gap)[:, None]
+    grid = (np.arange(n_grid + 1) * dx_mm)[None, :] + offset  # (n, n_grid + 1) cell edges
+    xs = (x_edges + offset).ravel()
+    at = np.stack([np.interp(grid.ravel(), xs, integral[:, :, k].ravel()) for k in range(c)], axis=1)
+    # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part
+    means = (np.diff(at.reshape(n, n_grid + 1, c), axis=1) / dx_mm).astype(np.float32)  # (n, n_grid, c); beyond a window's cells: ignored
+    j = np.arange(n_grid, dtype=np.float32)[None, :]
+    m = np.maximum(cells, 2)[:, None].astype(np.float32)
+    inside = j < cells[:, None]
+    w = np.where(inside, np.sin(np.float32(np.pi) * (j + 1) / (m + 1)) ** 2, np.float32(0))  # Hann without its zero ends
+    t = np.where(inside, 2 * j / (m - 1) - 1, np.float32(0))
+    # weighted least-squares line a + b·t through each column (weights w²), removed before the taper
+    w2 = w * w
+    s0, s1, s2 = w2.sum(axis=1), (w2 * t).sum(axis=1), (w2 * t * t).sum(axis=1)
+    y0 = np.einsum("nj,njc->nc", w2, means)
+    y1 = np.einsum("nj,njc->nc", w2 * t, means)
+    det = np.where(s0 * s2 - s1 * s1 > 0, s0 * s2 - s1 * s1, 1.0)
+    a = (s2[:, None] * y0 - s1[:, None] * y1) / det[:, None]
+    b = (s0[:, None] * y1 - s1[:, None] * y0) / det[:, None]
+    tapered = w[:, :, None] * (means - a[:, None, :] - b[:, None, :] * t[:, :, None])
+    spec = scipy.fft.rfft(tapered, n=n_fft, axis=1)
+    norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
+    return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None, None]
 
 
 def spatial_features(
@@ -141,20 +157,15 @@ def spatial_features(
     height_w = _band_weights(n_fft, dx_mm, edges, 4)
     force_w = _band_weights(n_fft, dx_mm, edges, 0)
     n = accel.shape[0]
-    energy = np.empty((n, 2 * n_bands))  # mm² per accel band, N² per force band
-    energy[:, :n_bands] = ENERGY_FLOOR_MM2
-    energy[:, n_bands:] = FORCE_FLOOR_N2
+    if n == 0:
+        return np.empty((0, 2 * n_bands + 2))
     v = np.maximum(speed, 0.0)
     step = np.maximum(v, 1e-9) / rate_hz  # mm travelled during each sample (strictly > 0: x increases)
     x = np.concatenate([np.zeros((n, 1)), np.cumsum(step, axis=1)], axis=1)  # (n, L + 1) sample edges
     # position-weighted mean of v⁴ ((mm/s)⁴): the acceleration's power over a profile is |z''|²·v⁴
     v4 = np.maximum(np.sum(v**4 * step, axis=1) / np.maximum(x[:, -1], 1e-12), min_speed**4)
-    for i in range(n):
-        p_accel = position_power(1e3 * accel[i], x[i], dx_mm, n_fft)  # (mm/s²)² per bin
-        if p_accel is None:
-            continue
-        energy[i, :n_bands] += p_accel @ height_w / v4[i]
-        p_force = position_power(force[i][:, None], x[i], dx_mm, n_fft)
-        energy[i, n_bands:] += p_force @ force_w
+    power = position_power(np.concatenate([1e3 * accel, force[:, :, None]], axis=2), x, dx_mm, n_fft)
+    energy = np.concatenate([power[:, :, :3].sum(axis=2) @ height_w / v4[:, None] + ENERGY_FLOOR_MM2,
+                             power[:, :, 3] @ force_w + FORCE_FLOOR_N2], axis=1)  # mm² per accel band, N² per force band
     totals = np.sqrt(np.stack([energy[:, :n_bands].sum(axis=1), energy[:, n_bands:].sum(axis=1)], axis=1))
     return np.concatenate([np.log10(energy), totals], axis=1)

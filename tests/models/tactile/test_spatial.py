@@ -81,8 +81,11 @@ def test_position_power_sums_to_the_mean_square():
     x_edges = np.arange(801) * 0.2  # 160 mm in 0.2 mm samples
     centres = x_edges[:-1] + 0.1
     signal = 3.0 * np.cos(2 * np.pi * centres / 7.0)[:, None]
-    power = position_power(signal, x_edges, 0.25, 1024)
-    assert power.sum() == pytest.approx(4.5, rel=0.05)
+    short = np.arange(801) * 0.001  # 0.8 mm: fewer than MIN_CELLS cells
+    power = position_power(np.stack([signal, signal]), np.stack([x_edges, short]), 0.25, 1024)
+    assert power.shape == (2, 513, 1)
+    assert power[0].sum() == pytest.approx(4.5, rel=0.05)
+    assert np.all(power[1] == 0.0)
 
 
 def test_a_tool_at_rest_reads_the_floor_not_nan():
