@@ -99,7 +99,7 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
     integral = np.concatenate([np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1)
     # one np.interp per column for every window: rows are laid end to end, `gap` mm apart
-    gap = float(x_edges[:, -1].max()) + (n_grid + 2) * dx_mm
+    gap = float(x_edges[:, -1].max(initial=0.0)) + (n_grid + 2) * dx_mm
     offset = (np.arange(n) * gap)[:, None]
     grid = (np.arange(n_grid + 1) * dx_mm)[None, :] + offset  # (n, n_grid + 1) cell edges
     xs = (x_edges + offset).ravel()
