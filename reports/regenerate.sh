@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates every number under reports/: datasets, leave-one-texture-out evaluations, report pages,
 # the exported model and the withheld-texture predictions. Run from the repository root after
-# `make test` (or `make demo`) has created .venv. About 3 hours on 2 CPU cores; each step is cached
+# `make test` (or `make demo`) has created .venv. About 6 hours on 2 CPU cores; each step is cached
 # or skippable by hand. Seeds are fixed; folds run in parallel processes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -74,3 +74,4 @@ groups_study() {  # dataset, reports folder, extra options
 groups_study $S reports/synthetic
 groups_study $P reports/physics-hatt-texnet --no-truth
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
+hl report --dataset $P --reports reports/physics-hatt-texnet --regenerate "bash reports/regenerate.sh"
