@@ -9,7 +9,10 @@ hl() { .venv/bin/hapticlink "$@"; }
 H=data/hatt-texnet
 S=data/physics-synthetic-48     # the synthetic world (world_version 2: bumps, friction and taps the sensors can read)
 P=data/physics-hatt-texnet      # HaTT–TexNet rebuilt for the feature-group study (friction from each model's mu, HaTT's taps)
+# feature-group study: MFCC alone, + each group, + what the wire carries today (synthetic only), + every group
 GROUPSETS=("" "friction" "spatial" "taps" "friction spatial" "friction spatial taps")
+GROUPSETS_HATT=("" "friction" "spatial" "taps" "friction spatial taps")
+declare -A SEEDS=([ridge-tactile]="0" [ridge-both]="0" [svr-both]="0 1 2" [ann]="0 1 2")  # ridge is deterministic
 
 # ---- datasets (HaTT–TexNet read from ../shared, never copied into the repo) --------------------
 [ -f $H/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $H
@@ -59,19 +62,19 @@ hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial --ou
 hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial taps --out reports/synthetic/ridge-both+friction+spatial+taps --seeds 0 1 2
 # ---- feature groups: each group's contribution per attribute, 3 seeds (both datasets) -------------
 # HaTT–TexNet's ratings are licensed: --no-truth keeps them out of the committed results
-groups_study() {  # dataset, reports folder, extra options
-  local ds=$1 out=$2; shift 2
+groups_study() {  # dataset, reports folder, name of the group-set array, extra options
+  local ds=$1 out=$2; local -n sets=$3; shift 3
   hl evaluate --dataset $ds --model mean --out $out/feature-groups/mean --seeds 0 --no-figures "$@"
   for m in ridge-tactile ridge-both svr-both ann; do
-    for g in "${GROUPSETS[@]}"; do
+    for g in "${sets[@]}"; do
       name=${g// /+}
-      # shellcheck disable=SC2086  # $g is a list of group names
+      # shellcheck disable=SC2086  # $g is a list of group names, ${SEEDS[$m]} a list of seeds
       hl evaluate --dataset $ds --model $m --extra-groups $g --out $out/feature-groups/$m/${name:-mfcc} \
-        --seeds 0 1 2 --no-figures "$@"
+        --seeds ${SEEDS[$m]} --no-figures "$@"
     done
   done
 }
-groups_study $S reports/synthetic
-groups_study $P reports/physics-hatt-texnet --no-truth
+groups_study $S reports/synthetic GROUPSETS
+groups_study $P reports/physics-hatt-texnet GROUPSETS_HATT --no-truth
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
 hl report --dataset $P --reports reports/physics-hatt-texnet --regenerate "bash reports/regenerate.sh"

@@ -31,7 +31,7 @@ log = logging.getLogger("hapticlink.demo")
 DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
 #: tactile feature groups of the demo's model: those the wire carries today (taps need the tap procedure)
 DEMO_GROUPS = ("friction", "spatial")
-DEMO_TEXTURES = 48  # the world the model learns from (the library holds the first 24 of them)
+DEMO_TEXTURES = 96  # the world the model learns from (the library holds the first 24 of them): error still falls with more textures at 48
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 
