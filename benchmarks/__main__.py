@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from benchmarks import features, service, visual
+from benchmarks import features, hostile, service, visual
 
 
 def main(argv: list[str]) -> int:
@@ -17,7 +17,9 @@ def main(argv: list[str]) -> int:
     print("\n== visual embedding: torch vs onnxruntime ==", flush=True)
     visual.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
-    service.main(["--replicas", "1", "2"])
+    service.main(["--replicas", "1", "2", "--profile"])
+    print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)
+    hostile.main([])
     if "--all" in argv:
         from benchmarks import dataset_build
 

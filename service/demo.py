@@ -1,12 +1,12 @@
 """`hapticlink demo`: the whole loop on one machine, from nothing.
 
 1. Prepare assets once (cached in artifacts/demo): a synthetic-world dataset, a model trained on
-   it with the physics feature groups the wire carries today (DEMO_FEATURES: MFCC + friction +
-   spatial) and exported to ONNX, the visual backbone's ONNX, the texture library (the same
+   it with the physics feature groups (DEMO_GROUPS: MFCC + friction + spatial + taps) and
+   exported to ONNX, the visual backbone's ONNX, the texture library (the same
    world), and a few *unseen* probe textures (another seed) for the simulated robot to stroke.
    Assets from another world version, model or feature set are rebuilt.
-2. Start the service, a simulated robot that strokes each probe texture in turn (sending its
-   camera frame first), and a terminal subscriber that prints what the operator console shows
+2. Start the service, a simulated robot that taps and then strokes each probe texture in turn
+   (sending its camera frame first), and a terminal subscriber that prints what the operator console shows
    and, REPORT_AFTER_S into each probe's stroke, the estimate next to the probe's ground truth
    with the error (0–100 scale, mean over the four attributes).
 3. Print the console URL; Ctrl-C ends everything cleanly.
@@ -18,20 +18,22 @@ import asyncio
 import dataclasses
 import json
 import logging
+import secrets
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
 
-from drivers.blocks import Frame, SampleBlock
+from drivers.blocks import Frame, SampleBlock, TapBlock
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 log = logging.getLogger("hapticlink.demo")
 DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
-#: tactile feature groups of the demo's model: those the wire carries today (taps need the tap procedure)
-DEMO_GROUPS = ("friction", "spatial")
-DEMO_TEXTURES = 96  # the world the model learns from (the library holds the first 24 of them): error still falls with more textures at 48
+TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
+#: tactile feature groups of the demo's models: every physical cue (the robot taps each probe before stroking it)
+DEMO_GROUPS = ("friction", "spatial", "taps")
+DEMO_TEXTURES = 96  # the world the models learn from (the library holds the first 24 of them): error still falls with more textures at 48
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 
@@ -40,6 +42,7 @@ REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate i
 class DemoAssets:
     dataset: Path
     model: Path
+    tactile: Path
     backbone: Path
     library: Path
     probes: Path
@@ -55,7 +58,8 @@ def demo_features():
 def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> dict:
     from texture_library.procedural import WORLD_VERSION
 
-    return {"world_version": WORLD_VERSION, "model": DEMO_MODEL, "tactile_hash": demo_features().hash(),
+    return {"world_version": WORLD_VERSION, "model": DEMO_MODEL, "tactile_model": TACTILE_MODEL,
+            "tactile_hash": demo_features().hash(),
             "n_textures": n_textures, "library_textures": library_textures, "n_probes": n_probes, "seed": seed}
 
 
@@ -72,22 +76,26 @@ def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int
     from texture_library.synthetic_library import build_synthetic_library
 
     root.mkdir(parents=True, exist_ok=True)
-    assets = DemoAssets(root / "dataset", root / "model.onnx", Path(), root / "library", root / "probes")
+    assets = DemoAssets(root / "dataset", root / "model.onnx", root / "tactile.onnx", Path(), root / "library", root / "probes")
     stamp_path, stamp = root / "assets.json", _stamp(n_textures, library_textures, n_probes, seed)
     if stamp_path.is_file() and json.loads(stamp_path.read_text()) != stamp or not stamp_path.is_file() and assets.model.is_file():
         print("  · assets were made for another world or model: rebuilding them", flush=True)
         for path in (assets.dataset, assets.library, assets.probes):
             shutil.rmtree(path, ignore_errors=True)
         assets.model.unlink(missing_ok=True)
+        assets.tactile.unlink(missing_ok=True)
     features = demo_features()
     library_textures = min(library_textures, n_textures)
+    groups = " + ".join(["MFCC", *DEMO_GROUPS])
     steps = [
         (not (assets.dataset / "dataset.json").is_file(), f"building a synthetic world of {n_textures} textures",
          lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed)),
         (True, "computing features (cached after the first run)",
          lambda: featurize_dataset(assets.dataset, tactile_config=features)),
-        (not assets.model.is_file(), f"training {DEMO_MODEL} on it (MFCC + {' + '.join(DEMO_GROUPS)}) and exporting ONNX",
+        (not assets.model.is_file(), f"training {DEMO_MODEL} on it ({groups}) and exporting ONNX",
          lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features)),
+        (not assets.tactile.is_file(), f"training {TACTILE_MODEL} ({groups}; windows before the first frame) and exporting ONNX",
+         lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed, tactile_config=features)),
         (not (assets.library / "library.json").is_file(), "writing the texture library",
          lambda: build_synthetic_library(assets.library, n_textures=library_textures, seed=seed)),
         (not (assets.probes / "library.json").is_file(), f"making {n_probes} unseen probe textures",
@@ -111,7 +119,7 @@ def probe_clock(t_s: float, per_texture_s: float) -> tuple[int, float]:
 
 
 class ProbeTour:
-    """A sensor source that strokes each probe texture for `per_texture_s`, in a loop (or `rounds` times)."""
+    """A sensor source that taps and strokes each probe texture for `per_texture_s`, in a loop (or `rounds` times)."""
 
     def __init__(self, probes: Path, per_texture_s: float, rounds: int | None = None, seed: int = 0):
         from texture_library.library import Library
@@ -124,18 +132,20 @@ class ProbeTour:
         self.current: str | None = None
         self._closing = False
 
-    async def _items(self) -> AsyncIterator[SampleBlock | Frame]:
+    async def _items(self) -> AsyncIterator[SampleBlock | TapBlock | Frame]:
         from drivers.simulated import SimulatedSource
 
         offset, k = 0.0, 0
         while not self._closing and (self.rounds is None or k < self.rounds * len(self.library.ids)):
             entry = self.library.ids[k % len(self.library.ids)]
             self.current = entry
-            source = SimulatedSource(self.library.model(entry), self.library.image(entry), seed=self.seed + k,
-                                     duration_s=self.per_texture_s, name=entry)
+            model = self.library.model(entry)
+            # the robot taps each probe before stroking it (a model without tap features ignores the taps)
+            source = SimulatedSource(model, self.library.image(entry), seed=self.seed + k,
+                                     duration_s=self.per_texture_s, name=entry, taps=model.taps is not None)
             try:
                 async for item in source:
-                    if isinstance(item, SampleBlock):
+                    if not isinstance(item, Frame):  # sample and tap blocks: onto the tour's clock
                         yield dataclasses.replace(item, t0=item.t0 + offset)
                     else:
                         yield item
@@ -144,7 +154,7 @@ class ProbeTour:
             offset += self.per_texture_s + SCENE_GAP_S
             k += 1
 
-    def __aiter__(self) -> AsyncIterator[SampleBlock | Frame]:
+    def __aiter__(self) -> AsyncIterator[SampleBlock | TapBlock | Frame]:
         return self._items()
 
     def probe_at(self, t_s: float) -> str:
@@ -242,8 +252,9 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     from service.app import create_app, server_options
     from service.settings import Settings
 
-    settings = Settings(model_path=assets.model, library_dir=assets.library, backbone_path=assets.backbone,
-                        host=host, port=port, log_level="warning")
+    api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
+    settings = Settings(model_path=assets.model, tactile_model_path=assets.tactile, library_dir=assets.library,
+                        backbone_path=assets.backbone, host=host, port=port, log_level="warning", api_keys=api_key)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), **server_options(settings)))
     serving = asyncio.create_task(server.serve())
     while not server.started:
@@ -253,7 +264,7 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
         await asyncio.sleep(0.05)
     url = f"http://{host}:{port}"
     tour = ProbeTour(assets.probes, per_texture_s)
-    robot = RobotClient(url, tour, session_name="demo robot")
+    robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key)
     info = await robot.open_session()
     print(f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
           f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n", flush=True)

@@ -28,6 +28,7 @@ from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, decode_binary, decode_json
+from drivers.protocol import Close, ack_error, ack_ok, peek_seq
 from drivers.source import blocks_from_arrays, paced
 
 
@@ -110,7 +111,7 @@ class FakeService:
             self.saturate -= 1
             return JSONResponse({"detail": "saturated"}, status_code=429, headers={"Retry-After": "0.02"})
         payload = await request.body()
-        seq = _peek_seq(payload, request.headers.get("content-type", ""))
+        seq = peek_seq(payload, request.headers.get("content-type", "") == BINARY_CONTENT_TYPE)
         if self.fail_at.get(seq):
             return JSONResponse({"detail": "not now"}, status_code=self.fail_at[seq].pop(0))
         status, body = self._ingest(sess, payload, request.headers.get("content-type", ""))
@@ -134,11 +135,11 @@ class FakeService:
         await ws.accept()
         sess = self._session(ws.path_params["sid"], ws.query_params.get("token"))
         if isinstance(sess, int):
-            await ws.close(code=1008, reason="bad token")
+            await ws.close(code=Close.POLICY, reason="bad token")
             return
         if self.saturate > 0:
             self.saturate -= 1
-            await ws.close(code=4429, reason="saturated")
+            await ws.close(code=Close.SATURATED, reason="saturated")
             return
         n = 0
         try:
@@ -153,23 +154,15 @@ class FakeService:
                 seq = body.get("seq")
                 if (self.ws_kill_every and n % self.ws_kill_every == 0) or seq in self.fail_after_accept:
                     self.fail_after_accept.discard(seq)
-                    await ws.close(code=1011, reason="server error after processing")
+                    await ws.close(code=Close.SERVER_ERROR, reason="server error after processing")
                     return
                 if status == 202:
-                    await ws.send_json({"seq": seq, "ok": True, "duplicate": body["duplicate"]})
+                    await ws.send_text(ack_ok(seq, body["duplicate"]))
                 else:
                     # like the real service when it cannot read the seq: the client matches answers by order
-                    await ws.send_json({"seq": None, "ok": False, "error": body["detail"]})
+                    await ws.send_text(ack_error(None, body["detail"]))
         except WebSocketDisconnect:
             return
-
-
-def _peek_seq(payload: bytes, content_type: str) -> int | None:
-    try:
-        block = decode_binary(payload) if content_type == BINARY_CONTENT_TYPE else decode_json(json.loads(payload))
-    except ValueError:
-        return None
-    return block.seq
 
 
 class LoopbackServer:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.blocks import Frame
-from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, _Pending
+from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, Pending
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -237,14 +237,14 @@ def test_backoff_grows_exponentially_with_jitter_and_caps():
 
 def test_resend_buffer_keeps_max_seconds_and_settles_cumulatively():
     buf = ResendBuffer(max_s=0.07)  # room for three blocks of 20 ms
-    dropped = [d.seq for i in range(5) for d in buf.append(_Pending(i, b"x", 0.02))]
+    dropped = [d.seq for i in range(5) for d in buf.append(Pending(i, b"x", 0.02))]
     assert dropped == [0, 1] and len(buf) == 3 and buf.held_s == pytest.approx(0.06)
     assert buf.oldest_seq == 2
     assert buf.first_from(0).seq == 2 and buf.first_from(4).seq == 4 and buf.first_from(5) is None
     assert buf.count_before(4) == 2
     assert [e.seq for e in buf.settle(3)] == [2, 3] and buf.oldest_seq == 4
     with pytest.raises(ValueError, match="does not follow"):
-        buf.append(_Pending(9, b"x", 0.02))
+        buf.append(Pending(9, b"x", 0.02))
 
 
 class FailingSource:

@@ -12,6 +12,7 @@ from models.tactile.features import recording_features, window_features
 from models.tactile.friction import friction_features
 from models.tactile.preprocess import TactilePreprocessor
 from models.tactile.spatial import spatial_features
+from models.tactile.stream import StreamContract
 from models.tactile.taps import TAP_NAMES
 from texture_library.recording import Channel
 
@@ -122,6 +123,12 @@ def test_friction_needs_three_column_force(make_recording):
     pre = TactilePreprocessor(TactileConfig(extra_groups=("friction",)))
     with pytest.raises(ValueError, match="friction features need 3-column force"):
         pre.push(**rec.channels())
+    # the stream contract says so, so service admission refuses the block before the preprocessor sees it
+    contract = StreamContract(TactileConfig(extra_groups=("friction",)))
+    cursor = contract.start()
+    with pytest.raises(ValueError, match="friction features need 3-column force"):
+        contract.admit(cursor, rec.channels(), 0.0)
+    assert contract.admit(cursor, {**rec.channels(), "force": Channel(np.zeros((1200, 3)), 1000.0)}, 0.0).windows_added == 2
     # without the friction group 1-column force is fine, with spatial or taps alike
     assert recording_features(rec, TactileConfig(extra_groups=("spatial",)))[0].shape == (2, 526 + 22)
 

@@ -1,0 +1,14 @@
+"""What the robot client raises when the service refuses it for good (retrying cannot help)."""
+
+from __future__ import annotations
+
+
+class ServiceRefused(RuntimeError):
+    """The service refused the client in a way retrying cannot fix (unknown session, bad request, no API key).
+
+    (The service's own `service.errors.ServiceError` is the refusal it sends; this is the client's view of
+    a final one.)"""
+
+
+class RobotAuthError(ServiceRefused, PermissionError):
+    """The robot token or the fleet API key was refused (HTTP 401/403, WebSocket close 1008)."""
