@@ -9,7 +9,7 @@ hl() { .venv/bin/hapticlink "$@"; }
 H=data/hatt-texnet
 S=data/physics-synthetic-48     # the synthetic world (world_version 2: bumps, friction and taps the sensors can read)
 P=data/physics-hatt-texnet      # HaTT–TexNet rebuilt for the feature-group study (friction from each model's mu, HaTT's taps)
-# feature-group study: MFCC alone, + each group, + what the wire carries today (synthetic only), + every group
+# feature-group study: MFCC alone, + each group, + friction and spatial (synthetic only), + every group
 GROUPSETS=("" "friction" "spatial" "taps" "friction spatial" "friction spatial taps")
 GROUPSETS_HATT=("" "friction" "spatial" "taps" "friction spatial taps")
 declare -A SEEDS=([ridge-tactile]="0" [ridge-both]="0" [svr-both]="0 1 2" [ann]="0 1 2")  # ridge is deterministic
@@ -57,7 +57,7 @@ done
 for feat in dwt dft; do
   hl evaluate --dataset $S --model ridge-tactile --tactile-features $feat --out reports/synthetic/ablation/ridge-tactile-$feat --seeds 0
 done
-# the physics feature groups: the demo's model (friction + spatial, what the wire carries) and every group
+# the physics feature groups: friction + spatial, and every group (the demo's model)
 hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial --out reports/synthetic/ridge-both+friction+spatial --seeds 0 1 2
 hl evaluate --dataset $S --model ridge-both --extra-groups friction spatial taps --out reports/synthetic/ridge-both+friction+spatial+taps --seeds 0 1 2
 # ---- feature groups: each group's contribution per attribute, 3 seeds (both datasets) -------------

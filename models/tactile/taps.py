@@ -19,7 +19,8 @@ and over the set of taps, medians (robust to a missed or double tap):
   tap_centroid_hz          median(centroid), Hz
 
 ``tap_features`` is the one function that turns taps into features: datasets call it on each
-texture's TapSet; the service will call it on the tap blocks a robot sends.
+texture's TapSet; the service calls it on the tap blocks a robot sends (drivers.blocks.TapBlock,
+service.session), so a served model sees the features it was trained on.
 """
 
 from __future__ import annotations
