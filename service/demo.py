@@ -55,6 +55,10 @@ def demo_features():
     return TactileConfig(extra_groups=DEMO_GROUPS)
 
 
+#: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
+WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
+
+
 def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> dict:
     from texture_library.procedural import WORLD_VERSION
 
@@ -66,7 +70,7 @@ def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> 
 def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int = 4, seed: int = 0,
                    library_textures: int = 24) -> DemoAssets:
     """Build whatever is missing under root (needs the train extra the first time); assets made for
-    another world version, model, feature set or size are rebuilt."""
+    another world version or size are rebuilt, models made for another model or feature set retrained."""
     import shutil
 
     from models.datasets.build import build
@@ -78,10 +82,12 @@ def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int
     root.mkdir(parents=True, exist_ok=True)
     assets = DemoAssets(root / "dataset", root / "model.onnx", root / "tactile.onnx", Path(), root / "library", root / "probes")
     stamp_path, stamp = root / "assets.json", _stamp(n_textures, library_textures, n_probes, seed)
-    if stamp_path.is_file() and json.loads(stamp_path.read_text()) != stamp or not stamp_path.is_file() and assets.model.is_file():
-        print("  · assets were made for another world or model: rebuilding them", flush=True)
+    old = json.loads(stamp_path.read_text()) if stamp_path.is_file() else None
+    if old is None and assets.model.is_file() or old is not None and any(old.get(k) != stamp[k] for k in WORLD_KEYS):
+        print("  · assets were made for another world: rebuilding them", flush=True)
         for path in (assets.dataset, assets.library, assets.probes):
             shutil.rmtree(path, ignore_errors=True)
+    if old != stamp:
         assets.model.unlink(missing_ok=True)
         assets.tactile.unlink(missing_ok=True)
     features = demo_features()
