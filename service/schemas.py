@@ -158,9 +158,9 @@ class JsonTaps(BaseModel):
 
     rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
     units: Literal["m/s^2", "g"] = Field(description="acceleration units")
-    speeds: NonEmpty[list[float]] = Field(max_length=64, description="each tap's approach speed, mm/s (≥ 0), one per tap")
+    speeds: NonEmpty[list[float]] = Field(max_length=32, description="each tap's approach speed, mm/s (≥ 0), one per tap")
     data: NonEmpty[list[NonEmpty[list[float]]]] = Field(
-        max_length=64, description="k taps × n samples (16 ≤ n ≤ 10000): each tap's acceleration transient")
+        max_length=32, description="k taps × n samples (16 ≤ n ≤ 500): each tap's acceleration transient")
 
 
 class JsonTapBlock(BaseModel):

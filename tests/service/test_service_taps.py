@@ -170,7 +170,8 @@ def _tap_doc(**taps) -> dict:
     (_tap_doc(units="N"), "units must be one of"),
     (_tap_doc(rate_hz=5.0), "sample rate"),
     (_tap_doc(speeds=[20.0, -1.0]), "finite and ≥ 0"),
-    (_tap_doc(data=[[0.0] * 50] * 65, speeds=[1.0] * 65), "1 to 64 taps"),
+    (_tap_doc(data=[[0.0] * 50] * 33, speeds=[1.0] * 33), "1 to 32 taps"),
+    (_tap_doc(data=[[0.0] * 501] * 2), "each tap holds 16 to 500 samples"),
     ({"seq": 0, "t0": 0.0, "kind": "taps", "channels": {}}, 'a taps block carries "taps"'),
     ({"seq": 0, "t0": 0.0, "kind": "tap"}, "kind must be one of"),
 ])
