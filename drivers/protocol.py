@@ -9,7 +9,12 @@ WebSocket ingest (`WS /sessions/{id}/ingest?token=<robot token>`): every message
 (binary or JSON text) and is answered, in order, by one text message — `ack_ok` or `ack_error`.
 Close codes (`Close`): 4429 saturated (reconnect after a backoff, resend from the oldest
 unacknowledged block), 1008 authentication failed (fatal), 4421 misdirected (the session lives on
-another replica), 1013 not ready (retry), 1000 the session ended (fatal for this session).
+another replica), 1013 not ready (retry), 1000 the session ended (fatal for this session), 4410 the
+session is lost (fatal: its replica dropped it as lost; the reason says why). A handshake
+for a session no replica knows is refused with HTTP 404, for a lost one (`SESSION_LOST`) with HTTP 410.
+
+HTTP: `RETRY_STATUSES` say "not now" (back off, resend); `SESSION_LOST` (410) says the replica that held
+the session's state is gone (stopped, crashed or restarted): nothing resumes it, open a new session.
 """
 
 from __future__ import annotations
@@ -22,13 +27,18 @@ from urllib.parse import quote, urlencode, urlsplit, urlunsplit
 from drivers.blocks import BINARY_CONTENT_TYPE, MAGIC, peek_header
 
 __all__ = ["BINARY_CONTENT_TYPE", "MAGIC", "FRAME_CONTENT_TYPES", "API_KEY_ENV", "Close", "Ack", "ack_ok", "ack_error",
-           "parse_ack", "peek_seq", "bearer", "session_path", "ws_url", "RETRY_STATUSES", "FATAL_CLOSES"]
+           "parse_ack", "peek_seq", "bearer", "session_path", "ws_url", "RETRY_STATUSES", "SESSION_LOST",
+           "HANDSHAKE_REFUSALS", "FATAL_CLOSES"]
 
 #: what a fleet's API key is read from by the robot client and the CLIs (`--api-key` overrides it)
 API_KEY_ENV = "HAPTICLINK_API_KEY"
 FRAME_CONTENT_TYPES = ("image/png", "image/jpeg")
 #: HTTP statuses that say "not now" rather than "bad request": 408 timeout, 421 misdirected, 425 too early
 RETRY_STATUSES = frozenset({408, 421, 425})
+#: HTTP status of a lost session: its replica is gone, and its state with it; final — open a new session
+SESSION_LOST = 410
+#: statuses a WebSocket handshake is refused with as HTTP, never as a close code: unknown session, lost session
+HANDSHAKE_REFUSALS = frozenset({404, SESSION_LOST})
 
 
 class Close(IntEnum):
@@ -41,10 +51,11 @@ class Close(IntEnum):
     NOT_READY = 1013  # the service is loading; try again
     MISDIRECTED = 4421  # the session runs on another replica
     SATURATED = 4429  # the session has too much work queued; reconnect after a backoff and resend
+    LOST = 4410  # the session is lost (HTTP 410's meaning, on an open socket); open a new session
 
 
 #: closes after which reconnecting to the same session cannot help
-FATAL_CLOSES = frozenset({Close.SESSION_ENDED, Close.POLICY})
+FATAL_CLOSES = frozenset({Close.SESSION_ENDED, Close.POLICY, Close.LOST})
 
 
 @dataclass(frozen=True)

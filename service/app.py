@@ -42,7 +42,8 @@ robot or operator token.
   `{"seq": int|null, "ok": false, "error"}` (a bad block does not close the socket). Close code
   **4429**: the session is saturated, reconnect after a backoff and resend from the oldest
   unacknowledged block; **1008**: authentication failed; **4421**: the session runs on another replica;
-  **1013**: not ready yet; **1000**: the session ended.
+  **1013**: not ready yet; **1000**: the session ended. A handshake for a session no replica knows is answered
+  HTTP 404, for a lost one (the replica that held it is gone) HTTP 410: open a new session.
 * `WS /sessions/{session_id}/events?token=<operator_token>` — JSON events: `{"type": "window", …}`
   per analysed window and `{"type": "status", "event": …}` (subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, robot_disconnected, error).

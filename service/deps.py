@@ -16,7 +16,7 @@ from starlette.requests import HTTPConnection
 from starlette.responses import JSONResponse
 from starlette.websockets import WebSocket
 
-from drivers.protocol import Close
+from drivers.protocol import HANDSHAKE_REFUSALS, Close
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
 from service.errors import ServiceError
 from service.events import status_event
@@ -104,8 +104,9 @@ async def socket_session(websocket: WebSocket, session_id: str, token: str | Non
     """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
     raises Refused after refusing the handshake (one WARNING line):
 
-    unknown session → HTTP 404 at the handshake; the robot's ingest socket closes 1008 on an auth failure,
-    4421 when misdirected, 1013 when not ready; the events socket answers the handshake with the HTTP status.
+    unknown session → HTTP 404 at the handshake, lost session (its replica is gone) → HTTP 410; the robot's
+    ingest socket closes 1008 on an auth failure, 4421 when misdirected, 1013 when not ready; the events socket
+    answers the handshake with the HTTP status.
     The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`."""
     state: ServiceState = websocket.app.state.service
     robot = roles == ROBOT_ONLY
@@ -134,7 +135,7 @@ class Refused(Exception):
 
 
 async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> None:
-    if robot and exc.status != 404:
+    if robot and exc.status not in HANDSHAKE_REFUSALS:
         code = {401: Close.POLICY, 403: Close.POLICY, 421: Close.MISDIRECTED}.get(exc.status, Close.NOT_READY)
         await websocket.accept()
         await websocket.close(int(code), exc.detail[:120])

@@ -151,6 +151,9 @@ class ServiceMetrics:
                                          "Ingest WebSockets that closed, by reason.", ("reason",))
         self.publish_errors = Counter("hapticlink_publish_errors_total", "Events the broker failed to publish.")
         self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.")
+        self.sessions_lost = Counter(
+            "hapticlink_sessions_lost_total", "Sessions of another replica found gone (stopped, crashed, restarted) here."
+        )
         self.subscribers = Gauge("hapticlink_subscribers", "Open operator event connections on this replica.")
         self.ready = Gauge("hapticlink_ready", "1 when the model and library are loaded and warmed up.")
         self.latency = Histogram(

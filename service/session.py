@@ -33,6 +33,7 @@ from typing import Literal
 import numpy as np
 
 from drivers.blocks import Block, SampleBlock, TapBlock
+from drivers.protocol import SESSION_LOST
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
 from service.auth import SessionCredentials
@@ -350,3 +351,8 @@ class Session:
 
 def session_not_found(session_id: str) -> ServiceError:
     return ServiceError(404, f"no session {session_id!r}")
+
+
+def session_lost(session_id: str, reason: str) -> ServiceError:
+    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
+    return ServiceError(SESSION_LOST, f"session {session_id} is lost: {reason}; open a new session")

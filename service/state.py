@@ -19,7 +19,7 @@ from starlette.requests import Request
 
 from service.batcher import WindowBatcher
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
-from service.broker import Broker, SessionRecord, Subscription, make_broker
+from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord, Subscription, make_broker
 from service.errors import ServiceError, saturated
 from service.events import encode, status_event
 from service.fleet import ApiKeys, TokenBucket
@@ -27,7 +27,7 @@ from service.metrics import ServiceMetrics
 from service.runtime import Runtime, load_runtime
 from service.scene_change import thumbnail
 from service.schemas import FrameAck
-from service.session import RETRY_AFTER_S, Session, session_not_found
+from service.session import RETRY_AFTER_S, Session, session_lost, session_not_found
 from service.settings import Settings
 from service.warmup import warm_up
 
@@ -68,7 +68,8 @@ class ServiceState:
         await self.broker.start()
         self.batcher.start()
         self._tasks = [asyncio.create_task(self._load(), name="load-runtime"),
-                       asyncio.create_task(self._reap_idle(), name="reap-idle-sessions")]
+                       asyncio.create_task(self._reap_idle(), name="reap-idle-sessions"),
+                       asyncio.create_task(self._keep_alive(), name="replica-heartbeat")]
 
     async def _load(self) -> None:
         loop = asyncio.get_running_loop()
@@ -97,8 +98,8 @@ class ServiceState:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        for sid in list(self.sessions):
-            await self.end_session(sid, "the service is shutting down")
+        for sid in list(self.sessions):  # their state ends with this process: robots are told to open new sessions
+            await self.end_session(sid, f"its replica {self.settings.instance_id} shut down", lost=True)
         await self.batcher.close()
         await self.broker.close()
         for pool in (self.window_pool, self.frame_pool, self.visual_pool):
@@ -145,15 +146,18 @@ class ServiceState:
         log.info("session %s created for %s", session_id, client)
         return session, robot, operator
 
-    async def end_session(self, session_id: str, why: str) -> dict:
+    async def end_session(self, session_id: str, why: str, lost: bool = False) -> dict:
+        """End a local session; `lost`: its directory entry stays a while as lost (410 `why`, not 404)."""
         session = self.sessions.get(session_id)
         if session is None:
             raise session_not_found(session_id)
         status = session.status()
         await self._drop(session_id)
         with contextlib.suppress(Exception):
-            await self.broker.forget(session_id)
-        await self.publish(session_id, status_event(session_id, "session_ended", why, counters=status["counters"]), True)
+            await (self.broker.mark_lost(session_id, why) if lost else self.broker.forget(session_id))
+        event = (_lost_event(session_id, why, self.settings.instance_id) if lost
+                 else status_event(session_id, "session_ended", why))
+        await self.publish(session_id, {**event, "counters": status["counters"]}, True)
         return {**status, "state": "ended"}
 
     async def _drop(self, session_id: str) -> None:
@@ -172,15 +176,57 @@ class ServiceState:
                 with contextlib.suppress(ServiceError):
                     await self.end_session(sid, why)
 
+    async def _keep_alive(self) -> None:
+        """Heartbeat for the other replicas; end the sessions of a replica found gone that operators here watch."""
+        while True:
+            await asyncio.sleep(HEARTBEAT_EVERY_S)
+            try:
+                if await self.broker.heartbeat():
+                    await self._reconcile_directory()
+                for sid in self.broker.subscribed():
+                    if sid not in self.sessions:
+                        with contextlib.suppress(ServiceError):
+                            await self.credentials(sid)  # marks it lost (and ends its subscriptions) if its owner is gone
+            except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: the next beat tries again
+                log.warning("replica heartbeat failed: %s: %s", type(exc).__name__, exc)
+
+    async def _reconcile_directory(self) -> None:
+        """After a lapse: re-enter sessions the directory lost (Redis restarted), end those another replica marked lost."""
+        for sid, session in list(self.sessions.items()):
+            record = await self.broker.lookup(sid)
+            if record is None:
+                await self.broker.register(SessionRecord(sid, session.name, self.settings.instance_id, session.credentials))
+            elif record.lost is not None:  # its operators were told by the replica that marked it; its robot gets 410
+                log.warning("session %s was marked lost while this replica was silent; ending it here", sid)
+                await self._drop(sid)
+
     async def credentials(self, session_id: str) -> tuple[SessionCredentials, Session | None]:
-        """The session's credentials and, if it runs here, the session; 404 if no replica knows it."""
+        """The session's credentials and, if it runs here, the session; 404 if no replica knows it, 410 if the
+        replica that ran it is gone."""
         session = self.sessions.get(session_id)
         if session is not None:
             return session.credentials, session
         record = await self._lookup(session_id)
         if record is None:
             raise session_not_found(session_id)
+        if record.lost is None:
+            try:
+                if not await self.broker.alive(record):
+                    await self._mark_lost(record)
+                    record = await self.broker.lookup(session_id) or record
+            except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: 503, not 500
+                raise _directory_unavailable(exc) from None
+        if record.lost is not None:
+            raise session_lost(session_id, record.lost)
         return record.credentials, None
+
+    async def _mark_lost(self, record: SessionRecord) -> None:
+        """The owner of `record` is gone: the first replica to notice tells the session's operators, everywhere."""
+        reason = f"its replica {record.instance} is gone (stopped, crashed or restarted)"
+        if await self.broker.mark_lost(record.session_id, reason):
+            log.warning("session %s is lost: %s", record.session_id, reason)
+            self.metrics.sessions_lost.inc()
+            await self.publish(record.session_id, _lost_event(record.session_id, reason, record.instance), True)
 
     async def _lookup(self, session_id: str) -> SessionRecord | None:
         try:
@@ -198,7 +244,8 @@ class ServiceState:
         if session is None:
             record = await self._lookup(session_id)
             owner = record.instance if record else "another replica"
-            raise ServiceError(421, f"session {session_id} runs on {owner}; route its traffic by session id")
+            raise ServiceError(421, f"session {session_id} runs on {owner}; route its traffic by session id "
+                                    f"(if {owner} is down, this becomes 410 within {REPLICA_TTL_S:g} s)")
         return session
 
     # ---- robots ----------------------------------------------------------------------------------
@@ -290,6 +337,12 @@ def reap_due(sessions, now: float, settings: Settings) -> list[tuple[str, str]]:
         elif now - s.last_activity > settings.session_idle_s:
             due.append((s.id, f"no traffic for {settings.session_idle_s:g} s"))
     return due
+
+
+def _lost_event(session_id: str, reason: str, instance: str) -> dict:
+    """The final event of a session whose replica is gone: operators learn that its robot must start over."""
+    return status_event(session_id, "session_ended", f"session lost: {reason}; the robot must open a new session",
+                        lost=True, instance=instance)
 
 
 def _directory_unavailable(exc: Exception) -> ServiceError:

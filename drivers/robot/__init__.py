@@ -8,9 +8,9 @@ The wire protocol they speak is drivers/protocol.py.
 
 from drivers.robot.backoff import Backoff
 from drivers.robot.client import RobotClient, RobotStats
-from drivers.robot.errors import RobotAuthError, ServiceRefused
+from drivers.robot.errors import RobotAuthError, ServiceRefused, SessionLostError
 from drivers.robot.resend import Pending, ResendBuffer
 from drivers.robot.session import SessionInfo, open_session
 
 __all__ = ["Backoff", "Pending", "ResendBuffer", "RobotAuthError", "RobotClient", "RobotStats", "ServiceRefused",
-           "SessionInfo", "open_session"]
+           "SessionInfo", "SessionLostError", "open_session"]

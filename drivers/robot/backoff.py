@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import email.utils
+import json
 import math
 import random
 import time
@@ -52,8 +53,14 @@ def retry_after(response: httpx.Response) -> float | None:
 
 def detail(response: httpx.Response) -> str:
     """The service's `detail` message of a refusal (or the start of the body)."""
+    return body_detail(response.content)
+
+
+def body_detail(content: bytes | None) -> str:
+    """The `detail` of a JSON error body (an HTTP answer, or a refused WebSocket handshake's), else its first
+    200 characters."""
     try:
-        body = response.json()
+        body = json.loads(content or b"")
         return str(body.get("detail", body)) if isinstance(body, dict) else str(body)
     except ValueError:
-        return response.text[:200]
+        return (content or b"")[:200].decode(errors="replace")

@@ -12,3 +12,13 @@ class ServiceRefused(RuntimeError):
 
 class RobotAuthError(ServiceRefused, PermissionError):
     """The robot token or the fleet API key was refused (HTTP 401/403, WebSocket close 1008)."""
+
+
+class SessionLostError(ServiceRefused):
+    """The service lost the session (HTTP 410: the replica that held its state is gone — stopped, crashed or
+    restarted); retrying cannot bring it back, only a new session goes on."""
+
+
+def session_lost(session_id: str | None, detail: str) -> SessionLostError:
+    """The error for a 410 answer; `detail` is the service's reason (which replica, what to do)."""
+    return SessionLostError(f"the service cannot resume session {session_id} (HTTP 410): {detail}")

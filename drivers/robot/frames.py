@@ -8,9 +8,9 @@ from typing import TYPE_CHECKING
 
 import httpx
 
-from drivers.protocol import RETRY_STATUSES, bearer, session_path
+from drivers.protocol import RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
-from drivers.robot.errors import RobotAuthError
+from drivers.robot.errors import RobotAuthError, session_lost
 
 if TYPE_CHECKING:
     from drivers.robot.client import RobotClient
@@ -44,6 +44,8 @@ async def send_frames(client: "RobotClient") -> None:
         status = r.status_code
         if status in (401, 403):
             raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {detail(r)})")
+        if status == SESSION_LOST:
+            raise session_lost(client.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
             client.stats.frames_refused += status == 429
             delay = (retry_after(r) if status == 429 else None) or client._frame_backoff.next()

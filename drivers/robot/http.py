@@ -8,9 +8,9 @@ from typing import TYPE_CHECKING
 
 import httpx
 
-from drivers.protocol import BINARY_CONTENT_TYPE, RETRY_STATUSES, bearer, session_path
+from drivers.protocol import BINARY_CONTENT_TYPE, RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
-from drivers.robot.errors import RobotAuthError, ServiceRefused
+from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
 
 if TYPE_CHECKING:
     from drivers.robot.client import RobotClient
@@ -19,7 +19,8 @@ log = logging.getLogger("drivers.robot")
 
 
 async def send_http(client: "RobotClient") -> None:
-    """Deliver the client's blocks by HTTP POST until drained; RobotAuthError / ServiceRefused when final."""
+    """Deliver the client's blocks by HTTP POST until drained; RobotAuthError / ServiceRefused (SessionLostError on
+    410) when final."""
     http = client._http
     assert http is not None
     url = client.url + session_path(str(client.session_id), "blocks")
@@ -66,6 +67,8 @@ async def send_http(client: "RobotClient") -> None:
             raise RobotAuthError(f"the service refused the robot token (HTTP {status}: {detail(r)})")
         elif status == 404:
             raise ServiceRefused(f"the service has no session {client.session_id!r} (HTTP 404: {detail(r)})")
+        elif status == SESSION_LOST:
+            raise session_lost(client.session_id, detail(r))
         elif 400 <= status < 500 and status not in RETRY_STATUSES:
             client._reject(entry.seq, f"HTTP {status}: {detail(r)}")
         else:  # 5xx, 408, 421, 425: the service cannot take it now

@@ -8,8 +8,9 @@ import logging
 from collections import deque
 from typing import TYPE_CHECKING
 
-from drivers.protocol import Close, parse_ack, ws_url
-from drivers.robot.errors import RobotAuthError, ServiceRefused
+from drivers.protocol import SESSION_LOST, Close, parse_ack, ws_url
+from drivers.robot.backoff import body_detail
+from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
 
 if TYPE_CHECKING:
     from drivers.robot.client import RobotClient
@@ -27,7 +28,8 @@ class Disconnected(Exception):
 
 
 async def send_ws(client: "RobotClient") -> None:
-    """Deliver the client's blocks over WebSocket until drained; RobotAuthError / ServiceRefused when final."""
+    """Deliver the client's blocks over WebSocket until drained; RobotAuthError / ServiceRefused (SessionLostError
+    on 410) when final."""
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
@@ -51,12 +53,16 @@ async def send_ws(client: "RobotClient") -> None:
                 raise RobotAuthError(f"the service refused the robot token (HTTP {status})") from None
             if status == 404:
                 raise ServiceRefused(f"the service has no session {client.session_id!r} (HTTP 404)") from None
+            if status == SESSION_LOST:
+                raise session_lost(client.session_id, body_detail(exc.response.body)) from None
             if status == 429:
                 client.stats.saturated += 1
             why = f"HTTP {status}"
         except Disconnected as exc:
             if exc.close_code == Close.POLICY:
                 raise RobotAuthError(f"the service closed the connection: authentication failed ({exc.reason or 'close 1008'})") from None
+            if exc.close_code == Close.LOST:
+                raise session_lost(client.session_id, exc.reason or f"close {int(Close.LOST)}") from None
             if exc.close_code == Close.SESSION_ENDED and exc.reason == "session ended":
                 raise ServiceRefused(f"the service ended session {client.session_id!r}") from None
             if exc.close_code == Close.SATURATED:

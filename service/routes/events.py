@@ -8,7 +8,7 @@ import contextlib
 from fastapi import APIRouter, Query, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from drivers.protocol import Close
+from drivers.protocol import SESSION_LOST, Close
 from service.auth import OPERATOR_ONLY
 from service.deps import Refused, socket_session
 from service.errors import ServiceError
@@ -30,10 +30,10 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
     try:
         try:
             await state.credentials(session_id)
-        except ServiceError as exc:  # it ended while this socket was set up: its final event has passed
-            gone = exc.status == 404
+        except ServiceError as exc:  # it ended (or was lost) while this socket was set up: its final event has passed
+            gone = exc.status in (404, SESSION_LOST)
             await websocket.close(int(Close.SESSION_ENDED if gone else Close.SERVER_ERROR),
-                                  "session ended" if gone else exc.detail[:120])
+                                  "session ended" if exc.status == 404 else exc.detail[:120])
             return
         await websocket.send_text(encode(status_event(session_id, "subscribed", "receiving events",
                                                       instance=state.settings.instance_id)))

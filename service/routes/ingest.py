@@ -8,7 +8,7 @@ import time
 from fastapi import APIRouter, Query, Request, WebSocket
 from starlette.websockets import WebSocketDisconnect
 
-from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, Close, ack_error, ack_ok, peek_seq
+from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from service.auth import ROBOT_ONLY
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
@@ -27,7 +27,7 @@ def media_type(request: Request) -> str:
 
 @router.post("/sessions/{session_id}/blocks", status_code=202, response_model=BlockAck,
              openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
-             responses={**errors(400, 401, 403, 404, 413, 415, 421, 422, 503),
+             responses={**errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
                         **try_later("the session is saturated; resend after Retry-After s")},
              summary="Send one block: samples or taps (robot token)")
 async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
@@ -41,7 +41,7 @@ async def post_block(request: Request, state: State, session: RobotSession, runt
 
 @router.post("/sessions/{session_id}/frames", status_code=202, response_model=FrameAck,
              openapi_extra={"requestBody": FRAME_REQUEST_BODY},
-             responses={**errors(401, 403, 404, 413, 415, 421, 422, 503),
+             responses={**errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
                         **try_later("the visual queue is full, or this session's previous frame is still being decoded; "
                                     "send the newest frame after Retry-After s")},
              summary="Send one camera frame (robot token)")
@@ -71,8 +71,9 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 return
             arrived = time.perf_counter_ns()
             if state.sessions.get(session_id) is not session:
-                why = "session ended"
-                await websocket.close(int(Close.SESSION_ENDED), "session ended")
+                code, reason = await _gone(state, session_id)
+                why = "session lost" if code == Close.LOST else "session ended"
+                await websocket.close(int(code), reason)
                 return
             payload = message.get("bytes")
             binary = payload is not None
@@ -92,3 +93,14 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
         return
     finally:
         await state.robot_disconnected(session, why)
+
+
+async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:
+    """How to close the ingest socket of a session no longer here: lost (4410 and the reason: this replica was
+    silent too long and another one marked it lost) or ended (1000)."""
+    try:
+        await state.credentials(session_id)
+    except ServiceError as exc:
+        if exc.status == SESSION_LOST:
+            return Close.LOST, exc.detail[:120]
+    return Close.SESSION_ENDED, "session ended"

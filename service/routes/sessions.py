@@ -19,13 +19,13 @@ async def create_session(state: State, client: FleetClient, body: SessionCreate 
     return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
 
 
-@router.get("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 421, 503),
+@router.get("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 410, 421, 503),
             summary="A session's status and counters (operator token)")
 async def get_session(session: OperatorSession) -> dict:
     return session.status()
 
 
-@router.delete("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 421, 503),
+@router.delete("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 410, 421, 503),
                summary="End a session (robot or operator token)")
 async def delete_session(state: State, session: EitherSession) -> dict:
     return await state.end_session(session.id, "ended by request")

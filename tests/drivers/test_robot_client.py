@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.blocks import Frame
-from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, Pending
+from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, Pending, ServiceRefused, SessionLostError
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -170,6 +170,31 @@ def test_a_refused_token_is_fatal(kit, fake_service, transport):
 
     with pytest.raises(RobotAuthError):
         asyncio.run(main())
+
+
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_a_lost_session_stops_the_run_with_the_services_reason(kit, fake_service, transport):
+    """410 (HTTP) / close 4410 (an open WebSocket): the replica holding the session is gone; retrying cannot help."""
+    sess = fake_service.add_session("s-fixed", "robot-secret")
+    fake_service.lose_after = 5
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.EndlessSource(speed=4.0), session_id="s-fixed", robot_token="robot-secret",
+                                 transport=transport, **FAST)
+            with pytest.raises(SessionLostError) as lost:
+                await client.run()
+            return client.stats, lost.value
+        finally:
+            await server.stop()
+
+    stats, error = asyncio.run(main())
+    assert isinstance(error, ServiceRefused)  # callers that stop on any final refusal stop on this one too
+    assert "(HTTP 410)" in str(error) and kit.LOST_DETAIL[:100] in str(error), str(error)
+    assert len(sess.accepted) == 5 and fake_service.lost_answers == 1  # told once, never retried
+    assert stats.acked == 5 and stats.unsent == stats.read - 5
 
 
 def test_duration_stops_reading_then_drains(kit, fake_service):
