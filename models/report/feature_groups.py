@@ -144,6 +144,11 @@ def _target_lines(rows: list[dict]) -> list[str]:
         ok = best["ratio"][j] <= TARGET_RATIO
         lines.append(f"- {SHORT[k]}: {best['model']} on {group_label(best['groups'])}: {best['ratio'][j]:.2f} × mean "
                      f"[{best['ratio_ci'][0, j]:.2f}, {best['ratio_ci'][1, j]:.2f}] — {'met' if ok else 'not met'}")
+    every = [r for r in rated if np.all(r["ratio"][: len(ATTRIBUTES)] <= TARGET_RATIO)]
+    lines.append("- one model and group set meeting it on every attribute: " + (
+        "; ".join(f"{r['model']} on {group_label(r['groups'])} (" + ", ".join(
+            f"{SHORT[k]} {r['ratio'][j]:.2f}" for j, k in enumerate(ATTRIBUTES)) + ")" for r in every)
+        if every else "none"))
     return lines + [""]
 
 

@@ -55,6 +55,7 @@ def test_report_page_has_the_section_and_figure(group_reports):
     dataset, reports = group_reports
     page = build_report(dataset, reports).read_text()
     assert "## Feature groups" in page and "### ridge-tactile" in page and "× mean [" in page
+    assert "one model and group set meeting it on every attribute: " in page
     assert (reports / "feature_groups.png").stat().st_size > 10_000
     assert "feature-groups/" not in page.split("## Feature groups")[0]  # not mixed into the main table
 
