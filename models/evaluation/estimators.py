@@ -8,7 +8,7 @@ it is given, so a held-out texture can never leak into its own prediction.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
@@ -340,30 +340,34 @@ class StackedEstimator(Estimator):
     Inside fit: K-fold over the training textures gives each base's out-of-fold predictions;
     non-negative least squares per attribute gives the weights (normalised to sum to 1); then
     every base is refit on all training textures. Lets touch carry the attributes where it
-    helps (hard–soft) while vision carries the rest."""
+    helps (hard–soft) while vision carries the rest.
 
-    def __init__(self, bases: tuple[str, ...] = ("svr-visual", "ridge-both", "knn-visual"), folds: int = 5):
-        self.bases = bases
+    bases: name → zero-argument factory of a fresh, unfitted estimator (the registry supplies
+    them, so this module never imports the registry)."""
+
+    def __init__(self, bases: dict[str, Callable[[], Estimator]], folds: int = 5):
+        if not bases:
+            raise ValueError("a stack needs at least one base estimator")
+        self.bases = tuple(bases)
+        self.factories = dict(bases)
         self.folds = folds
-        self.name = "stack-" + "+".join(bases)
+        self.name = "stack-" + "+".join(self.bases)
         self.modality = "both"
 
     def fit(self, data: TextureData, seed: int) -> "StackedEstimator":
         from scipy.optimize import nnls
         from sklearn.model_selection import KFold
 
-        from models.evaluation.registry import build_estimator
-
         y = require_targets(data)
         oof = np.zeros((len(self.bases), len(data), 4))
         for tr, va in KFold(self.folds, shuffle=True, random_state=seed).split(y):
             for b, name in enumerate(self.bases):
-                oof[b, va] = build_estimator(name).fit(data.take(tr), seed).predict(data.take(va).with_targets(None))
+                oof[b, va] = self.factories[name]().fit(data.take(tr), seed).predict(data.take(va).with_targets(None))
         self.weights = np.zeros((4, len(self.bases)))
         for j in range(4):
             w, _ = nnls(oof[:, :, j].T, y[:, j])
             self.weights[j] = w / w.sum() if w.sum() > 0 else np.full(len(self.bases), 1 / len(self.bases))
-        self.models = [build_estimator(name).fit(data, seed) for name in self.bases]
+        self.models = [self.factories[name]().fit(data, seed) for name in self.bases]
         return self
 
     def predict(self, data: TextureData) -> np.ndarray:

@@ -17,7 +17,9 @@ from models.evaluation.estimators import (
 
 CLASSICAL = {
     "mean": lambda **kw: MeanEstimator(),
-    "stack-both": lambda **kw: StackedEstimator(**kw),
+    "stack-both": lambda **kw: StackedEstimator(
+        {"svr-visual": lambda: SVREstimator("visual"), "ridge-both": lambda: RidgeEstimator("both"),
+         "knn-visual": lambda: KNNEstimator("visual")}, **kw),
     "svr-tactile-windows": lambda **kw: WindowSVREstimator(**kw),
     **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
     **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
