@@ -15,6 +15,7 @@ import numpy as np
 from models.evaluation.data import TextureData
 from models.standardize import Z_CLIP, Standardizer
 from models.visual.pooling import pool_texture_views
+from texture_library.attributes import RATING_MAX, RATING_MIN
 
 Modality = Literal["none", "tactile", "visual", "both"]
 
@@ -49,6 +50,12 @@ def union_modality(modalities) -> Modality:
     has_v = bool(seen & {"visual", "both"})
     has_t = bool(seen & {"tactile", "both"})
     return "both" if has_v and has_t else "visual" if has_v else "tactile" if has_t else "none"
+
+
+def window_mean(windows: list[np.ndarray]) -> np.ndarray:
+    """(T, 4): per texture the mean of its windows' answers (n_i, 4), each clipped to the rating range
+    first — as the exported graph clips every window's output before the service averages them."""
+    return np.stack([np.clip(w, RATING_MIN, RATING_MAX).mean(axis=0) for w in windows])
 
 
 def common_views(models) -> int | None:

@@ -9,9 +9,10 @@ t  the tactile block: the mean over the texture's windows of each window's stand
 k_v linear (v·v') or RBF exp(−γ‖v − v'‖²), γ relative to the median squared distance of the
    training textures.
 
-The model is linear in t, and t is a mean over windows: the texture's prediction is exactly the
-mean of its windows' predictions. So the exported graph answers window by window (as the service
-asks it) and evaluation scores what the service would say. The touch weight w, the kernel width and
+The model is linear in t, and t is a mean over windows, so a texture-level fit serves window by
+window: the exported graph answers each window (as the service asks it), and `predict` scores the
+mean of those answers, each clipped to the rating range as the graph clips it — evaluation scores
+what the service would say. The touch weight w, the kernel width and
 the regularisation are chosen per attribute inside `fit` from the training textures only — this is
 where each attribute weighs touch for itself (w = 0: the attribute ignores touch).
 """
@@ -24,7 +25,8 @@ from typing import Literal
 import numpy as np
 
 from models.evaluation.data import TextureData
-from models.evaluation.estimators import Estimator, Modality, common_views, pooled_visual, require_targets, union_modality
+from models.evaluation.estimators import (Estimator, Modality, common_views, pooled_visual, require_targets,
+                                         union_modality, window_mean)
 from models.standardize import Z_CLIP, Standardizer
 
 VisualKernel = Literal["linear", "rbf"]
@@ -72,15 +74,20 @@ class PooledBlocks:
             self.tactile_scaler = Standardizer().fit(np.concatenate(data.tactile).astype(np.float64))
         return self
 
-    def transform(self, data: TextureData) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """(zv (T, Dv) | None, zt (T, Dt) | None), each ÷ √width."""
+    def transform_windows(self, data: TextureData) -> tuple[np.ndarray | None, list[np.ndarray] | None]:
+        """(zv (T, Dv) | None, per texture its windows' zt (n_i, Dt) | None), each ÷ √width."""
         zv = zt = None
         if self.uses_visual:
             zv = self.visual_scaler.transform(pooled_visual(data, self.views)) / np.sqrt(self.visual_scaler.mean.size)
         if self.uses_tactile:
             s = self.tactile_scaler
-            zt = np.stack([s.transform(w.astype(np.float64)).mean(axis=0) for w in data.tactile]) / np.sqrt(s.mean.size)
+            zt = [s.transform(w.astype(np.float64)) / np.sqrt(s.mean.size) for w in data.tactile]
         return zv, zt
+
+    def transform(self, data: TextureData) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Texture rows: (zv (T, Dv) | None, zt (T, Dt) | None) — zt the mean of the windows' rows."""
+        zv, zt = self.transform_windows(data)
+        return zv, None if zt is None else np.stack([w.mean(axis=0) for w in zt])
 
     def add_graph(self, g, visual: bool = True, tactile: bool = True) -> tuple[str | None, str | None]:
         """The same blocks per window in a GraphBuilder: (visual z, tactile z) output names; a block the
@@ -110,13 +117,13 @@ class Expansion:
     intercept: float
 
     def __call__(self, zv: np.ndarray | None, zt: np.ndarray | None) -> np.ndarray:
-        n = len(zv) if zv is not None else len(zt)
-        out = np.full(n, self.intercept)
+        """Rows of zv (n, Dv) and zt (n, Dt) (either may be one row, broadcast) → (n,) bipolar."""
+        out = np.asarray(self.intercept, float)
         if zv is not None:
-            out += zv @ self.beta_v if self.gamma is None else np.exp(-self.gamma * _sq_dist(zv, self.centres)) @ self.coef
+            out = out + (zv @ self.beta_v if self.gamma is None else np.exp(-self.gamma * _sq_dist(zv, self.centres)) @ self.coef)
         if zt is not None and self.beta_t is not None:
-            out += zt @ self.beta_t
-        return out
+            out = out + zt @ self.beta_t
+        return np.atleast_1d(out)
 
 
 def make_expansion(gamma: float | None, w: float, zv: np.ndarray | None, zt: np.ndarray | None, coef: np.ndarray,
@@ -188,9 +195,19 @@ class AdditiveKernelModel(Estimator):
         """Per attribute (column of y (n, 4)): (γ, touch weight, dual coefficients (n,), intercept, info)."""
         raise NotImplementedError
 
+    def predict_windows(self, data: TextureData) -> list[np.ndarray]:
+        """Per texture, (n_i, 4) bipolar answers of the exported graph to its windows, before the output clip."""
+        zv, zt = self.blocks.transform_windows(data)
+        out = []
+        for i, windows in enumerate(data.tactile):
+            v = None if zv is None else zv[i:i + 1]
+            t = None if zt is None else zt[i]
+            rows = np.stack([np.broadcast_to(e(v, t), (len(windows),)) for e in self.expansions], axis=1)
+            out.append(rows)
+        return out
+
     def predict(self, data: TextureData) -> np.ndarray:
-        zv, zt = self.blocks.transform(data)
-        return np.stack([e(zv, zt) for e in self.expansions], axis=1)
+        return window_mean(self.predict_windows(data))
 
     def n_params(self) -> int:
         total = 0
@@ -336,8 +353,12 @@ class MeanOfEstimator(Estimator):
         self.modality = union_modality(m.modality for m in self.members.values())
         return self
 
+    def predict_windows(self, data: TextureData) -> list[np.ndarray]:
+        per_member = [m.predict_windows(data) for m in self.members.values()]
+        return [np.mean(rows, axis=0) for rows in zip(*per_member)]
+
     def predict(self, data: TextureData) -> np.ndarray:
-        return np.mean([m.predict(data) for m in self.members.values()], axis=0)
+        return window_mean(self.predict_windows(data))
 
     def n_params(self) -> int:
         return int(sum(m.n_params() for m in self.members.values()))

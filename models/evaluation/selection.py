@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from models.evaluation.data import TextureData
-from models.evaluation.estimators import Estimator, common_views, require_targets, union_modality
+from models.evaluation.estimators import Estimator, common_views, require_targets, union_modality, window_mean
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN, REPORT_SCALE
 
 
@@ -89,10 +89,17 @@ class SelectedEstimator(Estimator):
         self.modality = union_modality(m.modality for m in self.models.values())
         return self
 
+    def predict_windows(self, data: TextureData) -> list[np.ndarray]:
+        """Per texture, (n_i, 4) answers of the exported graph to its windows, before the output clip."""
+        base = {b: m.predict_windows(data) for b, m in self.models.items()}
+        out = []
+        for i in range(len(data)):
+            cols = [np.mean([base[b][i][:, j] for b in self.members_of(c)], axis=0) for j, c in enumerate(self.chosen)]
+            out.append(np.stack(cols, axis=1))
+        return out
+
     def predict(self, data: TextureData) -> np.ndarray:
-        base = {b: m.predict(data) for b, m in self.models.items()}
-        cols = [np.mean([base[b][:, j] for b in self.members_of(c)], axis=0) for j, c in enumerate(self.chosen)]
-        return np.stack(cols, axis=1)
+        return window_mean(self.predict_windows(data))
 
     def n_params(self) -> int:
         return int(sum(m.n_params() for m in self.models.values()))
