@@ -310,7 +310,9 @@ class KernelSVREstimator(AdditiveKernelModel):
 
         mean, std = y.mean(axis=0), y.std(axis=0) + 1e-9
         ys = (y - mean) / std
-        folds = list(KFold(SVR_FOLDS, shuffle=True, random_state=seed).split(ys))
+        if len(y) < 3:
+            raise ValueError(f"kernel SVR needs at least 3 training textures for its inner folds, got {len(y)}")
+        folds = list(KFold(min(SVR_FOLDS, len(y)), shuffle=True, random_state=seed).split(ys))
         best: list[tuple] = [(np.inf,)] * y.shape[1]
         for gamma, kvm in kv.items():
             for w in self.tactile_weights:

@@ -83,7 +83,7 @@ def _views(res: dict) -> str:
 
 def _table(rows: list[dict], metric: str, ceiling: dict | None, reference: dict | None) -> list[str]:
     ref_col = reference is not None and metric == "mae"
-    head = "| model | modality | views | seeds | " + " | ".join(SHORT[k] for k in KEYS) + (f" | Δ mean vs {REFERENCE} |" if ref_col else " |")
+    head = "| model | modality | views | seeds | " + " | ".join(SHORT[k] for k in KEYS) + (f" | Δ mean vs {reference['dir']} |" if ref_col else " |")
     lines = [head, "|---|---|---:|---:|" + "---:|" * (len(KEYS) + ref_col)]
     for r in rows:
         cells = [_cell(r, metric, k) for k in KEYS]
@@ -121,7 +121,9 @@ def _ablation_label(res: dict) -> str:
     return " + ".join(parts)
 
 
-def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "") -> Path:
+def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "", reference: str = REFERENCE) -> Path:
+    """Write folder/README.md from every results.json below folder; `reference`: the model every other is
+    compared with, texture by texture (a folder name of the main table)."""
     folder = Path(folder)
     results = load_results(folder)
     if not results:
@@ -136,7 +138,7 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
     _, _, table = ds.rating_table()
     ceiling = split_half_ceiling(table) if table.shape[1] >= 2 else None
     mean_pred = next((r for r in main if r["model"] == "mean"), None)
-    reference = next((r for r in main if r["dir"] == REFERENCE), None)
+    reference_run = next((r for r in main if r["dir"] == reference), None)
     headline = next((r for r in main if r["dir"] == HEADLINE), None)
     scored = [r for r in main if not r["model"].startswith(("mean", "shuffled"))]
     best = scored[0] if scored else main[0]
@@ -154,10 +156,10 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
         lines += ["Regenerate everything on this page with:", "", "```", regenerate, "```", ""]
     if headline is not None:
         lines += _headline(headline, best)
-    lines += ["## MAE", "", *_table(main, "mae", ceiling, reference), "",
+    lines += ["## MAE", "", *_table(main, "mae", ceiling, reference_run), "",
               "## RMSE", "", *_table(main, "rmse", ceiling, None), ""]
-    if reference is not None:
-        lines += _paired_section(main, reference)
+    if reference_run is not None:
+        lines += _paired_section(main, reference_run)
     lines += _targets(headline, best, mean_pred)
     if headline is not None:
         lines += _selection_section(headline)
@@ -191,8 +193,8 @@ def _headline(headline: dict, best: dict) -> list[str]:
 
 
 def _paired_section(main: list[dict], reference: dict) -> list[str]:
-    lines = [f"## Paired comparison against {REFERENCE}", "",
-             f"MAE(model) − MAE({REFERENCE}) over the same textures, with the interval from resampling textures for "
+    lines = [f"## Paired comparison against {reference['dir']}", "",
+             f"MAE(model) − MAE({reference['dir']}) over the same textures, with the interval from resampling textures for "
              "both at once; negative is better, an interval that excludes 0 is a difference these textures support.", "",
              "| model | " + " | ".join(SHORT[k] for k in KEYS) + " |", "|---|" + "---:|" * len(KEYS)]
     for r in main:

@@ -1,6 +1,7 @@
 """The report page: tables from results.json files, targets, the speed–accuracy chart and its Pareto frontier."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -44,6 +45,8 @@ def test_evaluate_writes_results_and_figures(reports):
     res = json.loads((folder / "ridge-tactile" / "results.json").read_text())
     assert set(res["mae"]) == {"rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft", "mean"}
     assert len(res["predictions"]) == res["n_textures"] == 8
+    assert "truth" not in res  # committed results carry no human ratings
+    assert list(res["predictions_per_seed"]) == ["0"] and len(res["predictions_per_seed"]["0"]) == 8
     assert res["latency_us"]["runtime"] == "onnxruntime" and res["latency_us"]["p50_us"] > 0
     assert res["vs_true_mapping"]["mae"]["mean"] > 0  # the synthetic world knows its noise-free ratings
     for fig in ("actual_vs_predicted.png", "group_mae.png", "perceptual_space.png"):
@@ -52,7 +55,7 @@ def test_evaluate_writes_results_and_figures(reports):
 
 def test_report_page_lists_every_model_with_the_ceiling_and_the_chart(reports):
     dataset, folder = reports
-    page = build_report(dataset, folder, regenerate="bash reports/regenerate.sh").read_text()
+    page = build_report(dataset, folder, regenerate="bash reports/regenerate.sh", reference="ridge-tactile").read_text()
     for name in ("| mean |", "| ridge-tactile |", "| knn-tactile |", "*human split-half*", "bash reports/regenerate.sh"):
         assert name in page
     assert "speed_accuracy.png" in page and (folder / "speed_accuracy.png").is_file()
@@ -61,6 +64,44 @@ def test_report_page_lists_every_model_with_the_ceiling_and_the_chart(reports):
     first_row = page.split("## MAE")[1].split("\n")[4]
     maes = {n: json.loads((folder / n / "results.json").read_text())["mae"]["mean"] for n in ("mean", "ridge-tactile", "knn-tactile")}
     assert first_row.startswith(f"| {min(maes, key=maes.get)} |")
+
+
+def test_every_mae_on_the_page_has_its_interval_and_a_paired_comparison(reports):
+    dataset, folder = reports
+    page = build_report(dataset, folder, reference="ridge-tactile").read_text()
+    mean_row = next(line for line in page.split("## MAE")[1].split("\n") if line.startswith("| mean "))
+    cells = [c.strip() for c in mean_row.strip("|").split("|")]
+    res = json.loads((folder / "mean" / "results.json").read_text())
+    # each attribute cell: value [lo, hi], the interval around the value
+    for cell, key in zip(cells[4:8], ("rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft")):
+        value, lo, hi = (float(x) for x in re.match(r"([\d.]+) \[([\d.]+), ([\d.]+)\]", cell).groups())
+        assert value == pytest.approx(res["mae"][key], abs=0.005) and lo <= value <= hi
+    assert "## Paired comparison against ridge-tactile" in page and "Δ mean vs ridge-tactile" in page
+    assert re.search(r"\| mean [^|]*\|( [+-][\d.]+ \[[+-]?[\d.]+, [+-]?[\d.]+\] \|){5}", page)
+
+
+def test_the_views_section_plots_error_against_views_pooled(reports, tmp_path):
+    dataset, folder = reports
+    res = json.loads((folder / "mean" / "results.json").read_text())
+    work = tmp_path / "reports"
+    (work / "mean").mkdir(parents=True)
+    (work / "mean" / "results.json").write_text(json.dumps(res))
+    for k in (1, 2, 4):
+        (work / "views" / f"mean-v{k}").mkdir(parents=True)
+        (work / "views" / f"mean-v{k}" / "results.json").write_text(json.dumps({**res, "views": k}))
+    page = build_report(dataset, work).read_text()
+    assert "## Views pooled" in page and "| model | 1 view | 2 views | 4 views |" in page
+    assert (work / "views_curve.png").stat().st_size > 10_000
+
+
+def test_the_report_reads_ratings_from_the_dataset_and_says_when_they_are_missing(reports, tmp_path):
+    dataset, folder = reports
+    res = json.loads((folder / "mean" / "results.json").read_text())
+    res["predictions"]["not_in_dataset"] = res["predictions"]["synth_000"]
+    (tmp_path / "mean").mkdir()
+    (tmp_path / "mean" / "results.json").write_text(json.dumps({k: v for k, v in res.items() if k != "predictions_per_seed"}))
+    with pytest.raises(ValueError, match=r"no ratings for \['not_in_dataset'\]; pass the dataset the run used"):
+        build_report(dataset, tmp_path)
 
 
 def test_report_without_results_says_what_to_run(tmp_path, reports):
