@@ -108,3 +108,13 @@ def test_report_without_results_says_what_to_run(tmp_path, reports):
     dataset, _ = reports
     with pytest.raises(ValueError, match="run `hapticlink evaluate"):
         build_report(dataset, tmp_path)
+
+
+def test_no_committed_results_carry_human_ratings():
+    from pathlib import Path
+
+    reports = Path(__file__).resolve().parents[3] / "reports"
+    files = sorted(reports.rglob("results.json"))
+    assert files, "the repository's reports/ holds results"
+    carrying = [str(p.relative_to(reports)) for p in files if "truth" in json.loads(p.read_text())]
+    assert carrying == []
