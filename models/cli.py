@@ -84,6 +84,9 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--backend", default="process", choices=["process", "serial", "ray"],
                    help="where the (seed, fold) jobs run: worker processes (default), in this process, or Ray tasks")
     e.add_argument("--ray-address", help="Ray cluster to run on (default: $RAY_ADDRESS, else a local Ray instance)")
+    e.add_argument("--test-views", type=int,
+                   help="the held-out texture shows only its first K image views (a service that pooled K frames); "
+                        "training is unchanged. K must divide the stored views (8)")
     _feature_args(e)
     _net_args(e)
     e.add_argument("--no-figures", action="store_true")
@@ -155,7 +158,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})")
         return 0
     res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
-                   figures=not args.no_figures, ray_address=args.ray_address)
+                   figures=not args.no_figures, ray_address=args.ray_address, test_views=args.test_views)
     mae, sd = res["mae"], res["mae_std"]
     print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
     for k in mae:

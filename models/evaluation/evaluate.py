@@ -96,6 +96,7 @@ def evaluate(
     figures: bool = True,
     latency: bool = True,
     ray_address: str | None = None,
+    test_views: int | None = None,
 ) -> dict:
     """LOOCV for every seed (all folds of all seeds as one batch of jobs); writes out/results.json
     (+ figures) and returns the results dict."""
@@ -103,7 +104,7 @@ def evaluate(
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     runs = loocv_seeds(data, spec, tuple(seeds), workers=workers, backend=backend, progress=progress,
-                       ray_address=ray_address)
+                       ray_address=ray_address, test_views=test_views)
     results = {
         "dataset": data.meta.get("dataset"),
         "model": spec.name,
@@ -113,6 +114,8 @@ def evaluate(
         "seeds": list(seeds),
         # image views pooled into each texture's visual input (None: the model reads no images)
         "views": spec.build().pooled_views(data.visual.shape[1]) if data.visual is not None else None,
+        # the held-out texture seen through only this many views (a service that pooled that many frames)
+        "test_views": test_views,
         "backend": backend,
         "scale": "0-100 (bipolar error / 2)",
         **summarize_runs(data, runs),

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
@@ -61,24 +61,43 @@ def set_threads(threads: int) -> None:
         pass
 
 
-def run_fold(data: TextureData, spec: EstimatorSpec, held_out: int, seed: int) -> tuple[np.ndarray, float, dict, int]:
-    """Fit on every texture but `held_out`, predict `held_out`: (prediction (4,), seconds, fit info, params)."""
+def seen_through(data: TextureData, views: int) -> TextureData:
+    """The textures as a camera that gave only their first `views` views would show them: those views
+    tiled over the stored slots, so any model pools exactly them (views must divide the stored count)."""
+    if data.visual is None:
+        raise ValueError("test views need visual features, but the data has none")
+    stored = data.visual.shape[1]
+    if views < 1 or stored % views:
+        raise ValueError(f"test views must divide the {stored} stored views, got {views}")
+    return replace(data, visual=np.tile(data.visual[:, :views], (1, stored // views, 1)))
+
+
+def run_fold(data: TextureData, spec: EstimatorSpec, held_out: int, seed: int,
+             test_views: int | None = None) -> tuple[np.ndarray, float, dict, int]:
+    """Fit on every texture but `held_out`, predict `held_out`: (prediction (4,), seconds, fit info, params).
+
+    test_views: the held-out texture is seen through only its first test_views image views (a service
+    that pooled that many frames); the model is still fit as usual."""
     t0 = time.perf_counter()
     train = data.take([i for i in range(len(data)) if i != held_out])
     est = spec.build().fit(train, seed)
+    held = data.take([held_out]).with_targets(None)
+    if test_views is not None:
+        held = seen_through(held, test_views)
     # The held-out texture reaches predict without its ratings: nothing to leak, by construction.
-    pred = est.predict(data.take([held_out]).with_targets(None))[0]
+    pred = est.predict(held)[0]
     pred = np.clip(pred, RATING_MIN, RATING_MAX)  # as every exported model clips its output
     return pred, time.perf_counter() - t0, est.fit_info(), est.n_params()
 
 
-def _fold_in_worker(args: tuple[EstimatorSpec, int, int]):
+def _fold_in_worker(args: tuple[EstimatorSpec, int, int, int | None]):
     return run_fold(_DATA, *args)
 
 
-def _fold_in_ray_task(data: TextureData, spec: EstimatorSpec, held_out: int, seed: int, threads: int):
+def _fold_in_ray_task(data: TextureData, spec: EstimatorSpec, held_out: int, seed: int, test_views: int | None,
+                      threads: int):
     set_threads(threads)
-    return run_fold(data, spec, held_out, seed)
+    return run_fold(data, spec, held_out, seed, test_views)
 
 
 def loocv(
@@ -90,10 +109,11 @@ def loocv(
     backend: str = "process",
     progress: bool = True,
     ray_address: str | None = None,
+    test_views: int | None = None,
 ) -> LoocvRun:
     """Run all len(data) folds of one seed. workers=None: one per core."""
     return loocv_seeds(data, spec, (seed,), workers=workers, backend=backend, progress=progress,
-                       ray_address=ray_address)[0]
+                       ray_address=ray_address, test_views=test_views)[0]
 
 
 def loocv_seeds(
@@ -105,18 +125,22 @@ def loocv_seeds(
     backend: str = "process",
     progress: bool = True,
     ray_address: str | None = None,
+    test_views: int | None = None,
 ) -> list[LoocvRun]:
     """All folds of all seeds as one batch of independent jobs; one LoocvRun per seed, in `seeds` order.
 
-    workers: parallel jobs (process: worker processes; ray: CPUs of a local instance; None: one per core)."""
+    workers: parallel jobs (process: worker processes; ray: CPUs of a local instance; None: one per core);
+    test_views: see run_fold."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if data.targets is None or len(data) < 3:
         raise ValueError("leave-one-texture-out needs at least 3 rated textures")
     if not seeds:
         raise ValueError("give at least one seed")
+    if test_views is not None:
+        seen_through(data.take([0]), test_views)  # refuse a bad value before any job starts
     n = len(data)
-    jobs = [(spec, i, s) for s in seeds for i in range(n)]
+    jobs = [(spec, i, s, test_views) for s in seeds for i in range(n)]
     workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
     threads = max(1, (os.cpu_count() or 1) // workers)
     t0 = time.perf_counter()
@@ -181,7 +205,7 @@ def _ray_folds(data: TextureData, jobs: list, bar, workers: int, address: str | 
     ray_init(address, num_cpus=workers)
     data_ref = ray.put(data)
     remote_fold = ray.remote(num_cpus=1)(_fold_in_ray_task)
-    pending = {remote_fold.remote(data_ref, *job, 1): i for i, job in enumerate(jobs)}
+    pending = {remote_fold.remote(data_ref, *job, 1): i for i, job in enumerate(jobs)}  # 1 BLAS thread
     results: list = [None] * len(jobs)
     while pending:
         done, _ = ray.wait(list(pending), num_returns=1)

@@ -244,23 +244,32 @@ def _selection_section(res: dict) -> list[str]:
 
 
 def _views_section(views: list[dict], folder: Path) -> list[str]:
+    """Runs under views/: error against views pooled (fit and shown k views), and against the views a
+    held-out texture is shown through when the model was fit on more (`--test-views`)."""
     from models.report.figures import views_curve
+
+    def key(r: dict) -> str:
+        return r["model"] if r.get("test_views") is None else f"{r['model']}, fit on {r['views']}, shown k"
+
+    def x(r: dict) -> int:
+        return r["test_views"] if r.get("test_views") is not None else r["views"]
 
     by_model: dict[str, list[dict]] = {}
     for r in views:
-        by_model.setdefault(r["model"], []).append(r)
+        by_model.setdefault(key(r), []).append(r)
     for rs in by_model.values():
-        rs.sort(key=lambda r: r["views"])
-    counts = sorted({r["views"] for r in views})
-    views_curve({m: [(r["views"], r["mae"]["mean"], r["_boot"]["mae"]["lo"]["mean"], r["_boot"]["mae"]["hi"]["mean"])
+        rs.sort(key=x)
+    counts = sorted({x(r) for r in views})
+    views_curve({m: [(x(r), r["mae"]["mean"], r["_boot"]["mae"]["lo"]["mean"], r["_boot"]["mae"]["hi"]["mean"])
                      for r in rs] for m, rs in by_model.items()}, folder / "views_curve.png")
     lines = ["## Views pooled", "",
-             "Mean MAE against the number of image views pooled per texture (view 0 the photo, then its augmented "
-             "views; training and prediction pool the same number). The service pools camera frames the same way "
-             "(`models.visual.pooling`).", "", "![MAE against views pooled](views_curve.png)", "",
-             "| model | " + " | ".join(f"{k} view{'s' if k > 1 else ''}" for k in counts) + " |", "|---|" + "---:|" * len(counts)]
+             "Mean MAE against k, the number of image views pooled per texture (view 0 the photo, then its augmented "
+             "views). Plain rows: fit and predicted with k views pooled. *fit on 8, shown k*: fit on 8 pooled views, "
+             "the held-out texture shown only its first k — a service that pooled k camera frames into a model "
+             "trained on 8 (`models.visual.pooling`).", "", "![MAE against views pooled](views_curve.png)", "",
+             "| model | " + " | ".join(f"k = {k}" for k in counts) + " |", "|---|" + "---:|" * len(counts)]
     for m, rs in by_model.items():
-        at = {r["views"]: r for r in rs}
+        at = {x(r): r for r in rs}
         lines.append(f"| {m} | " + " | ".join(_cell(at[k], "mae", "mean") if k in at else "—" for k in counts) + " |")
     return lines + [""]
 

@@ -93,3 +93,18 @@ def test_ray_backend_gives_the_serial_answer(linear_world, local_ray, monkeypatc
         alone = loocv(small, spec, seed=run.seed, backend="serial", progress=False)
         np.testing.assert_allclose(run.predictions, alone.predictions, rtol=1e-6)
         assert len(run.fold_seconds) == len(small)
+
+
+def test_a_held_out_texture_can_be_shown_through_fewer_views(linear_world):
+    from models.evaluation.loocv import seen_through
+
+    two = seen_through(linear_world.take([0, 1]), 1)
+    np.testing.assert_array_equal(two.visual[:, 2], linear_world.visual[:2, 0])  # view 0 fills every slot
+    spec = EstimatorSpec("krr-pooled")
+    full = loocv(linear_world, spec, backend="serial", progress=False)
+    one = loocv(linear_world, spec, backend="serial", progress=False, test_views=1)
+    same = loocv(linear_world, spec, backend="serial", progress=False, test_views=3)
+    np.testing.assert_allclose(same.predictions, full.predictions)  # all 3 stored views: no change
+    assert not np.allclose(one.predictions, full.predictions)
+    with pytest.raises(ValueError, match="must divide the 3 stored views"):
+        loocv(linear_world, spec, backend="serial", progress=False, test_views=2)

@@ -89,8 +89,11 @@ def test_the_views_section_plots_error_against_views_pooled(reports, tmp_path):
     for k in (1, 2, 4):
         (work / "views" / f"mean-v{k}").mkdir(parents=True)
         (work / "views" / f"mean-v{k}" / "results.json").write_text(json.dumps({**res, "views": k}))
+    (work / "views" / "mean-shown1").mkdir(parents=True)
+    (work / "views" / "mean-shown1" / "results.json").write_text(json.dumps({**res, "views": 4, "test_views": 1}))
     page = build_report(dataset, work).read_text()
-    assert "## Views pooled" in page and "| model | 1 view | 2 views | 4 views |" in page
+    assert "## Views pooled" in page and "| model | k = 1 | k = 2 | k = 4 |" in page
+    assert "| mean, fit on 4, shown k | " in page
     assert (work / "views_curve.png").stat().st_size > 10_000
 
 
