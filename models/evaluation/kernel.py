@@ -210,11 +210,12 @@ class AdditiveKernelModel(Estimator):
         return window_mean(self.predict_windows(data))
 
     def n_params(self) -> int:
-        total = 0
+        """Numbers in the exported graph: the centres once (the attributes share them), per attribute its
+        coefficients, linear weights and intercept."""
+        centres = {id(e.centres): e.centres.size for e in self.expansions if e.centres is not None}
+        total = sum(centres.values())
         for e in self.expansions:
-            for arr in (e.centres, e.beta_v, e.beta_t):
-                total += 0 if arr is None else arr.size
-            total += e.coef.size + 1
+            total += sum(0 if a is None else a.size for a in (e.beta_v, e.beta_t)) + e.coef.size + 1
         return int(total)
 
     def fit_info(self) -> dict:
