@@ -192,11 +192,15 @@ def register_report(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--dataset", required=True, help="the dataset the results were computed on (for the human noise ceiling)")
     r.add_argument("--reports", required=True, help="folder holding <model>/results.json (and ablation/<run>/results.json)")
     r.add_argument("--regenerate", default="", help="the command that regenerates the page, quoted on it")
+    r.add_argument("--readme", default=None,
+                   help="also rewrite the results table of this file (e.g. README.md) between its table markers")
     r.set_defaults(func=_report)
 
 
 def _report(args: argparse.Namespace) -> int:
     from models.report.markdown import build_report
 
-    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate)}")
+    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate, readme=args.readme)}")
+    if args.readme:
+        print(f"wrote the results table of {args.readme}")
     return 0

@@ -26,6 +26,7 @@ done
 # ---- MAE against the number of image views pooled (1, 2, 4, 8) -----------------------------------
 for k in 1 2 4 8; do
   for m in ridge-visual krr-pooled selected; do
+    [ "$m-v$k" = selected-v8 ] && continue  # the main selected run pooled 8 views; the report uses it there
     hl evaluate --dataset $H --model $m --views $k --out reports/hatt-texnet/views/$m-v$k --seeds 0 --no-figures
   done
 done
@@ -53,13 +54,13 @@ done
 for feat in dwt dft; do  # ann with MFCC is ablation/ann-visual-both
   hl evaluate --dataset $H --model ann --tactile-features $feat --out reports/hatt-texnet/ablation/ann-tactile-$feat --seeds 0
 done
-hl report --dataset $H --reports reports/hatt-texnet --regenerate "bash reports/regenerate.sh"
+hl report --dataset $H --reports reports/hatt-texnet --regenerate "bash reports/regenerate.sh" --readme README.md
 
 # ---- the model for the service and the withheld textures: the selection rule on all rated textures --
 hl train --dataset $H --model selected --seed 0 --metrics reports/hatt-texnet/selected/results.json --out artifacts/hatt-selected.onnx
 hl predict --model artifacts/hatt-selected.onnx --dataset $H --textures withheld --out reports/hatt-texnet/withheld_predictions.csv
 # ---- LOOCV on the serial, process and Ray backends (same jobs, wall times in one run) -------------
-.venv/bin/python -m benchmarks.loocv --dataset $H --model ksvr-pooled
+.venv/bin/python -m benchmarks.loocv --dataset $H --model ridge-pooled
 
 # ---- synthetic world: how much of the known mapping is recovered ---------------------------------
 for m in mean ridge-tactile ridge-visual ridge-both svr-tactile svr-visual svr-both knn-both ann; do

@@ -27,6 +27,25 @@ TARGET_HARD_SOFT = 4.5
 REFERENCE = "ridge-visual"  # the paired comparisons' baseline
 HEADLINE = "selected"  # chosen inside the folds by the rule in docs/models.md
 OLDER = "†"
+# The README's results table: its rows (report folder → what the model is), in this order.
+README_ROWS = {
+    "selected": "picked per attribute inside each fold among the 4 pooled models below (served; withheld predictions)",
+    "mean-pooled": "mean of ridge-, krr- and ksvr-pooled",
+    "krr-pooled": "kernel ridge (RBF), 8 views pooled, touch weighed per attribute",
+    "ksvr-pooled": "kernel SVR (RBF), 8 views pooled, touch weighed per attribute",
+    "ridge-pooled": "ridge (linear kernel), 8 views pooled, touch weighed per attribute",
+    "ann-ensemble": "mean of 3 ANN seeds (served before issue 9)",
+    "stack-both": "ridge + kNN + SVR, stacked",
+    "ann": "ANN baseline (paper), 3 seeds",
+    "svr-visual": "SVR, image features",
+    "ridge-visual": "ridge, image features (the Δ reference)",
+    "ridge-both": "ridge, image + touch",
+    "vtnet-compact": "Visuo-tactile Net, compact",
+    "svr-tactile-windows": "paper's Tactile SVM",
+    "mean": "predict the mean",
+}
+README_BEGIN = "<!-- results table: written by `hapticlink report --readme README.md`; edits here are overwritten -->"
+README_END = "<!-- end of results table -->"
 
 
 def load_results(folder: Path) -> list[dict]:
@@ -121,9 +140,11 @@ def _ablation_label(res: dict) -> str:
     return " + ".join(parts)
 
 
-def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "", reference: str = REFERENCE) -> Path:
+def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "", reference: str = REFERENCE,
+                 readme: str | Path | None = None, readme_rows: dict[str, str] = README_ROWS) -> Path:
     """Write folder/README.md from every results.json below folder; `reference`: the model every other is
-    compared with, texture by texture (a folder name of the main table)."""
+    compared with, texture by texture (a folder name of the main table). With `readme`, also rewrite the
+    results table of that file (between README_BEGIN and README_END) with `readme_rows` (folder → what)."""
     folder = Path(folder)
     results = load_results(folder)
     if not results:
@@ -164,7 +185,7 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
     if headline is not None:
         lines += _selection_section(headline)
     if views:
-        lines += _views_section(views, folder)
+        lines += _views_section(views, folder, main)
     if ablation:
         lines += ["## Feature ablation (MAE)", "", "| model | features | " + " | ".join(SHORT[k] for k in KEYS) + " |",
                   "|---|---|" + "---:|" * len(KEYS)]
@@ -178,7 +199,72 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
               f"![perceptual space]({shown['dir']}/perceptual_space.png)", ""]
     out = folder / "README.md"
     out.write_text("\n".join(lines))
+    if readme is not None:
+        write_readme_table(Path(readme), readme_table(main, readme_rows, reference_run, ceiling, mean_pred))
     return out
+
+
+def _latency(res: dict) -> str:
+    us = (res.get("latency_us") or {}).get("p50_us")
+    if us is None:
+        return ""
+    return f"{us / 1000:.1f} ms" if us >= 1000 else f"{us:.0f} µs"
+
+
+def readme_table(main: list[dict], rows: dict[str, str], reference: dict | None, ceiling: dict | None,
+                 mean_pred: dict | None) -> list[str]:
+    """The README's results table: `rows` (report folder → what it is) in that order, each with its MAE per
+    attribute, mean MAE with its bootstrap 95 % interval, the paired Δ against `reference` and the latency,
+    then the human ceiling and one line on the headline model against the targets.
+
+    main: runs of the main table with errors attached (attach_errors)."""
+    by_dir = {r["dir"]: r for r in main}
+    missing = [d for d in rows if d not in by_dir]
+    if missing:
+        raise ValueError(f"the README table needs results for {missing}; run `hapticlink evaluate` for them first")
+    ref = reference["dir"] if reference is not None else "—"
+    lines = [f"| model | what | {' | '.join(SHORT[k] for k in ATTRIBUTES)} | mean MAE [95 %] | Δ vs {ref} [95 %] "
+             "| latency / window |", "|---|---|" + "---:|" * (len(ATTRIBUTES) + 3)]
+    for d, what in rows.items():
+        r = by_dir[d]
+        sd = f" ± {r['mae_std']['mean']:.2f}" if len(r.get("seeds", [])) > 1 and "mae_std" in r else ""
+        mean = f"{r['mae']['mean']:.2f}{sd} {_ci(r['_boot']['mae'], 'mean', 2)}"
+        mean = f"**{mean}**" if d == HEADLINE else mean
+        delta = "—" if reference is None or r is reference else _delta(r, reference, "mean")
+        lines.append(f"| {_label(r)} | {what} | " + " | ".join(f"{r['mae'][k]:.2f}" for k in ATTRIBUTES)
+                     + f" | {mean} | {delta} | {_latency(r)} |")
+    if ceiling is not None:
+        lines.append("| *human split-half* | two halves of the raters | "
+                     + " | ".join(f"*{ceiling['mae'][k]:.2f}*" for k in KEYS) + " | | |")
+    head = by_dir.get(HEADLINE)
+    if head is not None:
+        lines += ["", _target_sentence(head, mean_pred)]
+    return lines
+
+
+def _target_sentence(res: dict, mean_pred: dict | None) -> str:
+    """One sentence: the model against the mean-MAE, per-attribute and hard–soft targets, by how much it misses."""
+    m = res["mae"]["mean"]
+    out = [f"`{res['dir']}` against the targets: mean MAE {m:.2f} "
+           + (f"meets ≤ {TARGET_MEAN_MAE}" if m <= TARGET_MEAN_MAE else f"misses ≤ {TARGET_MEAN_MAE} by {m - TARGET_MEAN_MAE:.2f}")]
+    hs = res["mae"]["hard_soft"]
+    out.append(f"hard–soft {hs:.2f} " + (f"meets ≤ {TARGET_HARD_SOFT}" if hs <= TARGET_HARD_SOFT
+                                         else f"misses ≤ {TARGET_HARD_SOFT} by {hs - TARGET_HARD_SOFT:.2f}"))
+    if mean_pred is not None:
+        ratios = [f"{SHORT[k]} {res['mae'][k] / mean_pred['mae'][k]:.2f}" + ("" if res["mae"][k] / mean_pred["mae"][k] <= TARGET_RATIO else " (missed)")
+                  for k in ATTRIBUTES]
+        out.append(f"MAE ÷ predict-the-mean (target ≤ {TARGET_RATIO}): " + ", ".join(ratios))
+    return "; ".join(out) + "."
+
+
+def write_readme_table(readme: Path, lines: list[str]) -> None:
+    """Replace what lies between README_BEGIN and README_END in readme with lines."""
+    text = readme.read_text()
+    if text.count(README_BEGIN) != 1 or text.count(README_END) != 1 or text.index(README_BEGIN) > text.index(README_END):
+        raise ValueError(f"{readme} needs one line {README_BEGIN!r} and, below it, one line {README_END!r} around its results table")
+    head, rest = text.split(README_BEGIN)
+    _, tail = rest.split(README_END)
+    readme.write_text(head + README_BEGIN + "\n" + "\n".join(lines) + "\n" + README_END + tail)
 
 
 def _headline(headline: dict, best: dict) -> list[str]:
@@ -243,9 +329,11 @@ def _selection_section(res: dict) -> list[str]:
     return lines + [""]
 
 
-def _views_section(views: list[dict], folder: Path) -> list[str]:
+def _views_section(views: list[dict], folder: Path, main: list[dict] = ()) -> list[str]:
     """Runs under views/: error against views pooled (fit and shown k views), and against the views a
-    held-out texture is shown through when the model was fit on more (`--test-views`)."""
+    held-out texture is shown through when the model was fit on more (`--test-views`). Where views/ has no
+    run of a model at some k and the main table's run of that model pooled k views, that run (all its
+    seeds) stands in: the same computation, not run twice; its cell is marked *."""
     from models.report.figures import views_curve
 
     def key(r: dict) -> str:
@@ -257,20 +345,26 @@ def _views_section(views: list[dict], folder: Path) -> list[str]:
     by_model: dict[str, list[dict]] = {}
     for r in views:
         by_model.setdefault(key(r), []).append(r)
+    counts = sorted({x(r) for r in views})
+    for r in main:
+        rs = by_model.get(r["model"])
+        if rs is not None and r.get("test_views") is None and r.get("views") in counts and r["views"] not in {x(v) for v in rs}:
+            rs.append(r)
     for rs in by_model.values():
         rs.sort(key=x)
-    counts = sorted({x(r) for r in views})
     views_curve({m: [(x(r), r["mae"]["mean"], r["_boot"]["mae"]["lo"]["mean"], r["_boot"]["mae"]["hi"]["mean"])
                      for r in rs] for m, rs in by_model.items()}, folder / "views_curve.png")
     lines = ["## Views pooled", "",
              "Mean MAE against k, the number of image views pooled per texture (view 0 the photo, then its augmented "
              "views). Plain rows: fit and predicted with k views pooled. *fit on 8, shown k*: fit on 8 pooled views, "
              "the held-out texture shown only its first k — a service that pooled k camera frames into a model "
-             "trained on 8 (`models.visual.pooling`).", "", "![MAE against views pooled](views_curve.png)", "",
+             "trained on 8 (`models.visual.pooling`). *: the main table's run of the model (all its seeds), which "
+             "pooled that many views.", "", "![MAE against views pooled](views_curve.png)", "",
              "| model | " + " | ".join(f"k = {k}" for k in counts) + " |", "|---|" + "---:|" * len(counts)]
     for m, rs in by_model.items():
         at = {x(r): r for r in rs}
-        lines.append(f"| {m} | " + " | ".join(_cell(at[k], "mae", "mean") if k in at else "—" for k in counts) + " |")
+        lines.append(f"| {m} | " + " | ".join((_cell(at[k], "mae", "mean") + (" *" if "/" not in at[k]["dir"] else ""))
+                                              if k in at else "—" for k in counts) + " |")
     return lines + [""]
 
 
