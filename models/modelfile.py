@@ -9,7 +9,7 @@ where the model came from.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN
@@ -24,7 +24,9 @@ OUTPUT = "ratings"
 @dataclass(frozen=True)
 class ModelCard:
     """model: registry name; modality: tactile | visual | both; tactile_config: TactileConfig.to_dict();
-    visual: {"backbone", "dim", "config_hash", "part"} or None; metrics: LOOCV summary (0–100 scale)."""
+    visual: {"backbone", "backbone_dim", "visual_hash", "visual_part", "views", "pooling", "view_seed"} or None —
+    views: how many image views the model's visual input pools (models.visual.pooling; 1: one photo/frame);
+    metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute)."""
 
     model: str
     modality: str
@@ -36,6 +38,7 @@ class ModelCard:
     n_params: int
     trained_on: list[str]
     seed: int
+    fit_info: dict = field(default_factory=dict)
 
     def to_metadata(self) -> dict[str, str]:
         return {
@@ -53,6 +56,7 @@ class ModelCard:
             "n_params": str(self.n_params),
             "trained_on": json.dumps(self.trained_on),
             "seed": str(self.seed),
+            "fit_info": json.dumps(self.fit_info),
         }
 
     @classmethod
@@ -75,6 +79,7 @@ class ModelCard:
                 n_params=int(meta.get("n_params", 0)),
                 trained_on=json.loads(meta.get("trained_on", "[]")),
                 seed=int(meta.get("seed", 0)),
+                fit_info=json.loads(meta.get("fit_info", "{}")),
             )
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: incomplete model metadata ({exc})") from None

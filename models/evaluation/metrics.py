@@ -64,29 +64,3 @@ def group_errors(pred: np.ndarray, truth: np.ndarray, groups: list[str]) -> dict
         out[g] = {**e, "n": int(sel.sum())}
     return out
 
-
-def bootstrap_mae_samples(pred: np.ndarray, truth: np.ndarray, *, n_boot: int = 2000, seed: int = 0) -> np.ndarray:
-    """Texture-level bootstrap of the MAE (0–100 scale): (n_boot, 5) — per attribute, then their mean.
-
-    Each row resamples the T textures with replacement. The resamples depend only on (T, n_boot,
-    seed), so two predictions of the same textures bootstrapped with the same seed are *paired*:
-    differences and ratios of their rows give paired intervals.
-    """
-    pred = np.asarray(pred, float)
-    truth = np.asarray(truth, float)
-    if pred.shape != truth.shape or pred.ndim != 2 or pred.shape[1] != len(ATTRIBUTES) or pred.shape[0] < 2:
-        raise ValueError(f"pred and truth must both be (T ≥ 2, {len(ATTRIBUTES)}), got {pred.shape} and {truth.shape}")
-    if n_boot < 100:
-        raise ValueError(f"n_boot must be ≥ 100 for a 95 % interval, got {n_boot}")
-    err = np.abs(pred - truth) * REPORT_SCALE
-    idx = np.random.default_rng(seed).integers(0, err.shape[0], size=(n_boot, err.shape[0]))
-    mae = err[idx].mean(axis=1)  # (n_boot, 4)
-    return np.concatenate([mae, mae.mean(axis=1, keepdims=True)], axis=1)
-
-
-def percentile_interval(samples: np.ndarray, level: float = 0.95) -> np.ndarray:
-    """(2, k) lower and upper percentile bounds of bootstrap samples (n_boot, k)."""
-    if not 0 < level < 1:
-        raise ValueError(f"level must lie in (0, 1), got {level}")
-    tail = 100 * (1 - level) / 2
-    return np.percentile(np.asarray(samples, float), [tail, 100 - tail], axis=0)

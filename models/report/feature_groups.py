@@ -2,10 +2,10 @@
 
 Reads `<reports>/feature-groups/<model>/<groups>/results.json` (written by `hapticlink evaluate
 --extra-groups …`) and `<reports>/feature-groups/mean/results.json` (predict-the-mean), takes
-each texture's mean rating from the dataset itself (results.json of licensed data carry no
-ratings: `--no-truth`), and reports per model and group set:
+each texture's mean rating from the dataset itself (results.json carry no ratings), and reports
+per model and group set, with the intervals of models.evaluation.bootstrap:
 
-- MAE per attribute (0–100, seed-averaged predictions) with a texture-level bootstrap 95 % interval;
+- MAE per attribute of the seed-averaged predictions (0–100) with a texture-level bootstrap 95 % interval;
 - its ratio to predict-the-mean, with the paired bootstrap interval (the target is ≤ 0.4);
 - its change against the same model on MFCC alone, with the paired bootstrap interval (an
   interval that excludes 0 is a contribution, or a loss, beyond resampling noise).
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from models.datasets.format import Dataset
-from models.evaluation.metrics import bootstrap_mae_samples, percentile_interval
+from models.evaluation.bootstrap import N_BOOT, bootstrap_errors, paired_difference, paired_ratio, texture_errors
 from models.tactile.config import EXTRA_GROUPS
 from texture_library.attributes import ATTRIBUTES
 
@@ -29,7 +29,6 @@ KEYS = (*ATTRIBUTES, "mean")
 SHORT = {"rough_smooth": "rough–smooth", "flat_bumpy": "flat–bumpy", "sticky_slippery": "sticky–slippery",
          "hard_soft": "hard–soft", "mean": "mean"}
 FOLDER = "feature-groups"
-N_BOOT = 2000
 TARGET_RATIO = 0.4
 
 
@@ -56,11 +55,18 @@ def load_group_runs(folder: Path) -> tuple[dict | None, dict[str, dict[tuple[str
     return mean, runs
 
 
-def _predictions(res: dict, textures: list[str]) -> np.ndarray:
+def _errors(res: dict, textures: list[str], truth: np.ndarray) -> np.ndarray:
+    """(T, 4) absolute errors (0–100) of a run's seed-averaged predictions of `textures`."""
     missing = [t for t in textures if t not in res["predictions"]]
     if missing:
         raise ValueError(f"{res['model']} results lack predictions of {len(missing)} rated texture(s), e.g. {missing[:3]}")
-    return np.array([[res["predictions"][t][a] for a in ATTRIBUTES] for t in textures])
+    return texture_errors(np.array([[res["predictions"][t][a] for a in ATTRIBUTES] for t in textures]), truth)[0]
+
+
+def _arrays(table: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A bootstrap table {"value", "lo", "hi"} → (values over KEYS, (2, len(KEYS)) interval)."""
+    return (np.array([table["value"][k] for k in KEYS]),
+            np.array([[table["lo"][k] for k in KEYS], [table["hi"][k] for k in KEYS]]))
 
 
 def group_rows(dataset: str | Path, folder: str | Path) -> list[dict]:
@@ -75,23 +81,20 @@ def group_rows(dataset: str | Path, folder: str | Path) -> list[dict]:
     if any(t not in means for t in textures):
         raise ValueError(f"{dataset} has no mean rating for some textures of the results in {folder}")
     truth = np.array([means[t] for t in textures])
-    ref = None if mean_res is None else bootstrap_mae_samples(_predictions(mean_res, textures), truth, n_boot=N_BOOT)
+    ref = None if mean_res is None else _errors(mean_res, textures, truth)
     rows = []
     for model in sorted(runs):
         base = runs[model].get(())
-        base_s = None if base is None else bootstrap_mae_samples(_predictions(base, textures), truth, n_boot=N_BOOT)
+        base_err = None if base is None else _errors(base, textures, truth)
         for groups in sorted(runs[model], key=_order):
             res = runs[model][groups]
-            samples = bootstrap_mae_samples(_predictions(res, textures), truth, n_boot=N_BOOT)
-            point = np.array([res["mae"][k] for k in KEYS])
-            row = {"model": model, "groups": groups, "mae": point, "mae_std": np.array([res["mae_std"][k] for k in KEYS]),
-                   "ci": percentile_interval(samples), "seeds": res["seeds"]}
+            err = _errors(res, textures, truth)
+            point, ci = _arrays(bootstrap_errors(err)["mae"])
+            row = {"model": model, "groups": groups, "mae": point, "ci": ci, "seeds": res["seeds"]}
             if ref is not None:
-                row["ratio"] = point / np.array([mean_res["mae"][k] for k in KEYS])
-                row["ratio_ci"] = percentile_interval(samples / ref)
-            if base_s is not None and groups:
-                row["delta"] = point - np.array([base["mae"][k] for k in KEYS])
-                row["delta_ci"] = percentile_interval(samples - base_s)
+                row["ratio"], row["ratio_ci"] = _arrays(paired_ratio(err, ref))
+            if base_err is not None and groups:
+                row["delta"], row["delta_ci"] = _arrays(paired_difference(err, base_err))
             rows.append(row)
     return rows
 

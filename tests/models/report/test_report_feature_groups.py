@@ -1,4 +1,5 @@
-"""The report's feature-group section: runs with and without extra groups, intervals, no licensed ratings needed."""
+"""The report's feature-group section: runs with and without extra groups, intervals (models.evaluation.bootstrap),
+ratings read from the dataset (results.json carry none)."""
 
 import json
 
@@ -24,15 +25,15 @@ def group_reports(tmp_path_factory):
         evaluate(plain, EstimatorSpec(name), reports / name, seeds=(0,), workers=1, backend="serial", progress=False,
                  latency=False, figures=False)
     evaluate(plain, EstimatorSpec("mean"), reports / "feature-groups" / "mean", seeds=(0,), workers=1,
-             backend="serial", progress=False, figures=False, latency=False, truth=False)
+             backend="serial", progress=False, figures=False, latency=False)
     for groups in ((), ("friction",), ("friction", "spatial", "taps")):
         data = load_texture_data(dataset, tactile_config=TactileConfig(extra_groups=groups), visual=False)
         evaluate(data, EstimatorSpec("ridge-tactile"), reports / "feature-groups" / "ridge-tactile" / ("+".join(groups) or "mfcc"),
-                 seeds=(0, 1), workers=1, backend="serial", progress=False, figures=False, latency=False, truth=False)
+                 seeds=(0, 1), workers=1, backend="serial", progress=False, figures=False, latency=False)
     return dataset, reports
 
 
-def test_no_truth_results_carry_no_ratings(group_reports):
+def test_results_carry_no_ratings(group_reports):
     _, reports = group_reports
     res = json.loads((reports / "feature-groups" / "ridge-tactile" / "friction" / "results.json").read_text())
     assert "truth" not in res and len(res["predictions"]) == 10
@@ -58,13 +59,6 @@ def test_report_page_has_the_section_and_figure(group_reports):
     assert "one model and group set meeting it on every attribute: " in page
     assert (reports / "feature_groups.png").stat().st_size > 10_000
     assert "feature-groups/" not in page.split("## Feature groups")[0]  # not mixed into the main table
-
-
-def test_no_truth_conflicts_with_figures(group_reports, tmp_path):
-    dataset, _ = group_reports
-    data = load_texture_data(dataset, visual=False)
-    with pytest.raises(ValueError, match="need truth"):
-        evaluate(data, EstimatorSpec("mean"), tmp_path, seeds=(0,), truth=False, figures=True, progress=False)
 
 
 def test_a_folder_of_feature_groups_alone_gets_its_own_page(group_reports, tmp_path):
