@@ -16,7 +16,7 @@ import numpy as np
 from models.datasets.format import Dataset
 from models.evaluation.bootstrap import bootstrap_errors, paired_difference, texture_errors
 from models.evaluation.metrics import split_half_ceiling
-from models.report.feature_groups import feature_group_section
+from models.report.feature_groups import FOLDER as GROUPS_FOLDER, feature_group_section
 from models.report.speed_accuracy import pareto_front, speed_accuracy_chart
 from texture_library.attributes import ATTRIBUTES
 
@@ -155,7 +155,7 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
     for r in results:
         attach_errors(r, truth)
     main = sorted((r for r in results if "/" not in r["dir"]), key=lambda r: r["mae"]["mean"])
-    if not any(not r["model"].startswith(("mean", "shuffled")) for r in main):
+    if all(r["dir"].startswith(GROUPS_FOLDER + "/") for r in results):  # the feature-group study alone
         return _feature_group_page(dataset, folder, results, regenerate)
     ablation = sorted((r for r in results if r["dir"].startswith("ablation/")), key=lambda r: (r["model"], _ablation_label(r)))
     views = [r for r in results if r["dir"].startswith("views/")]
@@ -209,7 +209,7 @@ def build_report(dataset: str | Path, folder: str | Path, *, regenerate: str = "
 
 
 def _feature_group_page(dataset: str | Path, folder: Path, results: list[dict], regenerate: str) -> Path:
-    """A page of the feature-group study alone (a folder with no main model runs)."""
+    """A page of the feature-group study alone (a folder whose only runs are under feature-groups/)."""
     section = feature_group_section(dataset, folder)
     if not section:
         raise ValueError(f"{folder} holds no model runs to report (only {sorted({r['model'] for r in results})})")
