@@ -129,6 +129,12 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
              f"and force faults re-render the stroke from the texture's HaTT vibration model along the scaled trajectory. "
              f"Camera faults act on the photo (the default visual configuration, 7×7 patches). MAE of the "
              f"seed-averaged texture-level prediction; dashed line: predict-the-mean, {ref:.2f} — the breaking level.", ""]
+    cut = {m: c for m, c in rb["clean"].items() if c.get("subset")}
+    if cut:
+        lines += [f"**Cut to fit the compute budget** (2 shared cores): " + "; ".join(
+            f"`{m}` ran the LOOCV folds of {c['n_textures']} held-out textures only (a fixed, seeded subset), "
+            f"judged against predict-the-mean on the same textures ({c['reference_mean_mae']:.2f})" for m, c in cut.items())
+            + (f"; network options {rb['net_options']}" if rb.get("net_options") else "") + ".", ""]
     for family in ("touch", "camera"):
         png = figures.robustness_chart(rb["robustness"], family, ref, folder / f"robustness-{family}.png")
         lines += [f"![{family} faults]({png.name})", ""]
