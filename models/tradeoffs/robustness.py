@@ -58,9 +58,9 @@ def study_inputs(root: str | Path, work: Path, *, visual: bool = True, workers: 
     tag = hashlib.sha256(json.dumps([data.textures, data.meta.get("tactile_hash"), data.meta.get("visual_hash"),
                                      part.tolist()]).encode()).hexdigest()[:12]
     tables = _pickle(work / f"detector-tables-{tag}.pkl", lambda: {
-        "folds": fold_checks(data, inputs, with_visual=visual),
-        "calibration": calibration_distances(data, inputs, part, with_visual=visual),
-        "shift": shift_checks(data, inputs, with_visual=visual),
+        "folds": fold_checks(data, inputs, with_visual=visual, workers=workers),
+        "calibration": calibration_distances(data, inputs, part, with_visual=visual, workers=workers),
+        "shift": shift_checks(data, inputs, with_visual=visual, workers=workers),
     })
     return data, inputs, part, tables
 

@@ -165,3 +165,16 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     page = build_tradeoffs_report(tmp_path).read_text()
     assert "compute ratio 6.00×" in page and "*Pending*" not in page
     assert json.loads((tmp_path / "results.json").read_text())["adaptive"]["compute_ratio"] == 6.0
+
+
+def test_detector_tables_in_worker_processes_equal_the_serial_ones(world):
+    data, inputs = world
+    part = partition(len(data), 4, seed=0)
+    for fn, args in ((fold_checks, ()), (calibration_distances, (part,)), (shift_checks, ())):
+        serial, forked = fn(data, inputs, *args, with_visual=True), fn(data, inputs, *args, with_visual=True, workers=2)
+        assert serial.keys() == forked.keys()
+        for k in serial:
+            a, b = serial[k], forked[k]
+            pairs = zip(a, b) if isinstance(a, list) else ((a[j], b[j]) for j in a) if isinstance(a, dict) else [(a, b)]
+            for x, y in pairs:
+                np.testing.assert_array_equal(getattr(x, "distance", x), getattr(y, "distance", y))
