@@ -1,14 +1,14 @@
 """`python -m benchmarks` (make bench): every benchmark, each printing its numbers and writing reports/bench/*.json.
 
 The HaTT dataset build (about 10 minutes on 2 cores) runs only with --all; the service
-benchmark runs one and two replicas.
+benchmark runs one and two replicas; the deploy benchmark runs when nginx and redis-server are installed.
 """
 
 from __future__ import annotations
 
 import sys
 
-from benchmarks import features, service, uncertainty, visual
+from benchmarks import features, hostile, service, uncertainty, visual
 
 
 def main(argv: list[str]) -> int:
@@ -19,7 +19,18 @@ def main(argv: list[str]) -> int:
     print("\n== uncertainty per window: OOD check, interval ==", flush=True)
     uncertainty.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
-    service.main(["--replicas", "1", "2"])
+    service.main(["--replicas", "1", "2", "--profile"])
+    print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)
+    hostile.main([])
+    from deploy.local import find_program
+
+    if find_program("nginx") and find_program("redis-server"):
+        from benchmarks import deploy
+
+        print("\n== the deploy topology: nginx, two replicas, Redis ==", flush=True)
+        deploy.main([])
+    else:
+        print("\n(skipping benchmarks.deploy: it needs nginx and redis-server)", flush=True)
     if "--all" in argv:
         from benchmarks import dataset_build
 

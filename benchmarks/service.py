@@ -1,20 +1,37 @@
 """Load benchmark of the real-time service: N simulated robots on loopback, each with an operator.
 
-Run from the repository root:  python -m benchmarks.service  [--robots 1 10 50 100] [--duration 20] [--replicas 1 2]
+Run from the repository root:
+    python -m benchmarks.service  [--robots 1 10 50 100 200] [--replicas 1 2] [--configs served tactile]
+                                  [--duration 20] [--profile]
 
-For each N, the service runs in its own process (`hapticlink serve`, uvicorn), so the clients'
-load does not run on its interpreter; with --replicas R, in R processes, robot k pinned to
-replica k mod R as nginx pins sessions in deploy/ (one process is one GIL: one core at most).
-Each robot opens a session, streams 1 kHz accel (3 axes), force (3 axes) and speed in 20 ms
-binary blocks over WS /ingest at real-time pace (a block is sent when its span has ended,
-starts staggered over one window), rendered by the library's vibration models along freehand
-strokes (texture_library.stroke); an operator per session reads WS /events. Reported per N:
+Two configurations:
+- `served`: the model the demo serves — `ann` reading touch and vision, with its EfficientNet-Lite0
+  backbone — and `ridge-tactile` as the tactile-only model for windows before a session's first
+  frame; every robot sends its texture's photo as a camera frame at 1 fps through the real visual
+  path (decode, scene-change test, embedding when the scene changed).
+- `tactile`: `ridge-tactile` alone, no frames.
 
-- windows/s published and received; windows lost = expected (⌊duration / hop⌋ per robot) − received
-- latency, ms: end-to-end (subscriber receive − send of the block that completed the window, one
-  clock: the client's) and the service's own stages from the events' latency_ms, p50/p99
-- server CPU % (of one core; 200 % = both cores of this machine) and RSS from /proc
-- how late the client managed to send (its own lag, which would distort the end-to-end numbers)
+Robots are the real `drivers.robot.RobotClient` (one per robot, all in this process, WebSocket
+transport, binary blocks, the fleet API key), fed by a source that yields 1 kHz accel (3 axes), force
+(3 axes) and speed in 20 ms blocks at real-time pace (a block when its span has ended; starts
+staggered over one hop), rendered by the library's vibration models along freehand strokes. Robot k
+is pinned to replica k mod R, as nginx pins sessions in deploy/. Each service replica is its own
+process (`hapticlink serve`). An operator per session reads WS /events. Reported per row:
+
+- windows received, lost (= ⌊duration / hop⌋ per robot − received), and what the service refused
+  (blocks refused with 429/4429, frames refused, sessions refused): overload must be refused early and
+  visibly, never by losing windows that were accepted;
+- latency, ms: end-to-end (operator receive − the moment the robot's source yielded the block that
+  completed the window; one clock) and the service's stages from the events' latency_ms, p50/p99;
+  the first window of each session against the median (cold start);
+- server CPU % (of one core; 200 % = both cores), RSS; the client's CPU and everyone else's.
+
+Capacity, in the same run: one session fed as fast as it is acknowledged, with an operator attached,
+against the service and against the framework's floor — a bare uvicorn WebSocket endpoint that
+receives the same blocks, decodes them with numpy (drivers.blocks.decode_binary) and acknowledges
+them, and does nothing else. Server CPU per block of both, and their ratio, go to
+`capacity` in reports/bench/service.json. `--profile` samples the service with py-spy during the
+capacity run and prints where its CPU went.
 
 Writes reports/bench/service.json and prints a table.
 """
@@ -27,19 +44,24 @@ import json
 import os
 import platform
 import random
+import secrets
+import shutil
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
 import numpy as np
 
-from drivers.blocks import encode_binary
+from drivers.blocks import Frame, SampleBlock
+from drivers.protocol import ws_url
+from drivers.robot import RobotClient
 from drivers.source import blocks_from_arrays
 from texture_library.library import Library
 from texture_library.stroke import stroke
@@ -47,26 +69,36 @@ from texture_library.trajectory import freehand, model_ranges
 
 DEFAULT_OUT = Path("reports/bench/service.json")
 STAGES = ("queue", "features", "model", "lookup", "total")
+HOP_S = 0.5
+CONFIGS = ("served", "tactile")
 
 
 # ---- assets --------------------------------------------------------------------------------------
-def prepare_assets(root: Path) -> tuple[Path, Path]:
-    """A synthetic library and a ridge-tactile model trained on a synthetic dataset (cached in root)."""
-    from models.datasets.build import build
-    from models.train import train_and_export
-    from texture_library.synthetic_library import build_synthetic_library
+@dataclass(frozen=True)
+class Assets:
+    """What a configuration serves: model, optional tactile-only model and backbone, library (its images are the frames)."""
 
-    library, model = root / "library", root / "ridge-tactile.onnx"
-    if not (library / "library.json").is_file():
-        build_synthetic_library(library, n_textures=12, image_size=256)
-    if not model.is_file():
-        dataset = build("synthetic", root / "dataset", n_textures=12, duration_s=6)
-        train_and_export(dataset, "ridge-tactile", model)
-    return model, library
+    name: str
+    model: Path
+    tactile: Path | None
+    backbone: Path | None
+    library: Path
+    frames: bool
 
 
-def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0) -> list[list[bytes]]:
-    """n_streams encoded block sequences (seq from 0), each `seconds` long, over the library's textures."""
+def prepare_assets(root: Path) -> dict[str, Assets]:
+    """Both configurations, built under root once (the demo's assets: a synthetic world of 24 textures)."""
+    from service.demo import prepare_assets as demo_assets
+
+    demo = demo_assets(root / "served")
+    return {
+        "served": Assets("served", demo.model, demo.tactile, demo.backbone, demo.library, frames=True),
+        "tactile": Assets("tactile", demo.tactile, None, None, demo.library, frames=False),
+    }
+
+
+def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0) -> list[list[SampleBlock]]:
+    """n_streams block sequences (seq from 0), each `seconds` long, over the library's textures."""
     lib = Library.load(library_dir)
     out = []
     for k in range(n_streams):
@@ -77,8 +109,17 @@ def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: fl
         n = int(round(seconds * s.rate_hz))
         channels = {"accel": (s.accel[:n], s.rate_hz, "m/s^2"), "force": (s.force[:n], s.rate_hz, "N"),
                     "speed": (s.speed[:n], s.rate_hz, "mm/s")}
-        out.append([encode_binary(b) for b in blocks_from_arrays(channels, block_s)])
+        out.append(list(blocks_from_arrays(channels, block_s)))
     return out
+
+
+def frame_of(library_dir: Path, k: int) -> bytes:
+    """The photo of robot k's texture (encoded), its camera frame."""
+    lib = Library.load(library_dir)
+    image = lib.image(lib.ids[k % len(lib.ids)])
+    if image is None:
+        raise ValueError(f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one")
+    return image
 
 
 # ---- CPU accounting ------------------------------------------------------------------------------
@@ -94,7 +135,7 @@ def machine_cpu_seconds() -> float:
     return (sum(values) - values[3] - values[4]) / os.sysconf("SC_CLK_TCK")
 
 
-# ---- the server process --------------------------------------------------------------------------
+# ---- server processes ----------------------------------------------------------------------------
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -102,26 +143,42 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """`hapticlink serve` in a child process; CPU and memory read from /proc/<pid>."""
+    """A server in a child process (the service, or the floor); CPU and memory read from /proc/<pid>."""
 
-    def __init__(self, model: Path, library: Path, env: dict[str, str], instance_id: str = "bench") -> None:
+    def __init__(self, argv: list[str], env: dict[str, str], ready_path: str = "/ready") -> None:
         self.port = free_port()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--model", str(model), "--library", str(library),
-             "--port", str(self.port), "--log-level", "warning", "--instance-id", instance_id],
-            env={**os.environ, **env}, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )
+        self.proc = subprocess.Popen([*argv, "--port", str(self.port)], env={**os.environ, **env},
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 180
         while True:
             try:
-                if httpx.get(f"{self.url}/ready", timeout=2).status_code == 200:
+                if httpx.get(f"{self.url}{ready_path}", timeout=2).status_code == 200:
                     break
             except httpx.TransportError:
                 pass
             if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the service did not start: {self.proc.stderr.read() if self.proc.stderr else ''}")
+                self.proc.kill()
+                raise RuntimeError(f"the server did not start: {self.proc.stderr.read() if self.proc.stderr else ''}")
             time.sleep(0.1)
+
+    @classmethod
+    def service(cls, assets: Assets, api_key: str, instance_id: str = "bench", extra: dict[str, str] | None = None) -> "ServerProcess":
+        argv = [sys.executable, "-m", "service.cli", "serve", "--model", str(assets.model), "--library", str(assets.library),
+                "--log-level", "warning", "--instance-id", instance_id]
+        if assets.backbone is not None:
+            argv += ["--backbone", str(assets.backbone)]
+        env = {"HAPTICLINK_API_KEYS": api_key,
+               # one benchmark process is one client address for every robot: lift the per-client session rate;
+               # every session is opened before any streams: give them time to start
+               "HAPTICLINK_SESSION_BURST": "100000", "HAPTICLINK_SESSION_FIRST_BLOCK_S": "300", **(extra or {})}
+        if assets.tactile is not None:
+            env["HAPTICLINK_TACTILE_MODEL_PATH"] = str(assets.tactile)
+        return cls(argv, env)
+
+    @classmethod
+    def floor(cls) -> "ServerProcess":
+        return cls([sys.executable, "-m", "benchmarks.service_floor"], {}, ready_path="/health")
 
     def cpu_seconds(self) -> float:
         return process_cpu_seconds(self.proc.pid)
@@ -139,84 +196,120 @@ class ServerProcess:
             self.proc.kill()
 
 
-# ---- the clients ---------------------------------------------------------------------------------
-@dataclass
-class RobotResult:
-    windows: int = 0
-    e2e_ms: list[float] = field(default_factory=list)
-    stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
-    send_lag_ms: list[float] = field(default_factory=list)
-    acks_failed: int = 0
-    closed_saturated: int = 0
-    stopped: bool = False  # closed by the service; a real robot would reconnect and resend, this one stops
+# ---- the robots ----------------------------------------------------------------------------------
+class PacedSource:
+    """A robot's sensor source: its blocks at real-time pace from `start` (perf_counter), a camera frame every
+    `frame_every_s`; stamps the moment each block is yielded (the robot has it) in `yielded[seq]`."""
 
+    name = "bench"
 
-async def run_robot(url: str, blocks: list[bytes], block_s: float, start: float, result: RobotResult,
-                    session: dict, streaming_done: asyncio.Event) -> None:
-    from websockets.asyncio.client import connect
+    def __init__(self, blocks: list[SampleBlock], block_s: float, start: float, frame: bytes | None,
+                 frame_every_s: float, realtime: bool = True) -> None:
+        self.blocks, self.block_s, self.start = blocks, block_s, start
+        self.frame, self.frame_every = frame, max(1, int(round(frame_every_s / block_s)))
+        self.realtime = realtime
+        self.yielded: dict[int, float] = {}
+        self.send_lag_ms: list[float] = []
 
-    ws_base = url.replace("http://", "ws://") + f"/sessions/{session['session_id']}"
-    sent_at: dict[int, float] = {}
-    async with connect(f"{ws_base}/events?token={session['operator_token']}", max_size=2**20) as events, \
-            connect(f"{ws_base}/ingest?token={session['robot_token']}", max_size=2**20, compression=None) as ingest:
-        await events.recv()  # "subscribed"
-
-        async def read_events() -> None:
-            async for message in events:
-                now = time.perf_counter()
-                event = json.loads(message)
-                if event.get("type") != "window":
-                    continue
-                result.windows += 1
-                seq = event["block_seq"]
-                if seq in sent_at:
-                    result.e2e_ms.append((now - sent_at[seq]) * 1e3)
-                for stage in STAGES:
-                    result.stages_ms[stage].append(event["latency_ms"][stage])
-
-        async def read_acks() -> None:
-            async for message in ingest:
-                if '"ok": true' not in message:  # cheaper than parsing 50 acks/s per robot
-                    result.acks_failed += 1
-
-        reader, acker = asyncio.create_task(read_events()), asyncio.create_task(read_acks())
-        try:
-            for i, payload in enumerate(blocks):
-                due = start + (i + 1) * block_s  # a block leaves when its span has ended
+    async def _items(self):
+        for i, block in enumerate(self.blocks):
+            if self.realtime:
+                due = self.start + (i + 1) * self.block_s  # a block leaves when its span has ended
                 delay = due - time.perf_counter()
                 if delay > 0:
                     await asyncio.sleep(delay)
+                self.send_lag_ms.append(max(0.0, time.perf_counter() - due) * 1e3)
+            elif i % 256 == 0:
+                await asyncio.sleep(0)
+            if self.frame is not None and i % self.frame_every == 0:
+                yield Frame(block.t0, self.frame, "image/png")
+            self.yielded[i] = time.perf_counter()
+            yield block
+
+    def __aiter__(self):
+        return self._items()
+
+    async def aclose(self) -> None:
+        pass
+
+
+@dataclass
+class OperatorView:
+    windows: int = 0
+    e2e_ms: list[float] = field(default_factory=list)
+    first_features_ms: float | None = None
+    stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    inputs: Counter = field(default_factory=Counter)
+    error: str | None = None
+
+
+async def operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
+    """An operator: reads the session's events until `done`, measuring each window against its block's yield time.
+    An operator that cannot attach is recorded (view.error) and its windows count as lost."""
+    try:
+        await _operate(url, session, source, view, ready, done)
+    except Exception as exc:  # noqa: BLE001 - e.g. the handshake timed out on a starved machine
+        view.error = f"{type(exc).__name__}: {exc}"
+    finally:
+        ready.set()
+
+
+async def _operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
+    from websockets.asyncio.client import connect
+
+    async with connect(ws_url(url, session.session_id, "events", str(session.operator_token)), max_size=2**20) as ws:
+        await ws.recv()  # "subscribed"
+        ready.set()
+
+        async def read() -> None:
+            async for message in ws:
                 now = time.perf_counter()
-                result.send_lag_ms.append(max(0.0, now - due) * 1e3)
-                sent_at[i] = now
-                try:
-                    await ingest.send(payload)
-                except Exception:  # noqa: BLE001 - the service closed the socket (4429: saturated); this robot stops
-                    result.closed_saturated += int(getattr(ingest, "close_code", None) == 4429)
-                    result.stopped = True
-                    break
-            streaming_done.set()
-            await asyncio.sleep(2.0)  # the last windows are in flight
-        finally:
-            reader.cancel()
-            acker.cancel()
-            await asyncio.gather(reader, acker, return_exceptions=True)
+                if '"type":"window"' not in message[:20]:
+                    continue
+                event = json.loads(message)
+                view.windows += 1
+                view.inputs[event["inputs"]] += 1
+                yielded = source.yielded.get(event["block_seq"])
+                if yielded is not None:
+                    view.e2e_ms.append((now - yielded) * 1e3)
+                for stage in STAGES:
+                    view.stages_ms[stage].append(event["latency_ms"][stage])
+                if view.first_features_ms is None:
+                    view.first_features_ms = event["latency_ms"]["features"]
+
+        reader = asyncio.create_task(read())
+        await done.wait()
+        reader.cancel()
+        await asyncio.gather(reader, return_exceptions=True)
 
 
-async def run_load(urls: list[str], streams: list[list[bytes]], block_s: float, hop_s: float, seed: int) -> tuple[list[RobotResult], float]:
-    """Robot k streams to replica k mod R (as nginx pins a session to the replica that created it)."""
+async def run_load(urls: list[str], streams: list[list[SampleBlock]], frames: list[bytes | None], block_s: float,
+                   api_key: str, seed: int, realtime: bool = True, window: int = 64) -> tuple[list, list[OperatorView], list[PacedSource]]:
+    """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views, sources."""
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
-    async with httpx.AsyncClient(timeout=30) as client:
-        sessions = [(await client.post(f"{u}/sessions", json={"name": f"bench-{k}"})).json() for k, u in enumerate(robot_urls)]
     rng = random.Random(seed)
-    start = time.perf_counter() + 1.0 + 0.01 * len(streams)  # time to open every connection first
-    results = [RobotResult() for _ in streams]
-    done = [asyncio.Event() for _ in streams]
-    offsets = [rng.uniform(0, hop_s) for _ in streams]  # robots do not start in lockstep
-    tasks = [asyncio.create_task(run_robot(u, s, block_s, start + off, r, sess, d))
-             for u, s, r, sess, d, off in zip(robot_urls, streams, results, sessions, done, offsets)]
-    await asyncio.gather(*tasks)
-    return results, start
+    offsets = [rng.uniform(0, HOP_S) if realtime else 0.0 for _ in streams]  # robots do not start in lockstep
+    start = time.perf_counter() + 2.0 + 0.02 * len(streams)  # time to open every session and connection first
+    sources = [PacedSource(s, block_s, start + off, f, 1.0, realtime) for s, f, off in zip(streams, frames, offsets)]
+    clients = [RobotClient(u, src, api_key=api_key, session_name=f"bench-{k}", window=window, seed=k, drain_timeout_s=10)
+               for k, (u, src) in enumerate(zip(robot_urls, sources))]
+    for c in clients:
+        await c.open_session()
+    views = [OperatorView() for _ in clients]
+    readies = [asyncio.Event() for _ in clients]
+    done = asyncio.Event()
+    operators = [asyncio.create_task(operate(u, c.session, src, v, r, done))
+                 for u, c, src, v, r in zip(robot_urls, clients, sources, views, readies)]
+    await asyncio.gather(*(r.wait() for r in readies))
+    outcomes = await asyncio.gather(*(c.run() for c in clients), return_exceptions=True)
+    for k, o in enumerate(outcomes):
+        if isinstance(o, BaseException):
+            print(f"  robot {k} stopped: {type(o).__name__}: {o}", flush=True)
+    stats = [c.stats for c in clients]  # a robot that stopped keeps the counts it had
+    await asyncio.sleep(2.0)  # the last windows are in flight
+    done.set()
+    await asyncio.gather(*operators, return_exceptions=True)
+    return stats, views, sources
 
 
 def _run(coro):
@@ -232,172 +325,219 @@ def percentile(values: list[float], q: float) -> float | None:
     return round(float(np.percentile(values, q)), 3) if values else None
 
 
-def measure(n: int, model: Path, library: Path, streams: list[list[bytes]], duration_s: float, block_s: float,
-            hop_s: float, seed: int, server_env: dict[str, str], replicas: int = 1) -> dict:
-    """n robots against `replicas` server processes; CPU, memory and drops summed over them."""
+def _metric_sum(text: str, name: str, **labels: str) -> float:
+    """Sum of a metric's samples whose labels include `labels`."""
+    total = 0.0
+    for line in text.splitlines():
+        if not line.startswith(name):
+            continue
+        key, _, value = line.rpartition(" ")
+        if key == name or (key.startswith(name + "{") and all(f'{k}="{v}"' in key for k, v in labels.items())):
+            total += float(value)
+    return total
+
+
+def measure(n: int, assets: Assets, streams: list[list[SampleBlock]], duration_s: float, block_s: float, seed: int,
+            replicas: int, api_key: str) -> dict:
+    """n robots against `replicas` service processes; CPU, memory and refusals summed over them."""
     servers: list[ServerProcess] = []
+    frames = [frame_of(assets.library, k) if assets.frames else None for k in range(n)]
     try:
         for k in range(replicas):
-            servers.append(ServerProcess(model, library, server_env, instance_id=f"bench{k}"))
+            servers.append(ServerProcess.service(assets, api_key, instance_id=f"bench{k}"))
 
         def server_cpu() -> float:
             return sum(s.cpu_seconds() for s in servers)
 
         cpu0, client0, machine0, wall0 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
-        results, start = _run(run_load([s.url for s in servers], streams[:n], block_s, hop_s, seed))
+        stats, views, sources = _run(run_load([s.url for s in servers], streams[:n], frames, block_s, api_key, seed))
         cpu1, client1, machine1, wall1 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
         memory = [s.memory_mb() for s in servers]
-        rss, peak = sum(m[0] for m in memory), sum(m[1] for m in memory)
-        dropped_per_server = [_metric(httpx.get(f"{s.url}/metrics").text, "hapticlink_events_dropped_total") for s in servers]
+        metrics = [httpx.get(f"{s.url}/metrics").text for s in servers]
     finally:
         for s in servers:
             s.stop()
-    expected = n * int(duration_s / hop_s + 1e-9)
-    received = sum(r.windows for r in results)
-    e2e = [x for r in results for x in r.e2e_ms]
-    lag = [x for r in results for x in r.send_lag_ms]
-    stages = {s: [x for r in results for x in r.stages_ms[s]] for s in STAGES}
-    dropped = None if None in dropped_per_server else sum(dropped_per_server)
+    expected = n * int(duration_s / HOP_S + 1e-9)
+    received = sum(v.windows for v in views)
+    e2e = [x for v in views for x in v.e2e_ms]
+    lag = [x for s in sources for x in s.send_lag_ms]
+    stages = {s: [x for v in views for x in v.stages_ms[s]] for s in STAGES}
+    firsts = [v.first_features_ms for v in views if v.first_features_ms is not None]
+    median_features = percentile(stages["features"], 50)
+    inputs = sum((v.inputs for v in views), Counter())
     return {
+        "config": assets.name,
         "robots": n,
         "replicas": replicas,
         "duration_s": duration_s,
         "windows_expected": expected,
         "windows_received": received,
         "windows_lost": expected - received,
-        "windows_per_s": round(received / duration_s, 2),
-        "events_dropped_by_service": dropped,
-        "acks_failed": sum(r.acks_failed for r in results),
-        "closed_saturated": sum(r.closed_saturated for r in results),
-        "robots_stopped": sum(r.stopped for r in results),
+        # of those, windows that accepted blocks had completed: overload must never cost these
+        "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics)) - received,
+        "windows_tactile_only": inputs.get("tactile", 0) if assets.frames else None,
+        "operators_failed": sum(v.error is not None for v in views),
+        "blocks_refused": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="refused") for m in metrics)),
+        "blocks_rejected": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="rejected") for m in metrics)),
+        "frames_refused": int(sum(_metric_sum(m, "hapticlink_frames_total", outcome="refused") for m in metrics)),
+        "frames_embedded": int(sum(_metric_sum(m, "hapticlink_visual_embedding_seconds_count") for m in metrics)),
+        "robot_saturated": sum(s.saturated for s in stats),
+        "robot_lost_blocks": sum(s.lost for s in stats),
+        "robot_unsent_blocks": sum(s.unsent for s in stats),
+        "events_dropped_by_service": int(sum(_metric_sum(m, "hapticlink_events_dropped_total") for m in metrics)),
         "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99), "max": percentile(e2e, 100)},
         "stages_ms": {s: {"p50": percentile(v, 50), "p99": percentile(v, 99)} for s, v in stages.items()},
+        "cold_start": {
+            "first_window_features_ms_max": round(max(firsts), 3) if firsts else None,
+            "features_median_ms": median_features,
+            "first_over_median": round(max(firsts) / median_features, 2) if firsts and median_features else None,
+            "features_p99_over_p50": round(stages["features"] and percentile(stages["features"], 99) / median_features, 2)
+            if median_features else None,
+        },
         "client_send_lag_ms": {"p50": percentile(lag, 50), "p99": percentile(lag, 99)},
         "server_cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
         "client_cpu_percent": round(100 * (client1 - client0) / (wall1 - wall0), 1),
         # other processes on this (shared) machine during the run: they compete for the same 2 cores
         "others_cpu_percent": round(100 * ((machine1 - machine0) - (cpu1 - cpu0) - (client1 - client0)) / (wall1 - wall0), 1),
-        "server_rss_mb": round(rss, 1),
-        "server_peak_rss_mb": round(peak, 1),
+        "server_rss_mb": round(sum(m[0] for m in memory), 1),
+        "server_peak_rss_mb": round(sum(m[1] for m in memory), 1),
         "blocks_per_s": round(n / block_s, 1),
     }
 
 
-async def _pump(url: str, blocks: list[bytes], in_flight: int) -> int:
-    """Send blocks as fast as acknowledgements allow (in_flight unacknowledged); returns blocks acknowledged."""
-    from websockets.asyncio.client import connect
-
-    async with httpx.AsyncClient(base_url=url, timeout=30) as client:
-        session = (await client.post("/sessions", json={"name": "capacity"})).json()
-    ws_url = url.replace("http://", "ws://") + f"/sessions/{session['session_id']}/ingest?token={session['robot_token']}"
-    acked = 0
-    async with connect(ws_url, compression=None) as ws:
-        window = asyncio.Semaphore(in_flight)
-
-        async def read_acks() -> None:
-            nonlocal acked
-            async for _ in ws:
-                acked += 1
-                window.release()
-                if acked == len(blocks):
-                    return
-
-        reader = asyncio.create_task(read_acks())
-        for payload in blocks:
-            await window.acquire()
-            if reader.done():  # closed by the service
-                break
-            await ws.send(payload)
-        await reader
-    return acked
+# ---- capacity: the service against the framework's floor -----------------------------------------
+def _pump(server: ServerProcess, blocks: list[SampleBlock], api_key: str, block_s: float) -> tuple[int, float, float]:
+    """One RobotClient (+ operator) sending `blocks` as fast as acknowledged → (blocks acked, server CPU s, wall s)."""
+    cpu0 = server.cpu_seconds()
+    stats, _, sources = _run(run_load([server.url], [blocks], [None], block_s, api_key, 0, realtime=False, window=32))
+    cpu1 = server.cpu_seconds()
+    yielded = sources[0].yielded.values()
+    return stats[0].acked, cpu1 - cpu0, max(yielded) - min(yielded)  # the streaming itself, not the set-up
 
 
-def measure_capacity(model: Path, library: Path, blocks: list[bytes]) -> dict:
-    """One session fed as fast as the service acknowledges: server CPU per block, windows included.
-
-    CPU time per block is what the service costs, and holds up on a busy machine, where latencies
-    measure the neighbours as much as the service.
-    """
-    server = ServerProcess(model, library, {"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
+def measure_capacity(assets: Assets, blocks: list[SampleBlock], api_key: str, block_s: float,
+                     profile_out: Path | None = None) -> dict:
+    """Server CPU per block of the service (windows, features, model, publishing included) and of the floor."""
+    service = ServerProcess.service(assets, api_key, extra={"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
+    profiler = None
     try:
-        cpu0, wall0 = server.cpu_seconds(), time.perf_counter()
-        acked = _run(_pump(server.url, blocks, in_flight=32))
-        cpu1, wall1 = server.cpu_seconds(), time.perf_counter()
+        if profile_out is not None:
+            py_spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))  # installed beside python
+            profiler = subprocess.Popen([py_spy, "record", "--pid", str(service.proc.pid), "--rate", "250", "--threads",
+                                         "--format", "raw", "--output", str(profile_out), "--nonblocking"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(1.0)
+        acked, cpu, wall = _pump(service, blocks, api_key, block_s)
     finally:
-        server.stop()
-    per_block_us = 1e6 * (cpu1 - cpu0) / max(acked, 1)
+        if profiler is not None:
+            profiler.send_signal(signal.SIGINT)
+            profiler.wait(timeout=30)
+        service.stop()
+    floor = ServerProcess.floor()
+    try:
+        floor_acked, floor_cpu, _ = _pump(floor, blocks, api_key, block_s)
+    finally:
+        floor.stop()
+    per_block = 1e6 * cpu / max(acked, 1)
+    floor_per_block = 1e6 * floor_cpu / max(floor_acked, 1)
     return {
         "blocks": acked,
-        "blocks_per_s": round(acked / (wall1 - wall0), 1),
-        "server_cpu_us_per_block": round(per_block_us, 1),
+        "blocks_per_s": round(acked / max(wall, 1e-9), 1),
+        "server_cpu_us_per_block": round(per_block, 1),
+        "floor_cpu_us_per_block": round(floor_per_block, 1),
+        "server_over_floor": round(per_block / floor_per_block, 2),
         # a 20 ms-block robot sends 50 blocks/s: the share of one core each robot costs
-        "server_core_percent_per_robot": round(per_block_us * 50 / 1e4, 2),
+        "server_core_percent_per_robot": round(per_block * (1 / block_s) / 1e4, 2),
     }
 
 
-def _metric(text: str, name: str) -> float | None:
-    for line in text.splitlines():
-        if line.startswith(name + " "):
-            return float(line.split()[1])
-    return None
+def summarize_profile(path: Path, top: int = 20) -> list[tuple[str, float]]:
+    """py-spy raw (collapsed) stacks → the `top` functions by self time (the stack's innermost frame), % of samples."""
+    total, own = 0, Counter()
+    for line in path.read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack:
+            continue
+        total += int(count)
+        leaf = stack.split(";")[-1]
+        name, _, where = leaf.partition(" (")
+        own[f"{name} ({where.split(':')[0].rsplit('/', 1)[-1]})" if where else name] += int(count)
+    return [(f, round(100 * c / total, 1)) for f, c in own.most_common(top)] if total else []
 
 
+# ---- report --------------------------------------------------------------------------------------
 def print_table(rows: list[dict]) -> None:
-    head = (f"{'robots':>6} {'repl':>4} {'blocks/s':>8} {'win/s':>6} {'lost':>5} {'e2e p50':>8} {'e2e p99':>8} {'total p99':>9} "
-            f"{'queue p99':>9} {'feat p99':>8} {'model p99':>9} {'cpu %':>6} {'rss MB':>7} {'send lag p99':>12} {'others %':>8}")
+    head = (f"{'config':>7} {'robots':>6} {'repl':>4} {'win/s':>6} {'lost':>5} {'refused':>7} {'e2e p50':>8} {'e2e p99':>8} "
+            f"{'queue p99':>9} {'feat p99':>8} {'first/med':>9} {'cpu %':>6} {'client %':>8} {'others %':>8} {'lag p99':>8}")
     print(head)
     print("-" * len(head))
     for r in rows:
         st = r["stages_ms"]
-        print(f"{r['robots']:>6} {r['replicas']:>4} {r['blocks_per_s']:>8.0f} {r['windows_per_s']:>6.1f} {r['windows_lost']:>5} "
-              f"{r['e2e_ms']['p50']:>8.2f} {r['e2e_ms']['p99']:>8.2f} {st['total']['p99']:>9.2f} {st['queue']['p99']:>9.2f} "
-              f"{st['features']['p99']:>8.2f} {st['model']['p99']:>9.2f} {r['server_cpu_percent']:>6.1f} "
-              f"{r['server_rss_mb']:>7.1f} {r['client_send_lag_ms']['p99']:>12.2f} {r['others_cpu_percent']:>8.1f}")
+        print(f"{r['config']:>7} {r['robots']:>6} {r['replicas']:>4} {r['windows_received'] / r['duration_s']:>6.1f} "
+              f"{r['windows_lost']:>5} {r['blocks_refused'] + r['frames_refused']:>7} {r['e2e_ms']['p50'] or 0:>8.2f} "
+              f"{r['e2e_ms']['p99'] or 0:>8.2f} {st['queue']['p99'] or 0:>9.2f} {st['features']['p99'] or 0:>8.2f} "
+              f"{r['cold_start']['first_over_median'] or 0:>9.2f} {r['server_cpu_percent']:>6.1f} {r['client_cpu_percent']:>8.1f} "
+              f"{r['others_cpu_percent']:>8.1f} {r['client_send_lag_ms']['p99'] or 0:>8.2f}")
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robots", type=int, nargs="+", default=[1, 10, 50, 100])
+    p.add_argument("--robots", type=int, nargs="+", default=[1, 10, 50, 100, 200])
+    p.add_argument("--replicas", type=int, nargs="+", default=[1, 2],
+                   help="service processes, robots pinned round-robin as nginx pins sessions; each runs every --robots N")
+    p.add_argument("--configs", nargs="+", choices=CONFIGS, default=list(CONFIGS))
     p.add_argument("--duration", type=float, default=20.0, help="seconds of stream per robot (default 20)")
     p.add_argument("--block-s", type=float, default=0.02, help="seconds per block (default 0.02)")
-    p.add_argument("--model", type=Path, help="a model to serve (default: ridge-tactile trained on synthetic data)")
-    p.add_argument("--library", type=Path, help="a library (default: 12 synthetic textures)")
+    p.add_argument("--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement")
+    p.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
+    p.add_argument("--profile", action="store_true", help="sample the service with py-spy during the capacity run")
     p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
-                   help="where the default model and library are built and cached")
-    p.add_argument("--replicas", type=int, nargs="+", default=[1],
-                   help="service processes, robots pinned round-robin as nginx pins sessions (default 1); "
-                        "each count runs every --robots N")
+                   help="where the models and library are built and cached")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    if (args.model is None) != (args.library is None):
-        p.error("give both --model and --library, or neither")
     if min(args.replicas) < 1 or min(args.robots) < 1:
         p.error("--robots and --replicas must be ≥ 1")
-    model, library = (args.model, args.library) if args.model else prepare_assets(args.assets)
-    hop_s = 0.5
+    api_key = secrets.token_urlsafe(24)  # this run's fleet key
+    print("preparing assets (cached) …", flush=True)
+    all_assets = prepare_assets(args.assets)
+    library = all_assets["tactile"].library
     print(f"rendering {max(args.robots)} streams of {args.duration:g} s …", flush=True)
     streams = robot_streams(library, max(args.robots), args.duration, args.block_s, args.seed)
-    print("capacity: one session as fast as acknowledged …", flush=True)
-    capacity = measure_capacity(model, library, robot_streams(library, 1, 100.0, args.block_s, args.seed + 1)[0])
-    print(f"  {capacity['server_cpu_us_per_block']:.0f} µs server CPU per block (windows included), "
-          f"{capacity['blocks_per_s']:.0f} blocks/s; {capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot",
-          flush=True)
+    capacity = None
+    profile = None
+    if not args.no_capacity:
+        print("capacity: one session as fast as acknowledged, the service (tactile) and the floor …", flush=True)
+        blocks = robot_streams(library, 1, args.capacity_s, args.block_s, args.seed + 1)[0]
+        profile_path = args.out.with_name("service-profile.txt") if args.profile else None
+        capacity = measure_capacity(all_assets["tactile"], blocks, api_key, args.block_s, profile_path)
+        print(f"  service {capacity['server_cpu_us_per_block']:.0f} µs, floor {capacity['floor_cpu_us_per_block']:.0f} µs "
+              f"server CPU per block: {capacity['server_over_floor']:.2f} × the floor; "
+              f"{capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot", flush=True)
+        if profile_path is not None and profile_path.is_file():
+            profile = summarize_profile(profile_path)
+            print("  where the service's CPU went (share of samples, self time):")
+            for name, share in profile:
+                print(f"    {share:5.1f} %  {name}")
     rows = []
-    for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
-        print(f"{n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
-        rows.append(measure(n, model, library, streams, args.duration, args.block_s, hop_s, args.seed, {}, replicas))
-        if rows[-1]["robots_stopped"]:
-            print(f"  {rows[-1]['robots_stopped']} robot(s) were closed by the service "
-                  f"({rows[-1]['closed_saturated']} with 4429: saturated) and stopped", flush=True)
+    for config in args.configs:
+        for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
+            print(f"{config}: {n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
+            rows.append(measure(n, all_assets[config], streams, args.duration, args.block_s, args.seed, replicas, api_key))
     print()
     print_table(rows)
     report = {
         "benchmark": "service",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "config": {"block_s": args.block_s, "duration_s": args.duration, "hop_s": hop_s, "transport": "WebSocket, binary blocks",
-                   "channels": "accel (n,3) + force (n,3) + speed (n,) at 1 kHz", "model": str(model)},
+        "config": {"block_s": args.block_s, "duration_s": args.duration, "hop_s": HOP_S,
+                   "transport": "WebSocket, binary blocks, drivers.robot.RobotClient",
+                   "channels": "accel (n,3) + force (n,3) + speed (n,) at 1 kHz",
+                   "configs": {k: {"model": str(a.model), "tactile_model": str(a.tactile) if a.tactile else None,
+                                   "backbone": str(a.backbone) if a.backbone else None,
+                                   "frames": "1 fps, the texture's photo" if a.frames else None}
+                               for k, a in all_assets.items() if k in args.configs}},
         "capacity": capacity,
+        "profile_top": profile,
         "results": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

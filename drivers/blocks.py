@@ -4,10 +4,14 @@ A block carries one span of time for every channel it holds; each channel has
 its own sample rate, so the spans agree in seconds, not in sample counts.
 
 Wire formats (robot → service), both carrying the same fields:
-- JSON: {"seq": int, "t0": float s, "channels": {"accel": {"rate_hz": f, "units": "m/s^2", "data": [[x, y, z], …]}, …}}
+- JSON: {"seq": int, "t0": float s, ["kind": "samples",] "channels": {"accel": {"rate_hz": f, "units": "m/s^2", "data": [[x, y, z], …]}, …}}
 - binary (Content-Type application/x-hapticlink-block, WebSocket binary messages):
     b"HLB1" | uint32 LE header length | header JSON (as above, "shape" instead of "data") |
     the channels' float32 little-endian samples, concatenated in header order
+
+`seq` is required. `kind` names the block's kind (`BLOCK_KINDS`; "samples", the default, is a
+SampleBlock); a new kind (e.g. short tap transients) is a new entry there and its dataclass.
+What travels around blocks (acknowledgements, close codes, credentials) is `drivers.protocol`.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
 MAX_BLOCK_SAMPLES = 100_000  # per channel: 1 s at 100 kHz; a robot sends blocks far smaller
 MAX_HEADER_BYTES = 64 * 1024
+#: block kinds the wire carries (header "kind"); absent means "samples"
+BLOCK_KINDS = ("samples",)
 
 
 @dataclass(frozen=True)
@@ -63,7 +69,8 @@ def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object
     """Check one channel (texture_library.channels.check_channel) and keep it as float32 in its own units."""
     if units is None:
         raise ValueError(f"{kind}: units are required")
-    arr, rate, units = check_channel(kind, data, rate_hz, units, dtype=np.float32)
+    # no copy: a binary block's samples stay a read-only view of its message
+    arr, rate, units = check_channel(kind, data, rate_hz, units, dtype=np.float32, copy=False)
     if arr.shape[0] > MAX_BLOCK_SAMPLES:
         raise ValueError(f"{kind}: a block holds at most {MAX_BLOCK_SAMPLES} samples per channel, got {arr.shape[0]}")
     return ChannelBlock(arr, rate, units)
@@ -72,7 +79,12 @@ def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object
 def _check_header(header: object) -> tuple[int, float, dict]:
     if not isinstance(header, dict):
         raise ValueError("block must be a JSON object")
-    seq, t0, channels = header.get("seq", 0), header.get("t0"), header.get("channels")
+    if "seq" not in header:
+        raise ValueError("seq is required (an integer ≥ 0, one more per block)")
+    kind = header.get("kind", "samples")
+    if kind not in BLOCK_KINDS:
+        raise ValueError(f"kind must be one of {list(BLOCK_KINDS)}, got {kind!r}")
+    seq, t0, channels = header["seq"], header.get("t0"), header.get("channels")
     if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
         raise ValueError(f"seq must be an integer ≥ 0, got {seq!r}")
     if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
@@ -119,6 +131,19 @@ def encode_binary(block: SampleBlock) -> bytes:
     return MAGIC + struct.pack("<I", len(head)) + head + payload
 
 
+def peek_header(payload: bytes, binary: bool) -> object | None:
+    """The header object of a (possibly bad) block without validating it; None if unreadable."""
+    try:
+        if binary:
+            if len(payload) < 8 or payload[:4] != MAGIC:
+                return None
+            (n,) = struct.unpack_from("<I", payload, 4)
+            return json.loads(payload[8 : 8 + min(n, MAX_HEADER_BYTES)])
+        return json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+
+
 def decode_binary(buf: bytes) -> SampleBlock:
     if len(buf) < 8 or buf[:4] != MAGIC:
         raise ValueError("binary block must start with the magic bytes b'HLB1'")
@@ -136,7 +161,7 @@ def decode_binary(buf: bytes) -> SampleBlock:
         shape = spec.get("shape")
         if not (isinstance(shape, list) and 1 <= len(shape) <= 2 and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
             raise ValueError(f"{kind}: shape must be [n] or [n, k] with non-negative integers, got {shape!r}")
-        count = int(np.prod(shape))
+        count = math.prod(shape)
         if count > 4 * MAX_BLOCK_SAMPLES:
             raise ValueError(f"{kind}: shape {shape} is too large")
         end = offset + 4 * count

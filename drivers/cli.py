@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--session", metavar="ID", help="stream into this session (needs --token); default: create one")
     p.add_argument("--token", metavar="T", help="the session's robot token")
     p.add_argument("--name", help="name of the session to create")
+    p.add_argument("--api-key", metavar="KEY", help="the fleet API key that opens sessions (default: $HAPTICLINK_API_KEY)")
     p.add_argument("--transport", choices=("ws", "http"), default="ws", help="WebSocket (default) or one HTTP POST per block")
     p.add_argument("--json", action="store_true", help="send JSON blocks instead of the binary format")
     p.add_argument("--duration", type=float, metavar="S", help="stop reading after S seconds, deliver what is buffered, exit")
@@ -116,7 +117,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     import json
     import logging
 
-    from drivers.robot import RobotClient, ServiceError
+    from drivers.robot import RobotClient, ServiceRefused
 
     if (args.session is None) != (args.token is None):
         raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
@@ -139,12 +140,13 @@ def _run_robot(args: argparse.Namespace) -> int:
         max_buffer_s=args.max_buffer_s,
         session_name=args.name,
         start_seq=args.start_seq,
+        api_key=args.api_key,
     )
     try:
         stats = asyncio.run(_stream(client, args.duration))
     except asyncio.CancelledError:
         return 130
-    except (ServiceError, OSError, LookupError) as exc:
+    except (ServiceRefused, OSError, LookupError) as exc:
         # Device missing, port unavailable, token refused: say so without a traceback.
         print(f"hapticlink robot: error: {exc}", file=sys.stderr)
         return 1

@@ -80,11 +80,16 @@ def _dataset_check(args: argparse.Namespace) -> int:
 def register_models(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="leave-one-texture-out evaluation of one model → results.json + figures")
     e.add_argument("--dataset", required=True)
-    e.add_argument("--model", required=True, help="e.g. ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both")
+    e.add_argument("--model", required=True, help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both")
     e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
     e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     e.add_argument("--workers", type=int, help="parallel folds (default: one per core)")
-    e.add_argument("--backend", default="process", choices=["process", "serial", "ray"])
+    e.add_argument("--backend", default="process", choices=["process", "serial", "ray"],
+                   help="where the (seed, fold) jobs run: worker processes (default), in this process, or Ray tasks")
+    e.add_argument("--ray-address", help="Ray cluster to run on (default: $RAY_ADDRESS, else a local Ray instance)")
+    e.add_argument("--test-views", type=int,
+                   help="the held-out texture shows only its first K image views (a service that pooled K frames); "
+                        "training is unchanged. K must divide the stored views (8)")
     _feature_args(e)
     _net_args(e)
     e.add_argument("--no-figures", action="store_true")
@@ -117,6 +122,8 @@ def register_models(sub: argparse._SubParsersAction) -> None:
 def _feature_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tactile-features", default="mfcc", choices=["mfcc", "dwt", "dft"])
     parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+    parser.add_argument("--views", type=int,
+                        help="image views pooled per texture (ridge-*, *-pooled, selected; default: ridge 1, pooled models all stored)")
 
 
 def _net_args(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +134,7 @@ def _net_args(parser: argparse.ArgumentParser) -> None:
 
 def _options(args: argparse.Namespace) -> dict:
     """Estimator options given on the command line (networks only; the rest keep their defaults)."""
-    names = ("max_epochs", "windows_per_texture")
+    names = ("max_epochs", "windows_per_texture", "views")
     return {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}
 
 
@@ -158,7 +165,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})")
         return 0
     res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
-                   figures=not args.no_figures)
+                   figures=not args.no_figures, ray_address=args.ray_address, test_views=args.test_views)
     mae, sd = res["mae"], res["mae_std"]
     print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
     for k in mae:
@@ -193,11 +200,15 @@ def register_report(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--dataset", required=True, help="the dataset the results were computed on (for the human noise ceiling)")
     r.add_argument("--reports", required=True, help="folder holding <model>/results.json (and ablation/<run>/results.json)")
     r.add_argument("--regenerate", default="", help="the command that regenerates the page, quoted on it")
+    r.add_argument("--readme", default=None,
+                   help="also rewrite the results table of this file (e.g. README.md) between its table markers")
     r.set_defaults(func=_report)
 
 
 def _report(args: argparse.Namespace) -> int:
     from models.report.markdown import build_report
 
-    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate)}")
+    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate, readme=args.readme)}")
+    if args.readme:
+        print(f"wrote the results table of {args.readme}")
     return 0

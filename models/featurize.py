@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from models.datasets.build import run_jobs
+from models.jobs import run_jobs
 from models.datasets.format import Dataset
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features

@@ -96,7 +96,9 @@ class WindowBatcher:
                 results = await loop.run_in_executor(self.pool, estimate_batch, runtime, [j for _, j in batch])
             except Exception as exc:  # noqa: BLE001 - features or the model failed for the whole batch
                 log.exception("estimating a batch of %d session(s) failed", len(sessions))
-                results = [SessionResult([], s.estimator.segment, s.estimator.taken, exc) for s in sessions]
+                for s in sessions:
+                    s.estimator.restart()
+                results = [SessionResult([], job.windows, exc) for _, job in batch]
             for session, result in zip(sessions, results, strict=True):
                 # A session leaves the job only once its windows are published (publishing awaits the
                 # broker): released earlier, its next job could publish later windows first.

@@ -8,6 +8,9 @@ subscription after it is delivered.
 
 The broker also keeps the session directory (who owns which session, and the digests of
 its tokens), so a replica can authorise an operator for a session another replica runs.
+With Redis every replica also keeps a heartbeat there: a replica whose heartbeat has lapsed (or
+that came back as a new process) has lost its sessions, and the replica that notices marks them
+lost, so their robots and operators are told to open a new session instead of waiting forever.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import secrets
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -27,6 +31,11 @@ log = logging.getLogger(__name__)
 CHANNEL_PREFIX = "hapticlink:events:"
 DIRECTORY_PREFIX = "hapticlink:session:"
 DIRECTORY_TTL_S = 7 * 24 * 3600  # a crashed replica's entries do not outlive a week
+ALIVE_PREFIX = "hapticlink:alive:"  # + instance id → the running process's incarnation, expiring
+HEARTBEAT_EVERY_S = 2.0
+#: a replica silent this long is gone; generous, so a busy event loop is never taken for a dead one
+REPLICA_TTL_S = 10.0
+LOST_TTL_S = 3600.0  # how long a lost session's entry keeps answering 410 (with the reason) before it is unknown
 _EVENT, _FINAL = "E", "F"  # one-character framing of Redis messages
 
 
@@ -38,6 +47,8 @@ class SessionRecord:
     name: str
     instance: str
     credentials: SessionCredentials
+    incarnation: str = ""  # the owner process's random id: a restarted replica is a new incarnation
+    lost: str | None = None  # why the session is gone, once a replica found its owner gone
 
 
 class LatestQueue:
@@ -97,6 +108,7 @@ class Broker(ABC):
 
     def __init__(self, subscriber_queue: int) -> None:
         self.subscriber_queue = subscriber_queue
+        self.incarnation = secrets.token_hex(8)
         self._local: dict[str, set[Subscription]] = {}
 
     async def start(self) -> None:
@@ -140,6 +152,10 @@ class Broker(ABC):
             return True
         return False
 
+    def subscribed(self) -> list[str]:
+        """Sessions this process has operator subscriptions for."""
+        return list(self._local)
+
     def deliver_locally(self, session_id: str, text: str, final: bool) -> None:
         for sub in list(self._local.get(session_id, ())):
             sub.queue.offer(text, final)
@@ -159,6 +175,19 @@ class Broker(ABC):
 
     @abstractmethod
     async def forget(self, session_id: str) -> None: ...
+
+    @abstractmethod
+    async def mark_lost(self, session_id: str, reason: str) -> bool:
+        """Keep the entry a while as lost, with the reason; True for the one caller that marked it."""
+
+    # ---- replica liveness ------------------------------------------------------------------------
+    async def heartbeat(self) -> bool:
+        """Tell the other replicas this process runs; True if its heartbeat had lapsed since the last call."""
+        return False
+
+    async def alive(self, record: SessionRecord) -> bool:
+        """Whether the process that owns `record` still runs (one process: always)."""
+        return True
 
 
 class InMemoryBroker(Broker):
@@ -180,6 +209,14 @@ class InMemoryBroker(Broker):
     async def forget(self, session_id: str) -> None:
         self._records.pop(session_id, None)
 
+    async def mark_lost(self, session_id: str, reason: str) -> bool:
+        record = self._records.get(session_id)
+        if record is None or record.lost is not None:
+            return False
+        self._records[session_id] = SessionRecord(record.session_id, record.name, record.instance, record.credentials,
+                                                  record.incarnation, reason)
+        return True
+
 
 class RedisBroker(Broker):
     """Redis pub/sub, one channel per session; a replica subscribes to a session's channel while it
@@ -194,6 +231,7 @@ class RedisBroker(Broker):
         self._pubsub = None
         self._reader: asyncio.Task | None = None
         self._confirmed: dict[str, asyncio.Event] = {}
+        self._beats = 0
 
     async def start(self) -> None:
         import redis.asyncio as redis
@@ -207,6 +245,7 @@ class RedisBroker(Broker):
         await self._pubsub.subscribe(control)
         self._reader = asyncio.create_task(self._read(), name="redis-broker-reader")
         await asyncio.wait_for(self._confirmed[control].wait(), timeout=10)
+        await self.heartbeat()  # alive before the first session is registered
 
     async def close(self) -> None:
         await super().close()
@@ -268,7 +307,8 @@ class RedisBroker(Broker):
     async def register(self, record: SessionRecord) -> None:
         assert self._redis is not None
         key = DIRECTORY_PREFIX + record.session_id
-        fields = {"name": record.name, "instance": record.instance, **asdict(record.credentials)}
+        fields = {"name": record.name, "instance": record.instance, "incarnation": self.incarnation,
+                  **asdict(record.credentials)}
         await self._redis.hset(key, mapping=fields)
         await self._redis.expire(key, DIRECTORY_TTL_S)
 
@@ -279,7 +319,8 @@ class RedisBroker(Broker):
             return None
         try:
             creds = SessionCredentials(raw["robot_digest"], raw["operator_digest"])
-            return SessionRecord(session_id, raw.get("name", ""), raw["instance"], creds)
+            return SessionRecord(session_id, raw.get("name", ""), raw["instance"], creds, raw.get("incarnation", ""),
+                                 raw.get("lost"))
         except KeyError:
             log.warning("redis broker: incomplete directory entry for %s: %s", session_id, json.dumps(sorted(raw)))
             return None
@@ -287,6 +328,35 @@ class RedisBroker(Broker):
     async def forget(self, session_id: str) -> None:
         assert self._redis is not None
         await self._redis.delete(DIRECTORY_PREFIX + session_id)
+
+    async def mark_lost(self, session_id: str, reason: str) -> bool:
+        assert self._redis is not None
+        key = DIRECTORY_PREFIX + session_id
+        async with self._redis.pipeline(transaction=True) as pipe:
+            marked, _ = await pipe.hsetnx(key, "lost", reason).pexpire(key, int(LOST_TTL_S * 1000)).execute()
+        return bool(marked)
+
+    async def heartbeat(self) -> bool:
+        assert self._redis is not None
+        previous = await self._redis.set(ALIVE_PREFIX + self.instance_id, self.incarnation,
+                                         px=int(REPLICA_TTL_S * 1000), get=True)
+        first, self._beats = self._beats == 0, self._beats + 1
+        if previous not in (None, self.incarnation):
+            if first:
+                log.info("replica %s restarted: sessions of its previous process are lost", self.instance_id)
+            else:
+                log.error("another process also runs as replica %s: give every replica its own HAPTICLINK_INSTANCE_ID",
+                          self.instance_id)
+        lapsed = not first and previous != self.incarnation
+        if lapsed:
+            log.warning("this replica's heartbeat lapsed (no beat for %.0f s: a stalled event loop or Redis unreachable "
+                        "or restarted); other replicas may have marked its sessions lost", REPLICA_TTL_S)
+        return lapsed
+
+    async def alive(self, record: SessionRecord) -> bool:
+        assert self._redis is not None
+        incarnation = await self._redis.get(ALIVE_PREFIX + record.instance)
+        return incarnation is not None and (not record.incarnation or incarnation == record.incarnation)
 
 
 def make_broker(kind: str, *, subscriber_queue: int, redis_url: str, instance_id: str) -> Broker:

@@ -14,6 +14,7 @@ import asyncio
 import dataclasses
 import json
 import logging
+import secrets
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,6 +24,7 @@ from texture_library.attributes import ATTRIBUTES
 
 log = logging.getLogger("hapticlink.demo")
 DEMO_MODEL = "ann"  # reads touch and vision, trains in seconds, best exportable model on the synthetic world (reports/synthetic)
+TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 
 
@@ -30,6 +32,7 @@ SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream seg
 class DemoAssets:
     dataset: Path
     model: Path
+    tactile: Path
     backbone: Path
     library: Path
     probes: Path
@@ -44,13 +47,15 @@ def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed:
     from texture_library.synthetic_library import build_synthetic_library
 
     root.mkdir(parents=True, exist_ok=True)
-    assets = DemoAssets(root / "dataset", root / "model.onnx", Path(), root / "library", root / "probes")
+    assets = DemoAssets(root / "dataset", root / "model.onnx", root / "tactile.onnx", Path(), root / "library", root / "probes")
     steps = [
         (not (assets.dataset / "dataset.json").is_file(), f"building a synthetic world of {n_textures} textures",
          lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed)),
         (True, "computing features (cached after the first run)", lambda: featurize_dataset(assets.dataset)),
         (not assets.model.is_file(), f"training {DEMO_MODEL} on it and exporting ONNX",
          lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed)),
+        (not assets.tactile.is_file(), f"training {TACTILE_MODEL} (windows before the first frame) and exporting ONNX",
+         lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed)),
         (not (assets.library / "library.json").is_file(), "writing the texture library",
          lambda: build_synthetic_library(assets.library, n_textures=n_textures, seed=seed)),
         (not (assets.probes / "library.json").is_file(), f"making {n_probes} unseen probe textures",
@@ -135,8 +140,9 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     from service.app import create_app, server_options
     from service.settings import Settings
 
-    settings = Settings(model_path=assets.model, library_dir=assets.library, backbone_path=assets.backbone,
-                        host=host, port=port, log_level="warning")
+    api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
+    settings = Settings(model_path=assets.model, tactile_model_path=assets.tactile, library_dir=assets.library,
+                        backbone_path=assets.backbone, host=host, port=port, log_level="warning", api_keys=api_key)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), **server_options(settings)))
     serving = asyncio.create_task(server.serve())
     while not server.started:
@@ -146,7 +152,7 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
         await asyncio.sleep(0.05)
     url = f"http://{host}:{port}"
     tour = ProbeTour(assets.probes, per_texture_s)
-    robot = RobotClient(url, tour, session_name="demo robot")
+    robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key)
     info = await robot.open_session()
     print(f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
           f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n", flush=True)

@@ -22,7 +22,9 @@ StatusKind = Literal[
     "session_ended",
     "frame_received",  # a camera frame arrived (and will be embedded, or is ignored by a tactile model)
     "visual_updated",  # the visual embedding now used for the scene's windows changed
-    "waiting_for_frame",  # a visual model holds windows until the first frame is embedded
+    "waiting_for_frame",  # a visual model without a tactile-only model holds windows until the first frame is embedded
+    "robot_disconnected",  # the robot's ingest socket closed (the message says why)
+    "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
 ]
 
@@ -81,7 +83,10 @@ class WindowEvent(BaseModel):
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
     latency_ms: Latency
-    model: str
+    model: str = Field(description="the model that produced raw_ratings")
+    inputs: Literal["tactile", "tactile+visual"] = Field(
+        description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
+        "has not been embedded yet, estimated by the tactile-only model)")
 
 
 class StatusEvent(BaseModel):
@@ -99,8 +104,8 @@ def _ratings(x: np.ndarray, digits: int = 2) -> dict[str, float]:
     return {a: round(float(v), digits) for a, v in zip(ATTRIBUTES, x, strict=True)}
 
 
-def window_event(session_id: str, model: str, w: WindowEstimate, published_ns: int) -> dict:
-    """The window event for `w`, with its total latency measured to `published_ns`."""
+def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
+    """The window event for `w` (the one place it is built), with its total latency measured to `published_ns`."""
     ms = 1e-6
     return {
         "type": "window",
@@ -121,7 +126,8 @@ def window_event(session_id: str, model: str, w: WindowEstimate, published_ns: i
             "lookup": round(w.lookup_ms, 3),
             "total": round(max(0, published_ns - w.ingest_ns) * ms, 3),
         },
-        "model": model,
+        "model": w.model,
+        "inputs": w.inputs,
     }
 
 

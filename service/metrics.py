@@ -43,9 +43,13 @@ class _Metric:
         self._lock = threading.Lock()
 
     def _key(self, labels: dict[str, str]) -> tuple[str, ...]:
-        if set(labels) != set(self.label_names):
-            raise ValueError(f"{self.name} takes labels {self.label_names}, got {sorted(labels)}")
-        return tuple(str(labels[n]) for n in self.label_names)
+        # on the per-block path: one length check and one lookup per label instead of two sets
+        try:
+            if len(labels) == len(self.label_names):
+                return tuple([str(labels[n]) for n in self.label_names])
+        except KeyError:
+            pass
+        raise ValueError(f"{self.name} takes labels {self.label_names}, got {sorted(labels)}")
 
     def header(self) -> list[str]:
         return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} {self.kind}"]
@@ -132,12 +136,24 @@ class ServiceMetrics:
     def __init__(self) -> None:
         self.blocks = Counter("hapticlink_blocks_total", "Sample blocks received, by outcome.", ("outcome",))
         self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.")
+        self.windows_admitted = Counter("hapticlink_windows_admitted_total",
+                                        "Windows completed by accepted blocks (each is published, or its loss counted).")
         self.frames = Counter("hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",))
         self.events_dropped = Counter(
             "hapticlink_events_dropped_total", "Events dropped for slow operator connections (they keep the latest)."
         )
+        self.sessions_refused = Counter("hapticlink_sessions_refused_total",
+                                        "POST /sessions refused, by reason (api_key, rate).", ("reason",))
+        self.sessions_reaped = Counter("hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming.")
+        self.sockets_refused = Counter("hapticlink_ingest_sockets_refused_total",
+                                       "Ingest WebSocket handshakes refused, by HTTP-equivalent status.", ("status",))
+        self.robot_disconnects = Counter("hapticlink_robot_disconnects_total",
+                                         "Ingest WebSockets that closed, by reason.", ("reason",))
         self.publish_errors = Counter("hapticlink_publish_errors_total", "Events the broker failed to publish.")
         self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.")
+        self.sessions_lost = Counter(
+            "hapticlink_sessions_lost_total", "Sessions of another replica found gone (stopped, crashed, restarted) here."
+        )
         self.subscribers = Gauge("hapticlink_subscribers", "Open operator event connections on this replica.")
         self.ready = Gauge("hapticlink_ready", "1 when the model and library are loaded and warmed up.")
         self.latency = Histogram(

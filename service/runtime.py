@@ -1,7 +1,7 @@
 """What the service computes with: the model, its feature configuration, the library and the visual backbone.
 
-Loaded once at start-up (blocking: run it in a thread), checked against each other, warmed
-up. Everything here is numpy + onnxruntime; nothing imports torch.
+Loaded once at start-up (blocking: run it in a thread) and checked against each other;
+service/warmup.py then runs the whole serving path once. Everything here is numpy + onnxruntime; nothing imports torch.
 """
 
 from __future__ import annotations
@@ -37,11 +37,14 @@ class Runtime:
     """The loaded model and library.
 
     tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
+    tactile: an optional tactile-only model that estimates windows while a session has no visual
+    embedding yet (same feature configuration as the main model; None: such windows wait);
     backbone / visual_columns: set when the model reads visual features and a backbone is configured;
     problem: why the service cannot estimate (None when it can), shown by GET /ready.
     """
 
     predictor: Predictor
+    tactile: Predictor | None
     tactile_config: TactileConfig
     library: Library
     index: PerceptualIndex
@@ -58,6 +61,19 @@ class Runtime:
     @property
     def needs_visual(self) -> bool:
         return self.predictor.needs_visual
+
+    @property
+    def can_estimate_without_frame(self) -> bool:
+        """True when windows of a session without a visual embedding can be estimated (tactile-only)."""
+        return not self.needs_visual or self.tactile is not None
+
+    def predictor_for(self, visual: bool) -> Predictor:
+        """The model for windows with (True) or without (False) a visual embedding."""
+        if visual or not self.needs_visual:
+            return self.predictor
+        if self.tactile is None:
+            raise ValueError(f"model {self.model_name} needs a camera frame first and no tactile-only model is configured")
+        return self.tactile
 
     def decode_frame(self, image: bytes) -> np.ndarray:
         """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable, smaller than a patch or
@@ -91,7 +107,8 @@ def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:
 
 
 def load_runtime(settings: Settings) -> Runtime:
-    """Load, cross-check and warm up; ValueError names what is missing or inconsistent."""
+    """Load and cross-check (service.warmup runs it once afterwards); ValueError names what is missing or
+    inconsistent."""
     started = time.perf_counter()
     if settings.model_path is None:
         raise ValueError("no model configured: set HAPTICLINK_MODEL_PATH or pass --model")
@@ -99,16 +116,18 @@ def load_runtime(settings: Settings) -> Runtime:
         raise ValueError("no texture library configured: set HAPTICLINK_LIBRARY_DIR or pass --library")
     predictor = Predictor(settings.model_path, threads=1)
     tactile_config = serving_config(predictor.tactile_config, settings.hop_s)
+    tactile = None
+    if settings.tactile_model_path is not None and predictor.needs_visual:
+        tactile = Predictor(settings.tactile_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
+        if tactile.needs_visual:
+            raise ValueError(f"{settings.tactile_model_path}: the tactile-only model ({tactile.card.model}) reads images")
     library = Library.load(settings.library_dir)
     index = PerceptualIndex(library.ids, library.ratings, np.asarray(settings.nearest_weights))
     visual_config = VisualConfig()
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
         backbone, columns, problem = _load_backbone(predictor, visual_config, settings.backbone_path, settings.visual_threads)
-    predictor.warm_up()
-    if backbone is not None:
-        backbone.embed(np.zeros((1, visual_config.patch_size, visual_config.patch_size), np.float32))
-    return Runtime(predictor, tactile_config, library, index, visual_config, backbone, columns, problem,
+    return Runtime(predictor, tactile, tactile_config, library, index, visual_config, backbone, columns, problem,
                    time.perf_counter() - started)
 
 

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.blocks import BINARY_CONTENT_TYPE
+
+_T = TypeVar("_T")
+NonEmpty = Annotated[_T, Field(min_length=1)]
 
 SESSION_ID_EXAMPLE = "replica-a.Xq3v9PzR0kLm"
 TOKEN_EXAMPLE = "kY2f0rC4q2mZ1xP9wV7n3bT5hJ8sL6dA0gE4uR2iO1c"
@@ -39,9 +43,14 @@ class BlockAck(BaseModel):
 
 
 class FrameAck(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{"accepted": True, "used": True, "width": 448, "height": 448}]})
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"accepted": True, "used": True, "outcome": "embedding", "width": 448, "height": 448}]})
     accepted: bool = True
     used: bool = Field(description="false when the model reads no images (a tactile model ignores frames)")
+    outcome: Literal["ignored", "unchanged", "embedding", "superseded"] = Field(
+        description="ignored: the model reads no images; unchanged: same scene as the frame last embedded (no new "
+        "embedding); embedding: the scene changed, an embedding started; superseded: it replaces a frame waiting "
+        "for the running embedding")
     width: int
     height: int
 
@@ -57,6 +66,8 @@ class SessionCounters:
     windows: int = 0
     frames_received: int = 0
     frames_rejected: int = 0
+    frames_refused: int = 0  # refused early (429): the visual queue was full or the previous frame was decoding
+    frames_unchanged: int = 0  # same scene as the frame last embedded: not embedded again
     frames_embedded: int = 0
     frames_superseded: int = 0  # replaced by a newer frame before being embedded
     pipeline_errors: int = 0
@@ -68,7 +79,8 @@ class SessionStatus(BaseModel):
         "created_at": 1767225600.0, "idle_s": 0.02, "model": "ridge-tactile", "needs_visual": False,
         "visual_ready": False, "last_seq": 400, "segments": 1, "windows_ready": 0, "pending_blocks": 12,
         "counters": {"blocks_accepted": 401, "blocks_duplicate": 0, "blocks_rejected": 1, "blocks_refused": 0,
-                     "windows": 16, "frames_received": 0, "frames_rejected": 0, "frames_embedded": 0,
+                     "windows": 16, "frames_received": 0, "frames_rejected": 0, "frames_refused": 0,
+                     "frames_unchanged": 0, "frames_embedded": 0,
                      "frames_superseded": 0, "pipeline_errors": 0}}]})
     session_id: str
     name: str
@@ -112,15 +124,16 @@ class ReadyOut(BaseModel):
     detail: str
     model: str | None = None
     modality: str | None = None
+    tactile_model: str | None = Field(None, description="the tactile-only model used until a session's first frame is embedded")
     library: str | None = None
     library_entries: int | None = None
     backbone: str | None = None
 
 
 class JsonChannel(BaseModel):
-    rate_hz: float = Field(description="samples per second, 10…100000")
+    rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
     units: str = Field(description="accel: m/s^2 | g; force: N; speed: mm/s | m/s; position: mm | m")
-    data: list[float] | list[list[float]] = Field(description="(n,) or (n, k) samples")
+    data: NonEmpty[list[float]] | NonEmpty[list[NonEmpty[list[float]]]] = Field(description="(n,) or (n, k) samples, n ≥ 1")
 
 
 class JsonBlock(BaseModel):
@@ -131,9 +144,10 @@ class JsonBlock(BaseModel):
         "channels": {"accel": {"rate_hz": 1000, "units": "m/s^2", "data": [[0.1, -0.2, 9.8], [0.0, 0.1, 9.7]]},
                      "force": {"rate_hz": 1000, "units": "N", "data": [1.5, 1.52]},
                      "speed": {"rate_hz": 1000, "units": "mm/s", "data": [80.0, 80.4]}}}]})
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, lt=2**63, description="one more per block; required")
     t0: float = Field(description="time of the first sample on the robot's clock, s")
-    channels: dict[str, JsonChannel]
+    kind: Literal["samples"] = Field("samples", description="block kind (drivers.blocks.BLOCK_KINDS)")
+    channels: dict[Literal["accel", "force", "speed", "position"], JsonChannel] = Field(min_length=1)
 
 
 BLOCK_REQUEST_BODY = {
@@ -149,7 +163,9 @@ BLOCK_REQUEST_BODY = {
 FRAME_REQUEST_BODY = {
     "required": True,
     "content": {
-        "image/png": {"schema": {"type": "string", "format": "binary"}},
-        "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+        "image/png": {"schema": {"type": "string", "format": "binary",
+                                 "description": "at least 224×224 pixels (one patch), at most 4096×4096"}},
+        "image/jpeg": {"schema": {"type": "string", "format": "binary",
+                                  "description": "at least 224×224 pixels (one patch), at most 4096×4096"}},
     },
 }

@@ -1,13 +1,14 @@
-"""One streaming session on the event loop: admission, its bounded queue of pending blocks, its frames.
+"""One streaming session on the event loop: admission, its bounded queue of admitted blocks, its frames.
 
-    ingest (loop) ─▶ StreamAdmission.admit ─▶ pending blocks ─(a window is complete)─▶ WindowBatcher
-    batcher: the session's blocks, with other sessions', estimated in the window pool ─▶ apply_result ─▶ broker
-    frames: decode (window pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
+    ingest (loop) ─▶ admit: seq rules, StreamContract.admit, bounds ─▶ pending AdmittedBlocks
+        ─(a window is complete)─▶ WindowBatcher ─▶ pipeline.estimate_batch (window pool) ─▶ apply_result ─▶ broker
+    frames: decode + scene-change test (frame pool) ─▶ latest-frame slot ─▶ embed (visual pool, one at a time)
 
-Bounds: pending blocks ≤ session_queue_blocks and complete-but-unprocessed windows <
-session_queue_windows, else ingest is refused (429 / close 4429) without taking anything; a
-session is in at most one estimation job and one embedding job at a time; frames arriving during
-an embedding replace each other (only the newest is embedded).
+Bounds, checked before anything is taken: a block that would leave more than
+session_queue_windows complete-but-unpublished windows, or more than session_queue_blocks pending
+blocks, is refused (429 / close 4429); a session is in at most one estimation job and one
+embedding job at a time; frames arriving during an embedding replace each other (only the newest
+is embedded).
 """
 
 from __future__ import annotations
@@ -19,61 +20,88 @@ import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import asdict
+from typing import Literal
 
 import numpy as np
 
 from drivers.blocks import SampleBlock
+from drivers.protocol import SESSION_LOST
+from models.tactile.stream import StreamContract
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
-from service.pipeline import SessionEstimator, SessionJob, SessionResult
+from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
+from service.scene_change import scene_changed
 from service.schemas import SessionCounters
 from service.settings import Settings
-from service.stream import StreamAdmission
+from texture_library.channels import UNIT_SCALE
+from texture_library.recording import Channel
 
 log = logging.getLogger(__name__)
 
 Publish = Callable[[str, dict, bool], Awaitable[None]]
 Notify = Callable[["Session"], None]  # tells the batcher a session has complete windows
-MAX_SEQ = 2**63  # a seq beyond int64 is garbage, and accepting it would make every later block a duplicate
+FrameOutcome = Literal["ignored", "unchanged", "embedding", "superseded"]
+MAX_SEQ = 2**63  # a seq beyond int64 is garbage
 RETRY_AFTER_S = 1.0  # a saturated session has seconds of windows queued; retrying sooner only adds load
+PUBLISH_YIELD_EVERY = 8  # events published between yields to the event loop
+
+
+def stream_contract(runtime: Runtime, settings: Settings) -> StreamContract:
+    """The stream rules a session of this service enforces (the preprocessor gets the same object)."""
+    return StreamContract(runtime.tactile_config, max_lag_s=settings.max_lag_s, max_block_s=settings.max_block_s,
+                          max_block_windows=settings.max_block_windows)
+
+
+def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
+    """The block's channels in canonical units (m/s², N, mm/s, mm): as they came when already canonical (the
+    preprocessor converts to float64 once, on the concatenated blocks), else scaled in float64."""
+    out = {}
+    for kind, c in block.channels.items():
+        scale = UNIT_SCALE[kind][c.units]
+        out[kind] = Channel(c.data if scale == 1.0 else c.data.astype(np.float64) * scale, c.rate_hz)
+    return out
 
 
 class Session:
     """A session's state on its owner replica (see the module docstring)."""
 
     def __init__(self, session_id: str, name: str, credentials: SessionCredentials, runtime: Runtime,
-                 settings: Settings, window_pool: Executor, visual_pool: Executor, publish: Publish,
-                 metrics: ServiceMetrics, notify: Notify) -> None:
+                 settings: Settings, visual_pool: Executor, publish: Publish,
+                 metrics: ServiceMetrics, notify: Notify, visual_done: Callable[[], None] = lambda: None) -> None:
         self.id = session_id
         self.name = name
         self.credentials = credentials
         self.runtime = runtime
         self.settings = settings
         self.created_at = time.time()
-        self.last_activity = time.monotonic()
+        self.opened_at = self.last_activity = time.monotonic()
         self.last_seq = -1
         self.counters = SessionCounters()
-        self.admission = StreamAdmission(runtime.tactile_config, settings.max_lag_s)
+        self.contract = stream_contract(runtime, settings)
+        self.cursor = self.contract.start()
         self.estimator = SessionEstimator(
-            runtime, alpha=settings.smoothing_alpha, confidence_windows=settings.confidence_windows,
-            top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin,
-            hysteresis_hold=settings.hysteresis_hold, max_buffer_s=settings.max_lag_s + 1.0,
+            runtime, self.contract, alpha=settings.smoothing_alpha, confidence_windows=settings.confidence_windows,
+            top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin, hysteresis_hold=settings.hysteresis_hold,
         )
         self.visual: np.ndarray | None = None
-        self._window_pool = window_pool
         self._visual_pool = visual_pool
         self._publish = publish
         self._metrics = metrics
         self._notify = notify
-        self._pending: list = []
+        self._visual_done = visual_done
+        self._scene: np.ndarray | None = None  # thumbnail of the newest frame taken for embedding
+        self._pending: list[AdmittedBlock] = []
+        self._pending_windows = 0  # windows the pending blocks complete
+        self._windows_admitted = 0  # complete windows admitted, all segments
+        self._windows_done = 0  # of those, estimated and published (or lost to a failed job)
         self._frame: np.ndarray | None = None
         self._told_waiting = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
-        self.decoding_frame = False  # set by POST /frames while one of its frames is in the window pool
+        self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
         self.closed = False
 
     # ---- ingest (event loop) ---------------------------------------------------------------------
@@ -83,74 +111,96 @@ class Session:
     def ingest(self, block: SampleBlock, arrived_ns: int) -> dict:
         """Admit one decoded block → the acknowledgement {seq, duplicate, windows_ready}.
 
-        ServiceError 429 when saturated, 422 when the block contradicts the stream; nothing is taken then.
+        ServiceError 422 when the block contradicts the stream or its seq is unusable, 429 when its windows
+        would not fit the session's queue; nothing is taken then.
         """
         self.touch()
         if block.seq >= MAX_SEQ:
             raise ServiceError(422, f"seq must be below 2^63, got {block.seq}")
         if block.seq <= self.last_seq:
             self.counters.blocks_duplicate += 1
-            return {"seq": block.seq, "duplicate": True, "windows_ready": self.admission.backlog()}
-        if self.saturated():
-            self.counters.blocks_refused += 1
-            raise saturated(
-                f"session {self.id} is saturated ({self.admission.backlog()} windows, {len(self._pending)} blocks "
-                f"waiting); resend block {block.seq} later", RETRY_AFTER_S)
+            return {"seq": block.seq, "duplicate": True, "windows_ready": self.backlog()}
+        if block.seq - max(self.last_seq, 0) > self.settings.max_seq_gap:
+            raise ServiceError(422, f"seq jumps from {self.last_seq} to {block.seq}, more than max_seq_gap "
+                                    f"({self.settings.max_seq_gap}) blocks; send the blocks that follow {self.last_seq}, "
+                                    "or open a new session for a new stream")
         try:
-            admitted = self.admission.admit(block, arrived_ns)
+            advance = self.contract.admit(self.cursor, canonical_channels(block), block.t0)
         except ValueError as exc:
             raise bad_input(exc) from None
-        self._pending.append(admitted)
+        if (self.backlog() + advance.windows_added > self.settings.session_queue_windows
+                or len(self._pending) >= self.settings.session_queue_blocks):
+            self.counters.blocks_refused += 1
+            raise saturated(
+                f"session {self.id} is saturated ({self.backlog()} windows, {len(self._pending)} blocks waiting); "
+                f"resend block {block.seq} later", RETRY_AFTER_S)
+        self.cursor = advance.cursor
+        self._pending.append(AdmittedBlock(block.seq, advance.cursor.segment, advance.cursor.origin_t0,
+                                           advance.channels, advance.windows_after, arrived_ns))
+        self._pending_windows += advance.windows_added
+        self._windows_admitted += advance.windows_added
+        if advance.windows_added:
+            self._metrics.windows_admitted.inc(advance.windows_added)
         self.last_seq = block.seq
         self.counters.blocks_accepted += 1
-        backlog = self.admission.backlog()
-        if backlog:
+        if self._pending_windows:
             self._notify(self)
-        return {"seq": block.seq, "duplicate": False, "windows_ready": backlog}
+        return {"seq": block.seq, "duplicate": False, "windows_ready": self.backlog()}
+
+    def backlog(self) -> int:
+        """Complete windows admitted and not yet published (0 when the pipeline keeps up)."""
+        return self._windows_admitted - self._windows_done
 
     def saturated(self) -> bool:
-        """True when ingest must refuse (429 / close 4429) until the pipeline catches up."""
-        return (self.admission.backlog() >= self.settings.session_queue_windows
+        """True when the next block that completes a window would be refused."""
+        return (self.backlog() >= self.settings.session_queue_windows
                 or len(self._pending) >= self.settings.session_queue_blocks)
 
     # ---- estimation (called by the batcher) ------------------------------------------------------------
     def waiting_for_frame(self) -> bool:
-        return self.runtime.needs_visual and self.visual is None
+        """True while windows must wait: a visual model, no embedding yet, and no tactile-only model."""
+        return self.visual is None and not self.runtime.can_estimate_without_frame
 
     def take_job(self) -> SessionJob | None:
-        """Hand the pending blocks to an estimation job; None when there is nothing to do or a visual
-        model still waits for its first frame (the blocks then stay, counting against the bound)."""
+        """Hand the pending blocks to an estimation job; None when there is nothing to do or windows wait for
+        the first frame (the blocks then stay, counting against the bounds: the wait ends in 429s, not memory)."""
         if self.closed or not self._pending or self.waiting_for_frame():
             return None
-        blocks, self._pending = self._pending, []
-        return SessionJob(self.estimator, blocks, self.visual)
+        blocks, windows = self._pending, self._pending_windows
+        self._pending, self._pending_windows = [], 0
+        return SessionJob(self.estimator, blocks, self.visual, windows)
 
     async def tell_waiting(self) -> None:
-        """Tell operators, once, that windows wait for a camera frame."""
+        """Tell operators, once, why windows wait."""
         if not self._told_waiting:
             self._told_waiting = True
-            await self._status("waiting_for_frame", f"model {self.runtime.model_name} needs a camera frame; windows wait for it")
+            await self._status("waiting_for_frame", f"model {self.runtime.model_name} needs a camera frame and no "
+                               "tactile-only model is configured (HAPTICLINK_TACTILE_MODEL_PATH); windows wait for the "
+                               f"first frame, at most {self.settings.session_queue_windows} of them, then blocks are refused (429)")
 
     async def apply_result(self, result: SessionResult) -> None:
-        """Publish a job's windows; after a failure the stream restarts cleanly at the next block."""
+        """Publish a job's windows (yielding to the event loop every few events); after a failure the stream
+        restarts cleanly at the next block."""
+        self._windows_done += result.windows
         if self.closed:
             return
         if result.error is not None:
             log.error("session %s: estimation failed: %r", self.id, result.error)
             self.counters.pipeline_errors += 1
-            self.admission.break_segment()
+            self.cursor = self.cursor.restarted()
             await self._status("error", f"estimation failed ({type(result.error).__name__}: {result.error}); "
                                         "the stream restarts at the next block")
             return
-        self.admission.note_taken(result.segment, result.taken)
-        for w in result.estimates:
-            event = window_event(self.id, self.runtime.model_name, w, time.perf_counter_ns())
+        for i, w in enumerate(result.estimates):
+            if i and i % PUBLISH_YIELD_EVERY == 0:
+                await asyncio.sleep(0)  # many events: let ingest and /health run between them
+            event = window_event(self.id, w, time.perf_counter_ns())
             await self._publish(self.id, event, False)
             self._observe(event["latency_ms"])
         self.counters.windows += len(result.estimates)
 
     def has_work(self) -> bool:
-        return not self.closed and bool(self._pending) and self.admission.backlog() > 0
+        return not self.closed and self._pending_windows > 0
 
     def _observe(self, latency_ms: dict[str, float]) -> None:
         self._metrics.windows.inc()
@@ -161,40 +211,54 @@ class Session:
         await self._publish(self.id, status_event(self.id, event, message, **extra), False)  # type: ignore[arg-type]
 
     # ---- frames ----------------------------------------------------------------------------------
-    def offer_frame(self, gray: np.ndarray) -> bool:
-        """Keep a decoded frame for embedding; True if it will be used (the model reads images)."""
+    def offer_frame(self, gray: np.ndarray, thumb: np.ndarray) -> FrameOutcome:
+        """A decoded frame (and its scene_change.thumbnail): embedded only when the scene changed.
+
+        ignored: the model reads no images; unchanged: same scene as the last frame taken for embedding;
+        embedding: an embedding job starts (the caller counts it against the visual queue until
+        `visual_done`); superseded: replaces a frame waiting for the running embedding job."""
         self.touch()
         self.counters.frames_received += 1
         if not self.runtime.needs_visual:
-            return False
-        if self._frame is not None:
-            self.counters.frames_superseded += 1
+            return "ignored"
+        if not scene_changed(self._scene, thumb, self.settings.frame_change):
+            self.counters.frames_unchanged += 1
+            return "unchanged"
+        self._scene = thumb
+        if self._embedder is not None and not self._embedder.done():
+            if self._frame is not None:
+                self.counters.frames_superseded += 1
+            self._frame = gray
+            return "superseded"
         self._frame = gray
-        if self._embedder is None or self._embedder.done():
-            self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
-        return True
+        self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
+        return "embedding"
 
     async def _embed_frames(self) -> None:
         loop = asyncio.get_running_loop()
-        while self._frame is not None:
-            gray, self._frame = self._frame, None
-            started = time.perf_counter()
-            try:
-                vector = await loop.run_in_executor(self._visual_pool, self.runtime.embed_frame, gray)
-            except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
-                log.exception("session %s: embedding a frame failed", self.id)
-                self.counters.pipeline_errors += 1
-                await self._status("error", f"embedding the frame failed ({type(exc).__name__}: {exc})")
-                continue
-            seconds = time.perf_counter() - started
-            self._metrics.visual_seconds.observe(seconds)
-            first = self.visual is None
-            self.visual = vector
-            self.counters.frames_embedded += 1
-            await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
-                               embed_ms=round(seconds * 1e3, 1))
-            if self.has_work():
-                self._notify(self)
+        try:
+            while self._frame is not None:
+                gray, self._frame = self._frame, None
+                started = time.perf_counter()
+                try:
+                    vector = await loop.run_in_executor(self._visual_pool, self.runtime.embed_frame, gray)
+                except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
+                    log.exception("session %s: embedding a frame failed", self.id)
+                    self.counters.pipeline_errors += 1
+                    self._scene = None  # the next frame is tried whatever it shows
+                    await self._status("error", f"embedding the frame failed ({type(exc).__name__}: {exc})")
+                    continue
+                seconds = time.perf_counter() - started
+                self._metrics.visual_seconds.observe(seconds)
+                first = self.visual is None
+                self.visual = vector
+                self.counters.frames_embedded += 1
+                await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
+                                   embed_ms=round(seconds * 1e3, 1))
+                if self.has_work():
+                    self._notify(self)
+        finally:
+            self._visual_done()
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def close(self) -> None:
@@ -206,7 +270,7 @@ class Session:
                 await self._embedder
 
     def state(self) -> str:
-        if self.runtime.needs_visual and self.visual is None:
+        if self.waiting_for_frame():
             return "waiting_for_frame"
         return "saturated" if self.saturated() else "streaming" if self.last_seq >= 0 else "open"
 
@@ -223,8 +287,8 @@ class Session:
             "needs_visual": self.runtime.needs_visual,
             "visual_ready": self.visual is not None,
             "last_seq": self.last_seq,
-            "segments": self.admission.segment + 1 if self.last_seq >= 0 else 0,
-            "windows_ready": self.admission.backlog(),
+            "segments": self.cursor.segment + 1,
+            "windows_ready": self.backlog(),
             "pending_blocks": len(self._pending),
             "counters": asdict(self.counters),
         }
@@ -232,3 +296,8 @@ class Session:
 
 def session_not_found(session_id: str) -> ServiceError:
     return ServiceError(404, f"no session {session_id!r}")
+
+
+def session_lost(session_id: str, reason: str) -> ServiceError:
+    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
+    return ServiceError(SESSION_LOST, f"session {session_id} is lost: {reason}; open a new session")

@@ -12,7 +12,7 @@ import socket
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENV_PREFIX = "HAPTICLINK_"
@@ -36,12 +36,34 @@ class Settings(BaseSettings):
     backbone_path: Path | None = Field(
         None, description="visual backbone ONNX (models/featurize.py backbone_onnx); needed only by visual models"
     )
+    tactile_model_path: Path | None = Field(
+        None, description="optional tactile-only model (same feature configuration) that estimates a visual model's "
+        "windows until the session's first frame is embedded (events say `\"inputs\": \"tactile\"`); without it those windows wait",
+    )
     # ---- network ----------------------------------------------------------------------------------
     host: str = Field("127.0.0.1", description="address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
     instance_id: str = Field(
         default_factory=default_instance_id,
         description="this replica's name; prefixes its session ids so a load balancer can pin sessions",
+    )
+    # ---- credentials and admission ------------------------------------------------------------------
+    api_keys: SecretStr | None = Field(
+        None, description="fleet API keys, comma-separated, any of which opens sessions (`POST /sessions` with "
+        "`Authorization: Bearer <key>`); with neither this nor api_keys_file, session creation is refused (503)",
+    )
+    api_keys_file: Path | None = Field(
+        None, description="file of fleet API keys, one per line (# comments); re-read when it changes, so keys rotate "
+        "without a restart",
+    )
+    session_rate_per_s: float = Field(0.5, gt=0, description="sessions a client (IP address) may open per second, sustained; "
+                                      "beyond it `POST /sessions` answers 429 with Retry-After")
+    session_burst: int = Field(10, ge=1, description="sessions a client may open at once before session_rate_per_s applies")
+    forwarded_allow_ips: str = Field(
+        "127.0.0.1", description="proxies whose X-Forwarded-For names the client (comma-separated IPs, or *), so the "
+        "session-creation rate applies per real client behind nginx")
+    cors_origins: tuple[str, ...] = Field(
+        (), description="origins allowed to call the API from a browser (JSON list; default none: no CORS headers)"
     )
     # ---- estimation -------------------------------------------------------------------------------
     hop_s: float = Field(0.5, gt=0, le=10, description="window hop for serving; the model's TactileConfig fixes the rest")
@@ -62,7 +84,23 @@ class Settings(BaseSettings):
     subscriber_queue: int = Field(16, ge=1, description="events buffered per operator connection; older ones are dropped")
     max_body_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="largest request body or WebSocket message (413 / close 1009)")
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
-    session_idle_s: float = Field(600.0, gt=0, description="a session with no traffic for this long is ended")
+    session_idle_s: float = Field(60.0, gt=0, description="a session with no traffic for this long is ended")
+    session_first_block_s: float = Field(
+        15.0, gt=0, description="a session that has received no block this long after its creation is ended (abandoned)")
+    max_block_s: float = Field(1.0, gt=0, le=60, description="stream time one block may span, s (422 beyond it)")
+    max_block_windows: int = Field(
+        4, ge=1, description="windows one block may complete (422 beyond it); at most session_queue_windows")
+    max_seq_gap: int = Field(
+        1_000_000, ge=1, description="largest jump of seq over the last accepted one (≈ 5.5 h of 20 ms blocks); a larger "
+        "jump is refused (422) instead of making every later block a duplicate")
+    visual_queue: int = Field(
+        4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429")
+    frame_change: float = Field(
+        0.05, ge=0, le=1, description="a frame is embedded only when its thumbnail differs from the last embedded one by more "
+        "than this (mean absolute grey difference, 0…1); 0 embeds every frame")
+    timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
+    request_read_timeout_s: float = Field(
+        10.0, gt=0, description="a request's headers and body must arrive within this, s (half-open requests are closed)")
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time")
     visual_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)")
@@ -75,6 +113,13 @@ class Settings(BaseSettings):
     broker: Literal["memory", "redis"] = Field("memory", description="event fan-out: in-process, or Redis pub/sub across replicas")
     redis_url: str = Field("redis://localhost:6379/0", description="Redis for broker=redis")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info", description="log verbosity")
+
+    @model_validator(mode="after")
+    def _block_fits_the_queue(self) -> "Settings":
+        if self.max_block_windows > self.session_queue_windows:
+            raise ValueError(f"max_block_windows ({self.max_block_windows}) must be ≤ session_queue_windows "
+                             f"({self.session_queue_windows}): such a block could never be admitted")
+        return self
 
     @field_validator("instance_id")
     @classmethod
@@ -112,7 +157,7 @@ def settings_table() -> str:
         elif info.default is None:
             default = "—"
         elif isinstance(info.default, tuple):
-            default = "`" + "[" + ", ".join(f"{v:g}" for v in info.default) + "]`"
+            default = "`" + "[" + ", ".join(f"{v:g}" if isinstance(v, float) else repr(v) for v in info.default) + "]`"
         else:
             default = f"`{info.default}`"
         rows.append(f"| `{env_name(name)}` | {default} | {info.description} |")

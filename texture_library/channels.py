@@ -26,8 +26,10 @@ MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
 
 
-def check_channel(kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64) -> tuple[np.ndarray, float, str]:
+def check_channel(kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64,
+                  copy: bool = True) -> tuple[np.ndarray, float, str]:
     """Validate one channel: (samples as `dtype`, (n,) or (n, k), in their own units; rate; units).
+    copy=False returns `data` itself when it already has `dtype` (e.g. a read-only view of a wire message).
 
     ValueError names the channel and the problem: unknown kind or units, rate not a number or out of
     [MIN_RATE_HZ, MAX_RATE_HZ], non-numeric samples, wrong shape, no samples, NaN/Inf.
@@ -52,7 +54,7 @@ def check_channel(kind: str, data: object, rate_hz: object, units: object | None
         raise ValueError(f"{kind}: shape must be {allowed}, got {arr.shape}")
     if arr.shape[0] == 0:
         raise ValueError(f"{kind}: no samples")
-    arr = arr.astype(dtype)
-    if not np.all(np.isfinite(arr)):
+    arr = arr.astype(dtype, copy=copy)
+    if not np.isfinite(arr).all():
         raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
     return arr, float(rate_hz), str(units)

@@ -9,6 +9,7 @@ Nyquist frequency there, so the upper edge does nothing and the filter is really
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal
 
@@ -25,16 +26,31 @@ def _check_design(cutoff_hz: float, rate_hz: float, order: int) -> None:
         raise ValueError(f"order must be an integer in [1, 12], got {order!r}")
 
 
+@functools.lru_cache(maxsize=256)
+def _butter(order: int, cutoff_hz: float, btype: str, rate_hz: float) -> np.ndarray:
+    # Designing costs about a millisecond; every stream segment's preprocessor needs the same few filters.
+    sos = signal.butter(order, cutoff_hz, btype=btype, fs=rate_hz, output="sos")
+    sos.flags.writeable = False  # shared between callers
+    return sos
+
+
+@functools.lru_cache(maxsize=256)
+def _steady_zi(sos_bytes: bytes, n_sections: int) -> np.ndarray:
+    zi = signal.sosfilt_zi(np.frombuffer(sos_bytes).reshape(n_sections, 6))
+    zi.flags.writeable = False
+    return zi
+
+
 def design_highpass(cutoff_hz: float, rate_hz: float, order: int) -> np.ndarray:
-    """Butterworth high-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float."""
+    """Butterworth high-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per set of arguments)."""
     _check_design(cutoff_hz, rate_hz, order)
-    return signal.butter(int(order), cutoff_hz, btype="highpass", fs=rate_hz, output="sos")
+    return _butter(int(order), float(cutoff_hz), "highpass", float(rate_hz)).copy()
 
 
 def design_lowpass(cutoff_hz: float, rate_hz: float, order: int) -> np.ndarray:
-    """Butterworth low-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float."""
+    """Butterworth low-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per set of arguments)."""
     _check_design(cutoff_hz, rate_hz, order)
-    return signal.butter(int(order), cutoff_hz, btype="lowpass", fs=rate_hz, output="sos")
+    return _butter(int(order), float(cutoff_hz), "lowpass", float(rate_hz)).copy()
 
 
 class StatefulSOS:
@@ -82,7 +98,7 @@ class StatefulSOS:
         if self._zi is None:
             zi = np.zeros((self.sos.shape[0], 2, x2.shape[1]))
             if self.init == "steady":
-                zi = signal.sosfilt_zi(self.sos)[:, :, None] * x2[0][None, None, :]
+                zi = _steady_zi(self.sos.tobytes(), self.sos.shape[0])[:, :, None] * x2[0][None, None, :]
             self._zi = zi
         y, self._zi = signal.sosfilt(self.sos, x2, axis=0, zi=self._zi)
         return y[:, 0] if x.ndim == 1 else y

@@ -11,6 +11,10 @@ Every filter keeps its state across blocks and starts in steady state for its fi
 (no start-up step from gravity or a resting force), so any split of a stream into blocks
 gives the same samples as one block. Offline features are this class run over a recording.
 
+The stream's rules (constant rates and columns, which channel feeds speed, how far one channel
+may lag another, how many windows are complete) are `models.tactile.stream.StreamContract`'s;
+``push`` asks it before changing any state, so a refused block leaves the preprocessor as it was.
+
 Windows of ``window_length`` samples start at ``skip + i·hop_length`` (1 kHz sample
 indices from the stream start) and are emitted once all three streams reach their end.
 Buffers keep only what the next window needs.
@@ -28,11 +32,10 @@ from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.filters import StatefulSOS, design_highpass, design_lowpass
 from models.tactile.resample import Resampler, check_rate
+from models.tactile.stream import INPUT_COLUMNS, STREAMS as STREAM_SPECS, StreamContract
 from models.tactile.windows import sliding_windows
 
-STREAMS = ("accel", "speed", "force")
-#: allowed column counts per input channel (1 means shape (n,))
-INPUT_COLUMNS = {"accel": (3,), "force": (1, 3), "speed": (1,), "position": (1, 2)}
+STREAMS = tuple(spec.name for spec in STREAM_SPECS)  # ("accel", "speed", "force")
 
 
 @dataclass(frozen=True)
@@ -130,18 +133,18 @@ class TactilePreprocessor:
     """
 
     def __init__(
-        self, config: TactileConfig | None = None, skip_s: float = 0.0, max_buffer_s: float | None = 60.0
+        self, config: TactileConfig | None = None, skip_s: float = 0.0, max_buffer_s: float | None = 60.0,
+        contract: StreamContract | None = None,
     ) -> None:
-        self.config = config if config is not None else TactileConfig()
-        c = self.config
-        if not (isinstance(skip_s, (int, float)) and math.isfinite(skip_s) and skip_s >= 0):
-            raise ValueError(f"skip_s must be a finite number ≥ 0 s, got {skip_s!r}")
-        if max_buffer_s is not None and not (math.isfinite(max_buffer_s) and max_buffer_s >= 2 * c.window_s):
-            raise ValueError(f"max_buffer_s must be ≥ 2·window_s = {2 * c.window_s} s or None, got {max_buffer_s!r}")
-        self.skip = int(round(skip_s * c.rate_hz))
-        self.max_buffer = None if max_buffer_s is None else int(round(max_buffer_s * c.rate_hz))
-        self._rates: dict[str, float] = {}
-        self._columns: dict[str, int] = {}
+        if contract is None:
+            config = config if config is not None else TactileConfig()
+            if max_buffer_s is not None and not (math.isfinite(max_buffer_s) and max_buffer_s >= 2 * config.window_s):
+                raise ValueError(f"max_buffer_s must be ≥ 2·window_s = {2 * config.window_s} s or None, got {max_buffer_s!r}")
+            contract = StreamContract(config, max_lag_s=max_buffer_s, skip_s=skip_s)
+        self.contract = contract
+        self.config = c = contract.config
+        self.skip = contract.skip
+        self._cursor = contract.start()
         self._resamplers: dict[str, Resampler] = {}
         self._filters = {
             "accel": StatefulSOS(design_highpass(c.accel_highpass_hz, c.rate_hz, c.accel_filter_order), "steady"),
@@ -149,12 +152,16 @@ class TactilePreprocessor:
             "force": StatefulSOS(design_lowpass(c.lowpass_hz, c.rate_hz, c.lowpass_order), "steady"),
         }
         self._position_speed = PositionSpeed(c.rate_hz)
-        self.speed_source: str | None = None  # "speed" or "position", fixed by the first block with either
         self._buf: dict[str, np.ndarray] = {"accel": np.empty((0, 3)), "speed": np.empty(0), "force": np.empty(0)}
         self._n: dict[str, int] = dict.fromkeys(STREAMS, 0)  # samples produced per stream
         self._buf_start = 0  # global 1 kHz index of each buffer's first sample
         self._next = 0  # index of the next window to emit
         self._flushed = False
+
+    @property
+    def speed_source(self) -> str | None:
+        """"speed" or "position": the channel feeding speed, fixed by the first block with either."""
+        return self._cursor.sources.get("speed")
 
     # ---- input ---------------------------------------------------------------------------
     def push(
@@ -172,29 +179,17 @@ class TactilePreprocessor:
         if self._flushed:
             raise ValueError("push: the stream was flushed; start a new TactilePreprocessor")
         given = {"accel": accel, "force": force, "speed": speed, "position": position}
-        checked = {name: channel_array(name, ch) for name, ch in given.items() if ch is not None}
-        for name, (data, rate) in checked.items():  # validate everything before changing state
-            if name in self._rates and rate != self._rates[name]:
-                raise ValueError(f"{name}: rate changed from {self._rates[name]:g} Hz to {rate:g} Hz mid-stream")
-            cols = 1 if data.ndim == 1 else data.shape[1]
-            if name in self._columns and cols != self._columns[name]:
-                raise ValueError(f"{name}: column count changed from {self._columns[name]} to {cols} mid-stream")
-        if self.speed_source is None and ("speed" in checked or "position" in checked):
-            self.speed_source = "speed" if "speed" in checked else "position"
-        if self.speed_source == "position" and "speed" in checked:
-            raise ValueError("speed: got a speed block after speed was already being derived from position")
-        if self.speed_source == "speed":
-            checked.pop("position", None)
-        for name, (data, rate) in checked.items():
-            self._rates.setdefault(name, rate)
-            self._columns.setdefault(name, 1 if data.ndim == 1 else data.shape[1])
+        checked = {name: Channel(*channel_array(name, ch)) for name, ch in given.items() if ch is not None}
+        advance = self.contract.advance(self._cursor, checked)  # validates everything before state changes
+        self._cursor = advance.cursor
+        for name, ch in advance.channels.items():
+            data = ch.data
             if name not in self._resamplers:
-                self._resamplers[name] = Resampler(rate, self.config.rate_hz)
+                self._resamplers[name] = Resampler(ch.rate_hz, self.config.rate_hz)
             if name == "force" and data.ndim == 2:
                 data = data[:, 2]  # (tangential x, tangential y, normal) → normal
             self._feed(name, self._resamplers[name].process(data))
         self._trim()
-        self._check_lag()
         return self.n_ready
 
     def flush(self) -> int:
@@ -224,17 +219,6 @@ class TactilePreprocessor:
         if samples.shape[0]:
             self._buf[stream] = np.concatenate([self._buf[stream], samples])
             self._n[stream] += samples.shape[0]
-
-    def _check_lag(self) -> None:
-        if self.max_buffer is None:
-            return
-        lead = max(self._n.values())
-        behind = [s for s in STREAMS if lead - self._n[s] > self.max_buffer]
-        if behind:
-            raise ValueError(
-                f"{', '.join(behind)} lag(s) the other channels by more than "
-                f"{self.max_buffer / self.config.rate_hz:g} s; is every channel being sent?"
-            )
 
     # ---- output --------------------------------------------------------------------------
     def _start(self, index: int) -> int:

@@ -35,6 +35,22 @@ def check_rate(rate_hz: object, name: str) -> float:
     return rate
 
 
+def resampled_count(n_in: int, rate_in: float, rate_out: float) -> int:
+    """Output samples a Resampler has emitted after n_in input samples (before flush): every k with
+    k·rate_in/rate_out ≤ n_in − 1 (the same float arithmetic `Resampler.process` uses), n_in at equal rates."""
+    if n_in <= 0:
+        return 0
+    if rate_in == rate_out:
+        return n_in
+    last = n_in - 1
+    k = int(math.floor(last * rate_out / rate_in)) + 1
+    while k > 0 and float(k - 1) * rate_in / rate_out > last:
+        k -= 1
+    while float(k) * rate_in / rate_out <= last:
+        k += 1
+    return k
+
+
 class Resampler:
     """Stateful resampler: feed blocks (n,) or (n, k) at rate_in, get blocks at rate_out."""
 
@@ -83,12 +99,9 @@ class Resampler:
         else:
             buf, base = np.concatenate([self._last[None], x]), self._n_in - 1
         self._n_in += x.shape[0]
-        last_idx = self._n_in - 1
-        # positions in input samples; (k·rate_in)/rate_out is exact for integer rates
-        k_hi = int(math.floor(last_idx * self.rate_out / self.rate_in)) + 2
-        ks = np.arange(self._k, max(self._k, k_hi), dtype=np.float64)
+        # positions in input samples of every output now due (resampled_count states which are)
+        ks = np.arange(self._k, max(self._k, resampled_count(self._n_in, self.rate_in, self.rate_out)), dtype=np.float64)
         pos = ks * self.rate_in / self.rate_out
-        pos = pos[pos <= last_idx]
         self._last = buf[-1].copy()
         if pos.size == 0:
             return np.empty((0,) + x.shape[1:])

@@ -7,6 +7,7 @@ so the dataset builders and the service share one conversion.
 from __future__ import annotations
 
 import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +54,9 @@ def _open(source: str | Path | bytes | bytearray | Image.Image) -> Image.Image:
         image = Image.open(stream)
         image.load()  # decode now, so a truncated file fails here and not later
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise ValueError(f"source {label} is not a readable image: {exc}") from exc
+        # Pillow names an in-memory stream by its repr (<_io.BytesIO object at 0x…>): say what it was instead
+        why = re.sub(r"<_io\.BytesIO object at 0x[0-9A-Fa-f]+>", "the bytes", str(exc))
+        raise ValueError(f"source {label} is not a readable image: {why}") from exc
     return image
 
 

@@ -2,7 +2,8 @@
 
 The fake service implements just the robot-facing contract (sessions, blocks over HTTP and
 WebSocket, frames) with switches that misbehave on purpose: reject a seq, answer 429 / close
-4429, process a block and then fail before acknowledging it, answer 503, restart the whole server.
+4429, process a block and then fail before acknowledging it, answer 503, restart the whole server, lose the
+session (410 / close 4410, as when the replica that held it is gone).
 """
 
 from __future__ import annotations
@@ -28,10 +29,14 @@ from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, decode_binary, decode_json
+from drivers.protocol import SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from drivers.source import blocks_from_arrays, paced
 
 
 # ---- the fake service --------------------------------------------------------------------------
+LOST_DETAIL = "session s-fixed is lost: its replica replica-z is gone (stopped, crashed or restarted); open a new session"
+
+
 @dataclass
 class FakeSession:
     robot_token: str
@@ -54,6 +59,8 @@ class FakeService:
         self.fail_at: dict[int, list[int]] = {}  # seq → HTTP statuses to answer (one per try) before processing it
         self.ws_kill_every: int = 0  # close 1011 after processing every n-th message of a connection
         self.on_accept = None  # callback(seq) after a block is accepted
+        self.lose_after: int | None = None  # the session is lost once this many blocks were accepted
+        self.lost_answers = 0  # 410 answers and 4410 closes sent since
         self.app = Starlette(
             routes=[
                 Route("/sessions", self.create_session, methods=["POST"]),
@@ -99,18 +106,21 @@ class FakeService:
             return 404
         if token != sess.robot_token:
             return 401
+        if self.lose_after is not None and len(sess.accepted) >= self.lose_after:
+            self.lost_answers += 1
+            return SESSION_LOST
         return sess
 
     async def post_block(self, request: Request) -> Response:
         auth = request.headers.get("authorization", "")
         sess = self._session(request.path_params["sid"], auth.removeprefix("Bearer "))
         if isinstance(sess, int):
-            return JSONResponse({"detail": "no"}, status_code=sess)
+            return JSONResponse({"detail": LOST_DETAIL if sess == SESSION_LOST else "no"}, status_code=sess)
         if self.saturate > 0:
             self.saturate -= 1
             return JSONResponse({"detail": "saturated"}, status_code=429, headers={"Retry-After": "0.02"})
         payload = await request.body()
-        seq = _peek_seq(payload, request.headers.get("content-type", ""))
+        seq = peek_seq(payload, request.headers.get("content-type", "") == BINARY_CONTENT_TYPE)
         if self.fail_at.get(seq):
             return JSONResponse({"detail": "not now"}, status_code=self.fail_at[seq].pop(0))
         status, body = self._ingest(sess, payload, request.headers.get("content-type", ""))
@@ -123,7 +133,7 @@ class FakeService:
         auth = request.headers.get("authorization", "")
         sess = self._session(request.path_params["sid"], auth.removeprefix("Bearer "))
         if isinstance(sess, int):
-            return JSONResponse({"detail": "no"}, status_code=sess)
+            return JSONResponse({"detail": LOST_DETAIL if sess == SESSION_LOST else "no"}, status_code=sess)
         ctype = request.headers.get("content-type", "")
         if ctype not in ("image/png", "image/jpeg"):
             return JSONResponse({"detail": f"unsupported {ctype}"}, status_code=415)
@@ -134,11 +144,12 @@ class FakeService:
         await ws.accept()
         sess = self._session(ws.path_params["sid"], ws.query_params.get("token"))
         if isinstance(sess, int):
-            await ws.close(code=1008, reason="bad token")
+            await ws.close(code=Close.LOST if sess == SESSION_LOST else Close.POLICY,
+                           reason=LOST_DETAIL if sess == SESSION_LOST else "bad token")
             return
         if self.saturate > 0:
             self.saturate -= 1
-            await ws.close(code=4429, reason="saturated")
+            await ws.close(code=Close.SATURATED, reason="saturated")
             return
         n = 0
         try:
@@ -149,27 +160,23 @@ class FakeService:
                 binary = message.get("bytes") is not None
                 payload = message["bytes"] if binary else message["text"].encode()
                 n += 1
+                if self.lose_after is not None and len(sess.accepted) >= self.lose_after:
+                    self.lost_answers += 1
+                    await ws.close(code=Close.LOST, reason=LOST_DETAIL)
+                    return
                 status, body = self._ingest(sess, payload, BINARY_CONTENT_TYPE if binary else "application/json")
                 seq = body.get("seq")
                 if (self.ws_kill_every and n % self.ws_kill_every == 0) or seq in self.fail_after_accept:
                     self.fail_after_accept.discard(seq)
-                    await ws.close(code=1011, reason="server error after processing")
+                    await ws.close(code=Close.SERVER_ERROR, reason="server error after processing")
                     return
                 if status == 202:
-                    await ws.send_json({"seq": seq, "ok": True, "duplicate": body["duplicate"]})
+                    await ws.send_text(ack_ok(seq, body["duplicate"]))
                 else:
                     # like the real service when it cannot read the seq: the client matches answers by order
-                    await ws.send_json({"seq": None, "ok": False, "error": body["detail"]})
+                    await ws.send_text(ack_error(None, body["detail"]))
         except WebSocketDisconnect:
             return
-
-
-def _peek_seq(payload: bytes, content_type: str) -> int | None:
-    try:
-        block = decode_binary(payload) if content_type == BINARY_CONTENT_TYPE else decode_json(json.loads(payload))
-    except ValueError:
-        return None
-    return block.seq
 
 
 class LoopbackServer:
@@ -326,6 +333,7 @@ def kit() -> SimpleNamespace:
     """The helpers above, for test modules (conftest is not importable under --import-mode=importlib)."""
     return SimpleNamespace(
         FakeService=FakeService,
+        LOST_DETAIL=LOST_DETAIL,
         LoopbackServer=LoopbackServer,
         ServerThread=ServerThread,
         ListSource=ListSource,

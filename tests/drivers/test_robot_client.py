@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.blocks import Frame
-from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, _Pending
+from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, Pending, ServiceRefused, SessionLostError
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -172,6 +172,31 @@ def test_a_refused_token_is_fatal(kit, fake_service, transport):
         asyncio.run(main())
 
 
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_a_lost_session_stops_the_run_with_the_services_reason(kit, fake_service, transport):
+    """410 (HTTP) / close 4410 (an open WebSocket): the replica holding the session is gone; retrying cannot help."""
+    sess = fake_service.add_session("s-fixed", "robot-secret")
+    fake_service.lose_after = 5
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.EndlessSource(speed=4.0), session_id="s-fixed", robot_token="robot-secret",
+                                 transport=transport, **FAST)
+            with pytest.raises(SessionLostError) as lost:
+                await client.run()
+            return client.stats, lost.value
+        finally:
+            await server.stop()
+
+    stats, error = asyncio.run(main())
+    assert isinstance(error, ServiceRefused)  # callers that stop on any final refusal stop on this one too
+    assert "(HTTP 410)" in str(error) and kit.LOST_DETAIL[:100] in str(error), str(error)
+    assert len(sess.accepted) == 5 and fake_service.lost_answers == 1  # told once, never retried
+    assert stats.acked == 5 and stats.unsent == stats.read - 5
+
+
 def test_duration_stops_reading_then_drains(kit, fake_service):
     server = kit.LoopbackServer(fake_service.app)
     source = kit.EndlessSource(speed=4.0)
@@ -237,14 +262,14 @@ def test_backoff_grows_exponentially_with_jitter_and_caps():
 
 def test_resend_buffer_keeps_max_seconds_and_settles_cumulatively():
     buf = ResendBuffer(max_s=0.07)  # room for three blocks of 20 ms
-    dropped = [d.seq for i in range(5) for d in buf.append(_Pending(i, b"x", 0.02))]
+    dropped = [d.seq for i in range(5) for d in buf.append(Pending(i, b"x", 0.02))]
     assert dropped == [0, 1] and len(buf) == 3 and buf.held_s == pytest.approx(0.06)
     assert buf.oldest_seq == 2
     assert buf.first_from(0).seq == 2 and buf.first_from(4).seq == 4 and buf.first_from(5) is None
     assert buf.count_before(4) == 2
     assert [e.seq for e in buf.settle(3)] == [2, 3] and buf.oldest_seq == 4
     with pytest.raises(ValueError, match="does not follow"):
-        buf.append(_Pending(9, b"x", 0.02))
+        buf.append(Pending(9, b"x", 0.02))
 
 
 class FailingSource:

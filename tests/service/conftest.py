@@ -32,14 +32,17 @@ from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
 
 FIXED_SEED = 1234
+API_KEY = "test-fleet-key-0123456789"  # the fleet key every test server accepts
+FLEET = {"Authorization": f"Bearer {API_KEY}"}
 
 
 # ---- the real server -----------------------------------------------------------------------------
 class ServerThread:
     """uvicorn serving create_app(settings) on 127.0.0.1:<free port> in a daemon thread."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, log_level: str = "warning") -> None:
         self.settings = settings
+        self.log_level = log_level
         self.app = create_app(settings)
         self.port = 0
         self._server: uvicorn.Server | None = None
@@ -58,7 +61,7 @@ class ServerThread:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", 0))
         self.port = sock.getsockname()[1]
-        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level="warning",
+        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level=self.log_level,
                                                            access_log=False, timeout_graceful_shutdown=3))
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
@@ -93,8 +96,8 @@ class ServerThread:
 
 
 @contextlib.contextmanager
-def running(settings: Settings, wait_ready: bool = True) -> Iterator[ServerThread]:
-    server = ServerThread(settings).start(wait_ready=wait_ready)
+def running(settings: Settings, wait_ready: bool = True, log_level: str = "warning") -> Iterator[ServerThread]:
+    server = ServerThread(settings, log_level).start(wait_ready=wait_ready)
     try:
         yield server
     finally:
@@ -163,7 +166,7 @@ def socket_url(server: ServerThread, session: dict, route: str) -> str:
 
 
 def create_session(client: httpx.Client, name: str = "test") -> dict:
-    r = client.post("/sessions", json={"name": name})
+    r = client.post("/sessions", json={"name": name}, headers=FLEET)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -210,7 +213,8 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("visual-model")
     dataset = build("synthetic", root / "dataset", n_textures=3, duration_s=3, image_size=256)
     model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
-    return SimpleNamespace(model=model, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+    tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")  # same features: the fallback
+    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
 
 
 @pytest.fixture(scope="session")
@@ -218,7 +222,7 @@ def base_settings(tactile_model, library_dir) -> Settings:
     # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
     # the backpressure tests set a tight one.
     return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600,
-                    session_queue_windows=64)
+                    session_first_block_s=600, session_queue_windows=64, api_keys=API_KEY, session_burst=10_000)
 
 
 @pytest.fixture(scope="session")
@@ -249,4 +253,6 @@ def kit() -> SimpleNamespace:
         png=png,
         free_port=free_port,
         FIXED_SEED=FIXED_SEED,
+        API_KEY=API_KEY,
+        FLEET=FLEET,
     )

@@ -6,6 +6,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
+from drivers.protocol import Close
 from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
 
 
@@ -83,7 +84,7 @@ def test_ingest_socket_closes_1008_on_a_bad_token(server, two_sessions):
         with connect(base + query) as ws:
             with pytest.raises(ConnectionClosed):
                 ws.recv(timeout=5)
-            assert ws.close_code == 1008
+            assert ws.close_code == Close.POLICY
     with pytest.raises(InvalidStatus) as err:  # unknown session: refused at the handshake
         connect(f"{server.ws_url}/sessions/test-a.nosuchsession/ingest?token={a['robot_token']}")
     assert err.value.response.status_code == 404

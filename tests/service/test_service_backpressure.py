@@ -18,6 +18,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from drivers.protocol import Close
 from drivers.blocks import encode_binary
 from drivers.robot import RobotClient
 from drivers.source import paced
@@ -27,7 +28,8 @@ QUEUE_WINDOWS = 2
 
 @pytest.fixture
 def tight_server(kit, base_settings):
-    settings = base_settings.model_copy(update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS})
+    settings = base_settings.model_copy(update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS,
+                                                "max_block_windows": 1})
     with kit.running(settings) as srv:
         yield srv
 
@@ -35,9 +37,9 @@ def tight_server(kit, base_settings):
 class PoolStall:
     """Occupies the server's window pool until released (the session's jobs queue up behind it)."""
 
-    def __init__(self, server) -> None:
+    def __init__(self, server, pool: str = "window_pool") -> None:
         self.release = threading.Event()
-        self.future = server.app.state.service.window_pool.submit(self.release.wait, 60)
+        self.future = getattr(server.app.state.service, pool).submit(self.release.wait, 60)
 
     def __enter__(self) -> "PoolStall":
         return self
@@ -62,8 +64,9 @@ def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight
             assert r.status_code == 429, "the session never saturated"
             assert r.headers["retry-after"] == "1"
             assert "saturated" in r.json()["detail"] and f"resend block {blocks[sent].seq}" in r.json()["detail"]
-            # Saturation comes from the window bound: QUEUE_WINDOWS complete windows are waiting.
-            assert sent == 25 * QUEUE_WINDOWS
+            # Saturation comes from the window bound, counted before admission: QUEUE_WINDOWS complete windows
+            # are waiting, so the block that would complete one more is refused (blocks that complete none are taken).
+            assert sent == 25 * (QUEUE_WINDOWS + 1) - 1
             status = kit.session_status(client, session)
             assert status["last_seq"] == blocks[sent - 1].seq  # nothing of the refused block was taken
             assert status["state"] == "saturated" and status["counters"]["blocks_refused"] == 1
@@ -87,8 +90,8 @@ def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_
                     ws.send(encode_binary(block))
                     assert json.loads(ws.recv(timeout=5))["ok"] is True
                     acked += 1
-            assert ws.close_code == 4429 and "saturated" in ws.close_reason
-            assert acked == 25 * QUEUE_WINDOWS
+            assert ws.close_code == Close.SATURATED and "saturated" in ws.close_reason
+            assert acked == 25 * (QUEUE_WINDOWS + 1) - 1  # the block that would complete one window too many is refused
             assert kit.session_status(client, session)["last_seq"] == blocks[acked - 1].seq
         kit.wait_for(lambda: kit.session_status(client, session)["windows_ready"] == 0)
         with connect(url) as ws:  # reconnect and resend from the first unacknowledged block
@@ -118,7 +121,8 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_004", 3.0))
 
     async def main():
-        robot = RobotClient(tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1)
+        robot = RobotClient(tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1,
+                            api_key=kit.API_KEY)
         stall = PoolStall(tight_server)
         loop = asyncio.get_running_loop()
         loop.call_later(1.0, stall.release.set)  # the slow spell ends after a second
@@ -162,7 +166,7 @@ def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_se
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         state = tight_server.app.state.service.sessions[session["session_id"]]
         with concurrent.futures.ThreadPoolExecutor(1) as sender:
-            with PoolStall(tight_server):
+            with PoolStall(tight_server, "frame_pool"):  # frames are decoded in the frame pool
                 first = sender.submit(other.post, url, content=kit.png(), headers=headers)  # waits behind the stall
                 kit.wait_for(lambda: state.decoding_frame)
                 second = client.post(url, content=kit.png(), headers=headers)

@@ -127,7 +127,8 @@ def test_bad_frames_are_refused_with_a_message(kit, client, body, ctype, status,
     assert r.status_code == status and words in r.json()["detail"], r.text
     ok = client.post(f"/sessions/{session['session_id']}/frames", content=kit.png(256),
                      headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
-    assert ok.status_code == 202 and ok.json() == {"accepted": True, "used": False, "width": 256, "height": 256}
+    assert ok.status_code == 202 and ok.json() == {"accepted": True, "used": False, "outcome": "ignored", "width": 256,
+                                                "height": 256}
 
 
 def test_oversized_bodies_are_refused_before_they_are_read(kit, base_settings, library_dir):
@@ -190,9 +191,9 @@ HEADERS = st.fixed_dictionaries(
 
 
 @pytest.fixture(scope="module")
-def fuzz_session(server):
+def fuzz_session(server, kit):
     with httpx.Client(base_url=server.url, timeout=10) as c:
-        r = c.post("/sessions", json={"name": "fuzz"})
+        r = c.post("/sessions", json={"name": "fuzz"}, headers=kit.FLEET)
         yield r.json()
 
 

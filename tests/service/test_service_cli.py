@@ -34,7 +34,7 @@ def test_bad_settings_are_named_without_a_traceback(capsys, tmp_path):
 
 def test_serve_runs_and_stops_cleanly_on_ctrl_c(kit, tactile_model, library_dir):
     port = kit.free_port()
-    env = {**os.environ, "HAPTICLINK_LOG_LEVEL": "info"}
+    env = {**os.environ, "HAPTICLINK_LOG_LEVEL": "info", "HAPTICLINK_API_KEYS": kit.API_KEY}
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--model", str(tactile_model), "--library", str(library_dir),
          "--port", str(port), "--instance-id", "cli"],
@@ -51,7 +51,7 @@ def test_serve_runs_and_stops_cleanly_on_ctrl_c(kit, tactile_model, library_dir)
             assert proc.poll() is None, proc.stdout.read()
             assert time.monotonic() < deadline, "the server did not become ready"
             time.sleep(0.1)
-        created = httpx.post(f"http://127.0.0.1:{port}/sessions", json={}).json()
+        created = httpx.post(f"http://127.0.0.1:{port}/sessions", json={}, headers=kit.FLEET).json()
         assert created["session_id"].startswith("cli.")
         proc.send_signal(signal.SIGINT)
         output, _ = proc.communicate(timeout=30)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from service.app import create_app
+from service.app import create_app, route_paths
 from service.settings import ENV_PREFIX, Settings
 
 yaml = pytest.importorskip("yaml", reason="PyYAML is not installed (dev extra)")
@@ -33,7 +33,7 @@ def _replicas(compose: dict) -> dict[str, dict]:
 
 
 def _routes() -> set[str]:
-    return {getattr(r, "path", "") for r in create_app(Settings()).routes}
+    return route_paths(create_app(Settings()))
 
 
 def test_two_replicas_redis_and_a_load_balancer(compose):

@@ -32,13 +32,13 @@ def test_idle_sessions_are_ended_and_max_sessions_is_enforced(kit, base_settings
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         first = kit.create_session(client)
         kit.create_session(client)
-        refused = client.post("/sessions", json={})
+        refused = client.post("/sessions", json={}, headers=kit.FLEET)
         assert refused.status_code == 503 and "max_sessions" in refused.json()["detail"]
         with connect(kit.socket_url(srv, first, "events")) as sub:
             sub.recv(timeout=5)
             ended = json.loads(sub.recv(timeout=10))
         assert ended["event"] == "session_ended" and "no traffic" in ended["message"]
-        kit.wait_for(lambda: client.post("/sessions", json={}).status_code == 201)  # room again
+        kit.wait_for(lambda: client.post("/sessions", json={}, headers=kit.FLEET).status_code == 201)  # room again
 
 
 def test_health_ready_library_and_metrics(kit, server, client, library_dir):

@@ -15,10 +15,10 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         import service.app, service.commands, service.cli
         from service.app import create_app
         from service.cli import build_parser
-        from service.pipeline import SessionEstimator, SessionJob, estimate_batch
+        from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
         from service.runtime import load_runtime
+        from service.session import canonical_channels, stream_contract
         from service.settings import Settings
-        from service.stream import StreamAdmission
         from drivers.blocks import ChannelBlock, SampleBlock
 
         create_app(Settings())
@@ -27,14 +27,16 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
                                    backbone_path={str(visual_model.backbone)!r}))
         image = open({str(library_dir / "images" / "synth_000.png")!r}, "rb").read()
         visual = rt.embed_frame(rt.decode_frame(image))
-        adm = StreamAdmission(rt.tactile_config, 5.0)
-        est = SessionEstimator(rt, alpha=0.5, confidence_windows=5, top_k=3, hysteresis_margin=5, hysteresis_hold=2,
-                               max_buffer_s=6)
+        contract = stream_contract(rt, Settings())
+        est = SessionEstimator(rt, contract, alpha=0.5, confidence_windows=5, top_k=3, hysteresis_margin=5,
+                               hysteresis_hold=2)
         rng = np.random.default_rng(0)
         block = SampleBlock(0.0, {{"accel": ChannelBlock(rng.standard_normal((600, 3)).astype(np.float32), 1000.0, "m/s^2"),
                                   "force": ChannelBlock(np.full(600, 1.5, np.float32), 1000.0, "N"),
                                   "speed": ChannelBlock(np.full(600, 80.0, np.float32), 1000.0, "mm/s")}}, 0)
-        (result,) = estimate_batch(rt, [SessionJob(est, [adm.admit(block, 0)], visual)])  # what the batcher runs
+        adv = contract.admit(contract.start(), canonical_channels(block), block.t0)
+        admitted = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, 0)
+        (result,) = estimate_batch(rt, [SessionJob(est, [admitted], visual, adv.windows_added)])  # what the batcher runs
         assert result.error is None and len(result.estimates) == 1, result
         leaked = sorted(m for m in sys.modules if m == "torch" or m.startswith("torch."))
         print("LEAKED" if leaked else "CLEAN", leaked[:5])

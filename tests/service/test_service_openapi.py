@@ -50,9 +50,9 @@ def api_schema(server):
 
 
 @pytest.fixture(scope="module")
-def live_session(server):
+def live_session(server, kit):
     with httpx.Client(base_url=server.url, timeout=10) as c:
-        return c.post("/sessions", json={"name": "schemathesis"}).json()
+        return c.post("/sessions", json={"name": "schemathesis"}, headers=kit.FLEET).json()
 
 
 # Checks that cannot hold for this API, and why:

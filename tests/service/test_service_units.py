@@ -16,7 +16,8 @@ from service.errors import ServiceError
 from service.metrics import ServiceMetrics
 from service.settings import Settings, env_name, settings_table
 from service.smoothing import SD_UNIFORM, ExponentialSmoother, SpreadConfidence
-from service.stream import StreamAdmission
+from models.tactile.stream import StreamContract
+from service.session import canonical_channels
 
 
 # ---- auth ------------------------------------------------------------------------------------------
@@ -74,20 +75,30 @@ def _block(t0, n=20, rate=1000.0, seq=0, kinds=("accel", "force", "speed"), acce
     return SampleBlock(t0, chans, seq)
 
 
+class _Admission:
+    """The session's admission step alone: canonical units, then StreamContract.admit."""
+
+    def __init__(self, max_lag_s: float = 5) -> None:
+        self.contract = StreamContract(TactileConfig(), max_lag_s=max_lag_s, max_block_s=1.0, max_block_windows=4)
+        self.cursor = self.contract.start()
+
+    def admit(self, block: SampleBlock):
+        adv = self.contract.admit(self.cursor, canonical_channels(block), block.t0)
+        self.cursor = adv.cursor
+        return adv
+
+
 def test_admission_counts_windows_by_stream_time():
-    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
+    adm = _Admission()
     for k in range(24):
-        adm.admit(_block(k * 0.02, seq=k), 0)
-    assert adm.windows_complete() == 0
-    adm.admit(_block(24 * 0.02, seq=24), 0)  # 500 samples: the first window is complete
-    assert adm.windows_complete() == 1 and adm.backlog() == 1
-    adm.note_taken(adm.segment, 1)
-    assert adm.backlog() == 0
+        adv = adm.admit(_block(k * 0.02, seq=k))
+    assert adv.windows_after == 0
+    adv = adm.admit(_block(24 * 0.02, seq=24))  # 500 samples: the first window is complete
+    assert adv.windows_after == 1 and adv.windows_added == 1
 
 
 def test_admission_converts_units_to_canonical():
-    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
-    admitted = adm.admit(_block(0.0, accel_units="g"), 0)
+    admitted = _Admission().admit(_block(0.0, accel_units="g"))
     assert np.allclose(admitted.channels["accel"].data, 9.80665)
 
 
@@ -96,41 +107,41 @@ def test_admission_converts_units_to_canonical():
     (_block(0.02, force_cols=3), "column count changed"),
 ])
 def test_admission_refuses_contradictions_and_keeps_state(second, message):
-    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
-    adm.admit(_block(0.0), 0)
-    before = (adm.covered(), adm.segment)
+    adm = _Admission()
+    adm.admit(_block(0.0))
+    before = adm.cursor
     with pytest.raises(ValueError, match=message):
-        adm.admit(second, 0)
-    assert (adm.covered(), adm.segment) == before
-    adm.admit(_block(0.02, seq=1), 0)  # the stream continues
+        adm.admit(second)
+    assert adm.cursor == before
+    adm.admit(_block(0.02, seq=1))  # the stream continues
 
 
 def test_speed_after_position_is_refused_position_after_speed_ignored():
-    pos = StreamAdmission(TactileConfig(), max_lag_s=5)
-    pos.admit(_block(0.0, kinds=("accel", "force", "position")), 0)
+    pos = _Admission()
+    pos.admit(_block(0.0, kinds=("accel", "force", "position")))
     with pytest.raises(ValueError, match="speed"):
-        pos.admit(_block(0.02, kinds=("accel", "force", "speed")), 0)
-    spd = StreamAdmission(TactileConfig(), max_lag_s=5)
-    spd.admit(_block(0.0), 0)
-    admitted = spd.admit(_block(0.02, kinds=("accel", "force", "speed", "position")), 0)
+        pos.admit(_block(0.02, kinds=("accel", "force", "speed")))
+    spd = _Admission()
+    spd.admit(_block(0.0))
+    admitted = spd.admit(_block(0.02, kinds=("accel", "force", "speed", "position")))
     assert "position" not in admitted.channels
 
 
 def test_a_missing_channel_is_refused_once_it_lags_too_far():
-    adm = StreamAdmission(TactileConfig(), max_lag_s=0.1)
+    adm = _Admission(max_lag_s=0.1)
     for k in range(5):
-        adm.admit(_block(k * 0.02, kinds=("accel", "speed")), 0)
+        adm.admit(_block(k * 0.02, kinds=("accel", "speed")))
     with pytest.raises(ValueError, match="force lag"):
-        adm.admit(_block(0.1, kinds=("accel", "speed")), 0)
+        adm.admit(_block(0.1, kinds=("accel", "speed")))
 
 
 def test_a_time_gap_starts_a_new_segment():
-    adm = StreamAdmission(TactileConfig(), max_lag_s=5)
-    a = adm.admit(_block(10.0), 0)
-    b = adm.admit(_block(10.02, seq=1), 0)
-    c = adm.admit(_block(11.0, seq=2), 0)  # 0.96 s missing
-    assert a.segment == b.segment == 0 and c.segment == 1
-    assert c.origin_t0 == 11.0 and c.covered == 20
+    adm = _Admission()
+    a = adm.admit(_block(10.0)).cursor
+    b = adm.admit(_block(10.02, seq=1)).cursor
+    c = adm.admit(_block(11.0, seq=2))  # 0.96 s missing
+    assert a.segment == b.segment == 0 and c.new_segment and c.cursor.segment == 1
+    assert c.cursor.origin_t0 == 11.0 and c.cursor.samples["accel"] == 20
 
 
 # ---- broker ----------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ from texture_library.recording import Channel, Recording
 
 def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, library_dir):
     settings = Settings(model_path=visual_model.model, library_dir=library_dir, backbone_path=visual_model.backbone,
-                        instance_id="visual")
+                        instance_id="visual", api_keys=kit.API_KEY)
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     rec = kit.stroke_recording(library_dir, "synth_003", 1.6)
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -61,11 +61,95 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
 
 
 def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual_model, library_dir):
-    settings = Settings(model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone")
+    settings = Settings(model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone", api_keys=kit.API_KEY)
     with kit.running(settings, wait_ready=False) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         r = kit.wait_for(lambda: (r := client.get("/ready")).json()["model"] and r)
         assert r.status_code == 503 and r.json()["ready"] is False
         assert "HAPTICLINK_BACKBONE_PATH" in r.json()["detail"] and "efficientnet_lite0" in r.json()["detail"]
         assert client.get("/health").status_code == 200
-        refused = client.post("/sessions", json={})
+        refused = client.post("/sessions", json={}, headers=kit.FLEET)
         assert refused.status_code == 503 and "not ready" in refused.json()["detail"]
+
+
+def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
+    return Settings(model_path=visual_model.model, tactile_model_path=visual_model.tactile, library_dir=library_dir,
+                    backbone_path=visual_model.backbone, api_keys=kit.API_KEY, session_queue_windows=64, **extra)
+
+
+def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visual_model, library_dir):
+    image = (library_dir / "images" / "synth_003.png").read_bytes()
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_003", 3.1))  # 6 windows
+    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="fallback")) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30) as client:
+        assert client.get("/ready").json()["tactile_model"] == "ridge-tactile"
+        session = kit.create_session(client)
+        robot = {"Authorization": f"Bearer {session['robot_token']}"}
+        with connect(kit.socket_url(srv, session, "events")) as sub:
+            assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+            for block in blocks[:80]:  # 1.6 s: 3 windows, no frame yet
+                assert kit.post_block(client, session, block).status_code == 202
+            before = [json.loads(sub.recv(timeout=30)) for _ in range(3)]
+            assert [(e["type"], e["inputs"], e["model"]) for e in before] == [("window", "tactile", "ridge-tactile")] * 3
+            r = client.post(f"/sessions/{session['session_id']}/frames", content=image, headers={**robot, "Content-Type": "image/png"})
+            assert r.status_code == 202 and r.json()["outcome"] == "embedding"
+            events = []
+            while not any(e.get("event") == "visual_updated" for e in events):
+                events.append(json.loads(sub.recv(timeout=60)))
+            for block in blocks[80:]:
+                assert kit.post_block(client, session, block).status_code == 202
+            after = []
+            while len(after) < 3:
+                e = json.loads(sub.recv(timeout=30))
+                if e["type"] == "window":
+                    after.append(e)
+        assert [(e["inputs"], e["model"]) for e in after] == [("tactile+visual", "ridge-both")] * 3
+        assert [e["window_index"] for e in before + after] == list(range(6))
+
+
+def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
+    image = (library_dir / "images" / "synth_003.png").read_bytes()
+    other = (library_dir / "images" / "synth_001.png").read_bytes()
+    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="scene")) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30) as client:
+        session = kit.create_session(client)
+        headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
+        url = f"/sessions/{session['session_id']}/frames"
+        assert client.post(url, content=image, headers=headers).json()["outcome"] == "embedding"
+        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_embedded"] == 1, timeout_s=60)
+        outcomes = [client.post(url, content=image, headers=headers).json()["outcome"] for _ in range(5)]
+        assert outcomes == ["unchanged"] * 5  # a camera at 1–10 fps on one surface: one embedding
+        assert client.post(url, content=other, headers=headers).json()["outcome"] == "embedding"
+        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["frames_embedded"] == 2 and s,
+                              timeout_s=60)
+        assert status["counters"]["frames_unchanged"] == 5 and status["counters"]["frames_received"] == 7
+
+
+def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_model, library_dir):
+    import threading
+
+    image = (library_dir / "images" / "synth_003.png").read_bytes()
+    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue=1)) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30) as client:
+        state = srv.app.state.service
+        release = threading.Event()
+        stall = state.frame_pool.submit(release.wait, 60)  # the frame decoder is busy
+        first, second = kit.create_session(client, "first"), kit.create_session(client, "second")
+
+        def post(session) -> httpx.Response:
+            with httpx.Client(base_url=srv.url, timeout=30) as c:
+                return c.post(f"/sessions/{session['session_id']}/frames", content=image,
+                              headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
+
+        answers: list[httpx.Response] = []
+        waiting = threading.Thread(target=lambda: answers.append(post(first)))
+        waiting.start()
+        kit.wait_for(lambda: state.visual_load == 1, timeout_s=10)
+        refused = post(second)
+        assert refused.status_code == 429 and "visual queue is full" in refused.json()["detail"]
+        assert refused.headers["retry-after"] == "1"
+        release.set()
+        stall.result(timeout=10)
+        waiting.join(timeout=30)
+        assert answers[0].status_code == 202
+        assert kit.session_status(client, second)["counters"]["frames_refused"] == 1
+        assert 'hapticlink_frames_total{outcome="refused"} 1' in client.get("/metrics").text

@@ -1,0 +1,61 @@
+"""Camera frames: `POST /sessions/{id}/frames`; only the few newest wait out an outage or a busy visual queue."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+import httpx
+
+from drivers.protocol import RETRY_STATUSES, SESSION_LOST, bearer, session_path
+from drivers.robot.backoff import detail, retry_after
+from drivers.robot.errors import RobotAuthError, session_lost
+
+if TYPE_CHECKING:
+    from drivers.robot.client import RobotClient
+
+log = logging.getLogger("drivers.robot")
+
+FRAME_QUEUE = 4  # frames kept during an outage: the newest matter, older ones are superseded
+
+
+async def send_frames(client: "RobotClient") -> None:
+    """Send queued frames in order until drained; 429 (visual queue full) waits Retry-After and sends the newest."""
+    http = client._http
+    assert http is not None
+    url = client.url + session_path(str(client.session_id), "frames")
+    frames = client._frames
+    while True:
+        client._frames_changed.clear()
+        if not frames:
+            if client._draining:
+                return
+            await client._frames_changed.wait()
+            continue
+        frame = frames[0]
+        try:
+            r = await http.post(url, content=frame.image, headers={**bearer(str(client.robot_token)), "Content-Type": frame.content_type})
+        except httpx.TransportError as exc:
+            delay = client._frame_backoff.next()
+            log.warning("POST frame: %s: %s; retrying in %.2f s", type(exc).__name__, exc, delay)
+            await asyncio.sleep(delay)
+            continue
+        status = r.status_code
+        if status in (401, 403):
+            raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {detail(r)})")
+        if status == SESSION_LOST:
+            raise session_lost(client.session_id, detail(r))
+        if status == 429 or status >= 500 or status in RETRY_STATUSES:
+            client.stats.frames_refused += status == 429
+            delay = (retry_after(r) if status == 429 else None) or client._frame_backoff.next()
+            await asyncio.sleep(delay)
+            continue
+        if frames and frames[0] is frame:  # it may have been superseded meanwhile
+            frames.popleft()
+        if 200 <= status < 300:
+            client.stats.frames_sent += 1
+            client._frame_backoff.reset()
+        else:
+            client.stats.frames_rejected += 1
+            log.error("the service rejected a frame (%s): HTTP %d: %s", frame.content_type, status, detail(r))

@@ -1,0 +1,146 @@
+"""FastAPI dependencies: the service state, the runtime once ready, and the session a request's token opens.
+
+Routes declare what they need (`state: State`, `session: RobotSession`, …) and never repeat the
+lookup or the authorisation inline. WebSocket routes use `socket_session`, which refuses the
+handshake the protocol's way (`drivers.protocol.Close`) instead of raising.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.requests import HTTPConnection
+from starlette.responses import JSONResponse
+from starlette.websockets import WebSocket
+
+from drivers.protocol import HANDSHAKE_REFUSALS, Close
+from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
+from service.errors import ServiceError
+from service.events import status_event
+from service.fleet import NOT_CONFIGURED
+from service.runtime import Runtime
+from service.session import Session
+from service.state import ServiceState
+
+log = logging.getLogger("service.access")
+
+
+def get_state(connection: HTTPConnection) -> ServiceState:
+    return connection.app.state.service
+
+
+State = Annotated[ServiceState, Depends(get_state)]
+
+
+def get_runtime(state: State) -> Runtime:
+    """The runtime, or 503 (Retry-After) until the model and library are loaded and warmed up."""
+    return state.require_runtime()
+
+
+ReadyRuntime = Annotated[Runtime, Depends(get_runtime)]
+
+_bearer = HTTPBearer(auto_error=False, description="a session's robot or operator token, or (POST /sessions) a fleet API key")
+
+
+def bearer_token(credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str | None:
+    """The request's bearer token (absence is answered 401 by whoever needs one)."""
+    return credentials.credentials if credentials is not None else None
+
+
+Token = Annotated[str | None, Depends(bearer_token)]
+
+
+async def robot_session(session_id: str, state: State, token: Token) -> Session:
+    return await state.local_session(session_id, token, ROBOT_ONLY)
+
+
+async def operator_session(session_id: str, state: State, token: Token) -> Session:
+    return await state.local_session(session_id, token, OPERATOR_ONLY)
+
+
+async def any_session(session_id: str, state: State, token: Token) -> Session:
+    return await state.local_session(session_id, token, EITHER)
+
+
+RobotSession = Annotated[Session, Depends(robot_session)]
+OperatorSession = Annotated[Session, Depends(operator_session)]
+EitherSession = Annotated[Session, Depends(any_session)]
+
+
+def client_of(connection: HTTPConnection) -> str:
+    """The client's address (behind nginx, the proxy's: uvicorn's proxy_headers rewrites it from X-Forwarded-For)."""
+    return connection.client.host if connection.client else "unknown"
+
+
+def fleet_member(request: Request, state: State, token: Token) -> str:
+    """A valid fleet API key, within this client's session-creation rate → the client's address.
+
+    503 when no key is configured (the endpoint is closed, and says how to open it), 401 for a missing or
+    unknown key, 429 + Retry-After past the rate."""
+    client = client_of(request)
+    if not state.api_keys.configured:
+        raise ServiceError(503, NOT_CONFIGURED)
+    if not state.api_keys.check(token):
+        state.metrics.sessions_refused.inc(reason="api_key")
+        log.warning("POST /sessions from %s refused: %s API key", client, "no" if token is None else "an unknown")
+        raise ServiceError(401, "a fleet API key is required: send 'Authorization: Bearer <key>' (HAPTICLINK_API_KEY "
+                                "for the robot client)" if token is None else "the API key is not valid",
+                           {"WWW-Authenticate": "Bearer"})
+    wait = state.session_limiter.take(client)
+    if wait > 0:
+        state.metrics.sessions_refused.inc(reason="rate")
+        raise ServiceError(429, f"too many sessions opened from {client}; at most {state.settings.session_rate_per_s:g}/s "
+                                f"after a burst of {state.settings.session_burst}", {"Retry-After": f"{max(1, round(wait))}"})
+    return client
+
+
+FleetClient = Annotated[str, Depends(fleet_member)]
+
+
+async def socket_session(websocket: WebSocket, session_id: str, token: str | None, roles: frozenset[Role]) -> Session | None:
+    """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
+    raises Refused after refusing the handshake (one WARNING line):
+
+    unknown session → HTTP 404 at the handshake, lost session (its replica is gone) → HTTP 410; the robot's
+    ingest socket closes 1008 on an auth failure, 4421 when misdirected, 1013 when not ready; the events socket
+    answers the handshake with the HTTP status.
+    The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`."""
+    state: ServiceState = websocket.app.state.service
+    robot = roles == ROBOT_ONLY
+    try:
+        if robot:
+            session = await state.local_session(session_id, token, roles)
+            state.require_runtime()
+            return session
+        _, session = await state.authorized(session_id, token, roles)
+        return session
+    except ServiceError as exc:
+        log.warning("%s socket for session %s from %s refused: %d %s", "ingest" if robot else "events", session_id,
+                    client_of(websocket), exc.status, exc.detail)
+        if robot:
+            state.metrics.sockets_refused.inc(status=str(exc.status))
+            known = state.sessions.get(session_id)
+            if known is not None and exc.status in (401, 403):  # someone tried this session's ingest: say so
+                await state.publish(session_id, status_event(session_id, "robot_refused",
+                                                             f"an ingest connection was refused: {exc.detail}"), False)
+        await refuse(websocket, exc, robot=robot)
+        raise Refused() from None
+
+
+class Refused(Exception):
+    """The WebSocket handshake was refused (and already answered): the route just returns."""
+
+
+async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> None:
+    if robot and exc.status not in HANDSHAKE_REFUSALS:
+        code = {401: Close.POLICY, 403: Close.POLICY, 421: Close.MISDIRECTED}.get(exc.status, Close.NOT_READY)
+        await websocket.accept()
+        await websocket.close(int(code), exc.detail[:120])
+        return
+    try:
+        await websocket.send_denial_response(JSONResponse({"detail": exc.detail}, status_code=exc.status))
+    except RuntimeError:  # the server cannot send HTTP denials: a close before accept becomes 403
+        await websocket.close(int(Close.POLICY))

@@ -1,0 +1,75 @@
+"""The operators' event socket: `WS /sessions/{id}/events?token=<operator token>` (any replica, via the broker)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+from fastapi import APIRouter, Query, WebSocket
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from drivers.protocol import SESSION_LOST, Close
+from service.auth import OPERATOR_ONLY
+from service.deps import Refused, socket_session
+from service.errors import ServiceError
+from service.events import encode, status_event
+from service.state import ServiceState
+
+router = APIRouter()
+
+
+@router.websocket("/sessions/{session_id}/events")
+async def events_socket(websocket: WebSocket, session_id: str, token: str | None = Query(None)) -> None:
+    state: ServiceState = websocket.app.state.service
+    try:
+        await socket_session(websocket, session_id, token, OPERATOR_ONLY)
+    except Refused:
+        return
+    await websocket.accept()
+    subscription = await state.subscribe(session_id)
+    try:
+        try:
+            await state.credentials(session_id)
+        except ServiceError as exc:  # it ended (or was lost) while this socket was set up: its final event has passed
+            gone = exc.status in (404, SESSION_LOST)
+            await websocket.close(int(Close.SESSION_ENDED if gone else Close.SERVER_ERROR),
+                                  "session ended" if exc.status == 404 else exc.detail[:120])
+            return
+        await websocket.send_text(encode(status_event(session_id, "subscribed", "receiving events",
+                                                      instance=state.settings.instance_id)))
+        forward = asyncio.create_task(_forward(websocket, subscription, state))
+        listen = asyncio.create_task(_until_disconnect(websocket))
+        done, pending = await asyncio.wait({forward, listen}, return_when=asyncio.FIRST_COMPLETED)
+        for task in pending:
+            task.cancel()
+        for task in (forward, listen):  # collect every outcome: a send to a vanished client raises
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        ended = forward in done and forward.exception() is None
+        if ended and websocket.application_state == WebSocketState.CONNECTED:
+            with contextlib.suppress(Exception):
+                await websocket.close(int(Close.SESSION_ENDED), "session ended")
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        await state.unsubscribe(subscription)
+
+
+async def _forward(websocket: WebSocket, subscription, state: ServiceState) -> None:
+    """Send events until the subscription ends (session ended); counts events dropped for this slow connection."""
+    reported = 0
+    while True:
+        text = await subscription.get()
+        if subscription.dropped > reported:
+            state.metrics.events_dropped.inc(subscription.dropped - reported)
+            reported = subscription.dropped
+        if text is None:
+            return
+        await websocket.send_text(text)
+
+
+async def _until_disconnect(websocket: WebSocket) -> None:
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return

@@ -1,0 +1,106 @@
+"""What robots send: sample blocks (HTTP POST or the ingest WebSocket) and camera frames (HTTP POST)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from fastapi import APIRouter, Query, Request, WebSocket
+from starlette.websockets import WebSocketDisconnect
+
+from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
+from service.auth import ROBOT_ONLY
+from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
+from service.errors import ServiceError
+from service.ingest import count_rejected, receive_block
+from service.routes.common import errors, try_later
+from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, BlockAck, FrameAck
+from service.state import ServiceState
+
+router = APIRouter(tags=["ingest"])
+log = logging.getLogger("service.access")
+
+
+def media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+@router.post("/sessions/{session_id}/blocks", status_code=202, response_model=BlockAck,
+             openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
+             responses={**errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
+                        **try_later("the session is saturated; resend after Retry-After s")},
+             summary="Send one sample block (robot token)")
+async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
+    kind = media_type(request)
+    if kind not in ("application/json", BINARY_CONTENT_TYPE):
+        count_rejected(state.metrics, session)
+        raise ServiceError(415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}")
+    payload = await request.body()
+    return receive_block(state.metrics, session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
+
+
+@router.post("/sessions/{session_id}/frames", status_code=202, response_model=FrameAck,
+             openapi_extra={"requestBody": FRAME_REQUEST_BODY},
+             responses={**errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
+                        **try_later("the visual queue is full, or this session's previous frame is still being decoded; "
+                                    "send the newest frame after Retry-After s")},
+             summary="Send one camera frame (robot token)")
+async def post_frame(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> FrameAck:
+    kind = media_type(request)
+    if kind not in FRAME_CONTENT_TYPES:
+        session.counters.frames_rejected += 1
+        state.metrics.frames.inc(outcome="rejected")
+        raise ServiceError(415, f"frames are {' or '.join(FRAME_CONTENT_TYPES)}, got {kind or 'no Content-Type'}")
+    return await state.receive_frame(session, runtime, request)
+
+
+@router.websocket("/sessions/{session_id}/ingest")
+async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None = Query(None)) -> None:
+    state: ServiceState = websocket.app.state.service
+    try:
+        session = await socket_session(websocket, session_id, token, ROBOT_ONLY)
+    except Refused:
+        return
+    assert session is not None
+    await websocket.accept()
+    why = "disconnected"
+    try:
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            arrived = time.perf_counter_ns()
+            if state.sessions.get(session_id) is not session:
+                code, reason = await _gone(state, session_id)
+                why = "session lost" if code == Close.LOST else "session ended"
+                await websocket.close(int(code), reason)
+                return
+            payload = message.get("bytes")
+            binary = payload is not None
+            if not binary:
+                payload = (message.get("text") or "").encode()
+            try:
+                ack = receive_block(state.metrics, session, payload, binary, arrived)
+            except ServiceError as exc:
+                if exc.status == 429:
+                    why = "saturated"
+                    await websocket.close(int(Close.SATURATED), "session saturated; reconnect and resend")
+                    return
+                await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))
+                continue
+            await websocket.send_text(ack_ok(ack["seq"], ack["duplicate"]))
+    except WebSocketDisconnect:
+        return
+    finally:
+        await state.robot_disconnected(session, why)
+
+
+async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:
+    """How to close the ingest socket of a session no longer here: lost (4410 and the reason: this replica was
+    silent too long and another one marked it lost) or ended (1000)."""
+    try:
+        await state.credentials(session_id)
+    except ServiceError as exc:
+        if exc.status == SESSION_LOST:
+            return Close.LOST, exc.detail[:120]
+    return Close.SESSION_ENDED, "session ended"

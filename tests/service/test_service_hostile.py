@@ -1,0 +1,324 @@
+"""Hostile input and overload (issue 8 §5): one test per finding of the hostile-client probe, against a live server."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import socket
+import time
+
+import httpx
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from drivers.blocks import ChannelBlock, SampleBlock, encode_binary, encode_json
+from service.app import create_app
+from service.fleet import ApiKeys, TokenBucket
+from service.settings import Settings
+from service.state import reap_due
+
+
+# ---- credentials and session creation ---------------------------------------------------------------
+def test_creating_a_session_needs_a_fleet_key(kit, server, client):
+    missing = client.post("/sessions", json={})
+    assert missing.status_code == 401 and "API key" in missing.json()["detail"]
+    assert missing.headers["www-authenticate"] == "Bearer"
+    wrong = client.post("/sessions", json={}, headers={"Authorization": "Bearer not-a-key"})
+    assert wrong.status_code == 401 and "not valid" in wrong.json()["detail"]
+    # a session token does not open sessions either
+    session = kit.create_session(client)
+    robot = client.post("/sessions", json={}, headers={"Authorization": f"Bearer {session['robot_token']}"})
+    assert robot.status_code == 401
+
+
+def test_without_a_configured_key_session_creation_is_closed_and_says_how(kit, base_settings):
+    settings = base_settings.model_copy(update={"api_keys": None, "instance_id": "nokey"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        r = client.post("/sessions", json={}, headers=kit.FLEET)
+        assert r.status_code == 503
+        assert "HAPTICLINK_API_KEYS" in r.json()["detail"] and "HAPTICLINK_API_KEYS_FILE" in r.json()["detail"]
+
+
+def test_the_key_file_rotates_without_a_restart(tmp_path):
+    path = tmp_path / "keys"
+    path.write_text("# fleet keys\nold-key\n\n")
+    keys = ApiKeys(None, path)
+    assert keys.configured and keys.check("old-key") and not keys.check("new-key") and not keys.check(None)
+    time.sleep(0.01)
+    path.write_text("new-key\nspare-key\n")
+    assert keys.check("new-key") and keys.check("spare-key") and not keys.check("old-key")
+    path.unlink()
+    assert not keys.configured
+
+
+def test_the_session_rate_is_limited_per_client():
+    now = [0.0]
+    bucket = TokenBucket(rate=2.0, burst=3, clock=lambda: now[0])
+    assert [bucket.take("a") for _ in range(3)] == [0.0, 0.0, 0.0]
+    assert bucket.take("a") == pytest.approx(0.5)  # empty: the next token in 1/rate s
+    assert bucket.take("b") == 0.0  # another client has its own bucket
+    now[0] += 0.5
+    assert bucket.take("a") == 0.0
+
+
+def test_a_burst_of_session_requests_is_refused_early_not_taking_every_slot(kit, base_settings):
+    # the probe: 300 POST /sessions in 0.6 s took all 256 slots for 600 s
+    settings = base_settings.model_copy(update={"session_burst": 5, "session_rate_per_s": 0.5, "instance_id": "burst"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        answers = [client.post("/sessions", json={}, headers=kit.FLEET) for _ in range(40)]
+        codes = [r.status_code for r in answers]
+        assert codes[:5] == [201] * 5 and set(codes[5:]) == {429}
+        assert int(answers[-1].headers["retry-after"]) >= 1 and "too many sessions" in answers[-1].json()["detail"]
+        assert len(srv.app.state.service.sessions) == 5
+        assert 'hapticlink_sessions_refused_total{reason="rate"} 35' in client.get("/metrics").text
+
+
+def test_sessions_that_never_stream_are_reclaimed_before_idle_ones():
+    settings = Settings(session_first_block_s=10, session_idle_s=60)
+
+    class S:
+        def __init__(self, sid, opened, last_seq, activity):
+            self.id, self.opened_at, self.last_seq, self.last_activity = sid, opened, last_seq, activity
+
+    sessions = [S("fresh", 95, -1, 95), S("abandoned", 80, -1, 80), S("streaming", 0, 40, 99), S("idle", 0, 40, 30)]
+    due = dict(reap_due(sessions, 100.0, settings))
+    assert set(due) == {"abandoned", "idle"}
+    assert "no block within 10 s" in due["abandoned"] and "no traffic for 60 s" in due["idle"]
+
+
+def test_an_abandoned_session_is_ended_and_its_slot_freed(kit, base_settings):
+    settings = base_settings.model_copy(update={"session_first_block_s": 0.3, "instance_id": "reap"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        session = kit.create_session(client)
+        kit.wait_for(lambda: not srv.app.state.service.sessions, timeout_s=10)
+        r = client.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+        assert r.status_code == 404
+
+
+# ---- the cost of one block ------------------------------------------------------------------------------
+def _block(seq: int, t0: float, n: int = 20, rate: float = 1000.0) -> SampleBlock:
+    rng = np.random.default_rng(seq)
+    return SampleBlock(t0, {"accel": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), rate, "m/s^2"),
+                            "force": ChannelBlock(np.full(n, 1.5, np.float32), rate, "N"),
+                            "speed": ChannelBlock(np.full(n, 80.0, np.float32), rate, "mm/s")}, seq)
+
+
+def test_the_huge_legal_block_is_refused_by_stream_time_at_once(kit, server, client):
+    # the probe: 10 Hz, 100 000 samples per channel (2.8 MB) made ~20 000 windows and 8–9 s of server CPU
+    session = kit.create_session(client)
+    started = time.perf_counter()
+    r = kit.post_block(client, session, _block(0, 0.0, n=100_000, rate=10.0))
+    assert r.status_code == 422 and "at most 1 s of stream time, got 10000 s" in r.json()["detail"]
+    assert time.perf_counter() - started < 2.0  # refused before any window is computed
+    assert client.get("/health").status_code == 200
+    status = kit.session_status(client, session)
+    assert status["last_seq"] == -1 and status["counters"]["blocks_rejected"] == 1 and status["windows_ready"] == 0
+
+
+def test_publishing_many_windows_yields_to_the_event_loop(base_settings):
+    from service.pipeline import SessionResult, WindowEstimate
+    from service.runtime import load_runtime
+    from service.session import Session
+
+    runtime = load_runtime(base_settings)
+    published: list[int] = []
+    ticks: list[int] = []
+
+    async def publish(sid, event, final):
+        published.append(event["window_index"])
+
+    async def main():
+        session = Session("s", "s", None, runtime, base_settings, None, publish, _Metrics(), lambda s: None)  # type: ignore[arg-type]
+
+        async def ticker():
+            while True:
+                ticks.append(len(published))
+                await asyncio.sleep(0)
+
+        tick = asyncio.create_task(ticker())
+        await asyncio.sleep(0)
+        z = np.zeros(4)
+        estimates = [WindowEstimate(i, 0.5 * i, 0.5 * i + 0.5, z, z, z, [], "x", i, 0, 0, 1.0, 1.0, 1.0, "tactile", "m")
+                     for i in range(40)]
+        await session.apply_result(SessionResult(estimates, 40))
+        tick.cancel()
+
+    asyncio.run(main())
+    assert published == list(range(40))
+    # the loop ran other tasks between the events, not only before and after all 40
+    assert any(0 < n < 40 for n in ticks)
+
+
+class _Metrics:
+    class _Any:
+        def inc(self, *a, **k): ...
+        def observe(self, *a, **k): ...
+
+    def __getattr__(self, name):
+        return self._Any()
+
+
+# ---- sequence numbers -----------------------------------------------------------------------------------
+def test_a_seq_jump_past_the_resend_window_is_refused_and_the_session_lives_on(kit, server, client, library_dir):
+    session = kit.create_session(client)
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 1.2))
+    assert kit.post_block(client, session, blocks[0]).status_code == 202
+    huge = SampleBlock(blocks[1].t0, blocks[1].channels, 2**62)
+    r = kit.post_block(client, session, huge)
+    assert r.status_code == 422 and "seq jumps from 0 to 4611686018427387904" in r.json()["detail"]
+    for block in blocks[1:]:  # every good block is still taken, not acknowledged as a duplicate
+        r = kit.post_block(client, session, block)
+        assert r.status_code == 202 and r.json()["duplicate"] is False
+    final = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] == 2 and s)
+    assert final["last_seq"] == blocks[-1].seq
+
+
+def test_a_json_block_without_seq_is_refused(kit, server, client):
+    session = kit.create_session(client)
+    body = encode_json(_block(0, 0.0))
+    del body["seq"]
+    r = kit.post_block(client, session, json.dumps(body).encode(), "application/json")
+    assert r.status_code == 422 and "seq is required" in r.json()["detail"]
+
+
+# ---- logs ------------------------------------------------------------------------------------------------
+class _Capture(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_settings, library_dir):
+    capture = _Capture()
+    names = ("uvicorn", "uvicorn.access", "service")  # uvicorn.access does not propagate; the others do
+    settings = base_settings.model_copy(update={"instance_id": "logs", "log_level": "debug"})
+    with kit.running(settings, log_level="debug") as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        levels = {name: logging.getLogger(name).level for name in names}
+        for name in names:
+            logging.getLogger(name).addHandler(capture)
+            logging.getLogger(name).setLevel(logging.DEBUG)
+        try:
+            session = kit.create_session(client)
+            with connect(kit.socket_url(srv, session, "ingest")) as ws:
+                ws.send(encode_binary(_block(0, 0.0)))
+                assert json.loads(ws.recv(timeout=5))["ok"] is True
+            refused_token = "definitely-not-the-token-0123456789"
+            with pytest.raises(ConnectionClosed):
+                with connect(f"{srv.ws_url}/sessions/{session['session_id']}/ingest?token={refused_token}") as ws:
+                    ws.recv(timeout=5)
+            kit.wait_for(lambda: any("disconnected" in r.getMessage() for r in capture.records), timeout_s=5)
+        finally:
+            for name in names:
+                logging.getLogger(name).removeHandler(capture)
+                logging.getLogger(name).setLevel(levels[name])
+    lines = [r.getMessage() for r in capture.records]
+    assert any('"WebSocket /sessions/' in line for line in lines), "uvicorn logged no handshake line"
+    for secret in (session["robot_token"], session["operator_token"], refused_token, kit.API_KEY):
+        assert not any(secret in line for line in lines), [line for line in lines if secret in line]
+    refusals = [r for r in capture.records if "refused" in r.getMessage() and "ingest socket" in r.getMessage()]
+    assert len(refusals) == 1 and refusals[0].levelno == logging.WARNING
+    assert not any(r.levelno >= logging.ERROR for r in capture.records), [r.getMessage() for r in capture.records
+                                                                            if r.levelno >= logging.ERROR]
+    assert not any(r.exc_info for r in capture.records)
+
+
+def test_operators_are_told_when_the_robot_disconnects(kit, server, client):
+    session = kit.create_session(client)
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+        with connect(kit.socket_url(server, session, "ingest")) as ws:
+            ws.send(encode_binary(_block(0, 0.0)))
+            ws.recv(timeout=5)
+        event = json.loads(sub.recv(timeout=5))
+        assert event["event"] == "robot_disconnected" and "closed" in event["message"]
+        with pytest.raises(ConnectionClosed):  # the operator's token is no robot token
+            with connect(f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['operator_token']}") as ws:
+                ws.recv(timeout=5)
+        event = json.loads(sub.recv(timeout=5))
+        assert event["event"] == "robot_refused" and "refused" in event["message"]
+        assert session["operator_token"] not in event["message"]
+
+
+# ---- slow and half-open connections -----------------------------------------------------------------------
+def test_half_open_requests_and_silent_connections_are_closed(kit, base_settings):
+    settings = base_settings.model_copy(update={"request_read_timeout_s": 0.5, "timeout_keep_alive_s": 0.5,
+                                                "instance_id": "halfopen"})
+    with kit.running(settings) as srv:
+        def closed_within(send: bytes, seconds: float) -> float:
+            with socket.create_connection(("127.0.0.1", srv.port)) as sock:
+                sock.settimeout(seconds)
+                started = time.perf_counter()
+                if send:
+                    sock.sendall(send)
+                data = sock.recv(65536)
+                while data:  # a response may come before the close
+                    data = sock.recv(65536)
+                return time.perf_counter() - started
+
+        half = b"POST /sessions HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{"
+        assert closed_within(half, 5.0) < 3.0
+        assert closed_within(b"GET /health HTTP/1.1\r\nHo", 5.0) < 3.0  # half the headers
+        assert closed_within(b"", 5.0) < 3.0  # connected, said nothing
+        # a whole request is answered, and the idle keep-alive connection is closed afterwards
+        with socket.create_connection(("127.0.0.1", srv.port)) as sock:
+            sock.settimeout(5.0)
+            sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+            started = time.perf_counter()
+            assert sock.recv(65536) == b"" and time.perf_counter() - started < 3.0
+
+
+# ---- smaller findings ---------------------------------------------------------------------------------------
+def test_frame_errors_do_not_leak_object_reprs(kit, server, client):
+    session = kit.create_session(client)
+    r = client.post(f"/sessions/{session['session_id']}/frames", content=b"\x89PNG\r\n\x1a\n garbage",
+                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
+    assert r.status_code == 422 and "not a readable image" in r.json()["detail"]
+    assert "BytesIO" not in r.json()["detail"] and " at 0x" not in r.json()["detail"]
+
+
+def test_the_block_schema_is_as_strict_as_the_validator(client):
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    block = schemas["JsonBlock"]
+    assert "seq" in block["required"] and block["properties"]["channels"]["minProperties"] == 1
+    assert set(block["properties"]["channels"]["propertyNames"]["enum"]) == {"accel", "force", "speed", "position"}
+    channel = schemas["JsonChannel"]["properties"]
+    assert channel["rate_hz"]["minimum"] == 10 and channel["rate_hz"]["maximum"] == 100_000
+    assert all(option.get("minItems") == 1 for option in channel["data"]["anyOf"])
+
+
+def test_cors_is_closed_by_default_and_opens_for_configured_origins(kit, server, client, base_settings):
+    preflight = {"Origin": "https://evil.example", "Access-Control-Request-Method": "POST"}
+    r = client.options("/sessions", headers=preflight)
+    assert r.status_code == 400 and "access-control-allow-origin" not in r.headers
+    settings = base_settings.model_copy(update={"cors_origins": ("https://ops.example",), "instance_id": "cors"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as c:
+        r = c.options("/sessions", headers={**preflight, "Origin": "https://ops.example"})
+        assert r.status_code == 200 and r.headers["access-control-allow-origin"] == "https://ops.example"
+        assert "POST" in r.headers["access-control-allow-methods"]
+
+
+def test_the_console_sends_no_referrer(client):
+    r = client.get("/console")
+    assert r.status_code == 200 and r.headers["referrer-policy"] == "no-referrer"
+
+
+def test_settings_refuse_a_block_bound_the_queue_could_never_hold():
+    with pytest.raises(ValueError, match="max_block_windows"):
+        Settings(max_block_windows=9, session_queue_windows=8)
+
+
+def test_the_routers_serve_every_route():
+    # sessions, ingest, events and ops are separate routers; the app serves them all
+    from service.app import route_paths
+
+    paths = route_paths(create_app(Settings()))
+    assert {"/sessions", "/sessions/{session_id}", "/sessions/{session_id}/blocks", "/sessions/{session_id}/frames",
+            "/sessions/{session_id}/ingest", "/sessions/{session_id}/events", "/health", "/ready", "/metrics",
+            "/library", "/console"} <= paths
