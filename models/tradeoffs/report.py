@@ -11,6 +11,8 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
+
 from models.faults.catalog import FAULTS
 from models.tradeoffs import figures
 from models.tradeoffs.common import write_json
@@ -168,6 +170,15 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
         lines.append(f"| {m} | {c['mae']:.2f} {_ci(c['ci'])} | {s['seeds']} | {per_seed} | "
                      f"{_fmt(s['seed_std'])} | {s['fold_std']:.2f} | {s['fold_iqr'][0]:.2f}–{s['fold_iqr'][1]:.2f} | "
                      f"{s['fold_worst']:.2f} | {_fmt(s['texture_seed_std'])} | {group_out} |")
+    evals = evaluation_seed_spread(list(rb["clean"]))
+    if evals:
+        lines += ["", "**Spread over seeds of the full clean LOOCV** (every fold, 8 views where the model pools or pairs "
+                  "them), from the committed evaluation reports `reports/hatt-texnet/<model>/results.json` "
+                  "(`hapticlink evaluate --seeds …`) — the cut study above runs one seed of the slow models:", "",
+                  "| model | seeds | MAE per seed | std over seeds | command |", "|---|---|---|---:|---|"]
+        for m, e in evals.items():
+            lines.append(f"| {m} | {e['seeds']} | {', '.join(f'{v:.2f}' for v in e['mae_per_seed'])} | "
+                         f"{_fmt(e['seed_std'])} | `{e['command']}` |")
     if rb["augmentation"]:
         png = figures.augmentation_chart(rb["augmentation"], ref, folder / "augmentation.png")
         lines += ["", "**Training-time augmentation** — the same folds trained with the training textures' noisy "
@@ -177,6 +188,25 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
             lines.append(f"| {a['model']} | {FAULTS[a['fault']].label} | {_fmt(a['breaking_before'], 3)} | "
                          f"{_fmt(a['breaking_after'], 3)} |")
     return lines + [""]
+
+
+EVALUATIONS = Path("reports") / "hatt-texnet"
+
+
+def evaluation_seed_spread(models: list[str], root: Path = EVALUATIONS) -> dict[str, dict]:
+    """{model: seeds, clean LOOCV MAE per seed, their std, the command} from `hapticlink evaluate`'s
+    results.json of each model that has one with several seeds."""
+    out = {}
+    for m in models:
+        path = root / m / "results.json"
+        if not path.is_file():
+            continue
+        res = json.loads(path.read_text())
+        per_seed = [p["mae"]["mean"] if isinstance(p["mae"], dict) else p["mae"] for p in res.get("per_seed", [])]
+        if len(per_seed) > 1:
+            out[m] = {"seeds": res["seeds"], "mae_per_seed": per_seed, "seed_std": float(np.std(per_seed)),
+                      "command": res.get("command", ""), "source": str(path)}
+    return out
 
 
 def coverage_section(rb: dict, folder: Path) -> list[str]:
@@ -310,6 +340,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
                                        for r in rb["coverage"]],
         "adaptive": adaptive or {**dict.fromkeys(ADAPTIVE_KEYS), "pending": "written by the service benchmark (§4)"},
         "breaking_points": None if not rb else rb["breaking_points"],
+        "stability": None if not rb else {"study": rb["spread"], "clean": rb["clean"],
+                                          "evaluation_seed_spread": evaluation_seed_spread(list(rb["clean"]))},
         "recommended_defaults": {"visual": [fr["recommendation"] for fr in frontiers],
                                  "intervals": None if not rb else rb["recommended_intervals"]},
     }
