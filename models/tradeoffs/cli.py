@@ -44,6 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="model:seeds[:cal+aug+sub] — cal: interval calibration fits, aug: augmented twins, sub: LOOCV "
                         f"folds of --subset held-out textures only (default: {' '.join(DEFAULT_RUNS)})")
     r.add_argument("--subset", type=int, default=20, help="held-out textures of the runs flagged 'sub' (fixed, seeded)")
+    r.add_argument("--served", default="selected", help="the served model's registry name (named in the report)")
     r.add_argument("--work", default=str(DEFAULT_WORK), help=f"per-texture intermediates (default {DEFAULT_WORK})")
     r.add_argument("--workers", type=int, default=2)
     r.add_argument("--out", default=str(DEFAULT_REPORT / "robustness.json"))
@@ -100,7 +101,7 @@ def _robustness(args: argparse.Namespace) -> int:
                 held_out=subset if sub else None))
     summary = summarise(data, runs, tables, part)
     out = Path(args.out)
-    write_json(out, {**summary, "runs": args.runs, "subset": args.subset, "net_options": _options(args),
+    write_json(out, {**summary, "runs": args.runs, "subset": args.subset, "net_options": _options(args), "served": args.served,
                      "command": _command(args)})
     print(f"wrote {out}")
     return 0

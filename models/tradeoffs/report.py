@@ -142,6 +142,10 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
              f"and force faults re-render the stroke from the texture's HaTT vibration model along the scaled trajectory. "
              f"Camera faults act on the photo (the default visual configuration, 7×7 patches). MAE of the "
              f"seed-averaged texture-level prediction; dashed line: predict-the-mean, {ref:.2f} — the breaking level.", ""]
+    served = rb.get("served")
+    if served:
+        lines += [f"The served model is `{served}`" + (" (run here)" if served in rb["clean"] else
+                  " — **not run in this study**") + f"; the others are the baselines. Runs: `{' '.join(rb['runs'])}`.", ""]
     cut = {m: c for m, c in rb["clean"].items() if c.get("subset")}
     if cut:
         lines += [f"**Cut to fit the compute budget** (2 shared cores): " + "; ".join(
