@@ -336,6 +336,11 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
         lines += frontier_section(fr, folder)
     if not frontiers:
         lines += ["*Not run yet.*", ""]
+    elif rb and rb.get("served") and rb["served"] not in {fr["model"] for fr in frontiers}:
+        lines += [f"*Not rerun with the served model `{rb['served']}`*: it pools 8 augmented views per texture (each "
+                  "configuration would need 8 embeddings of every photo) and refits its selection inside every fold; "
+                  "on 2 shared cores the frontier keeps the cheap reference above. Rerun: `hapticlink tradeoffs frontier "
+                  f"--dataset data/hatt-texnet --model {rb['served']}`.", ""]
     lines += ["## 2. Stability where methods fail", ""]
     lines += robustness_section(rb, folder) if rb else ["*Not run yet.*", ""]
     lines += ["## 3. Intervals that mean what they say", ""]
