@@ -140,7 +140,10 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
     lines = [f"Models trained clean; each fault hits the held-out texture only, at test time, through the one feature "
              f"implementation. Touch faults act on a 10.5 s segment of the recording (up to 20 windows of 0.5 s); speed "
              f"and force faults re-render the stroke from the texture's HaTT vibration model along the scaled trajectory. "
-             f"Camera faults act on the photo (the default visual configuration, 7×7 patches). MAE of the "
+             f"Camera faults act on the photo (the default visual configuration, 7×7 patches). At test time every "
+             f"model sees **one frame** (the photo, or its faulted version) — models that pool several views (`selected`, "
+             f"`*-pooled`) were trained on 8 views and pool that one frame, so their clean MAE here is that of a service with "
+             f"one frame per scene, not the 8-view LOOCV of `reports/hatt-texnet/`. MAE of the "
              f"seed-averaged texture-level prediction; dashed line: predict-the-mean, {ref:.2f} — the breaking level.", ""]
     served = rb.get("served")
     if served:
@@ -176,13 +179,14 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
     lines += ["", "**Stability as numbers** — clean LOOCV (all windows): MAE and its spread over seeds; per-texture "
               "(fold) errors: std, inter-quartile range, worst; how much one texture's error moves between seeds; "
               "leave-one-material-group-out MAE:", "",
-              "| model | LOOCV MAE [95 % CI] | seeds | MAE per seed | seed std | fold std | fold IQR | worst fold | texture std over seeds | group-out MAE [95 % CI] |",
-              "|---|---|---|---|---:|---:|---|---:|---:|---|"]
+              "| model | held-out textures | LOOCV MAE [95 % CI] | predict-the-mean on them | seeds | MAE per seed | seed std | fold std | fold IQR | worst fold | texture std over seeds | group-out MAE [95 % CI] (all textures) |",
+              "|---|---:|---|---:|---|---|---:|---:|---|---:|---:|---|"]
     for m, c in rb["clean"].items():
         s, sh = rb["spread"][m], rb["shift"].get(m)
         group_out = "—" if not sh else f"{sh['mae']:.2f} {_ci(sh['ci'])}"
         per_seed = ", ".join(f"{v:.2f}" for v in s["mae_per_seed"])
-        lines.append(f"| {m} | {c['mae']:.2f} {_ci(c['ci'])} | {s['seeds']} | {per_seed} | "
+        lines.append(f"| {m} | {c.get('n_textures', '—')} | {c['mae']:.2f} {_ci(c['ci'])} | "
+                     f"{_fmt(c.get('reference_mean_mae'))} | {s['seeds']} | {per_seed} | "
                      f"{_fmt(s['seed_std'])} | {s['fold_std']:.2f} | {s['fold_iqr'][0]:.2f}–{s['fold_iqr'][1]:.2f} | "
                      f"{s['fold_worst']:.2f} | {_fmt(s['texture_seed_std'])} | {group_out} |")
     evals = evaluation_seed_spread(list(rb["clean"]))
@@ -193,7 +197,7 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
                   "| model | seeds | MAE per seed | std over seeds | command |", "|---|---|---|---:|---|"]
         for m, e in evals.items():
             lines.append(f"| {m} | {e['seeds']} | {', '.join(f'{v:.2f}' for v in e['mae_per_seed'])} | "
-                         f"{_fmt(e['seed_std'])} | `{e['command']}` |")
+                         f"{_fmt(e['seed_std'])} | {'`' + e['command'] + '`' if e['command'] else '—'} |")
     if rb["augmentation"]:
         png = figures.augmentation_chart(rb["augmentation"], ref, folder / "augmentation.png")
         lines += ["", "**Training-time augmentation** — the same folds trained with the training textures' noisy "
@@ -220,7 +224,7 @@ def evaluation_seed_spread(models: list[str], root: Path = EVALUATIONS) -> dict[
         per_seed = [p["mae"]["mean"] if isinstance(p["mae"], dict) else p["mae"] for p in res.get("per_seed", [])]
         if len(per_seed) > 1:
             out[m] = {"seeds": res["seeds"], "mae_per_seed": per_seed, "seed_std": float(np.std(per_seed)),
-                      "command": res.get("command", ""), "source": str(path)}
+                      "command": res.get("command") or "", "source": str(path)}
     return out
 
 
