@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from benchmarks import features, hostile, service, visual
+from benchmarks import features, hostile, service, uncertainty, visual
 
 
 def main(argv: list[str]) -> int:
@@ -16,6 +16,8 @@ def main(argv: list[str]) -> int:
     features.main([])
     print("\n== visual embedding: torch vs onnxruntime ==", flush=True)
     visual.main([])
+    print("\n== uncertainty per window: OOD check, interval ==", flush=True)
+    uncertainty.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)

@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.set_defaults(func=_dataset_check)
     register_models(sub)
     register_report(sub)
+    from models.tradeoffs.cli import register as register_tradeoffs
+
+    register_tradeoffs(sub)
 
 
 def _dataset_build(args: argparse.Namespace) -> int:
@@ -100,6 +103,10 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", required=True, help="model file to write (.onnx)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--metrics", help="results.json of this model's LOOCV, recorded in the model file")
+    t.add_argument("--calibration-folds", type=int, default=10,
+                   help="K-fold CV that calibrates the card's prediction intervals and OOD detector (0: none)")
+    t.add_argument("--interval-scale", default="none", choices=["none", "distance"],
+                   help="intervals of constant width, or scaled by feature-space distance (reports/tradeoffs)")
     _feature_args(t)
     _net_args(t)
     t.set_defaults(func=_train)
@@ -182,7 +189,8 @@ def _train(args: argparse.Namespace) -> int:
 
     path = train_and_export(args.dataset, args.model, args.out, seed=args.seed,
                             tactile_config=_tactile_config(args),
-                            visual_part=args.visual_part, metrics=args.metrics, options=_options(args))
+                            visual_part=args.visual_part, metrics=args.metrics, options=_options(args),
+                            calibration_folds=args.calibration_folds, interval_scale=args.interval_scale)
     print(f"wrote {path}")
     return 0
 

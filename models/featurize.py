@@ -12,6 +12,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
 from models.tactile.taps import tap_features
 from models.visual.config import VisualConfig
+
+if TYPE_CHECKING:
+    from models.visual.embedding import PatchEmbedder
 
 DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
 
@@ -142,9 +146,13 @@ def backbone_onnx(config: VisualConfig) -> Path:
 
 
 def visual_table(
-    root: str | Path, config: VisualConfig | None = None, *, n_views: int = DEFAULT_VIEWS, seed: int = 0
+    root: str | Path, config: VisualConfig | None = None, *, n_views: int = DEFAULT_VIEWS, seed: int = 0,
+    backbone: PatchEmbedder | None = None,
 ) -> VisualTable:
-    """Visual features of every texture's first image, n_views augmented views each (cached)."""
+    """Visual features of every texture's first image, n_views augmented views each (cached).
+
+    backbone: an embedder to use instead of the one exported for `config` (a sweep over
+    patching configurations runs one ONNX file for all of them; the cache keys name both)."""
     from models.visual.cache import FeatureCache
     from models.visual.embedding import batch_visual_features
     from models.visual.onnx_backbone import OnnxBackbone
@@ -152,7 +160,8 @@ def visual_table(
     ds = Dataset(root)
     cfg = config or VisualConfig()
     textures = ds.texture_ids()
-    backbone = OnnxBackbone(backbone_onnx(cfg), expected_config_hash=cfg.hash())
+    if backbone is None:
+        backbone = OnnxBackbone(backbone_onnx(cfg), expected_config_hash=cfg.hash())
     cache = ds.features_dir / (
         f"visual-{backbone.name}-{backbone.fingerprint[:12]}-{cfg.hash()}-v{n_views}-s{seed}-{dataset_fingerprint(ds)}.npz"
     )

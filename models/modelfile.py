@@ -26,7 +26,9 @@ class ModelCard:
     """model: registry name; modality: tactile | visual | both; tactile_config: TactileConfig.to_dict();
     visual: {"backbone", "backbone_dim", "visual_hash", "visual_part", "views", "pooling", "view_seed"} or None —
     views: how many image views the model's visual input pools (models.visual.pooling; 1: one photo/frame);
-    metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute)."""
+    metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute);
+    intervals: {"window" | "ema" | "texture": models.intervals.IntervalCalibration.to_dict()} or None;
+    ood: models.ood.OODDetector.to_dict() or None (both written by `hapticlink train`)."""
 
     model: str
     modality: str
@@ -38,6 +40,8 @@ class ModelCard:
     n_params: int
     trained_on: list[str]
     seed: int
+    intervals: dict | None = None
+    ood: dict | None = None
     fit_info: dict = field(default_factory=dict)
 
     def to_metadata(self) -> dict[str, str]:
@@ -56,6 +60,8 @@ class ModelCard:
             "n_params": str(self.n_params),
             "trained_on": json.dumps(self.trained_on),
             "seed": str(self.seed),
+            **({} if self.intervals is None else {"intervals": json.dumps(self.intervals, sort_keys=True)}),
+            **({} if self.ood is None else {"ood": json.dumps(self.ood, sort_keys=True)}),
             "fit_info": json.dumps(self.fit_info),
         }
 
@@ -79,6 +85,8 @@ class ModelCard:
                 n_params=int(meta.get("n_params", 0)),
                 trained_on=json.loads(meta.get("trained_on", "[]")),
                 seed=int(meta.get("seed", 0)),
+                intervals=json.loads(meta["intervals"]) if "intervals" in meta else None,
+                ood=json.loads(meta["ood"]) if "ood" in meta else None,
                 fit_info=json.loads(meta.get("fit_info", "{}")),
             )
         except (KeyError, json.JSONDecodeError) as exc:

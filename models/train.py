@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,9 @@ from texture_library.attributes import ATTRIBUTES
 VIEW_SEED = 0  # the augmented views' seed (featurize.visual_table's default)
 
 
+MIN_CALIBRATION_TEXTURES = 8  # K-fold calibration with a detector per fold needs a few textures per side
+
+
 def train_and_export(
     dataset: str | Path,
     model: str,
@@ -30,10 +34,15 @@ def train_and_export(
     visual_part: VisualPart = "both",
     metrics: str | Path | None = None,
     options: dict | None = None,
+    calibration_folds: int = 10,
+    interval_scale: str = "none",
 ) -> Path:
     """Train `model` on all rated textures of `dataset` and write an ONNX file with its card.
 
     metrics: a results.json from `hapticlink evaluate` whose LOOCV numbers go into the card.
+    calibration_folds: K of the cross-validation that calibrates the card's prediction intervals
+    and goes with its out-of-distribution detector (models.calibrate.cv_uncertainty; K more fits);
+    0 leaves both out. interval_scale: "none" or "distance" (see models.intervals).
     `selected` runs its selection rule (inner CV) on all rated textures here, as each LOOCV fold did on its own.
     """
     est = build_estimator(model, **(options or {}))
@@ -53,6 +62,20 @@ def train_and_export(
         visual = {k: data.meta[k] for k in ("backbone", "backbone_dim", "visual_hash", "visual_part")}
         visual.update(views=est.pooled_views(data.visual.shape[1]), pooling=POOLING, view_seed=VIEW_SEED,
                       views_stored=int(data.visual.shape[1]))
+    intervals = ood = None
+    if calibration_folds and len(data) < MIN_CALIBRATION_TEXTURES:
+        warnings.warn(f"{len(data)} rated textures are too few to calibrate intervals (need ≥ {MIN_CALIBRATION_TEXTURES}); "
+                      "the model card carries no intervals and no OOD detector", stacklevel=2)
+    elif calibration_folds:
+        from models.calibrate import cv_uncertainty, photo_statistics
+        from models.evaluation.registry import EstimatorSpec
+
+        frames = photo_statistics(dataset, data.textures) if needs_visual else None
+        cals, detector = cv_uncertainty(data, EstimatorSpec(model, options or {}), seed,
+                                        folds=min(calibration_folds, len(data)),
+                                        scale_kind=interval_scale, frames=frames)
+        intervals = {target: cal.to_dict() for target, cal in cals.items()}
+        ood = detector.to_dict()
     card = ModelCard(
         model=model,
         modality=est.modality,
@@ -64,6 +87,8 @@ def train_and_export(
         n_params=est.n_params(),
         trained_on=data.textures,
         seed=seed,
+        intervals=intervals,
+        ood=ood,
         fit_info=est.fit_info(),
     )
     return Path(est.export(out, card.to_metadata()))

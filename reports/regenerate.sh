@@ -101,3 +101,6 @@ hl evaluate --dataset $P --model svr-both --extra-groups --out reports/physics-h
   --seeds 0 1 2 --no-figures
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
 hl report --dataset $P --reports reports/physics-hatt-texnet --regenerate "bash reports/regenerate.sh"
+
+# ---- speed–accuracy frontier, robustness, calibrated intervals (issue 7) -------------------------
+bash reports/tradeoffs/regenerate.sh

@@ -3,7 +3,8 @@
 Textures are the unit that was sampled (the raters and the photos come per texture), so the
 bootstrap resamples textures with replacement — all four attributes of a texture together, and in
 a paired comparison the same textures for both models. Percentile intervals; errors on the 0–100
-report scale.
+report scale. `per_texture_error` and `bootstrap_mean` serve studies that carry one number per
+texture (the trade-off studies: MAE over the attributes, coverage, a difference of two errors).
 """
 
 from __future__ import annotations
@@ -112,3 +113,25 @@ def paired_difference(abs_a: np.ndarray, abs_b: np.ndarray, *, n_boot: int = N_B
     samples = np.concatenate([samples, samples.mean(axis=1, keepdims=True)], axis=1)
     point = np.concatenate([diff.mean(axis=0), [diff.mean()]])
     return _table(point, *_interval(samples, level))
+
+
+def per_texture_error(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(T,) mean absolute error over the attributes, 0–100 scale; pred, truth: (T, A) bipolar."""
+    pred, truth = np.asarray(pred, float), np.asarray(truth, float)
+    if pred.shape != truth.shape or pred.ndim != 2:
+        raise ValueError(f"pred and truth must be equal (T, A) arrays, got {pred.shape} and {truth.shape}")
+    return np.mean(np.abs(pred - truth), axis=1) * REPORT_SCALE
+
+
+def bootstrap_mean(values: np.ndarray, *, level: float = LEVEL, n_boot: int = N_BOOT, seed: int = 0) -> dict[str, float]:
+    """Mean of per-texture values with a percentile bootstrap interval over textures.
+
+    values: (T,) one number per texture (for a paired comparison: the difference of two models' errors on
+    the same textures). Returns {"mean", "lo", "hi"}."""
+    values = np.asarray(values, float)
+    if values.ndim != 1 or not np.all(np.isfinite(values)):
+        raise ValueError(f"values must be a finite 1-D array, one per texture, got shape {values.shape}")
+    if not 0 < level < 1:
+        raise ValueError(f"level must lie in (0, 1), got {level}")
+    lo, hi = _interval(values[resample_indices(values.size, n_boot, seed)].mean(axis=1), level)
+    return {"mean": float(values.mean()), "lo": float(lo), "hi": float(hi)}

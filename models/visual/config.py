@@ -9,7 +9,7 @@ import hashlib
 import json
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0"]
 
@@ -30,6 +30,9 @@ class VisualConfig(BaseModel):
     glcm_angles_deg  directions of the pairs, degrees (0 = to the right)
     backbone         "auto": ResNet-50 if its ImageNet weights are found, else EfficientNet-Lite0
     resnet50_weights path of a torchvision ResNet-50 checkpoint (else torch's hub cache is searched)
+    resize           None: use the image as it comes; N: first scale it (antialiased, aspect kept) so its
+                     shorter side is N pixels (≥ patch_size), then cut patches and compute the GLCM — a
+                     cheaper frame: fewer pixels, and patches that see more of the surface each
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -41,6 +44,7 @@ class VisualConfig(BaseModel):
     glcm_angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
     backbone: BackboneChoice = "auto"
     resnet50_weights: str | None = None
+    resize: int | None = Field(None, ge=32)
 
     @field_validator("glcm_distances")
     @classmethod
@@ -56,6 +60,12 @@ class VisualConfig(BaseModel):
             raise ValueError("glcm_angles_deg must not be empty")
         return value
 
+    @model_validator(mode="after")
+    def _resize_holds_a_patch(self) -> "VisualConfig":
+        if self.resize is not None and self.resize < self.patch_size:
+            raise ValueError(f"resize ({self.resize} px) must be ≥ patch_size ({self.patch_size} px): one patch must fit")
+        return self
+
     @property
     def n_patches(self) -> int:
         """Number of patches per image (grid²)."""
@@ -69,6 +79,9 @@ class VisualConfig(BaseModel):
     def canonical_json(self) -> str:
         """Sorted, whitespace-free JSON of the fields that define the computation (patching and GLCM)."""
         data = self.model_dump(mode="json", exclude=set(_SELECTION_FIELDS))
+        if data["resize"] is None:
+            # Added after models were exported: absent, it leaves every existing hash (and cache entry) as it was.
+            del data["resize"]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
     def hash(self) -> str:

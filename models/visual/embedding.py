@@ -17,7 +17,7 @@ from models.visual.augment import IDENTITY_VIEW, apply_view, view_params
 from models.visual.cache import FeatureCache, cache_key
 from models.visual.config import VisualConfig
 from models.visual.glcm import glcm_features
-from models.visual.image import ImageSource, check_gray, load_image
+from models.visual.image import ImageSource, check_gray, load_image, resize_shorter
 from models.visual.patches import extract_patches
 
 PROGRESS_THRESHOLD = 8  # views; below this a progress bar is noise
@@ -115,7 +115,8 @@ def visual_features(
     img      (H, W) float in [0, 1], H, W ≥ config.patch_size — the original image;
              `view` (default: identity) is applied here so the cache key names the original
     returns  (backbone.dim + config.glcm_dim,) float32: mean over the grid² patches of
-             the backbone features, then the flattened GLCM of the view
+             the backbone features, then the flattened GLCM of the view; with config.resize
+             set, the image is first scaled to that shorter side (image.resize_shorter)
     """
     check_gray(img, config.patch_size)
     params = dict(IDENTITY_VIEW if view is None else view)
@@ -125,7 +126,8 @@ def visual_features(
         hit = cache.get(key)
         if hit is not None and hit.shape == (backbone.dim + config.glcm_dim,):
             return hit.astype(np.float32, copy=False)
-    seen = apply_view(img, params)
+    scaled = img if config.resize is None else resize_shorter(img, config.resize)
+    seen = apply_view(scaled, params)
     patches = extract_patches(seen, config.patch_size, config.grid)
     embedded = backbone.embed(patches)
     if embedded.shape != (patches.shape[0], backbone.dim):

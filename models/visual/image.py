@@ -101,6 +101,28 @@ def _scale(values: np.ndarray, name: str) -> np.ndarray:
     raise ValueError(f"{name} dtype must be uint8, uint16 or float, got {values.dtype}")
 
 
+def resize_shorter(gray: np.ndarray, size: int) -> np.ndarray:
+    """Scale an image so its shorter side is `size` pixels, aspect ratio kept.
+
+    gray     (H, W) float in [0, 1]
+    returns  (round(H·k), round(W·k)) float32 in [0, 1], k = size / min(H, W); the input itself when k = 1.
+             Pillow's bilinear filter widens with the reduction factor (antialiased) and has non-negative
+             weights, so the output stays in [0, 1].
+    """
+    if size < 1:
+        raise ValueError(f"size must be ≥ 1 pixel, got {size}")
+    if gray.ndim != 2:
+        raise ValueError(f"image must be 2-D (H, W), got shape {gray.shape}")
+    height, width = gray.shape
+    if min(height, width) == size:
+        return np.asarray(gray, dtype=np.float32)
+    k = size / min(height, width)
+    shape = (max(size, int(round(width * k))), max(size, int(round(height * k))))  # Pillow: (width, height)
+    image = Image.fromarray(np.ascontiguousarray(gray, dtype=np.float32), mode="F")
+    out = np.asarray(image.resize(shape, Image.Resampling.BILINEAR), dtype=np.float32)
+    return np.clip(out, 0.0, 1.0)
+
+
 def check_size(gray: np.ndarray, min_size: int) -> None:
     """Raise ValueError unless `gray` is (H, W) with H, W ≥ min_size."""
     if gray.ndim != 2:

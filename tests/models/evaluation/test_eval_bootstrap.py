@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from models.evaluation.bootstrap import bootstrap_errors, paired_difference, paired_ratio, resample_indices, texture_errors
+from models.evaluation.bootstrap import (bootstrap_errors, bootstrap_mean, paired_difference, paired_ratio,
+                                        per_texture_error, resample_indices, texture_errors)
 
 
 def test_texture_errors_are_on_the_report_scale_and_averaged_over_seeds():
@@ -79,3 +80,42 @@ def test_paired_ratio_known_answers():
         paired_ratio(ref, np.zeros_like(ref))
     with pytest.raises(ValueError, match="same textures"):
         paired_ratio(ref, ref[:-1])
+
+
+def test_bootstrap_mean_interval_covers_the_mean_and_shrinks_with_more_textures():
+    rng = np.random.default_rng(0)
+    small = bootstrap_mean(rng.normal(5, 2, size=20))
+    large = bootstrap_mean(rng.normal(5, 2, size=2000))
+    assert small["lo"] < small["mean"] < small["hi"]
+    # the standard error of a mean of n draws with sd 2: the 95 % width ≈ 3.92·2/√n
+    assert large["hi"] - large["lo"] == pytest.approx(3.92 * 2 / np.sqrt(2000), rel=0.1)
+    assert small["hi"] - small["lo"] > 5 * (large["hi"] - large["lo"])
+
+
+def test_bootstrap_mean_of_a_paired_difference_removes_what_both_share():
+    rng = np.random.default_rng(1)
+    shared = rng.normal(0, 10, size=80)  # texture difficulty, common to both models
+    a, b = shared + 1.0 + rng.normal(0, 0.1, 80), shared
+    diff = bootstrap_mean(a - b)
+    assert diff["lo"] > 0.9 and diff["hi"] < 1.1
+    unpaired_width = bootstrap_mean(a)["hi"] - bootstrap_mean(a)["lo"]
+    assert diff["hi"] - diff["lo"] < 0.1 * unpaired_width
+
+
+def test_bootstrap_mean_agrees_with_bootstrap_errors_on_the_mean_attribute():
+    abs_err = np.random.default_rng(4).gamma(2.0, 2.5, size=(30, 4))
+    one = bootstrap_mean(abs_err.mean(axis=1))
+    table = bootstrap_errors(abs_err)["mae"]
+    assert (one["mean"], one["lo"], one["hi"]) == pytest.approx(
+        (table["value"]["mean"], table["lo"]["mean"], table["hi"]["mean"]))
+
+
+def test_per_texture_error_is_on_the_report_scale_and_inputs_are_checked():
+    pred = np.array([[10.0, 0, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_allclose(per_texture_error(pred, np.zeros((2, 4))), [1.25, 0.0])  # 10/4 bipolar → ÷ 2
+    with pytest.raises(ValueError):
+        per_texture_error(pred, np.zeros((3, 4)))
+    with pytest.raises(ValueError):
+        bootstrap_mean(np.array([1.0]))
+    with pytest.raises(ValueError):
+        bootstrap_mean(np.array([1.0, np.nan]))

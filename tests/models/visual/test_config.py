@@ -65,3 +65,19 @@ def test_json_round_trip_keeps_value_and_hash():
 def test_invalid_values_raise(kwargs):
     with pytest.raises(ValueError):
         VisualConfig(**kwargs)
+
+
+def test_resize_defaults_to_none_and_leaves_the_hash_as_before():
+    # The hash existing models and caches were written under: the JSON without a resize key.
+    legacy = '{"glcm_angles_deg":[0.0,45.0,90.0,135.0],"glcm_distances":[1],"glcm_levels":16,"grid":7,"patch_size":224}'
+    assert VisualConfig().resize is None
+    assert VisualConfig().canonical_json() == legacy
+    assert VisualConfig().hash() == hashlib.sha256(legacy.encode()).hexdigest()[:16]
+    assert VisualConfig(resize=512).hash() != VisualConfig().hash()
+    assert VisualConfig(resize=512).hash() != VisualConfig(resize=448).hash()
+
+
+def test_resize_must_hold_one_patch():
+    with pytest.raises(ValidationError, match="resize"):
+        VisualConfig(resize=200)
+    assert VisualConfig(resize=224).resize == 224

@@ -99,3 +99,14 @@ def test_real_backbone_end_to_end(efficientnet_backbone):
     assert values.shape == (1280 + 256,)
     assert np.all(np.isfinite(values))
     np.testing.assert_allclose(values[1280:].sum(), 1.0, rtol=1e-5)
+
+
+def test_resize_scales_the_image_before_patches_and_glcm():
+    from models.visual.image import resize_shorter
+
+    img = synthetic_texture(height=520, width=480, seed=3)
+    embedder = CountingEmbedder()
+    resized = visual_features(img, VisualConfig(grid=2, resize=240), embedder)
+    by_hand = visual_features(resize_shorter(img, 240), VisualConfig(grid=2), embedder)
+    np.testing.assert_array_equal(resized, by_hand)
+    assert not np.array_equal(resized, visual_features(img, VisualConfig(grid=2), embedder))

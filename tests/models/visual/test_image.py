@@ -87,3 +87,28 @@ def test_too_small_raises():
 def test_bad_arrays_raise(array, message):
     with pytest.raises(ValueError, match=message):
         load_image(array)
+
+
+def test_resize_shorter_keeps_aspect_range_and_constants():
+    from models.visual.image import resize_shorter
+
+    rng = np.random.default_rng(0)
+    img = rng.random((300, 600)).astype(np.float32)
+    out = resize_shorter(img, 150)
+    assert out.shape == (150, 300) and out.dtype == np.float32
+    assert 0.0 <= out.min() and out.max() <= 1.0
+    # antialiased: halving with Pillow's bilinear filter averages 4 taps per axis, weights
+    # (1, 3, 3, 1)/8, so white noise keeps a std fraction of Σw² = 0.3125 (per axis, squared: 2-D)
+    assert out.std() / img.std() == pytest.approx(0.3125, abs=0.01)
+    np.testing.assert_allclose(resize_shorter(np.full((400, 300), 0.25, np.float32), 224), 0.25, atol=1e-6)
+    assert resize_shorter(img, 300) is not None and resize_shorter(img, 300).shape == img.shape
+    assert resize_shorter(img, 450).shape == (450, 900)  # small frames scale up to the same scale
+
+
+def test_resize_shorter_rejects_bad_arguments():
+    from models.visual.image import resize_shorter
+
+    with pytest.raises(ValueError, match="size"):
+        resize_shorter(np.zeros((10, 10), np.float32), 0)
+    with pytest.raises(ValueError, match="2-D"):
+        resize_shorter(np.zeros((10, 10, 3), np.float32), 5)

@@ -1,0 +1,72 @@
+"""Per-window cost of the uncertainty the service will emit: OOD check, interval, EMA state, frame check.
+
+    python -m benchmarks.uncertainty [--n 2000] [--out reports/bench/uncertainty.json]
+
+A detector fitted on random features of the real shapes (79 training textures × 32 windows of
+526 tactile features; 8 views of 1536 visual features), so its cost equals a served card's.
+One window at a time (the serving case) and a batch of 16, with the frame's visual check done once
+per frame (check_visual) as the service would; p50 over `n` calls after a warm-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_OUT = Path("reports") / "bench" / "uncertainty.json"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.uncertainty", description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=2000, help="timed calls per step (default 2000)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    if args.n < 10:
+        parser.error("--n must be ≥ 10")
+
+    from models.intervals import EmaUncertainty, IntervalCalibration
+    from models.nets.latency import call_latency
+    from models.ood import OODDetector, frame_statistics
+
+    rng = np.random.default_rng(0)
+    tactile = [rng.normal(size=(32, 526)) for _ in range(79)]
+    visual = rng.normal(size=(79, 8, 1536))
+    frames = np.array([frame_statistics(rng.random((256, 256)).astype(np.float32)) for _ in range(79)])
+    det = OODDetector.fit(tactile, visual, frames)
+    truth = rng.normal(size=(1580, 4)) * 30
+    cal = IntervalCalibration.fit(truth + rng.normal(size=(1580, 4)) * 8, truth, groups=np.arange(1580) // 20,
+                                  prior_ratings=truth[::20])
+    one, batch, v = rng.normal(size=(1, 526)), rng.normal(size=(16, 526)), rng.normal(size=1536)
+    pred1, pred16 = rng.normal(size=(1, 4)), rng.normal(size=(16, 4))
+    frame = rng.random((1024, 1024)).astype(np.float32)
+    state = EmaUncertainty(0.5)
+    framecheck = det.check_visual(v)
+    n = args.n
+    steps = {
+        "ood_check_visual_per_frame_us": call_latency(lambda: det.check_visual(v), n=n, warmup=50),
+        "ood_check_1_window_us": call_latency(lambda: det.check(one, frame=framecheck), n=n, warmup=50),
+        "ood_check_16_windows_us": call_latency(lambda: det.check(batch, frame=framecheck), n=n, warmup=50),
+        "interval_1_window_us": call_latency(lambda: cal.interval(pred1, None, 0.9, ood=np.array([False])), n=n, warmup=50),
+        "interval_16_windows_us": call_latency(lambda: cal.interval(pred16, None, 0.9, ood=np.zeros(16, bool)), n=n, warmup=50),
+        "ema_state_update_us": call_latency(lambda: state.update(False, 1.2), n=n, warmup=50),
+        "check_frame_1024px_us": call_latency(lambda: det.check_frame(frame), n=max(10, n // 20), warmup=5),
+    }
+    card_bytes = len(json.dumps(det.to_dict())) + len(json.dumps(cal.to_dict()))
+    result = {"benchmark": "uncertainty", "command": " ".join(["python -m benchmarks.uncertainty", *(argv or sys.argv[1:])]),
+              "steps": steps, "card_json_bytes": card_bytes,
+              "loadavg_1_5_15": list(os.getloadavg()), "note": "single thread numpy; timed under whatever load the machine has"}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    for k, v in steps.items():
+        print(f"{k:<28} p50 {v['p50_us']:9.1f} µs   p90 {v['p90_us']:9.1f} µs")
+    print(f"detector + one calibration in the card: {card_bytes / 1e3:.0f} kB of JSON; wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
