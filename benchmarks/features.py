@@ -6,6 +6,9 @@ Times, in one run and on the same windows (from a synthetic stroke pushed throug
 TactilePreprocessor): window_features on a batch (µs per window = batch time / batch),
 window_features on one window at a time (the serving case), the MFCC step alone
 (batched), and librosa.feature.mfcc per window (``models.tactile.mfcc.librosa_mfcc``).
+Then the extra feature groups: window_features with friction + spatial (the demo model's
+features) and with every group, batched and one window per call, and each group's own
+function alone (friction, spatial per window; tap_features once per texture's tap set).
 Checks that our MFCC equals librosa's and writes reports/bench/features.json.
 """
 
@@ -28,8 +31,11 @@ from texture_library.recording import Recording, make_channel
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import window_features
+from models.tactile.friction import friction_features
 from models.tactile.mfcc import librosa_mfcc, mfcc
 from models.tactile.preprocess import TactilePreprocessor
+from models.tactile.spatial import spatial_features
+from models.tactile.taps import tap_features
 
 DEFAULT_OUT = Path("reports/bench/features.json")
 
@@ -42,7 +48,9 @@ def stroke_windows(n_windows: int, config: TactileConfig, seed: int = 0):
     accel = 0.5 * rng.standard_normal((ta.size, 3)) + np.outer(np.sin(2 * np.pi * 180 * ta), [2.0, 0.5, 0.2])
     accel[:, 2] += 9.81
     nf = int(duration * 500)
-    force = 1.5 + 0.3 * np.sin(2 * np.pi * 0.7 * np.arange(nf) / 500) + 0.02 * rng.standard_normal(nf)
+    normal = 1.5 + 0.3 * np.sin(2 * np.pi * 0.7 * np.arange(nf) / 500) + 0.02 * rng.standard_normal(nf)
+    # (tangential x, tangential y, normal): Coulomb friction μ = 0.5 along x; the paper's features read column 2
+    force = np.column_stack([0.5 * normal, 0.01 * rng.standard_normal(nf), normal])
     tm = np.arange(int(duration * 1000)) / 1000
     speed = 80 + 20 * np.sin(2 * np.pi * 0.3 * tm)
     rec = Recording(
@@ -64,6 +72,30 @@ def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 2) -> f
         fn()
         times.append(time.perf_counter() - t)
     return float(np.median(times))
+
+
+def group_timings(per_window: dict[str, float], n: int, repeats: int) -> None:
+    """Seconds per window of the extra feature groups, added to per_window (see the module docstring)."""
+    demo = TactileConfig(extra_groups=("friction", "spatial"))
+    every = TactileConfig(extra_groups=("friction", "spatial", "taps"))
+    accel, speed, force = stroke_windows(n, demo)
+    taps_rng = np.random.default_rng(1)
+    tap_speeds = taps_rng.uniform(5, 80, 10)
+    t = np.arange(100) / 1000
+    tap_accel = tap_speeds[:, None] * np.exp(-t / 0.008) * np.sin(2 * np.pi * 200 * t) + 0.05 * taps_rng.standard_normal((10, 100))
+    taps = np.tile(tap_features(tap_speeds, tap_accel), (n, 1))
+    for name, config, extra in (("friction_spatial", demo, ()), ("all_groups", every, (taps,))):
+        print(f"timing window_features with {name} (batched, then one window per call) ...", flush=True)
+        per_window[f"window_features_batched_{name}"] = (
+            median_seconds(lambda: window_features(accel, speed, force, config, *extra), repeats) / n)
+        per_window[f"window_features_single_{name}"] = median_seconds(
+            lambda: [window_features(accel[i : i + 1], speed[i : i + 1], force[i : i + 1], config,
+                                     *(e[i : i + 1] for e in extra)) for i in range(n)], repeats) / n
+    print("timing friction, spatial and tap features alone ...", flush=True)
+    per_window["friction_batched"] = median_seconds(lambda: friction_features(force[:, :, 0], force[:, :, 1]), repeats) / n
+    per_window["spatial_batched"] = median_seconds(
+        lambda: spatial_features(accel[:, :, 3:], force[:, :, 0], speed, demo.rate_hz), repeats) / n
+    per_window["tap_features_per_texture"] = median_seconds(lambda: tap_features(tap_speeds, tap_accel), repeats)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -100,6 +132,7 @@ def main(argv: list[str] | None = None) -> dict:
     per_window["librosa_mfcc"] = (
         median_seconds(lambda: [librosa_mfcc(w, config) for w in folded], max(3, args.repeats // 2), warmup=1) / n
     )
+    group_timings(per_window, n, args.repeats)
     per_window_us = {k: round(v * 1e6, 3) for k, v in per_window.items()}
 
     ours = mfcc(folded, config)

@@ -10,7 +10,15 @@ Wire formats (robot → service), both carrying the same fields:
     the channels' float32 little-endian samples, concatenated in header order
 
 `seq` is required. `kind` names the block's kind (`BLOCK_KINDS`; "samples", the default, is a
-SampleBlock); a new kind (e.g. short tap transients) is a new entry there and its dataclass.
+SampleBlock); a new kind is a new entry there and its dataclass. Kind "taps" (a TapBlock) carries
+the tap exploratory procedure — k taps of the tool on the surface, n acceleration samples each —
+in "taps" instead of "channels":
+- JSON: {"seq", "t0", "kind": "taps", "taps": {"rate_hz": f, "units": "m/s^2" | "g",
+         "speeds": [k tap speeds, mm/s], "data": [[n samples] × k]}}
+- binary: header {"seq", "t0", "kind": "taps", "taps": {"rate_hz", "units", "speeds", "shape": [k, n]}},
+          then k·n float32 samples, tap after tap
+Limits: 1 ≤ k ≤ MAX_TAPS taps, MIN_TAP_SAMPLES ≤ n ≤ MAX_TAP_SAMPLES samples each, speeds finite ≥ 0.
+Tap and sample blocks share one seq sequence.
 What travels around blocks (acknowledgements, close codes, credentials) is `drivers.protocol`.
 """
 
@@ -23,14 +31,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import check_channel
+from texture_library.channels import MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE, check_channel
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
 MAX_BLOCK_SAMPLES = 100_000  # per channel: 1 s at 100 kHz; a robot sends blocks far smaller
 MAX_HEADER_BYTES = 64 * 1024
 #: block kinds the wire carries (header "kind"); absent means "samples"
-BLOCK_KINDS = ("samples",)
+BLOCK_KINDS = ("samples", "taps")
+MAX_TAPS = 32  # taps per tap block (HaTT records 9–15 per texture)
+MIN_TAP_SAMPLES = 16  # models.tactile.taps.MIN_TAP_SAMPLES: a shorter tap has no ringing to measure
+#: per tap: 0.5 s at 1 kHz (HaTT's taps are 100 ms); with MAX_TAPS it bounds the tap features' cost on admission
+#: (on the event loop): 32 taps × 500 samples took about 10 ms on the shared 2-core machine, under load
+MAX_TAP_SAMPLES = 500
 
 
 @dataclass(frozen=True)
@@ -56,6 +69,25 @@ class SampleBlock:
 
 
 @dataclass(frozen=True)
+class TapBlock:
+    """The tap exploratory procedure: k taps on the surface under the tool. t0: time of the first tap, s
+    (sender's clock); speeds: (k,) each tap's approach speed, mm/s (float64); accel: (k, n) acceleration of
+    each tap in accel.units at accel.rate_hz (float32, one row per tap); seq: shared with sample blocks."""
+
+    t0: float
+    speeds: np.ndarray
+    accel: ChannelBlock
+    seq: int = 0
+
+    @property
+    def n_taps(self) -> int:
+        return int(self.speeds.shape[0])
+
+
+Block = SampleBlock | TapBlock
+
+
+@dataclass(frozen=True)
 class Frame:
     """A camera frame: encoded image bytes (PNG, JPEG, …) taken at time t (s)."""
 
@@ -77,6 +109,7 @@ def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object
 
 
 def _check_header(header: object) -> tuple[int, float, dict]:
+    """(seq, t0, channels) of a samples block; a taps block's "taps" object in place of channels."""
     if not isinstance(header, dict):
         raise ValueError("block must be a JSON object")
     if "seq" not in header:
@@ -89,6 +122,14 @@ def _check_header(header: object) -> tuple[int, float, dict]:
         raise ValueError(f"seq must be an integer ≥ 0, got {seq!r}")
     if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
         raise ValueError(f"t0 must be a finite number (seconds), got {t0!r}")
+    if kind == "taps":
+        taps = header.get("taps")
+        if channels is not None or not isinstance(taps, dict):
+            raise ValueError('a taps block carries "taps": {rate_hz, units, speeds, data (JSON) or shape (binary)} '
+                             'and no "channels"')
+        return seq, float(t0), taps
+    if "taps" in header:
+        raise ValueError('"taps" belongs to a block of kind "taps"; this block\'s kind is "samples"')
     if not isinstance(channels, dict) or not channels:
         raise ValueError("channels must be a non-empty object of {kind: {rate_hz, units, data}}")
     for kind, spec in channels.items():
@@ -97,8 +138,49 @@ def _check_header(header: object) -> tuple[int, float, dict]:
     return seq, float(t0), channels
 
 
-def decode_json(obj: object) -> SampleBlock:
+def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: object) -> tuple[np.ndarray, ChannelBlock]:
+    """Check a tap set → (speeds (k,) float64 mm/s, accel (k, n) float32 in its units); ValueError names the problem."""
+    if not isinstance(speeds, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in speeds):
+        raise ValueError("taps: speeds must be a list of numbers (mm/s), one per tap")
+    v = np.array(speeds, dtype=np.float64)
+    if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
+        raise ValueError("taps: speeds must be finite and ≥ 0 mm/s")
+    arr = np.asarray(data)
+    if arr.ndim != 2:
+        raise ValueError(f"taps: data must be k taps of n samples, shape (k, n), got {arr.shape}")
+    k, n = arr.shape
+    if not 1 <= k <= MAX_TAPS:
+        raise ValueError(f"taps: a block holds 1 to {MAX_TAPS} taps, got {k}")
+    if not MIN_TAP_SAMPLES <= n <= MAX_TAP_SAMPLES:
+        raise ValueError(f"taps: each tap holds {MIN_TAP_SAMPLES} to {MAX_TAP_SAMPLES} samples, got {n}")
+    if v.shape[0] != k:
+        raise ValueError(f"taps: {v.shape[0]} speed(s) for {k} tap(s); give one speed per tap")
+    if units not in UNIT_SCALE["accel"]:
+        raise ValueError(f"taps: units must be one of {list(UNIT_SCALE['accel'])}, got {units!r}")
+    if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float)) or not math.isfinite(rate_hz) \
+            or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"taps: sample rate must be a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz!r}")
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"taps: samples must be numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float32, copy=False)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"taps: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
+    rate = float(rate_hz)
+    return v, ChannelBlock(arr, rate, units)
+
+
+def decode_json(obj: object) -> Block:
     seq, t0, channels = _check_header(obj)
+    if obj.get("kind") == "taps":  # type: ignore[union-attr]
+        data = channels.get("data")
+        if not isinstance(data, list):
+            raise ValueError("taps: data must be a list of taps, each a list of samples")
+        try:
+            arr = np.array(data, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("taps: data must be a rectangular list of numbers (k taps × n samples)") from None
+        speeds, accel = validate_taps(channels.get("speeds"), arr, channels.get("rate_hz"), channels.get("units"))
+        return TapBlock(t0, speeds, accel, seq)
     out = {}
     for kind, spec in channels.items():
         data = spec.get("data")
@@ -112,7 +194,11 @@ def decode_json(obj: object) -> SampleBlock:
     return SampleBlock(t0, out, seq)
 
 
-def encode_json(block: SampleBlock) -> dict:
+def encode_json(block: Block) -> dict:
+    if isinstance(block, TapBlock):
+        a = block.accel
+        return {"seq": block.seq, "t0": block.t0, "kind": "taps",
+                "taps": {"rate_hz": a.rate_hz, "units": a.units, "speeds": block.speeds.tolist(), "data": a.data.tolist()}}
     return {
         "seq": block.seq,
         "t0": block.t0,
@@ -120,7 +206,13 @@ def encode_json(block: SampleBlock) -> dict:
     }
 
 
-def encode_binary(block: SampleBlock) -> bytes:
+def encode_binary(block: Block) -> bytes:
+    if isinstance(block, TapBlock):
+        a = block.accel
+        header = {"seq": block.seq, "t0": block.t0, "kind": "taps",
+                  "taps": {"rate_hz": a.rate_hz, "units": a.units, "speeds": block.speeds.tolist(), "shape": list(a.data.shape)}}
+        head = json.dumps(header).encode()
+        return MAGIC + struct.pack("<I", len(head)) + head + np.ascontiguousarray(a.data, dtype="<f4").tobytes()
     header = {
         "seq": block.seq,
         "t0": block.t0,
@@ -144,7 +236,7 @@ def peek_header(payload: bytes, binary: bool) -> object | None:
         return None
 
 
-def decode_binary(buf: bytes) -> SampleBlock:
+def decode_binary(buf: bytes) -> Block:
     if len(buf) < 8 or buf[:4] != MAGIC:
         raise ValueError("binary block must start with the magic bytes b'HLB1'")
     (n,) = struct.unpack_from("<I", buf, 4)
@@ -156,6 +248,19 @@ def decode_binary(buf: bytes) -> SampleBlock:
         raise ValueError("binary block header is not valid JSON") from None
     seq, t0, channels = _check_header(header)
     offset = 8 + n
+    if header.get("kind") == "taps":
+        shape = channels.get("shape")
+        if not (isinstance(shape, list) and len(shape) == 2
+                and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
+            raise ValueError(f"taps: shape must be [k, n] (k taps of n samples), got {shape!r}")
+        if shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES:
+            raise ValueError(f"taps: shape {shape} is too large")
+        if offset + 4 * shape[0] * shape[1] != len(buf):
+            raise ValueError(f"taps: shape {shape} needs {4 * shape[0] * shape[1]} bytes of samples, the message "
+                             f"holds {len(buf) - offset}")
+        arr = np.frombuffer(buf, dtype="<f4", count=shape[0] * shape[1], offset=offset).reshape(shape)
+        speeds, accel = validate_taps(channels.get("speeds"), arr, channels.get("rate_hz"), channels.get("units"))
+        return TapBlock(t0, speeds, accel, seq)
     out = {}
     for kind, spec in channels.items():
         shape = spec.get("shape")

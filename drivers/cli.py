@@ -34,6 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--block-s", type=float, default=0.02, metavar="S", help="seconds per block (default 0.02)")
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
+    p.add_argument("--taps", action="store_true",
+                   help="simulated: tap the surface before stroking it (one tap block of the texture's tap transients)")
     p.add_argument("--recording", type=int, default=0, metavar="N", help="replay: which of the texture's recordings (default 0)")
     p.add_argument("--loop", action="store_true", help="replay: play the recording again and again")
     p.add_argument("--start-seq", type=int, default=0, metavar="N", help="seq of the first block (resuming a session: above its last)")
@@ -73,16 +75,20 @@ def source_from_spec(
     image: str | None = None,
     recording: int = 0,
     loop: bool = False,
+    taps: bool = False,
 ):
     """Build the SensorSource a SPEC names (see SOURCE_SPECS); ValueError says what is wrong with it."""
     kind, sep, rest = spec.partition(":")
     if not sep or not rest:
         raise ValueError(f"source spec {spec!r} must be one of: {', '.join(SOURCE_SPECS)}")
+    if taps and kind != "simulated":
+        raise ValueError(f"--taps: only the simulated source performs the tap procedure, not {kind!r}")
     if kind == "simulated":
         from drivers.simulated import SimulatedSource
 
         lib, entry = _split_dir_id(kind, rest, "ENTRY_ID")
-        return SimulatedSource.from_library(lib, entry, image_path=image, seed=seed, block_s=block_s, realtime=realtime)
+        return SimulatedSource.from_library(lib, entry, image_path=image, seed=seed, block_s=block_s, realtime=realtime,
+                                            taps=taps)
     if kind == "replay":
         from drivers.replay import ReplaySource
 
@@ -128,7 +134,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         # httpx logs every request at INFO: 50 a second here.
         logging.getLogger("httpx").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     source = source_from_spec(
-        args.source, realtime=args.realtime, block_s=args.block_s, seed=args.seed, image=args.image, recording=args.recording, loop=args.loop
+        args.source, realtime=args.realtime, block_s=args.block_s, seed=args.seed, image=args.image, recording=args.recording, loop=args.loop,
+        taps=args.taps,
     )
     client = RobotClient(
         args.url,

@@ -3,7 +3,9 @@
 Chunk after chunk, a seeded freehand trajectory (texture_library.trajectory.freehand) is rendered
 into sensor signals (texture_library.stroke.stroke) — the same code that builds the synthetic
 datasets — and sent in blocks: accel (n, 3) m/s², force (n, 3) N (tangential x, y, normal),
-speed (n,) mm/s, at the model's rate (1 kHz).
+speed (n,) mm/s, at the model's rate (1 kHz). With taps=True the robot first performs the tap
+exploratory procedure: one TapBlock with the texture's tap transients (the model's TapSet: k taps
+of n samples at 1 kHz, each with its tap speed), before the stroke begins.
 """
 
 from __future__ import annotations
@@ -15,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.blocks import Frame
+from drivers.blocks import ChannelBlock, Frame, TapBlock
 from drivers.camera import encode_image, sniff_content_type
 from drivers.source import Item, blocks_from_arrays, check_positive, paced
 from texture_library.library import Library
 from texture_library.stroke import StrokeSignals, random_rotation, stroke
+from texture_library.taps import TAP_RATE_HZ
 from texture_library.trajectory import Trajectory, freehand, model_ranges
 from texture_library.vibration import VibrationModel
 
@@ -46,7 +49,8 @@ class SimulatedSource:
     accelerometer's mounting orientation is drawn once from seed. chunk_s: seconds of trajectory
     per chunk (each chunk runs to a stroke turnaround, so it is chunk_s to chunk_s + 2 s long);
     the next chunk is rendered in a worker thread while the current one plays. duration_s: stop
-    after this much stream time (None: run until closed).
+    after this much stream time (None: run until closed). taps: tap the surface before stroking
+    (a TapBlock at t0 = 0 from the model's tap transients; ValueError if the model has none).
     """
 
     def __init__(
@@ -61,8 +65,11 @@ class SimulatedSource:
         frame_every_s: float | None = None,
         speed: float = 1.0,
         name: str | None = None,
+        taps: bool = False,
     ) -> None:
         check_positive("block_s", block_s)
+        if taps and model.taps is None:
+            raise ValueError(f"model {model.name!r} has no tap transients to tap with; use taps=False")
         check_positive("chunk_s", chunk_s)
         for label, value in (("duration_s", duration_s), ("frame_every_s", frame_every_s)):
             if value is not None:
@@ -84,6 +91,7 @@ class SimulatedSource:
         self.frame_every_s = frame_every_s
         self.speed = speed
         self.name = name or f"simulated:{model.name}"
+        self.taps = taps
         self._ranges = model_ranges(model.max_speed, model.max_force)
         self._rotation = random_rotation(np.random.default_rng([seed, 2**32]))  # fixed sensor mounting
         self._closed = False
@@ -96,6 +104,14 @@ class SimulatedSource:
         traj = _cut_at_turnaround(traj, int(round(self.chunk_s * rate)))
         return stroke(self.model, traj, rng, rotation=self._rotation)
 
+    def tap_block(self, t0: float = 0.0, seq: int = 0) -> TapBlock:
+        """The tap procedure on this texture: its tap transients, as recorded in the model (1 kHz, m/s²)."""
+        taps = self.model.taps
+        if taps is None:
+            raise ValueError(f"model {self.model.name!r} has no tap transients")
+        return TapBlock(t0, np.asarray(taps.speeds, dtype=np.float64),
+                        ChannelBlock(np.asarray(taps.accel, dtype=np.float32), TAP_RATE_HZ, "m/s^2"), seq)
+
     def _frame(self, t: float) -> Frame:
         assert self.image is not None and self.content_type is not None
         return Frame(t=t, image=self.image, content_type=self.content_type, meta={"texture": self.model.name})
@@ -106,6 +122,9 @@ class SimulatedSource:
             yield self._frame(0.0)
             next_frame = self.frame_every_s or math.inf
         t0, seq, k = 0.0, 0, 0
+        if self.taps:
+            yield self.tap_block()
+            seq = 1
         pending: asyncio.Future | None = asyncio.ensure_future(asyncio.to_thread(self.chunk, 0))
         try:
             while pending is not None and not self._closed:

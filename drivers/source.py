@@ -1,6 +1,6 @@
 """What every sensor source is, and the pieces sources share.
 
-- `SensorSource`: an async iterator of `SampleBlock | Frame` with a `name` and `aclose()`.
+- `SensorSource`: an async iterator of `SampleBlock | TapBlock | Frame` with a `name` and `aclose()`.
 - `blocks_from_arrays`: slice aligned channel arrays into consecutive blocks of `block_s` seconds.
 - `paced`: emit items at wall-clock pace (monotonic clock, no drift).
 - `ThreadedSource`: a base for sources whose I/O blocks (pyserial, pyusb): a reader thread
@@ -22,12 +22,12 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from drivers.blocks import MAX_BLOCK_SAMPLES, ChannelBlock, Frame, SampleBlock, validate_channel
+from drivers.blocks import MAX_BLOCK_SAMPLES, ChannelBlock, Frame, SampleBlock, TapBlock, validate_channel
 from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE, check_channel
 
 log = logging.getLogger(__name__)
 
-Item = SampleBlock | Frame
+Item = SampleBlock | TapBlock | Frame
 
 
 @runtime_checkable
@@ -109,9 +109,11 @@ def blocks_from_arrays(
 
 def block_end(item: Item) -> float:
     """Time (s, sender's clock) at which an item is complete: a block's last sample period ends,
-    a frame is taken."""
+    a frame is taken, a tap block is sent (at its t0: the taps before it were the procedure)."""
     if isinstance(item, Frame):
         return item.t
+    if isinstance(item, TapBlock):
+        return item.t0
     return item.t0 + max(c.duration_s for c in item.channels.values())
 
 

@@ -33,16 +33,23 @@ class Prediction:
     windows: np.ndarray
 
 
+def _one_frame(data: TextureData, visual: np.ndarray, n: int) -> np.ndarray:
+    """(n, V, D): one frame's vector (D,) in every one of the V view slots the training data stores, so a
+    model that pools V views pools exactly that frame (as models.evaluation.loocv.seen_through does)."""
+    views = 1 if data.visual is None else data.visual.shape[1]
+    return np.tile(np.asarray(visual, np.float32).reshape(1, 1, -1), (n, views, 1))
+
+
 def one_texture(data: TextureData, tactile: np.ndarray, visual: np.ndarray | None) -> TextureData:
-    """A one-texture TextureData (no ratings) of windows (n, F) and a visual vector (D,) or None."""
-    vis = None if visual is None else np.asarray(visual, np.float32).reshape(1, 1, -1)
+    """A one-texture TextureData (no ratings) of windows (n, F) and one frame's visual vector (D,) or None."""
+    vis = None if visual is None else _one_frame(data, visual, 1)
     return TextureData(["held-out"], ["?"], [np.asarray(tactile, np.float32)], vis, None, data.meta)
 
 
 def per_window(data: TextureData, tactile: np.ndarray, visual: np.ndarray | None) -> TextureData:
     """Each window as its own pseudo-texture, so texture-level estimators predict window by window."""
     n = len(tactile)
-    vis = None if visual is None else np.repeat(np.asarray(visual, np.float32).reshape(1, 1, -1), n, axis=0)
+    vis = None if visual is None else _one_frame(data, visual, n)
     return TextureData(["w"] * n, ["?"] * n, [np.asarray(tactile[k:k + 1], np.float32) for k in range(n)], vis, None,
                        data.meta)
 

@@ -80,11 +80,16 @@ def _dataset_check(args: argparse.Namespace) -> int:
 def register_models(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="leave-one-texture-out evaluation of one model → results.json + figures")
     e.add_argument("--dataset", required=True)
-    e.add_argument("--model", required=True, help="e.g. ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both")
+    e.add_argument("--model", required=True, help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both")
     e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
     e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     e.add_argument("--workers", type=int, help="parallel folds (default: one per core)")
-    e.add_argument("--backend", default="process", choices=["process", "serial", "ray"])
+    e.add_argument("--backend", default="process", choices=["process", "serial", "ray"],
+                   help="where the (seed, fold) jobs run: worker processes (default), in this process, or Ray tasks")
+    e.add_argument("--ray-address", help="Ray cluster to run on (default: $RAY_ADDRESS, else a local Ray instance)")
+    e.add_argument("--test-views", type=int,
+                   help="the held-out texture shows only its first K image views (a service that pooled K frames); "
+                        "training is unchanged. K must divide the stored views (8)")
     _feature_args(e)
     _net_args(e)
     e.add_argument("--no-figures", action="store_true")
@@ -115,8 +120,21 @@ def register_models(sub: argparse._SubParsersAction) -> None:
 
 
 def _feature_args(parser: argparse.ArgumentParser) -> None:
+    from models.tactile.config import EXTRA_GROUPS
+
     parser.add_argument("--tactile-features", default="mfcc", choices=["mfcc", "dwt", "dft"])
+    parser.add_argument("--extra-groups", nargs="*", default=[], choices=list(EXTRA_GROUPS), metavar="GROUP",
+                        help=f"tactile feature groups added to the feature set: any of {', '.join(EXTRA_GROUPS)} "
+                             "(friction needs 3-column force; taps needs tap transients per texture)")
     parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+    parser.add_argument("--views", type=int,
+                        help="image views pooled per texture (ridge-*, *-pooled, selected; default: ridge 1, pooled models all stored)")
+
+
+def _tactile_config(args: argparse.Namespace):
+    from models.tactile.config import TactileConfig
+
+    return TactileConfig(feature_set=args.tactile_features, extra_groups=tuple(args.extra_groups))
 
 
 def _net_args(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +145,7 @@ def _net_args(parser: argparse.ArgumentParser) -> None:
 
 def _options(args: argparse.Namespace) -> dict:
     """Estimator options given on the command line (networks only; the rest keep their defaults)."""
-    names = ("max_epochs", "windows_per_texture")
+    names = ("max_epochs", "windows_per_texture", "views")
     return {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}
 
 
@@ -135,11 +153,10 @@ def _evaluate(args: argparse.Namespace) -> int:
     from models.evaluation.data import load_texture_data
     from models.evaluation.evaluate import evaluate
     from models.evaluation.registry import EstimatorSpec
-    from models.tactile.config import TactileConfig
 
     spec = EstimatorSpec(args.model, _options(args))
     modality = spec.build().modality
-    data = load_texture_data(args.dataset, tactile_config=TactileConfig(feature_set=args.tactile_features),
+    data = load_texture_data(args.dataset, tactile_config=_tactile_config(args),
                              visual=modality in ("visual", "both"), visual_part=args.visual_part, workers=args.workers)
     if args.latency_only:
         import json
@@ -158,7 +175,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})")
         return 0
     res = evaluate(data, spec, args.out, seeds=tuple(args.seeds), workers=args.workers, backend=args.backend,
-                   figures=not args.no_figures)
+                   figures=not args.no_figures, ray_address=args.ray_address, test_views=args.test_views)
     mae, sd = res["mae"], res["mae_std"]
     print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
     for k in mae:
@@ -168,11 +185,10 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from models.tactile.config import TactileConfig
     from models.train import train_and_export
 
     path = train_and_export(args.dataset, args.model, args.out, seed=args.seed,
-                            tactile_config=TactileConfig(feature_set=args.tactile_features),
+                            tactile_config=_tactile_config(args),
                             visual_part=args.visual_part, metrics=args.metrics, options=_options(args),
                             calibration_folds=args.calibration_folds, interval_scale=args.interval_scale)
     print(f"wrote {path}")
@@ -193,11 +209,15 @@ def register_report(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--dataset", required=True, help="the dataset the results were computed on (for the human noise ceiling)")
     r.add_argument("--reports", required=True, help="folder holding <model>/results.json (and ablation/<run>/results.json)")
     r.add_argument("--regenerate", default="", help="the command that regenerates the page, quoted on it")
+    r.add_argument("--readme", default=None,
+                   help="also rewrite the results table of this file (e.g. README.md) between its table markers")
     r.set_defaults(func=_report)
 
 
 def _report(args: argparse.Namespace) -> int:
     from models.report.markdown import build_report
 
-    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate)}")
+    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate, readme=args.readme)}")
+    if args.readme:
+        print(f"wrote the results table of {args.readme}")
     return 0

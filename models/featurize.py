@@ -16,10 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from models.datasets.build import run_jobs
+from models.jobs import run_jobs
 from models.datasets.format import Dataset
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
+from models.tactile.taps import tap_features
 from models.visual.config import VisualConfig
 
 if TYPE_CHECKING:
@@ -69,15 +70,28 @@ def _crop_s(ds: Dataset) -> float:
     return float(ds.header.get("build", {}).get("crop_s", 0.0))
 
 
+def texture_tap_features(ds: Dataset, texture: str) -> np.ndarray:
+    """(3,) tap features of a texture's recorded taps (models.tactile.taps); ValueError if it has none."""
+    taps = ds.taps(texture)
+    if taps is None:
+        raise ValueError(f"texture {texture!r} has no tap transients (its vibration.npz holds none); "
+                         "use a feature configuration without the taps group")
+    try:
+        return tap_features(taps.speeds, taps.accel)
+    except ValueError as exc:
+        raise ValueError(f"texture {texture!r}: {exc}") from None
+
+
 def _tactile_job(job: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     ds = Dataset(job["root"])
     cfg = TactileConfig(**job["config"])
     out = []
     crop = job["crop_s"]
     names = ds.meta(job["texture"]).recordings
+    taps = texture_tap_features(ds, job["texture"]) if "taps" in cfg.extra_groups else None
     for name, rec in zip(names, ds.recordings(job["texture"])):
         try:
-            feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop)
+            feats, t0 = recording_features(rec, cfg, skip_s=crop, stop_s=rec.duration_s - crop, taps=taps)
         except ValueError as exc:
             raise ValueError(f"texture {job['texture']!r}, {name} (crop_s={crop:g} s at both ends): {exc}") from None
         out.append((feats, t0))
@@ -171,9 +185,11 @@ def visual_table(
     return table
 
 
-def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True) -> str:
-    """Fill the feature caches of a dataset; returns a one-line summary."""
-    t = tactile_table(root, workers=workers)
+def featurize_dataset(root: str | Path, *, workers: int | None = None, visual: bool = True,
+                      tactile_config: TactileConfig | None = None) -> str:
+    """Fill the feature caches of a dataset (tactile: the given configuration, default the paper's);
+    returns a one-line summary."""
+    t = tactile_table(root, tactile_config, workers=workers)
     summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
     if visual:
         v = visual_table(root)

@@ -9,7 +9,7 @@ where the model came from.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN
@@ -24,7 +24,9 @@ OUTPUT = "ratings"
 @dataclass(frozen=True)
 class ModelCard:
     """model: registry name; modality: tactile | visual | both; tactile_config: TactileConfig.to_dict();
-    visual: {"backbone", "dim", "config_hash", "part"} or None; metrics: LOOCV summary (0–100 scale);
+    visual: {"backbone", "backbone_dim", "visual_hash", "visual_part", "views", "pooling", "view_seed"} or None —
+    views: how many image views the model's visual input pools (models.visual.pooling; 1: one photo/frame);
+    metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute);
     intervals: {"window" | "ema" | "texture": models.intervals.IntervalCalibration.to_dict()} or None;
     ood: models.ood.OODDetector.to_dict() or None (both written by `hapticlink train`)."""
 
@@ -40,6 +42,7 @@ class ModelCard:
     seed: int
     intervals: dict | None = None
     ood: dict | None = None
+    fit_info: dict = field(default_factory=dict)
 
     def to_metadata(self) -> dict[str, str]:
         return {
@@ -59,6 +62,7 @@ class ModelCard:
             "seed": str(self.seed),
             **({} if self.intervals is None else {"intervals": json.dumps(self.intervals, sort_keys=True)}),
             **({} if self.ood is None else {"ood": json.dumps(self.ood, sort_keys=True)}),
+            "fit_info": json.dumps(self.fit_info),
         }
 
     @classmethod
@@ -83,6 +87,7 @@ class ModelCard:
                 seed=int(meta.get("seed", 0)),
                 intervals=json.loads(meta["intervals"]) if "intervals" in meta else None,
                 ood=json.loads(meta["ood"]) if "ood" in meta else None,
+                fit_info=json.loads(meta.get("fit_info", "{}")),
             )
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: incomplete model metadata ({exc})") from None

@@ -1,9 +1,12 @@
-"""Build ONNX graphs for the non-torch estimators with onnx.helper (today: ridge; SVR, k-NN and
-the stack have no export and are timed in Python).
+"""Build ONNX graphs for the non-torch estimators with onnx.helper: ridge, the additive-kernel models
+(kernel ridge, kernel SVR), their mean and the nested-CV selection of them. The older SVR, k-NN
+and stack have no export and are timed in Python.
 
-An estimator adds its nodes to a `GraphBuilder` and passes the name of its (N, 4) bipolar output
-to `save`; `save` clips to the rating range and writes the file with its metadata. The
-graph takes raw features: standardisation and block weights are part of it, as for the nets.
+An exportable estimator has `add_graph(g) -> str`: it adds its nodes to a `GraphBuilder` and
+returns the name of its (N, 4) bipolar output. Composite models call their members' add_graph on
+the same builder, so one graph holds them all and shares the inputs. `export_graph` (or `save`)
+clips to the rating range and writes the file with its metadata. The graph takes raw features:
+standardisation and block weights are part of it, as for the nets.
 """
 
 from __future__ import annotations
@@ -67,6 +70,33 @@ class GraphBuilder:
     def concat(self, parts: list[str]) -> str:
         return parts[0] if len(parts) == 1 else self.op("Concat", *parts, axis=1)
 
+    def squared_distances(self, z: str, centres: np.ndarray) -> str:
+        """(N, m) squared Euclidean distances of the rows of z (N, D) to fixed centres (m, D), ≥ 0.
+
+        ‖z‖² − 2 z·c + ‖c‖², the expansion numpy uses too; clamped at 0 against rounding."""
+        centres = np.asarray(centres, np.float64)
+        zz = self.op("ReduceSumSquare", z, axes=[1], keepdims=1)
+        cross = self.op("MatMul", z, self.const(-2.0 * centres.T, "centres_t"))
+        d2 = self.op("Add", self.op("Add", zz, cross), self.const(np.sum(centres**2, axis=1)[None, :], "centres_sq"))
+        return self.op("Max", d2, self.const(np.array(0.0)))
+
+    def mean_of(self, outputs: list[str]) -> str:
+        """Element-wise mean of equally shaped outputs."""
+        if len(outputs) == 1:
+            return outputs[0]
+        return self.op("Mul", self.op("Sum", *outputs), self.const(np.array(1.0 / len(outputs))))
+
+    def pick_columns(self, outputs: list[str], owner: list[int]) -> str:
+        """(N, 4) whose column j is column j of outputs[owner[j]]: per-attribute models in one output."""
+        if len(set(owner)) == 1:
+            return outputs[owner[0]]
+        parts = []
+        for k, out in enumerate(outputs):
+            mask = np.array([[1.0 if o == k else 0.0 for o in owner]])
+            if mask.any():
+                parts.append(self.op("Mul", out, self.const(mask, "column_mask")))
+        return parts[0] if len(parts) == 1 else self.op("Sum", *parts)
+
     def save(self, path: str | Path, output: str, metadata: dict[str, str]) -> Path:
         import onnx
         from onnx import TensorProto, helper
@@ -89,3 +119,9 @@ class GraphBuilder:
         path.parent.mkdir(parents=True, exist_ok=True)
         onnx.save(model, str(path))
         return path
+
+
+def export_graph(estimator, path: str | Path, metadata: dict[str, str]) -> Path:
+    """Write a fitted estimator that has `add_graph` as one ONNX file (inputs tactile and/or visual, output ratings)."""
+    g = GraphBuilder()
+    return g.save(path, estimator.add_graph(g), metadata)

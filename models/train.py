@@ -10,12 +10,15 @@ from pathlib import Path
 import numpy as np
 
 from models.evaluation.data import TextureData, load_texture_data
-from models.visual.embedding import VisualPart
 from models.evaluation.registry import build_estimator
 from models.modelfile import ModelCard
 from models.predictor import Predictor
 from models.tactile.config import TactileConfig
+from models.visual.embedding import VisualPart
+from models.visual.pooling import POOLING, pool_views
 from texture_library.attributes import ATTRIBUTES
+
+VIEW_SEED = 0  # the augmented views' seed (featurize.visual_table's default)
 
 
 MIN_CALIBRATION_TEXTURES = 8  # K-fold calibration with a detector per fold needs a few textures per side
@@ -41,12 +44,13 @@ def train_and_export(
     calibration_folds: K of the cross-validation that calibrates the card's prediction intervals
     and goes with its out-of-distribution detector (models.calibrate.cv_uncertainty; K more fits);
     0 leaves both out. interval_scale: "none" or "distance" (see models.intervals).
+    `selected` runs its selection rule (inner CV) on all rated textures here, as each LOOCV fold did on its own.
     exclude: rated textures left out of everything (training, calibration, detector), e.g. the textures a
     benchmark then streams as unseen.
     """
     est = build_estimator(model, **(options or {}))
     if not hasattr(est, "export"):
-        raise ValueError(f"model {model!r} has no ONNX export; export a network or a ridge model")
+        raise ValueError(f"model {model!r} has no ONNX export; export a network, ridge, a *-pooled model or selected")
     needs_visual = est.modality in ("visual", "both")
     data = load_texture_data(dataset, tactile_config=tactile_config, visual=needs_visual, visual_part=visual_part)
     if exclude:
@@ -58,10 +62,14 @@ def train_and_export(
     loocv = {}
     if metrics is not None:
         res = json.loads(Path(metrics).read_text())
+        if res["model"] != model:
+            raise ValueError(f"{metrics} holds the LOOCV of {res['model']!r}, not of {model!r}")
         loocv = {"mae": res["mae"], "rmse": res["rmse"], "seeds": res["seeds"], "model": res["model"]}
     visual = None
-    if needs_visual:
+    if est.modality in ("visual", "both"):  # what the fitted model reads (a selection may drop a modality)
         visual = {k: data.meta[k] for k in ("backbone", "backbone_dim", "visual_hash", "visual_part")}
+        visual.update(views=est.pooled_views(data.visual.shape[1]), pooling=POOLING, view_seed=VIEW_SEED,
+                      views_stored=int(data.visual.shape[1]))
     intervals = ood = None
     if calibration_folds and len(data) < MIN_CALIBRATION_TEXTURES:
         warnings.warn(f"{len(data)} rated textures are too few to calibrate intervals (need ≥ {MIN_CALIBRATION_TEXTURES}); "
@@ -89,6 +97,7 @@ def train_and_export(
         seed=seed,
         intervals=intervals,
         ood=ood,
+        fit_info=est.fit_info(),
     )
     return Path(est.export(out, card.to_metadata()))
 
@@ -104,9 +113,13 @@ def predict_dataset(model_path: str | Path, dataset: str | Path, *, rated: str |
         if data.meta["backbone"] != card.visual["backbone"] or data.meta["visual_hash"] != card.visual["visual_hash"]:
             raise ValueError(f"model wants visual features from {card.visual['backbone']} ({card.visual['visual_hash']}), "
                              f"this machine computes {data.meta['backbone']} ({data.meta['visual_hash']})")
+    views = int(card.visual.get("views", 1)) if card.visual else 1
+    if predictor.needs_visual and data.visual.shape[1] < views:
+        raise ValueError(f"model pools {views} image views per texture; the dataset stores {data.visual.shape[1]}")
     preds = []
     for i, windows in enumerate(data.tactile):
-        visual = np.repeat(data.visual[i, :1], len(windows), axis=0) if predictor.needs_visual else None
+        # the texture's first `views` views pooled as in training: one visual vector for all its windows
+        visual = np.repeat(pool_views(data.visual[i, :views])[None], len(windows), axis=0) if predictor.needs_visual else None
         preds.append(predictor.predict(windows if predictor.needs_tactile else None, visual).mean(axis=0))
     return data.textures, np.array(preds)
 

@@ -21,7 +21,7 @@ from service.errors import ServiceError
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.routes import events, ingest, ops, sessions
-from service.schemas import JsonBlock
+from service.schemas import JsonBlock, JsonTapBlock
 from service.server import server_options
 from service.settings import Settings
 from service.state import ServiceState
@@ -116,16 +116,13 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     WebSocket sends (WindowEvent, StatusEvent: a WebSocket is no OpenAPI operation, so they are components)."""
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-        block = JsonBlock.model_json_schema(ref_template="#/components/schemas/{model}")
         components = schema.setdefault("components", {}).setdefault("schemas", {})
-        components.update(block.pop("$defs", {}))
-        components["JsonBlock"] = block
-        for model in (WindowEvent, StatusEvent):
-            event = model.model_json_schema(ref_template="#/components/schemas/{model}")
-            components.update(event.pop("$defs", {}))
-            components[model.__name__] = event
+        for model in (JsonBlock, JsonTapBlock, WindowEvent, StatusEvent):
+            schema_part = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(schema_part.pop("$defs", {}))
+            components[model.__name__] = schema_part
         body = schema["paths"]["/sessions/{session_id}/blocks"]["post"]["requestBody"]["content"]["application/json"]
-        body["schema"] = {"$ref": "#/components/schemas/JsonBlock"}
+        body["schema"] = {"oneOf": [{"$ref": "#/components/schemas/JsonBlock"}, {"$ref": "#/components/schemas/JsonTapBlock"}]}
         body["example"] = JsonBlock.model_config["json_schema_extra"]["examples"][0]  # type: ignore[index]
         app.openapi_schema = schema
     return app.openapi_schema

@@ -80,7 +80,7 @@ class WindowBatcher:
             del self._ready[sid]
             job = session.take_job()
             if job is None:
-                if session.waiting_for_frame():
+                if session.waiting_for_frame() or session.waiting_for_taps():
                     await session.tell_waiting()
                 continue
             session.in_job = True

@@ -1,10 +1,14 @@
 """`hapticlink demo`: the whole loop on one machine, from nothing.
 
 1. Prepare assets once (cached in artifacts/demo): a synthetic-world dataset, a model trained on
-   it and exported to ONNX, the visual backbone's ONNX, the texture library (the same world), and
-   a few *unseen* probe textures (another seed) for the simulated robot to stroke.
-2. Start the service, a simulated robot that strokes each probe texture in turn (sending its
-   camera frame first), and a terminal subscriber that prints what the operator console shows.
+   it with the physics feature groups (DEMO_GROUPS: MFCC + friction + spatial + taps) and
+   exported to ONNX, the visual backbone's ONNX, the texture library (the same
+   world), and a few *unseen* probe textures (another seed) for the simulated robot to stroke.
+   Assets from another world version, model or feature set are rebuilt.
+2. Start the service, a simulated robot that taps and then strokes each probe texture in turn
+   (sending its camera frame first), and a terminal subscriber that prints what the operator console shows
+   and, REPORT_AFTER_S into each probe's stroke, the estimate next to the probe's ground truth
+   with the error (0–100 scale, mean over the four attributes).
 3. Print the console URL; Ctrl-C ends everything cleanly.
 """
 
@@ -19,13 +23,19 @@ import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-from drivers.blocks import Frame, SampleBlock
-from texture_library.attributes import ATTRIBUTES
+import numpy as np
+
+from drivers.blocks import Frame, SampleBlock, TapBlock
+from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 log = logging.getLogger("hapticlink.demo")
-DEMO_MODEL = "ann"  # reads touch and vision, trains in seconds, best exportable model on the synthetic world (reports/synthetic)
+DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
 TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
+#: tactile feature groups of the demo's models: every physical cue (the robot taps each probe before stroking it)
+DEMO_GROUPS = ("friction", "spatial", "taps")
+DEMO_TEXTURES = 96  # the world the models learn from (the library holds the first 24 of them): error still falls with more textures at 48
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
+REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,8 +48,31 @@ class DemoAssets:
     probes: Path
 
 
-def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed: int = 0) -> DemoAssets:
-    """Build whatever is missing under root (needs the train extra the first time)."""
+def demo_features():
+    """The demo model's TactileConfig: the paper's MFCC set + DEMO_GROUPS."""
+    from models.tactile.config import TactileConfig
+
+    return TactileConfig(extra_groups=DEMO_GROUPS)
+
+
+#: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
+WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
+
+
+def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> dict:
+    from texture_library.procedural import WORLD_VERSION
+
+    return {"world_version": WORLD_VERSION, "model": DEMO_MODEL, "tactile_model": TACTILE_MODEL,
+            "tactile_hash": demo_features().hash(),
+            "n_textures": n_textures, "library_textures": library_textures, "n_probes": n_probes, "seed": seed}
+
+
+def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int = 4, seed: int = 0,
+                   library_textures: int = 24) -> DemoAssets:
+    """Build whatever is missing under root (needs the train extra the first time); assets made for
+    another world version or size are rebuilt, models made for another model or feature set retrained."""
+    import shutil
+
     from models.datasets.build import build
     from models.featurize import backbone_onnx, featurize_dataset
     from models.train import train_and_export
@@ -48,16 +81,29 @@ def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed:
 
     root.mkdir(parents=True, exist_ok=True)
     assets = DemoAssets(root / "dataset", root / "model.onnx", root / "tactile.onnx", Path(), root / "library", root / "probes")
+    stamp_path, stamp = root / "assets.json", _stamp(n_textures, library_textures, n_probes, seed)
+    old = json.loads(stamp_path.read_text()) if stamp_path.is_file() else None
+    if old is None and assets.model.is_file() or old is not None and any(old.get(k) != stamp[k] for k in WORLD_KEYS):
+        print("  · assets were made for another world: rebuilding them", flush=True)
+        for path in (assets.dataset, assets.library, assets.probes):
+            shutil.rmtree(path, ignore_errors=True)
+    if old != stamp:
+        assets.model.unlink(missing_ok=True)
+        assets.tactile.unlink(missing_ok=True)
+    features = demo_features()
+    library_textures = min(library_textures, n_textures)
+    groups = " + ".join(["MFCC", *DEMO_GROUPS])
     steps = [
         (not (assets.dataset / "dataset.json").is_file(), f"building a synthetic world of {n_textures} textures",
          lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed)),
-        (True, "computing features (cached after the first run)", lambda: featurize_dataset(assets.dataset)),
-        (not assets.model.is_file(), f"training {DEMO_MODEL} on it and exporting ONNX",
-         lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed)),
-        (not assets.tactile.is_file(), f"training {TACTILE_MODEL} (windows before the first frame) and exporting ONNX",
-         lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed)),
+        (True, "computing features (cached after the first run)",
+         lambda: featurize_dataset(assets.dataset, tactile_config=features)),
+        (not assets.model.is_file(), f"training {DEMO_MODEL} on it ({groups}) and exporting ONNX",
+         lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features)),
+        (not assets.tactile.is_file(), f"training {TACTILE_MODEL} ({groups}; windows before the first frame) and exporting ONNX",
+         lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed, tactile_config=features)),
         (not (assets.library / "library.json").is_file(), "writing the texture library",
-         lambda: build_synthetic_library(assets.library, n_textures=n_textures, seed=seed)),
+         lambda: build_synthetic_library(assets.library, n_textures=library_textures, seed=seed)),
         (not (assets.probes / "library.json").is_file(), f"making {n_probes} unseen probe textures",
          lambda: build_synthetic_library(assets.probes, n_textures=n_probes, seed=seed + 1)),
     ]
@@ -65,11 +111,21 @@ def prepare_assets(root: Path, *, n_textures: int = 24, n_probes: int = 4, seed:
         if needed:
             print(f"  · {what} …", flush=True)
             step()
+    stamp_path.write_text(json.dumps(stamp))
     return dataclasses.replace(assets, backbone=backbone_onnx(VisualConfig()))
 
 
+def probe_clock(t_s: float, per_texture_s: float) -> tuple[int, float]:
+    """(k, seconds into probe k's stroke) at stream time t_s: the tour strokes probe k from
+    k·(per_texture_s + SCENE_GAP_S) for per_texture_s seconds (a window ending exactly at a
+    stroke's end belongs to that stroke)."""
+    period = per_texture_s + SCENE_GAP_S
+    k = int(max(t_s - 1e-9, 0.0) // period)
+    return k, t_s - k * period
+
+
 class ProbeTour:
-    """A sensor source that strokes each probe texture for `per_texture_s`, in a loop (or `rounds` times)."""
+    """A sensor source that taps and strokes each probe texture for `per_texture_s`, in a loop (or `rounds` times)."""
 
     def __init__(self, probes: Path, per_texture_s: float, rounds: int | None = None, seed: int = 0):
         from texture_library.library import Library
@@ -82,18 +138,20 @@ class ProbeTour:
         self.current: str | None = None
         self._closing = False
 
-    async def _items(self) -> AsyncIterator[SampleBlock | Frame]:
+    async def _items(self) -> AsyncIterator[SampleBlock | TapBlock | Frame]:
         from drivers.simulated import SimulatedSource
 
         offset, k = 0.0, 0
         while not self._closing and (self.rounds is None or k < self.rounds * len(self.library.ids)):
             entry = self.library.ids[k % len(self.library.ids)]
             self.current = entry
-            source = SimulatedSource(self.library.model(entry), self.library.image(entry), seed=self.seed + k,
-                                     duration_s=self.per_texture_s, name=entry)
+            model = self.library.model(entry)
+            # the robot taps each probe before stroking it (a model without tap features ignores the taps)
+            source = SimulatedSource(model, self.library.image(entry), seed=self.seed + k,
+                                     duration_s=self.per_texture_s, name=entry, taps=model.taps is not None)
             try:
                 async for item in source:
-                    if isinstance(item, SampleBlock):
+                    if not isinstance(item, Frame):  # sample and tap blocks: onto the tour's clock
                         yield dataclasses.replace(item, t0=item.t0 + offset)
                     else:
                         yield item
@@ -102,8 +160,13 @@ class ProbeTour:
             offset += self.per_texture_s + SCENE_GAP_S
             k += 1
 
-    def __aiter__(self) -> AsyncIterator[SampleBlock | Frame]:
+    def __aiter__(self) -> AsyncIterator[SampleBlock | TapBlock | Frame]:
         return self._items()
+
+    def probe_at(self, t_s: float) -> str:
+        """The probe stroked at stream time t_s (e.g. a window's end)."""
+        k, _ = probe_clock(t_s, self.per_texture_s)
+        return self.library.ids[k % len(self.library.ids)]
 
     async def aclose(self) -> None:
         self._closing = True
@@ -124,8 +187,54 @@ def _interval(event: dict) -> str:
     return band + flag
 
 
-async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0) -> None:
-    """Subscribe like the console does and print a line every few seconds."""
+def rating_error(estimate: dict, truth: dict) -> float:
+    """Mean absolute error over the four attributes on the 0–100 scale (bipolar difference ÷ 2)."""
+    return float(np.mean([abs(estimate[a] - truth[a]) for a in ATTRIBUTES]) * REPORT_SCALE)
+
+
+class ProbeReport:
+    """Collects each probe's window estimates over its first `after_s` seconds of stroking (the probe
+    and the time into its stroke follow from the window's end on the robot's clock: probe k strokes
+    from k·(per_texture_s + SCENE_GAP_S) for per_texture_s) and, once a window ends past `after_s`,
+    returns the lines comparing the estimates with the probe's truth. Keeps the errors for a summary."""
+
+    def __init__(self, ids: list[str], truth: dict[str, dict], per_texture_s: float, after_s: float = REPORT_AFTER_S):
+        self.ids, self.truth, self.per_texture_s, self.after_s = ids, truth, per_texture_s, after_s
+        self.raw: dict[int, list[dict]] = {}
+        self.done: set[int] = set()
+        self.errors: list[tuple[str, float, float]] = []  # (probe, error of the console estimate, of the mean)
+
+    def add(self, t_end_s: float, ratings: dict, raw_ratings: dict) -> list[str]:
+        k, into = probe_clock(t_end_s, self.per_texture_s)
+        if k in self.done or into > self.per_texture_s + 1e-6:
+            return []
+        self.raw.setdefault(k, []).append(raw_ratings)
+        if into < self.after_s - 1e-6:
+            return []
+        self.done.add(k)
+        probe = self.ids[k % len(self.ids)]
+        truth = self.truth[probe]
+        windows = self.raw.pop(k)
+        mean = {a: float(np.mean([r[a] for r in windows])) for a in ATTRIBUTES}
+        e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
+        self.errors.append((probe, e_now, e_mean))
+        return [f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "
+                f"4 attributes, 0–100 scale)",
+                f"{'':10s}console estimate  {_fmt(ratings)}   error {e_now:5.1f}",
+                f"{'':10s}mean of windows   {_fmt(mean)}   error {e_mean:5.1f}",
+                f"{'':10s}truth             {_fmt(truth)}"]
+
+    def summary(self) -> str | None:
+        if not self.errors:
+            return None
+        now, mean = np.mean([e[1] for e in self.errors]), np.mean([e[2] for e in self.errors])
+        return (f"after {self.after_s:g} s of each of {len(self.errors)} probe stroke(s): mean error {now:.1f} "
+                f"(console estimate), {mean:.1f} (mean of windows) points on 0–100")
+
+
+async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0,
+                       report: ProbeReport | None = None) -> None:
+    """Subscribe like the console does and print a line every few seconds, and each probe's report."""
     import websockets
 
     ws_url = url.replace("http", "ws", 1) + f"/sessions/{session}/events?token={token}"
@@ -133,19 +242,28 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
     async with websockets.connect(ws_url) as ws:
         async for message in ws:
             event = json.loads(message)
-            if event.get("type") != "window" or time.monotonic() - last < every_s:
+            if event.get("type") != "window":
+                continue
+            if report is not None:
+                lines = report.add(event["t_end_s"], event["ratings"], event["raw_ratings"])
+                if lines:
+                    print("\n".join(lines), flush=True)
+            if time.monotonic() - last < every_s:
                 continue
             last = time.monotonic()
-            truth = tour.library.entry(tour.current).ratings if tour.current else None
-            print(f"[{event['t_end_s']:6.1f} s] stroking {tour.current}: estimate {_fmt(event['ratings'])}\n"
-                  f"{'':10s}truth of {tour.current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
+            # the probe this window belongs to, from its time (the robot may be ahead, stroking the next)
+            current = tour.probe_at(event["t_end_s"])
+            truth = tour.library.entry(current).ratings
+            print(f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
+                  f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
                   f"{'':10s}{_interval(event)}\n"
                   f"{'':10s}nearest library texture: {event['chosen']} "
                   f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
                   f"pipeline {event['latency_ms']['total']:.1f} ms", flush=True)
 
 
-async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: float, duration_s: float | None) -> None:
+async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: float, duration_s: float | None,
+                   report_after_s: float = REPORT_AFTER_S) -> None:
     import uvicorn
 
     from drivers.robot import RobotClient
@@ -168,13 +286,18 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     info = await robot.open_session()
     print(f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
           f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n", flush=True)
-    printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour))
+    truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
+    report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
+    printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour, report=report))
     try:
         await robot.run(duration_s)
+        await asyncio.sleep(0.5)  # the last windows' events are still on their way
     finally:
         printer.cancel()
         server.should_exit = True
         await asyncio.gather(printer, serving, return_exceptions=True)
+        if report.summary():
+            print(report.summary(), flush=True)
     print(f"robot stats: {robot.stats.as_dict()}")
 
 

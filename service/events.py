@@ -24,6 +24,7 @@ StatusKind = Literal[
     "frame_received",  # a camera frame arrived (and will be embedded, or is ignored by a tactile model)
     "visual_updated",  # the visual embedding now used for the scene's windows changed
     "waiting_for_frame",  # a visual model without a tactile-only model holds windows until the first frame is embedded
+    "waiting_for_taps",  # a model with tap features holds windows until the surface under the tool is tapped
     "robot_disconnected",  # the robot's ingest socket closed (the message says why)
     "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what

@@ -1,4 +1,4 @@
-"""The ingest step: wire bytes → SampleBlock → the session's admission → the acknowledgement, with outcomes counted.
+"""The ingest step: wire bytes → SampleBlock or TapBlock → the session's admission → the acknowledgement, with outcomes counted.
 
 HTTP `POST /blocks` and the ingest WebSocket both call `receive_block`, so a block is decoded and
 validated once, in one place, whichever way it came.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 
-from drivers.blocks import SampleBlock, decode_binary, decode_json
+from drivers.blocks import Block, decode_binary, decode_json
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
 from service.session import Session
@@ -37,8 +37,8 @@ def count_rejected(metrics: ServiceMetrics, session: Session) -> None:
     session.counters.blocks_rejected += 1
 
 
-def decode_block(payload: bytes, binary: bool) -> SampleBlock:
-    """Wire bytes → SampleBlock; ServiceError 400 (not JSON) or 422 (not a valid block) with the decoder's message."""
+def decode_block(payload: bytes, binary: bool) -> Block:
+    """Wire bytes → SampleBlock | TapBlock; ServiceError 400 (not JSON) or 422 (not a valid block) with the decoder's message."""
     try:
         if binary:
             return decode_binary(payload)

@@ -1,7 +1,9 @@
 """A block's way through the service, one typed step per stage:
 
-    ingest      wire bytes ─▶ SampleBlock                                   (service.ingest, event loop)
+    ingest      wire bytes ─▶ SampleBlock | TapBlock                        (service.ingest, event loop)
     admission   SampleBlock ─▶ AdmittedBlock (StreamContract.advance)       (service.session, event loop)
+                TapBlock ─▶ the session's tap features (models.tactile.taps.tap_features), carried by the
+                AdmittedBlocks of the surface they were tapped on           (service.session, event loop)
     window batch  AdmittedBlocks of a session ─▶ PreparedWindows             (prepare_windows, pool thread)
     features    every session's windows at once ─▶ FeatureRows               (featurize: window_features)
     model       FeatureRows ─▶ RawRatings (the main model where the session's visual embedding has
@@ -49,7 +51,9 @@ class AdmittedBlock:
 
     segment / origin_t0: its stream segment and that segment's first sample time (sender clock, s);
     windows: complete windows of the segment once this block is in (StreamContract's count);
-    arrived_ns: time.perf_counter_ns() when its body had been read.
+    arrived_ns: time.perf_counter_ns() when its body had been read;
+    taps: (3,) tap features of the surface (models.tactile.taps.tap_features) for a model with the taps
+    group, None until the surface has been tapped (or for a model without the group).
     """
 
     seq: int
@@ -58,6 +62,7 @@ class AdmittedBlock:
     channels: dict[str, Channel]
     windows: int
     arrived_ns: int
+    taps: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -76,7 +81,8 @@ class SessionJob:
 @dataclass(frozen=True)
 class PreparedWindows:
     """One session segment's windows after preprocessing. completed_by: (seq, arrived_ns) of the block that
-    completed each window; preprocess_ns: what push + take cost."""
+    completed each window; preprocess_ns: what push + take cost; taps: (m, 3) tap features per window (those
+    its completing block carried) for a model with the taps group, else None."""
 
     estimator: "SessionEstimator"
     batch: WindowBatch
@@ -85,6 +91,11 @@ class PreparedWindows:
     visual: np.ndarray | None
     preprocess_ns: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
+    taps: np.ndarray | None = None
+
+    @property
+    def inputs(self) -> Inputs:
+        return "tactile" if self.visual is None else "tactile+visual"
 
 
 @dataclass(frozen=True)
@@ -202,18 +213,24 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
         batch = est._pre.take()
         if len(batch) == 0:
             continue
-        completed_by = [_completing(group, est.taken + i) for i in range(len(batch))]
+        completing = [_completing(group, est.taken + i) for i in range(len(batch))]
         est.taken += len(batch)
-        out.append(PreparedWindows(est, batch, first.origin_t0, completed_by, job.visual, time.perf_counter_ns() - t0,
-                                   job.frame_checks))
+        taps = None
+        if "taps" in est.config.extra_groups:
+            if any(b.taps is None for b in completing):
+                raise ValueError("a window's surface has no tap features; the session holds such windows back")
+            taps = np.stack([b.taps for b in completing])
+        out.append(PreparedWindows(est, batch, first.origin_t0, [(b.seq, b.arrived_ns) for b in completing], job.visual,
+                                   time.perf_counter_ns() - t0, job.frame_checks, taps))
     return out
 
 
 def featurize(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> FeatureRows:
     """Features step: THE training feature function on every window of the batch at once."""
     t0 = time.perf_counter_ns()
+    taps = np.concatenate([p.taps for p in prepared]) if runtime.needs_taps else None  # type: ignore[misc]
     rows = window_features(np.concatenate([p.batch.accel for p in prepared]), np.concatenate([p.batch.speed for p in prepared]),
-                           np.concatenate([p.batch.force for p in prepared]), runtime.tactile_config)
+                           np.concatenate([p.batch.force for p in prepared]), runtime.tactile_config, taps)
     return FeatureRows(rows, (time.perf_counter_ns() - t0) / 1e6)
 
 
@@ -341,13 +358,12 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
     return results
 
 
-def _completing(group: Sequence[AdmittedBlock], window: int) -> tuple[int, int]:
-    """(seq, arrived_ns) of the first block of `group` after which the segment had more than `window` windows."""
+def _completing(group: Sequence[AdmittedBlock], window: int) -> AdmittedBlock:
+    """The first block of `group` after which the segment had more than `window` windows."""
     for b in group:
         if b.windows > window:
-            return b.seq, b.arrived_ns
-    last = group[-1]
-    return last.seq, last.arrived_ns
+            return b
+    return group[-1]
 
 
 def _by_segment(blocks: Sequence[AdmittedBlock]) -> list[list[AdmittedBlock]]:

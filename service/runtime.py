@@ -82,6 +82,11 @@ class Runtime:
         return self.predictor.needs_visual
 
     @property
+    def needs_taps(self) -> bool:
+        """True when the model's features include the taps group (tap blocks feed it; others ignore them)."""
+        return "taps" in self.tactile_config.extra_groups
+
+    @property
     def can_estimate_without_frame(self) -> bool:
         """True when windows of a session without a visual embedding can be estimated (tactile-only)."""
         return not self.needs_visual or self.fallback is not None

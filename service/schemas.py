@@ -71,6 +71,8 @@ class SessionCounters:
     frames_embedded: int = 0
     frames_superseded: int = 0  # replaced by a newer frame before being embedded
     pipeline_errors: int = 0
+    tap_blocks_used: int = 0  # tap blocks whose features the model reads (taps group)
+    tap_blocks_ignored: int = 0  # tap blocks acknowledged and ignored: the model has no taps group
 
 
 class SessionStatus(BaseModel):
@@ -81,11 +83,12 @@ class SessionStatus(BaseModel):
         "counters": {"blocks_accepted": 401, "blocks_duplicate": 0, "blocks_rejected": 1, "blocks_refused": 0,
                      "windows": 16, "frames_received": 0, "frames_rejected": 0, "frames_refused": 0,
                      "frames_unchanged": 0, "frames_embedded": 0,
-                     "frames_superseded": 0, "pipeline_errors": 0}}]})
+                     "frames_superseded": 0, "pipeline_errors": 0, "tap_blocks_used": 0,
+                     "tap_blocks_ignored": 0}}]})
     session_id: str
     name: str
     instance: str
-    state: str = Field(description="open | streaming | waiting_for_frame | saturated | ended")
+    state: str = Field(description="open | streaming | waiting_for_frame | waiting_for_taps | saturated | ended")
     created_at: float = Field(description="Unix time, s")
     idle_s: float
     model: str
@@ -148,6 +151,30 @@ class JsonBlock(BaseModel):
     t0: float = Field(description="time of the first sample on the robot's clock, s")
     kind: Literal["samples"] = Field("samples", description="block kind (drivers.blocks.BLOCK_KINDS)")
     channels: dict[Literal["accel", "force", "speed", "position"], JsonChannel] = Field(min_length=1)
+
+
+class JsonTaps(BaseModel):
+    """The taps of a tap block: k taps of n samples each, with their speeds."""
+
+    rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
+    units: Literal["m/s^2", "g"] = Field(description="acceleration units")
+    speeds: NonEmpty[list[float]] = Field(max_length=32, description="each tap's approach speed, mm/s (≥ 0), one per tap")
+    data: NonEmpty[list[NonEmpty[list[float]]]] = Field(
+        max_length=32, description="k taps × n samples (16 ≤ n ≤ 500): each tap's acceleration transient")
+
+
+class JsonTapBlock(BaseModel):
+    """A tap block as JSON (drivers/blocks.py): the tap exploratory procedure on the surface under the tool."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "seq": 0, "t0": 0.0, "kind": "taps",
+        "taps": {"rate_hz": 1000, "units": "m/s^2", "speeds": [22.5, 41.0],
+                 "data": [[0.0] * 5 + [3.1, -2.4, 1.7, -1.1, 0.6] + [0.0] * 6,
+                          [0.0] * 5 + [5.8, -4.5, 3.2, -2.0, 1.1] + [0.0] * 6]}}]})
+    seq: int = Field(ge=0, lt=2**63, description="one more per block (shared with sample blocks); required")
+    t0: float = Field(description="time of the first tap on the robot's clock, s")
+    kind: Literal["taps"]
+    taps: JsonTaps
 
 
 BLOCK_REQUEST_BODY = {

@@ -5,6 +5,14 @@
     frames: decode + scene-change test (frame pool) ─▶ the serving policy: embed it? ─▶ latest-frame slot
         ─▶ embed + frame checks (visual pool, one at a time) ─▶ the scene's pooled visual input
 
+Tap blocks (the tap exploratory procedure): a model whose features include the taps group gets the
+surface's tap features from them, computed on admission by the same pure function the datasets use
+(models.tactile.taps.tap_features); other models acknowledge and ignore them. Tap features belong to
+the surface under the tool: they hold for the sample blocks admitted after the tap block, and for the
+blocks of the current stream segment still waiting for them; a new segment (the tool was lifted: a new
+surface) starts without tap features unless a tap block came just before it. Windows of a taps model
+whose surface has not been tapped wait, like windows waiting for a first frame (bounded the same way).
+
 Bounds, checked before anything is taken: a block that would leave more than
 session_queue_windows complete-but-unpublished windows, or more than session_queue_blocks pending
 blocks, is refused (429 / close 4429); a session is in at most one estimation job and one
@@ -20,16 +28,17 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Literal
 
 import numpy as np
 
-from drivers.blocks import SampleBlock
+from drivers.blocks import Block, SampleBlock, TapBlock
 from drivers.protocol import SESSION_LOST
 from models.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from service.adaptive import SceneViews
+from models.tactile.taps import tap_features
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
@@ -99,6 +108,9 @@ class Session:
         self._windows_done = 0  # of those, estimated and published (or lost to a failed job)
         self._frame: tuple[np.ndarray, bool] | None = None  # (gray, starts a new scene) waiting for the embedder
         self._told_waiting = False
+        self._told_waiting_taps = False
+        self._taps: np.ndarray | None = None  # tap features of the surface now under the tool (taps models)
+        self._taps_fresh = False  # a tap block came after the last sample block: it is for the next segment too
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
         self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
@@ -108,7 +120,7 @@ class Session:
     def touch(self) -> None:
         self.last_activity = time.monotonic()
 
-    def ingest(self, block: SampleBlock, arrived_ns: int) -> dict:
+    def ingest(self, block: Block, arrived_ns: int) -> dict:
         """Admit one decoded block → the acknowledgement {seq, duplicate, windows_ready}.
 
         ServiceError 422 when the block contradicts the stream or its seq is unusable, 429 when its windows
@@ -124,6 +136,8 @@ class Session:
             raise ServiceError(422, f"seq jumps from {self.last_seq} to {block.seq}, more than max_seq_gap "
                                     f"({self.settings.max_seq_gap}) blocks; send the blocks that follow {self.last_seq}, "
                                     "or open a new session for a new stream")
+        if isinstance(block, TapBlock):
+            return self._ingest_taps(block)
         try:
             advance = self.contract.admit(self.cursor, canonical_channels(block), block.t0)
         except ValueError as exc:
@@ -135,12 +149,39 @@ class Session:
                 f"session {self.id} is saturated ({self.backlog()} windows, {len(self._pending)} blocks waiting); "
                 f"resend block {block.seq} later", RETRY_AFTER_S)
         self.cursor = advance.cursor
+        if advance.new_segment and not self._taps_fresh:
+            self._taps = None  # a new surface: its taps are not known yet
+        self._taps_fresh = False
         self._pending.append(AdmittedBlock(block.seq, advance.cursor.segment, advance.cursor.origin_t0,
-                                           advance.channels, advance.windows_after, arrived_ns))
+                                           advance.channels, advance.windows_after, arrived_ns, self._taps))
         self._pending_windows += advance.windows_added
         self._windows_admitted += advance.windows_added
         if advance.windows_added:
             self._metrics.windows_admitted.inc(advance.windows_added)
+        self.last_seq = block.seq
+        self.counters.blocks_accepted += 1
+        if self._pending_windows:
+            self._notify(self)
+        return {"seq": block.seq, "duplicate": False, "windows_ready": self.backlog()}
+
+    def _ingest_taps(self, block: TapBlock) -> dict:
+        """A tap block: its features for a taps model (422 if they cannot be computed), ignored otherwise."""
+        if self.runtime.needs_taps:
+            accel = block.accel
+            scale = UNIT_SCALE["accel"][accel.units]
+            try:
+                features = tap_features(block.speeds, accel.data.astype(np.float64) * scale, accel.rate_hz)
+            except ValueError as exc:
+                raise bad_input(exc) from None
+            self._taps, self._taps_fresh = features, True
+            self._told_waiting_taps = False  # the next untapped surface is told again
+            # blocks of this surface admitted before its taps were waiting for them
+            for i, b in enumerate(self._pending):
+                if b.taps is None and b.segment == self.cursor.segment:
+                    self._pending[i] = replace(b, taps=features)
+            self.counters.tap_blocks_used += 1
+        else:
+            self.counters.tap_blocks_ignored += 1
         self.last_seq = block.seq
         self.counters.blocks_accepted += 1
         if self._pending_windows:
@@ -161,10 +202,15 @@ class Session:
         """True while windows must wait: a visual model, no embedding yet, and no tactile-only model."""
         return self.visual is None and not self.runtime.can_estimate_without_frame
 
+    def waiting_for_taps(self) -> bool:
+        """True while windows must wait: a taps model, and a pending block whose surface has not been tapped."""
+        return self.runtime.needs_taps and any(b.taps is None for b in self._pending)
+
     def take_job(self) -> SessionJob | None:
         """Hand the pending blocks to an estimation job; None when there is nothing to do or windows wait for
-        the first frame (the blocks then stay, counting against the bounds: the wait ends in 429s, not memory)."""
-        if self.closed or not self._pending or self.waiting_for_frame():
+        the first frame or for the surface's taps (the blocks then stay, counting against the bounds: the wait
+        ends in 429s, not memory)."""
+        if self.closed or not self._pending or self.waiting_for_frame() or self.waiting_for_taps():
             return None
         blocks, windows = self._pending, self._pending_windows
         self._pending, self._pending_windows = [], 0
@@ -172,6 +218,13 @@ class Session:
 
     async def tell_waiting(self) -> None:
         """Tell operators, once, why windows wait."""
+        if self.waiting_for_taps() and not self.waiting_for_frame():
+            if not self._told_waiting_taps:
+                self._told_waiting_taps = True
+                await self._status("waiting_for_taps", f"model {self.runtime.model_name} reads tap features and the "
+                                   "surface under the tool has not been tapped; windows wait for a tap block, at most "
+                                   f"{self.settings.session_queue_windows} of them, then blocks are refused (429)")
+            return
         if not self._told_waiting:
             self._told_waiting = True
             await self._status("waiting_for_frame", f"model {self.runtime.model_name} needs a camera frame and no "
@@ -277,6 +330,8 @@ class Session:
     def state(self) -> str:
         if self.waiting_for_frame():
             return "waiting_for_frame"
+        if self.waiting_for_taps():
+            return "waiting_for_taps"
         return "saturated" if self.saturated() else "streaming" if self.last_seq >= 0 else "open"
 
     def status(self) -> dict:

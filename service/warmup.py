@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from models.tactile.taps import tap_features
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
 from service.runtime import Runtime
 from service.session import stream_contract
@@ -57,9 +58,16 @@ def synthetic_job(runtime: Runtime, settings: Settings, contract, rng: np.random
     (warm-up, and benchmarks.uncertainty's per-window cost)."""
     rate = runtime.tactile_config.rate_hz
     n = int(round(rate * (runtime.tactile_config.window_s + (WARM_UP_WINDOWS - 1) * runtime.tactile_config.hop_s)))
-    channels = {"accel": Channel(rng.normal(0, 1, size=(n, 3)), rate), "force": Channel(np.full(n, 1.5), rate),
+    # 3-column force (tangential x, y, normal): what a friction model needs, and what the others take the normal of
+    force = np.column_stack([np.full(n, 0.45), np.zeros(n), np.full(n, 1.5)])
+    channels = {"accel": Channel(rng.normal(0, 1, size=(n, 3)), rate), "force": Channel(force, rate),
                 "speed": Channel(np.full(n, 80.0), rate)}
     est = SessionEstimator.from_settings(runtime, contract, settings)
     adv = contract.advance(contract.start(), channels, 0.0)
-    block = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, time.perf_counter_ns())
+    taps = None
+    if runtime.needs_taps:  # a model with tap features: the tap function runs once too
+        ringing = np.exp(-np.arange(100) / 8.0) * np.sin(np.arange(100) * 0.9)
+        taps = tap_features(np.array([20.0, 40.0]), np.stack([20.0 * ringing, 40.0 * ringing]) + rng.normal(0, 0.05, (2, 100)))
+    block = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, time.perf_counter_ns(),
+                          taps)
     return SessionJob(est, [block], visual, adv.windows_added, checks)

@@ -2,13 +2,33 @@
 
 Each texture has physical parameters (micro-roughness, grain, macro bumps,
 friction, stiffness, albedo). From them follow, by documented rules:
-- a HaTT-style vibration model (ARMA over a speed × force grid) and tap transients,
+- a HaTT-style vibration model (ARMA over a speed × force grid), a macro surface
+  profile (texture_library.surface) and tap transients,
 - a grayscale photo-like image,
 - ground-truth perceptual ratings (`true_ratings`) and rater-like noisy ratings.
 
+The world is fair: every rating follows from a property that a stroking, tapping
+tool with a camera can sense, as real perception does —
+
+| rating          | physical cause        | what the sensors get                                               |
+|-----------------|-----------------------|--------------------------------------------------------------------|
+| rough–smooth    | roughness_um          | vibration level while stroking (ARMA variance ∝ roughness^1.4)     |
+| flat–bumpy      | bump_height_mm        | position-periodic normal acceleration z''(x)·v² of the bump train  |
+|                 |                       | (period bump_period_mm, 5–25 mm), read against position            |
+| sticky–slippery | mu                    | tangential / normal force = μ (Coulomb friction against the motion)|
+|                 |                       | and a stick–slip resonance in the vibration, sharper for higher μ  |
+| hard–soft       | stiffness_n_per_mm    | tap transients (peak ∝ tap speed·√k, ringing at 90·k^0.35 Hz,      |
+|                 |                       | decaying over 3–15 ms, longer when stiffer) and the stroke's       |
+|                 |                       | contact resonance at 60·k^0.35 Hz                                  |
+
+Grain, bump period and albedo change the signals and the image but no rating. The
+camera sees every cue too (micro-texture contrast, shaded bumps, a sheen on slippery
+surfaces, fibres on soft ones), as a photo would.
+
 The world is the project's own data: the demo and every test that must not
 depend on ../shared run on it. The mapping from parameters to ratings is the
-"known answer" that evaluation on this world must recover.
+"known answer" that evaluation on this world must recover. Everything is drawn
+from seeded generators: the same seed gives the same world.
 """
 
 from __future__ import annotations
@@ -20,9 +40,12 @@ from scipy.signal import lfilter
 
 from texture_library.attributes import ATTRIBUTES
 from texture_library.lsf import poles_to_poly, poly_to_lsf
+from texture_library.surface import SurfaceProfile
 from texture_library.taps import TapSet
 from texture_library.vibration import VibrationModel
 
+#: bumped whenever the world's physics change: datasets record it, demo assets of another version are rebuilt
+WORLD_VERSION = 2
 RATE_HZ = 1000.0
 GRID_MAX_SPEED = 350.0  # mm/s
 GRID_MAX_FORCE = 5.0  # N
@@ -33,7 +56,7 @@ PARAM_RANGES: dict[str, tuple[float, float, bool]] = {
     "roughness_um": (1.0, 200.0, True),  # RMS height of the micro-texture
     "grain_mm": (0.3, 3.0, True),  # spatial period of the micro-texture
     "bump_height_mm": (0.0, 1.5, False),  # height of macro bumps
-    "bump_period_mm": (1.5, 6.0, True),  # spacing of macro bumps: at 150 mm/s they ring at 25–100 Hz, above the 20 Hz high-pass
+    "bump_period_mm": (5.0, 25.0, True),  # spacing of macro bumps: felt against position (at 150 mm/s they ring at 6–30 Hz)
     "mu": (0.15, 1.2, False),  # kinetic friction coefficient
     "stiffness_n_per_mm": (0.05, 50.0, True),  # contact stiffness
     "albedo": (0.25, 0.75, False),  # mean grey level: perceptually irrelevant on purpose
@@ -120,33 +143,37 @@ def _contact_hz(p: PhysicalParams) -> float:
     return float(np.clip(60.0 * p.stiffness_n_per_mm**0.35, 25.0, 460.0))
 
 
+#: a second-order high-pass at ≈ 20 Hz shared by every grid point (double zero at z = 0.99, double
+#: pole at z = 0.88): like HaTT's models, fitted to recordings high-passed at 20 Hz, texture
+#: vibration carries little below 20 Hz — that band belongs to the hand's motion and the bumps
+HIGHPASS_MA = np.array([1.0, -1.98, 0.9801])
+HIGHPASS_AR = np.array([1.0, -1.76, 0.7744])
+
+
 def _arma_at(p: PhysicalParams, speed: float, force: float) -> tuple[np.ndarray, np.ndarray, float]:
     """(AR poly (9,), MA poly (3,), excitation variance) at one grid point.
 
-    Four resonances: the micro-texture at v/grain, the bumps at v/bump_period (sharper for
-    higher bumps), the tool–surface contact resonance (higher and sharper for stiffer
-    surfaces) and stick–slip at half the contact resonance (sharper for more friction).
-    The RMS level is set by roughness (and, less, by bumps), speed and force.
+    Three resonances: the micro-texture at v/grain, the tool–surface contact resonance (higher
+    and sharper for stiffer surfaces) and stick–slip at half the contact resonance (sharper for
+    more friction), behind the 20 Hz high-pass. The RMS level is set by roughness, speed and
+    force. Macro bumps are not noise: they are the deterministic surface profile
+    (texture_library.surface) that the stroke renders on top.
     """
     v = max(speed, 1.0)
     contact = _contact_hz(p)
-    freqs = np.clip([v / p.grain_mm, v / p.bump_period_mm, contact, 0.5 * contact + 10.0], 8.0, 460.0)
+    freqs = np.clip([v / p.grain_mm, contact, 0.5 * contact + 10.0], 8.0, 460.0)
     radii = np.array(
         [
             0.90,
-            0.80 + 0.18 * p.bump_height_mm / PARAM_RANGES["bump_height_mm"][1],
             0.75 + 0.20 * _unit_log(p.stiffness_n_per_mm, "stiffness_n_per_mm"),
             0.60 + 0.35 * (p.mu - PARAM_RANGES["mu"][0]) / (PARAM_RANGES["mu"][1] - PARAM_RANGES["mu"][0]),
         ]
     )
-    ar = poles_to_poly(freqs, radii, RATE_HZ)
-    ma = np.convolve([1.0, -0.6], [1.0, -0.3])  # mild high-pass zeros, minimum phase
+    ar = np.convolve(poles_to_poly(freqs, radii, RATE_HZ), HIGHPASS_AR)
+    ma = HIGHPASS_MA
     if speed <= 0.0 or force <= 0.0:
         return ar, ma, 0.0
-    rms = (
-        (p.roughness_um / 30.0) ** 0.7 * (speed / 150.0) ** 0.8 * (force / 2.0) ** 0.5
-        + 0.3 * p.bump_height_mm * (speed / 150.0)
-    )
+    rms = (p.roughness_um / 30.0) ** 0.7 * (speed / 150.0) ** 0.8 * (force / 2.0) ** 0.5
     impulse = np.zeros(2048)
     impulse[0] = 1.0
     power_gain = float(np.sum(lfilter(ma, ar, impulse) ** 2))
@@ -154,7 +181,8 @@ def _arma_at(p: PhysicalParams, speed: float, force: float) -> tuple[np.ndarray,
 
 
 def vibration_model(p: PhysicalParams, name: str, rng: np.random.Generator, grid: int = 5) -> VibrationModel:
-    """The texture's vibration model on a grid × grid speed–force lattice (two triangles per cell)."""
+    """The texture's vibration model on a grid × grid speed–force lattice (two triangles per cell),
+    with its bump profile and tap transients."""
     speeds_1d = np.linspace(0.0, GRID_MAX_SPEED, grid)
     forces_1d = np.linspace(0.0, GRID_MAX_FORCE, grid)
     ss, ff = np.meshgrid(speeds_1d, forces_1d, indexing="ij")
@@ -186,11 +214,14 @@ def vibration_model(p: PhysicalParams, name: str, rng: np.random.Generator, grid
         rate_hz=RATE_HZ,
         provenance="hapticlink synthetic world (procedural, generated)",
         extra={"physical": p.to_dict()},
+        surface=SurfaceProfile(p.bump_height_mm, p.bump_period_mm),
     )
 
 
 def tap_transients(p: PhysicalParams, rng: np.random.Generator, n_taps: int = 10, n: int = 100) -> TapSet:
-    """Decaying oscillations at the contact resonance; harder surfaces ring higher, louder, longer."""
+    """n_taps taps of n samples (1 kHz) at speeds 5–80 mm/s, like HaTT's: a decaying oscillation at
+    1.5 × the contact resonance starting 5 ms in, peak 0.2·speed·√k m/s², time constant
+    3–15 ms (log-stiffness), plus 0.05 m/s² sensor noise. Harder surfaces ring higher, louder, longer."""
     speeds = np.sort(rng.uniform(5.0, 80.0, n_taps))
     t = np.arange(n) / RATE_HZ
     f = 1.5 * _contact_hz(p)

@@ -1,11 +1,16 @@
 """What the tool's sensors record while it strokes a texture.
 
 The vibration model gives the acceleration along the surface normal; the tool
-also vibrates along the stroke (an independent realisation, weaker), the
-accelerometer is mounted at an arbitrary fixed orientation, feels gravity and
-adds noise. The force sensor sees the normal force and Coulomb friction
-μ·F_n against the direction of motion. Both the dataset builders and the
-simulated robot use this one function.
+also vibrates along the stroke (an independent realisation, weaker). Where the
+model has a macro surface profile (texture_library.surface), the tip rides over
+its bumps: their position-periodic acceleration z''(x)·v² + z'(x)·v̇ adds to the
+normal axis, and the hand–tool spring they compress adds TOOL_STIFFNESS_N_PER_MM·z to
+the normal force (a random phase per stroke: the tool starts somewhere on the surface).
+The accelerometer is mounted at an arbitrary fixed orientation, feels gravity and
+adds noise. The force sensor sees the normal force and Coulomb friction μ·F_n
+against the direction of motion (so |tangential| / normal = μ: stickiness is in
+the force signal). Both the dataset builders and the simulated robot use this one
+function.
 """
 
 from __future__ import annotations
@@ -19,6 +24,10 @@ from texture_library.trajectory import Trajectory
 from texture_library.vibration import VibrationModel
 
 GRAVITY = 9.80665  # m/s²
+#: stiffness of the hand–tool spring between the force sensor's holder and the tip, N/mm: riding
+#: over a bump of height z (relative to the profile's mean) adds TOOL_STIFFNESS_N_PER_MM·z of normal force
+TOOL_STIFFNESS_N_PER_MM = 0.5
+MIN_CONTACT_N = 0.05  # the tip never quite leaves the surface
 
 
 @dataclass(frozen=True)
@@ -70,7 +79,16 @@ def stroke(
     if n > 1:
         direction = np.sign(np.diff(trajectory.position, prepend=trajectory.position[0]))
         direction[0] = direction[1]
-    friction = -model.mu * trajectory.force * direction
-    force = np.stack([friction, np.zeros(n), trajectory.force], axis=1)
-    force += force_noise_std * rng.standard_normal((n, 3))
+    force_noise = force_noise_std * rng.standard_normal((n, 3))
+    normal_force = trajectory.force
+    if model.surface is not None:
+        # drawn last, and only for models with a profile, so models without one render as before
+        x = trajectory.position + rng.uniform(0.0, model.surface.bump_period_mm)
+        bumps = model.surface.normal_accel(x, direction * trajectory.speed, trajectory.rate_hz)
+        accel += bumps[:, None] * rot[:, 2][None, :]  # along the tool's z axis, in the sensor frame
+        # the tip rides the bumps; the hand holding the tool does not, so its spring is compressed by them
+        lift = model.surface.height(x) - 0.5 * model.surface.bump_height_mm
+        normal_force = np.maximum(normal_force + TOOL_STIFFNESS_N_PER_MM * lift, MIN_CONTACT_N)
+    friction = -model.mu * normal_force * direction
+    force = np.stack([friction, np.zeros(n), normal_force], axis=1) + force_noise
     return StrokeSignals(accel, force, trajectory.speed.copy(), trajectory.position.copy(), trajectory.rate_hz)

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: sample rate of every TapSet's accel (HaTT's taps and the synthetic world's), Hz
+TAP_RATE_HZ = 1000.0
+
 
 @dataclass(frozen=True)
 class TapSet:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from texture_library.npzfile import load_npz, save_npz
+from texture_library.surface import SurfaceProfile
 from texture_library.taps import TapSet
 
 RENDER_RATE_HZ = 1000.0
@@ -34,6 +35,10 @@ class VibrationModel:
     ar_lsf: (m, p) radians; ma_lsf: (m, q) radians (q may be 0: pure AR).
     variance: (m,) excitation variance, (m/s²)²; gain: (m,) MA gain.
     mu: kinetic friction coefficient; max_speed / max_force: the grid's range.
+    taps: recorded tap transients (a hardness cue), if any.
+    surface: the macro bump profile the tool rides over (texture_library.surface), if any: rendered
+    by texture_library.stroke on top of the ARMA vibration. HaTT models have none (their bumps live
+    in the ARMA spectra they were fitted to); the synthetic world's textures have one.
     """
 
     name: str
@@ -51,6 +56,7 @@ class VibrationModel:
     rate_hz: float = RENDER_RATE_HZ
     provenance: str = ""
     extra: dict = field(default_factory=dict)
+    surface: SurfaceProfile | None = None
 
     def __post_init__(self) -> None:
         m = np.asarray(self.speeds).shape[0] if np.ndim(self.speeds) == 1 else -1
@@ -88,6 +94,8 @@ class VibrationModel:
                 problems.append(f"mu must lie in [0, 5), got {self.mu}")
             if not self.rate_hz > 0:
                 problems.append(f"rate_hz must be > 0, got {self.rate_hz}")
+            if self.surface is not None and not isinstance(self.surface, SurfaceProfile):
+                problems.append(f"surface must be a SurfaceProfile or None, got {type(self.surface).__name__}")
         if problems:
             raise ValueError(f"vibration model {self.name!r}: " + "; ".join(problems))
 
@@ -112,6 +120,8 @@ class VibrationModel:
             "units": {"speed": "mm/s", "force": "N", "accel": "m/s^2", "lsf": "rad"},
             "extra": self.extra,
         }
+        if self.surface is not None:
+            header["surface"] = self.surface.to_dict()
         arrays = {
             "speeds": np.asarray(self.speeds, float),
             "forces": np.asarray(self.forces, float),
@@ -136,6 +146,7 @@ class VibrationModel:
             raise ValueError(f"{path}: missing {missing}")
         try:
             taps = TapSet(arrays["tap_speeds"], arrays["tap_accel"]) if "tap_speeds" in arrays else None
+            surface = SurfaceProfile.from_dict(header["surface"]) if "surface" in header else None
             return cls(
                 name=header["name"],
                 speeds=arrays["speeds"],
@@ -152,6 +163,7 @@ class VibrationModel:
                 rate_hz=header["rate_hz"],
                 provenance=header.get("provenance", ""),
                 extra=header.get("extra", {}),
+                surface=surface,
             )
         except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{path}: {exc}") from None

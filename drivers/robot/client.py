@@ -1,6 +1,6 @@
 """The robot-side client: streams a sensor source to the hapticlink service, losing nothing to short outages.
 
-Blocks get consecutive sequence numbers and wait, encoded, in an ordered resend buffer
+Blocks (sample blocks and tap blocks alike) get consecutive sequence numbers and wait, encoded, in an ordered resend buffer
 (drivers/robot/resend.py) until the service acknowledges them. When the connection fails the client
 reconnects with capped exponential backoff (with jitter) and resends from the oldest unacknowledged
 block; the service drops any seq it already has (acknowledged as a duplicate), so nothing is
@@ -13,6 +13,7 @@ fleet API key (session.py). See docs/drivers.md.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -25,7 +26,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from drivers.blocks import Frame, SampleBlock, encode_binary, encode_json
+from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, encode_json
 from drivers.robot.backoff import Backoff
 from drivers.robot.frames import FRAME_QUEUE, send_frames
 from drivers.robot.http import send_http
@@ -229,19 +230,21 @@ class RobotClient:
     # ---- source → buffer ------------------------------------------------------------------------
     async def _read_source(self) -> None:
         async for item in self.source:
-            if isinstance(item, SampleBlock):
+            if isinstance(item, (SampleBlock, TapBlock)):
                 self._enqueue_block(item)
             elif isinstance(item, Frame):
                 self._enqueue_frame(item)
             else:
                 log.warning("source %s yielded a %s; ignored", getattr(self.source, "name", "?"), type(item).__name__)
 
-    def _enqueue_block(self, block: SampleBlock) -> None:
+    def _enqueue_block(self, block: Block) -> None:
+        """Number a sample or tap block (one seq sequence for both), encode it and buffer it for sending."""
         seq = self._next_seq
         self._next_seq += 1
-        numbered = SampleBlock(block.t0, block.channels, seq)
+        numbered = dataclasses.replace(block, seq=seq)
         payload = encode_binary(numbered) if self.binary else json.dumps(encode_json(numbered)).encode()
-        duration = max(c.duration_s for c in block.channels.values())
+        # stream time the block holds (a tap block: none of the stroke's)
+        duration = 0.0 if isinstance(block, TapBlock) else max(c.duration_s for c in block.channels.values())
         self.stats.read += 1
         dropped = self._buffer.append(Pending(seq, payload, duration))
         if dropped:

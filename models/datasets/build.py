@@ -2,30 +2,7 @@
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Callable, Iterable
-
-from tqdm import tqdm
-
-
-def run_jobs(fn: Callable, jobs: list, workers: int | None, desc: str) -> Iterable:
-    """fn over jobs with a progress bar, in worker processes when there is more than one job and worker."""
-    workers = min(workers or os.cpu_count() or 1, len(jobs))
-    bar = tqdm(total=len(jobs), desc=desc, unit="texture", disable=len(jobs) < 4)
-    try:
-        if workers <= 1:
-            for job in jobs:
-                yield fn(job)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                for result in pool.map(fn, jobs):
-                    yield result
-                    bar.update()
-    finally:
-        bar.close()
 
 
 def build(source: str, out: str | Path, path: str | Path | None = None, **options) -> Path:

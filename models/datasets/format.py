@@ -6,7 +6,7 @@
     DIR/textures/<id>/meta.json      images, recordings, vibration model, extra
     DIR/textures/<id>/recording_*.npz  one stroke recording (channels with their own rates and units)
     DIR/textures/<id>/image_*.png    images (or absolute paths to images kept outside, e.g. HaTT's)
-    DIR/textures/<id>/vibration.npz  the texture's rendering model, when known
+    DIR/textures/<id>/vibration.npz  the texture's rendering model, when known (with its tap transients, if any)
     DIR/features/                    feature caches (derived; safe to delete)
 """
 
@@ -22,6 +22,8 @@ import numpy as np
 
 from texture_library.recording import Recording, load_recording, save_recording  # noqa: F401 - part of the format
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN
+from texture_library.taps import TapSet
+from texture_library.vibration import VibrationModel
 
 FORMAT = "hapticlink-dataset"
 VERSION = 1
@@ -192,6 +194,11 @@ class Dataset:
     def vibration_model_path(self, texture: str) -> Path | None:
         name = self.meta(texture).vibration_model
         return None if name is None else self.resolve(texture, name)
+
+    def taps(self, texture: str) -> TapSet | None:
+        """The texture's recorded tap transients (stored with its vibration model), or None."""
+        path = self.vibration_model_path(texture)
+        return None if path is None else VibrationModel.load(path).taps
 
     @property
     def features_dir(self) -> Path:

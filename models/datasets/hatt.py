@@ -13,7 +13,7 @@ import csv
 from pathlib import Path
 from typing import Iterable
 
-from models.datasets.build import run_jobs
+from models.jobs import run_jobs
 from models.datasets.format import DatasetWriter, RatingRow, TextureInfo, TextureMeta, save_recording
 from models.datasets.simulate import simulated_recording, texture_rng
 from texture_library.texnet import read_texnet_ratings

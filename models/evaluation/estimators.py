@@ -8,12 +8,14 @@ it is given, so a held-out texture can never leak into its own prediction.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
 from models.evaluation.data import TextureData
 from models.standardize import Z_CLIP, Standardizer
+from models.visual.pooling import pool_texture_views
+from texture_library.attributes import RATING_MAX, RATING_MIN
 
 Modality = Literal["none", "tactile", "visual", "both"]
 
@@ -37,12 +39,60 @@ class Estimator(ABC):
         """What the fit chose (hyper-parameters, epochs): reported per fold."""
         return {}
 
+    def pooled_views(self, stored: int) -> int:
+        """How many of a texture's `stored` image views this model pools into its visual input (view 0 first)."""
+        return 1
+
+
+def union_modality(modalities) -> Modality:
+    """The inputs a composite model reads, from its members' modalities."""
+    seen = set(modalities)
+    has_v = bool(seen & {"visual", "both"})
+    has_t = bool(seen & {"tactile", "both"})
+    return "both" if has_v and has_t else "visual" if has_v else "tactile" if has_t else "none"
+
+
+def window_mean(windows: list[np.ndarray]) -> np.ndarray:
+    """(T, 4): per texture the mean of its windows' answers (n_i, 4), each clipped to the rating range
+    first — as the exported graph clips every window's output before the service averages them."""
+    return np.stack([np.clip(w, RATING_MIN, RATING_MAX).mean(axis=0) for w in windows])
+
+
+def common_views(models) -> int | None:
+    """The number of image views the members pool (None: none reads images); one model file records one."""
+    views = {getattr(m, "views", None) for m in models} - {None}
+    if len(views) > 1:
+        raise ValueError(f"members pool different numbers of views {sorted(views)}; a model file records one")
+    return views.pop() if views else None
+
 
 # ---- texture-level design matrices --------------------------------------------------------------
 def tactile_summary(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> np.ndarray:
     """(T, F·len(stats)): per-texture statistics of its window features."""
     funcs = {"mean": np.mean, "std": np.std}
     return np.stack([np.concatenate([funcs[s](w, axis=0) for s in stats]) for w in data.tactile]).astype(np.float64)
+
+
+def tactile_groups(data: TextureData) -> list[slice]:
+    """Column slices of the tactile feature groups (TactileConfig.group_slices: the base set, then each
+    extra group), or one slice over every column when the data does not name its configuration."""
+    width = data.tactile[0].shape[1]
+    if "tactile_config" not in data.meta:
+        return [slice(0, width)]
+    from models.tactile.config import TactileConfig
+
+    slices = list(TactileConfig(**data.meta["tactile_config"]).group_slices().values())
+    if slices[-1].stop != width:
+        raise ValueError(f"tactile features have {width} columns, their configuration says {slices[-1].stop}")
+    return slices
+
+
+def tactile_blocks(data: TextureData, stats: tuple[str, ...] = ("mean",)) -> list[np.ndarray]:
+    """tactile_summary split into one block per feature group, each with its columns of every statistic."""
+    summary = tactile_summary(data, stats)
+    width = data.tactile[0].shape[1]
+    return [np.concatenate([summary[:, k * width + g.start : k * width + g.stop] for k in range(len(stats))], axis=1)
+            for g in tactile_groups(data)]
 
 
 def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
@@ -52,22 +102,36 @@ def visual_matrix(data: TextureData, view: int = 0) -> np.ndarray:
     return data.visual[:, view, :].astype(np.float64)
 
 
-class TextureFeatures:
-    """Builds the standardised design matrix of a modality; blocks are weighted so each
-    modality carries equal total variance in a fusion (otherwise the larger block dominates)."""
+def pooled_visual(data: TextureData, views: int) -> np.ndarray:
+    """(T, D): each texture's first `views` views pooled (models.visual.pooling), as the service pools frames."""
+    if data.visual is None:
+        raise ValueError("this estimator needs visual features, but the data has none")
+    return pool_texture_views(data.visual, views).astype(np.float64)
 
-    def __init__(self, modality: Modality, tactile_stats: tuple[str, ...] = ("mean",)):
+
+class TextureFeatures:
+    """Builds the standardised design matrix of a modality; blocks are weighted so each block
+    carries equal total variance in a fusion (otherwise the larger block dominates). The blocks
+    are the visual vector and each tactile feature group (the 526 MFCC features and statistics
+    are one group; friction, spatial and taps are one each), so two friction columns weigh as
+    much as 526 MFCC columns."""
+
+    def __init__(self, modality: Modality, tactile_stats: tuple[str, ...] = ("mean",), views: int = 1):
         if modality not in ("tactile", "visual", "both"):
             raise ValueError(f"modality must be tactile, visual or both, got {modality!r}")
+        if views < 1:
+            raise ValueError(f"views must be ≥ 1, got {views}")
         self.modality = modality
         self.tactile_stats = tactile_stats
+        self.views = views  # image views pooled per texture (1: the original photo only)
 
-    def _blocks(self, data: TextureData, view: int = 0) -> list[np.ndarray]:
+    def _blocks(self, data: TextureData, view: int | None = None) -> list[np.ndarray]:
+        """view None: the first `views` views pooled; an int: that one view (training on every view)."""
         blocks = []
         if self.modality in ("visual", "both"):
-            blocks.append(visual_matrix(data, view))
+            blocks.append(pooled_visual(data, self.views) if view is None else visual_matrix(data, view))
         if self.modality in ("tactile", "both"):
-            blocks.append(tactile_summary(data, self.tactile_stats))
+            blocks += tactile_blocks(data, self.tactile_stats)
         return blocks
 
     def fit_transform(self, data: TextureData) -> np.ndarray:
@@ -81,7 +145,7 @@ class TextureFeatures:
         Training on every view teaches invariance to rotation, flips and noise; prediction
         still uses the original view only, as the service sees one camera frame."""
         n_views = 1 if data.visual is None or self.modality == "tactile" else data.visual.shape[1]
-        per_view = [self._blocks(data, v) for v in range(n_views)]
+        per_view = [self._blocks(data, v if n_views > 1 else None) for v in range(n_views)]
         stacked = [np.concatenate(parts) for parts in zip(*per_view)]
         self.scalers = [Standardizer().fit(b) for b in stacked]
         return self._combine(stacked), np.tile(np.arange(len(data)), n_views)
@@ -119,10 +183,12 @@ class MeanEstimator(Estimator):
 class RidgeEstimator(Estimator):
     """Ridge regression on texture-level features; α by efficient leave-one-out over the training textures."""
 
-    def __init__(self, modality: Modality, alphas: np.ndarray | None = None, tactile_stats: tuple[str, ...] = ("mean",)):
+    def __init__(self, modality: Modality, alphas: np.ndarray | None = None, tactile_stats: tuple[str, ...] = ("mean",),
+                 views: int = 1):
         self.modality = modality
         self.name = f"ridge-{modality}"
-        self.features = TextureFeatures(modality, tactile_stats)
+        self.features = TextureFeatures(modality, tactile_stats, views)
+        self.views = views
         self.alphas = np.logspace(-3, 4, 29) if alphas is None else np.asarray(alphas)
 
     def fit(self, data: TextureData, seed: int) -> "RidgeEstimator":
@@ -155,19 +221,32 @@ class RidgeEstimator(Estimator):
     def fit_info(self) -> dict:
         return {"alpha": self.alpha}
 
-    def export(self, path, metadata: dict[str, str]):
-        """ONNX of the per-window model. Linear (within the z-clip), so averaging window predictions
-        equals predicting from the texture's mean window — the texture-level fit serves window by window."""
-        from models.onnx_graph import GraphBuilder
+    def pooled_views(self, stored: int) -> int:
+        return self.views
 
+    def add_graph(self, g) -> str:
+        """The per-window model into a models.onnx_graph.GraphBuilder; returns its (N, 4) output. Linear
+        (within the z-clip), so averaging window predictions equals predicting from the texture's mean
+        window — the texture-level fit serves window by window."""
         if self.features.tactile_stats != ("mean",):
             raise ValueError("only ridge on mean tactile features can be exported (std is not linear per window)")
-        g = GraphBuilder()
-        names = [n for n in ("visual", "tactile") if self.modality in (n, "both")]
-        z = g.concat([g.standardized(n, s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP)
-                      for n, s in zip(names, self.features.scalers)])
-        out = g.op("Add", g.op("MatMul", z, g.const(self.coef)), g.const(self.y_mean))
-        return g.save(path, out, metadata)
+        scalers = list(self.features.scalers)
+        parts = []
+        if self.modality in ("visual", "both"):
+            s = scalers.pop(0)
+            parts.append(g.standardized("visual", s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP))
+        if scalers:  # the tactile groups: contiguous column blocks of the one tactile input, each its own weight
+            z = g.standardized("tactile", np.concatenate([s.mean for s in scalers]),
+                               np.concatenate([s.std for s in scalers]), 1.0, clip=Z_CLIP)
+            weights = np.concatenate([np.full(s.mean.size, 1.0 / np.sqrt(s.mean.size)) for s in scalers])
+            parts.append(g.op("Mul", z, g.const(weights)))
+        z = g.concat(parts)
+        return g.op("Add", g.op("MatMul", z, g.const(self.coef)), g.const(self.y_mean))
+
+    def export(self, path, metadata: dict[str, str]):
+        from models.onnx_graph import export_graph
+
+        return export_graph(self, path, metadata)
 
 
 class KNNEstimator(Estimator):
@@ -340,30 +419,34 @@ class StackedEstimator(Estimator):
     Inside fit: K-fold over the training textures gives each base's out-of-fold predictions;
     non-negative least squares per attribute gives the weights (normalised to sum to 1); then
     every base is refit on all training textures. Lets touch carry the attributes where it
-    helps (hard–soft) while vision carries the rest."""
+    helps (hard–soft) while vision carries the rest.
 
-    def __init__(self, bases: tuple[str, ...] = ("svr-visual", "ridge-both", "knn-visual"), folds: int = 5):
-        self.bases = bases
+    bases: name → zero-argument factory of a fresh, unfitted estimator (the registry supplies
+    them, so this module never imports the registry)."""
+
+    def __init__(self, bases: dict[str, Callable[[], Estimator]], folds: int = 5):
+        if not bases:
+            raise ValueError("a stack needs at least one base estimator")
+        self.bases = tuple(bases)
+        self.factories = dict(bases)
         self.folds = folds
-        self.name = "stack-" + "+".join(bases)
+        self.name = "stack-" + "+".join(self.bases)
         self.modality = "both"
 
     def fit(self, data: TextureData, seed: int) -> "StackedEstimator":
         from scipy.optimize import nnls
         from sklearn.model_selection import KFold
 
-        from models.evaluation.registry import build_estimator
-
         y = require_targets(data)
         oof = np.zeros((len(self.bases), len(data), 4))
         for tr, va in KFold(self.folds, shuffle=True, random_state=seed).split(y):
             for b, name in enumerate(self.bases):
-                oof[b, va] = build_estimator(name).fit(data.take(tr), seed).predict(data.take(va).with_targets(None))
+                oof[b, va] = self.factories[name]().fit(data.take(tr), seed).predict(data.take(va).with_targets(None))
         self.weights = np.zeros((4, len(self.bases)))
         for j in range(4):
             w, _ = nnls(oof[:, :, j].T, y[:, j])
             self.weights[j] = w / w.sum() if w.sum() > 0 else np.full(len(self.bases), 1 / len(self.bases))
-        self.models = [build_estimator(name).fit(data, seed) for name in self.bases]
+        self.models = [self.factories[name]().fit(data, seed) for name in self.bases]
         return self
 
     def predict(self, data: TextureData) -> np.ndarray:

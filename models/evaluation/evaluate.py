@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from models.evaluation.data import TextureData
-from models.evaluation.loocv import LoocvRun, loocv
+from models.evaluation.loocv import LoocvRun, loocv_seeds
 from models.evaluation.metrics import error_table, group_errors
 from models.evaluation.registry import EstimatorSpec
 from texture_library.attributes import ATTRIBUTES
@@ -52,7 +52,10 @@ def window_latency(data: TextureData, spec: EstimatorSpec, seed: int = 0, n: int
 
 
 def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
-    """Seed-averaged metrics (mean ± std over seeds) and the seed-averaged predictions."""
+    """Seed-averaged metrics (mean ± std over seeds) and the predictions, per seed and seed-averaged.
+
+    Holds no per-texture ratings: results.json files are committed, and the licensed ratings must not
+    be (the report reads them from the dataset when it needs them)."""
     per_seed = []
     for run in runs:
         e = error_table(run.predictions, data.targets)
@@ -72,7 +75,8 @@ def summarize_runs(data: TextureData, runs: list[LoocvRun]) -> dict:
         "per_seed": per_seed,
         "ensemble_of_seeds": error_table(mean_pred, data.targets),
         "predictions": {t: dict(zip(ATTRIBUTES, map(float, p))) for t, p in zip(data.textures, mean_pred)},
-        "truth": {t: dict(zip(ATTRIBUTES, map(float, y))) for t, y in zip(data.textures, data.targets)},
+        "predictions_per_seed": {str(r.seed): {t: [round(float(v), 4) for v in p] for t, p in zip(data.textures, r.predictions)}
+                                 for r in runs},
         "group_mae": group_errors(mean_pred, data.targets, data.groups),
         # synthetic world: how well the documented physics → rating mapping is recovered
         "vs_true_mapping": error_table(mean_pred, data.meta["true_ratings"]) if "true_ratings" in data.meta else None,
@@ -91,12 +95,16 @@ def evaluate(
     progress: bool = True,
     figures: bool = True,
     latency: bool = True,
+    ray_address: str | None = None,
+    test_views: int | None = None,
 ) -> dict:
-    """LOOCV for every seed; writes out/results.json (+ figures) and returns the results dict."""
+    """LOOCV for every seed (all folds of all seeds as one batch of jobs); writes out/results.json
+    (+ figures) and returns the results dict."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    runs = [loocv(data, spec, seed=s, workers=workers, backend=backend, progress=progress) for s in seeds]
+    runs = loocv_seeds(data, spec, tuple(seeds), workers=workers, backend=backend, progress=progress,
+                       ray_address=ray_address, test_views=test_views)
     results = {
         "dataset": data.meta.get("dataset"),
         "model": spec.name,
@@ -104,6 +112,11 @@ def evaluate(
         "modality": spec.build().modality,
         "n_textures": len(data),
         "seeds": list(seeds),
+        # image views pooled into each texture's visual input (None: the model reads no images)
+        "views": spec.build().pooled_views(data.visual.shape[1]) if data.visual is not None else None,
+        # the held-out texture seen through only this many views (a service that pooled that many frames)
+        "test_views": test_views,
+        "backend": backend,
         "scale": "0-100 (bipolar error / 2)",
         **summarize_runs(data, runs),
         "n_params": runs[0].n_params,
@@ -111,12 +124,13 @@ def evaluate(
         "wall_s": time.perf_counter() - t0,
         "hardware": hardware(),
         "features": {**{k: v for k, v in data.meta.items() if k not in ("tactile_config", "true_ratings")},
-                     "tactile_features": data.meta["tactile_config"]["feature_set"]},
+                     "tactile_features": data.meta["tactile_config"]["feature_set"],
+                     "extra_groups": list(data.meta["tactile_config"].get("extra_groups", []))},
         "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None,
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))
     if figures:
         from models.report.figures import results_figures
 
-        results_figures(results, out)
+        results_figures(results, data.textures, data.targets, out)
     return results

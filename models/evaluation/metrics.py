@@ -63,3 +63,4 @@ def group_errors(pred: np.ndarray, truth: np.ndarray, groups: list[str]) -> dict
         e = error_table(pred[sel], truth[sel])["mae"]
         out[g] = {**e, "n": int(sel.sum())}
     return out
+

@@ -1,4 +1,7 @@
-"""Figures of one evaluation: actual vs predicted, MAE per material group, the perceptual space."""
+"""Figures of one evaluation: actual vs predicted, MAE per material group, the perceptual space.
+
+The human ratings come in as an argument (from the dataset), never from results.json: committed
+results carry predictions only."""
 
 from __future__ import annotations
 
@@ -13,15 +16,16 @@ import numpy as np  # noqa: E402
 from texture_library.attributes import ATTRIBUTES, POLES  # noqa: E402
 
 
-def _arrays(results: dict) -> tuple[list[str], np.ndarray, np.ndarray]:
-    textures = list(results["truth"])
-    truth = np.array([[results["truth"][t][a] for a in ATTRIBUTES] for t in textures])
-    pred = np.array([[results["predictions"][t][a] for a in ATTRIBUTES] for t in textures])
-    return textures, truth, pred
+def prediction_array(results: dict, textures: list[str]) -> np.ndarray:
+    """(T, 4) bipolar seed-averaged predictions of results.json, in `textures` order."""
+    missing = [t for t in textures if t not in results["predictions"]]
+    if missing:
+        raise ValueError(f"results of {results.get('model')!r} have no prediction for {missing[:5]}")
+    return np.array([[results["predictions"][t][a] for a in ATTRIBUTES] for t in textures])
 
 
-def actual_vs_predicted(results: dict, path: Path) -> Path:
-    _, truth, pred = _arrays(results)
+def actual_vs_predicted(results: dict, textures: list[str], truth: np.ndarray, path: Path) -> Path:
+    pred = prediction_array(results, textures)
     fig, axes = plt.subplots(2, 2, figsize=(8, 8), constrained_layout=True)
     for ax, j, attr in zip(axes.ravel(), range(4), ATTRIBUTES):
         ax.plot([-100, 100], [-100, 100], color="0.7", lw=1)
@@ -56,9 +60,9 @@ def group_heatmap(results: dict, path: Path) -> Path:
     return path
 
 
-def perceptual_space(results: dict, path: Path) -> Path:
+def perceptual_space(results: dict, textures: list[str], truth: np.ndarray, path: Path) -> Path:
     """x hard–soft, y flat–bumpy, bubble size rough–smooth, colour sticky–slippery; human | predicted."""
-    _, truth, pred = _arrays(results)
+    pred = prediction_array(results, textures)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True, sharex=True, sharey=True)
     for ax, arr, title in ((axes[0], truth, "human ratings"), (axes[1], pred, "predicted")):
         size = 10 + 140 * (np.clip(arr[:, 0], -100, 100) + 100) / 200
@@ -75,10 +79,35 @@ def perceptual_space(results: dict, path: Path) -> Path:
     return path
 
 
-def results_figures(results: dict, out: Path) -> list[Path]:
+def results_figures(results: dict, textures: list[str], truth: np.ndarray, out: Path) -> list[Path]:
+    """The three figures of one evaluation. truth: (T, 4) bipolar human ratings of `textures`."""
     out = Path(out)
+    truth = np.asarray(truth, float)
+    if truth.shape != (len(textures), len(ATTRIBUTES)):
+        raise ValueError(f"truth must be ({len(textures)}, {len(ATTRIBUTES)}), got {truth.shape}")
     return [
-        actual_vs_predicted(results, out / "actual_vs_predicted.png"),
+        actual_vs_predicted(results, textures, truth, out / "actual_vs_predicted.png"),
         group_heatmap(results, out / "group_mae.png"),
-        perceptual_space(results, out / "perceptual_space.png"),
+        perceptual_space(results, textures, truth, out / "perceptual_space.png"),
     ]
+
+
+def views_curve(curves: dict[str, list[tuple[int, float, float, float]]], path: Path) -> Path:
+    """Mean MAE against the number of image views pooled, one line per model with its 95 % band.
+
+    curves: model → [(views, mae, lo, hi), …] sorted by views."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
+    for model, pts in curves.items():
+        k, mae, lo, hi = (np.array(v, float) for v in zip(*pts))
+        ax.plot(k, mae, marker="o", label=model)
+        ax.fill_between(k, lo, hi, alpha=0.15)
+    ax.set_xscale("log", base=2)
+    ticks = sorted({p[0] for pts in curves.values() for p in pts})
+    ax.set_xticks(ticks, [str(t) for t in ticks])
+    ax.set_xlabel("image views pooled per texture")
+    ax.set_ylabel("LOOCV mean MAE (0–100), 95 % band")
+    ax.set_title("pooling views: error against views")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -19,9 +19,22 @@ Frames are taken with ``center=False``: 1 + (500 − 25) // 12 = 40 frames of 25
 0.5 s window, 13 coefficients each → 520 MFCC values, + min/max/mean of speed and of force
 = 526 features.
 
+Extra feature groups (``extra_groups``, any of ``EXTRA_GROUPS``, kept in that order) read
+physics the MFCC frames cannot see; their columns follow the 6 statistics, group by group:
+
+  "friction" → friction_ratio, friction_ratio_std (models.tactile.friction): 2 values;
+               needs 3-column force (the preprocessor derives the tangential magnitude)
+  "spatial"  → log mean-square height per band of spatial periods, spatial_max_period_mm down
+               to spatial_min_period_mm in spatial_bands geometric bands (models.tactile.spatial),
+               from acceleration high-passed at spatial_highpass_hz against integrated speed
+  "taps"     → tap_log_peak_per_speed, tap_log_decay_s, tap_centroid_hz (models.tactile.taps):
+               3 per-texture values from tap transients, the same on every window of a texture
+
 ``hash()`` is stamped into exported models; the service refuses a model whose hash differs
 from its own configuration's. It covers every field plus ``FEATURE_CODE_VERSION``, which is
-bumped whenever the feature *code* changes meaning for an unchanged configuration.
+bumped whenever the feature *code* changes meaning for an unchanged configuration. The extra
+groups' fields are serialised (and hashed) only when a group is on, so every configuration
+from before the groups existed keeps its hash — and its caches and exported models.
 """
 
 from __future__ import annotations
@@ -33,7 +46,7 @@ from functools import lru_cache
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from texture_library.channels import MAX_RATE_HZ, MIN_RATE_HZ
 
@@ -50,6 +63,20 @@ STAT_NAMES: tuple[str, ...] = (
 )
 #: per-level DWT statistics, in this order (see models.tactile.dwt)
 DWT_STAT_NAMES: tuple[str, ...] = ("log_energy", "mean_abs", "std")
+#: optional feature groups, in column order
+EXTRA_GROUPS: tuple[str, ...] = ("friction", "spatial", "taps")
+ExtraGroup = Literal["friction", "spatial", "taps"]
+#: fields that only the extra groups use: left out of to_dict()/hash() while no group is on
+EXTRA_FIELDS: tuple[str, ...] = (
+    "extra_groups",
+    "spatial_highpass_hz",
+    "spatial_dx_mm",
+    "spatial_n_fft",
+    "spatial_min_period_mm",
+    "spatial_max_period_mm",
+    "spatial_bands",
+    "spatial_min_speed",
+)
 
 
 @lru_cache(maxsize=32)
@@ -98,6 +125,29 @@ class TactileConfig(BaseModel):
     dwt_wavelet: Literal["db1", "db2", "db3", "db4"] = "db4"
     dwt_levels: int = 5
     dft_bins: int = 32
+    extra_groups: tuple[ExtraGroup, ...] = ()
+    spatial_highpass_hz: float = 1.0
+    spatial_dx_mm: float = 0.25
+    spatial_n_fft: int = 1024
+    spatial_min_period_mm: float = 1.0
+    spatial_max_period_mm: float = 32.0
+    spatial_bands: int = 10
+    spatial_min_speed: float = 30.0
+
+    @field_validator("extra_groups", mode="before")
+    @classmethod
+    def _canonical_groups(cls, value: Any) -> Any:
+        """Any order in, EXTRA_GROUPS order out (so one set of groups has one hash); no repeats."""
+        if isinstance(value, str):
+            value = (value,)
+        if isinstance(value, (list, tuple)):
+            unknown = [g for g in value if g not in EXTRA_GROUPS]
+            if unknown:
+                raise ValueError(f"unknown feature group(s) {unknown}; expected some of {list(EXTRA_GROUPS)}")
+            if len(set(value)) != len(value):
+                raise ValueError(f"extra_groups repeats a group: {list(value)}")
+            return tuple(g for g in EXTRA_GROUPS if g in value)
+        return value
 
     @model_validator(mode="after")
     def _check(self) -> TactileConfig:
@@ -163,7 +213,32 @@ class TactileConfig(BaseModel):
                 f"dft_bins={self.dft_bins} bands over {self.fmin:g}–{self.fmax:g} Hz are narrower than the "
                 f"{bin_hz:g} Hz DFT bin spacing of a {win}-sample window; some bands would be empty"
             )
+        self._check_spatial()
         return self
+
+    def _check_spatial(self) -> None:
+        nyq = self.rate_hz / 2
+        if not (math.isfinite(self.spatial_highpass_hz) and 0 < self.spatial_highpass_hz < nyq):
+            raise ValueError(f"spatial_highpass_hz must lie in (0, rate_hz/2 = {nyq:g}) Hz, got {self.spatial_highpass_hz}")
+        for name in ("spatial_dx_mm", "spatial_min_period_mm", "spatial_max_period_mm", "spatial_min_speed"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v}")
+        if self.spatial_bands < 1:
+            raise ValueError(f"spatial_bands must be ≥ 1, got {self.spatial_bands}")
+        if 2 * self.spatial_dx_mm > self.spatial_min_period_mm:
+            raise ValueError(f"spatial_dx_mm={self.spatial_dx_mm} cannot resolve spatial_min_period_mm="
+                             f"{self.spatial_min_period_mm} (needs dx ≤ period/2)")
+        if not self.spatial_min_period_mm < self.spatial_max_period_mm <= self.spatial_n_fft * self.spatial_dx_mm / 4:
+            raise ValueError(f"need spatial_min_period_mm < spatial_max_period_mm ≤ spatial_n_fft·spatial_dx_mm/4 = "
+                             f"{self.spatial_n_fft * self.spatial_dx_mm / 4:g} mm, got {self.spatial_min_period_mm}, "
+                             f"{self.spatial_max_period_mm}")
+        ratio = (self.spatial_max_period_mm / self.spatial_min_period_mm) ** (1 / self.spatial_bands)
+        bin_per_mm = 1 / (self.spatial_n_fft * self.spatial_dx_mm)
+        if (ratio - 1) / self.spatial_max_period_mm < bin_per_mm:
+            raise ValueError(f"spatial_bands={self.spatial_bands}: the longest-period band is narrower than one "
+                             f"bin ({bin_per_mm:g} mm⁻¹) of a {self.spatial_n_fft}-point spectrum at {self.spatial_dx_mm} mm; "
+                             "use fewer bands or a larger spatial_n_fft")
 
     # ---- derived sizes -------------------------------------------------------------------
     @property
@@ -197,7 +272,39 @@ class TactileConfig(BaseModel):
     @property
     def n_features(self) -> int:
         """Features per window (526 at the defaults)."""
-        return self.n_tactile + len(STAT_NAMES)
+        return self.n_tactile + len(STAT_NAMES) + sum(len(n) for n in self.group_names().values())
+
+    def group_names(self) -> dict[str, list[str]]:
+        """Column names of each extra group that is on, in column order."""
+        from models.tactile.friction import FRICTION_NAMES
+        from models.tactile.spatial import band_names
+        from models.tactile.taps import TAP_NAMES
+
+        names = {
+            "friction": list(FRICTION_NAMES),
+            "spatial": band_names(self.spatial_min_period_mm, self.spatial_max_period_mm, self.spatial_bands),
+            "taps": list(TAP_NAMES),
+        }
+        return {g: names[g] for g in self.extra_groups}
+
+    def group_slices(self) -> dict[str, slice]:
+        """Columns of each feature group: "base" (the feature set and the 6 statistics), then the extra groups."""
+        out = {"base": slice(0, self.n_tactile + len(STAT_NAMES))}
+        start = out["base"].stop
+        for group, names in self.group_names().items():
+            out[group] = slice(start, start + len(names))
+            start += len(names)
+        return out
+
+    @property
+    def accel_columns(self) -> int:
+        """Columns of a window's accel: 3 axes, + the same 3 high-passed at spatial_highpass_hz with "spatial"."""
+        return 6 if "spatial" in self.extra_groups else 3
+
+    @property
+    def force_columns(self) -> int:
+        """Columns of a window's force: the normal (1, shape (L,)), + the tangential magnitude with "friction"."""
+        return 2 if "friction" in self.extra_groups else 1
 
     @property
     def feature_names(self) -> list[str]:
@@ -209,12 +316,17 @@ class TactileConfig(BaseModel):
             names = [f"dwt_{b}_{s}" for b in bands for s in DWT_STAT_NAMES]
         else:
             names = [f"dft_b{b:02d}" for b in range(self.dft_bins)]
-        return names + list(STAT_NAMES)
+        return names + list(STAT_NAMES) + [n for group in self.group_names().values() for n in group]
 
     # ---- serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict of all fields (round-trips through ``TactileConfig(**d)``)."""
-        return self.model_dump(mode="json")
+        """Plain JSON-able dict of the fields (round-trips through ``TactileConfig(**d)``); the extra
+        groups' fields only when a group is on (see the module docstring)."""
+        d = self.model_dump(mode="json")
+        if not self.extra_groups:
+            for name in EXTRA_FIELDS:
+                d.pop(name)
+        return d
 
     def hash(self) -> str:
         """First 16 hex chars of sha256 over canonical JSON of the fields and FEATURE_CODE_VERSION."""

@@ -7,6 +7,12 @@ Per channel (each at its own rate; all channels start at the same instant):
   speed (n,) mm/s          → resample → low-pass
   position (n,)/(n, 2) mm  → (only without a speed channel) resample → speed = |Δposition|·rate_hz
                              (mm/s; the first sample takes the second's speed) → low-pass
+Derived columns, only when the configuration's extra groups need them (else shapes as above):
+  "spatial"  → accel windows (L, 6): columns 3–5 are the same axes high-passed at
+               spatial_highpass_hz (order 2) instead, for the spatial spectrum (slow bumps in)
+  "friction" → force windows (L, 2): column 0 the normal force, column 1 the tangential
+               magnitude √(fx² + fy²) of 3-column force, resampled and low-passed alike;
+               1-column force is refused (ValueError): it holds no friction
 Every filter keeps its state across blocks and starts in steady state for its first sample
 (no start-up step from gravity or a resting force), so any split of a stream into blocks
 gives the same samples as one block. Offline features are this class run over a recording.
@@ -40,7 +46,8 @@ STREAMS = tuple(spec.name for spec in STREAM_SPECS)  # ("accel", "speed", "force
 
 @dataclass(frozen=True)
 class TactileWindow:
-    """One aligned window: accel (L, 3) m/s² high-passed; speed (L,) mm/s and force (L,) N low-passed."""
+    """One aligned window: accel (L, 3) m/s² high-passed; speed (L,) mm/s and force (L,) N low-passed
+    (accel (L, 6) and force (L, 2) with derived columns, see the module docstring)."""
 
     index: int
     t_start_s: float
@@ -51,7 +58,8 @@ class TactileWindow:
 
 @dataclass(frozen=True)
 class WindowBatch:
-    """Windows stacked: index (m,), t_start_s (m,), accel (m, L, 3), speed (m, L), force (m, L)."""
+    """Windows stacked: index (m,), t_start_s (m,), accel (m, L, 3), speed (m, L), force (m, L)
+    (accel (m, L, 6) and force (m, L, 2) with derived columns, see the module docstring)."""
 
     index: np.ndarray
     t_start_s: np.ndarray
@@ -151,8 +159,13 @@ class TactilePreprocessor:
             "speed": StatefulSOS(design_lowpass(c.lowpass_hz, c.rate_hz, c.lowpass_order), "steady"),
             "force": StatefulSOS(design_lowpass(c.lowpass_hz, c.rate_hz, c.lowpass_order), "steady"),
         }
+        # the spatial group's accel: same axes, high-passed only against gravity
+        self._spatial = (StatefulSOS(design_highpass(c.spatial_highpass_hz, c.rate_hz, 2), "steady")
+                         if "spatial" in c.extra_groups else None)
         self._position_speed = PositionSpeed(c.rate_hz)
-        self._buf: dict[str, np.ndarray] = {"accel": np.empty((0, 3)), "speed": np.empty(0), "force": np.empty(0)}
+        force_shape = (0,) if c.force_columns == 1 else (0, c.force_columns)
+        self._buf: dict[str, np.ndarray] = {"accel": np.empty((0, c.accel_columns)), "speed": np.empty(0),
+                                            "force": np.empty(force_shape)}
         self._n: dict[str, int] = dict.fromkeys(STREAMS, 0)  # samples produced per stream
         self._buf_start = 0  # global 1 kHz index of each buffer's first sample
         self._next = 0  # index of the next window to emit
@@ -187,7 +200,9 @@ class TactilePreprocessor:
             if name not in self._resamplers:
                 self._resamplers[name] = Resampler(ch.rate_hz, self.config.rate_hz)
             if name == "force" and data.ndim == 2:
-                data = data[:, 2]  # (tangential x, tangential y, normal) → normal
+                # (tangential x, tangential y, normal) → normal [, tangential magnitude]
+                data = data[:, 2] if self.config.force_columns == 1 else np.stack(
+                    [data[:, 2], np.hypot(data[:, 0], data[:, 1])], axis=1)
             self._feed(name, self._resamplers[name].process(data))
         self._trim()
         return self.n_ready
@@ -213,7 +228,10 @@ class TactilePreprocessor:
             else:
                 speed = self._position_speed.process(out)
             out, stream = speed, "speed"
-        self._append(stream, self._filters[stream].process(out))
+        filtered = self._filters[stream].process(out)
+        if stream == "accel" and self._spatial is not None:
+            filtered = np.concatenate([filtered, self._spatial.process(out)], axis=1)
+        self._append(stream, filtered)
 
     def _append(self, stream: str, samples: np.ndarray) -> None:
         if samples.shape[0]:
@@ -240,7 +258,8 @@ class TactilePreprocessor:
         starts = self.skip + idx * c.hop_length
         if m == 0:
             L = c.window_length
-            return WindowBatch(idx, starts / c.rate_hz, np.empty((0, L, 3)), np.empty((0, L)), np.empty((0, L)))
+            force = np.empty((0, L)) if c.force_columns == 1 else np.empty((0, L, c.force_columns))
+            return WindowBatch(idx, starts / c.rate_hz, np.empty((0, L, c.accel_columns)), np.empty((0, L)), force)
         lo = int(starts[0]) - self._buf_start
         span = slice(lo, lo + (m - 1) * c.hop_length + c.window_length)
         views = {s: sliding_windows(self._buf[s][span], c.window_length, c.hop_length, axis=0) for s in STREAMS}
@@ -249,7 +268,7 @@ class TactilePreprocessor:
             t_start_s=starts / c.rate_hz,
             accel=np.ascontiguousarray(np.swapaxes(views["accel"], 1, 2)),  # (m, 3, L) → (m, L, 3)
             speed=views["speed"].copy(),
-            force=views["force"].copy(),
+            force=views["force"].copy() if views["force"].ndim == 2 else np.ascontiguousarray(np.swapaxes(views["force"], 1, 2)),
         )
         self._next += m
         self._trim()

@@ -4,7 +4,8 @@ A stream is a sequence of blocks, each holding some input channels (accel, force
 position), each at its own constant rate. The contract says what may follow what, and what the
 preprocessor will make of it:
 
-- a channel keeps its rate and column count for the whole stream;
+- a channel keeps its rate and column count for the whole stream; a configuration with the
+  friction group needs 3-column force (it reads the tangential force);
 - each preprocessed *stream* (`STREAMS`: accel, speed, force) is fed by one input channel, the
   first of its `sources` that arrives (speed wins over position while neither has been seen;
   once position feeds speed, a speed channel is refused; once speed does, position is ignored);
@@ -177,6 +178,10 @@ class StreamContract:
             if cols not in INPUT_COLUMNS[kind]:
                 allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in INPUT_COLUMNS[kind])
                 raise ValueError(f"{kind}: shape must be {allowed}, got {shape}")
+            if kind == "force" and cols == 1 and self.config.force_columns > 1:
+                raise ValueError("force: the friction features need 3-column force (tangential x, tangential y, "
+                                 "normal); this stream sends the normal force only — use a model without the "
+                                 "friction group")
             rate = float(ch.rate_hz)
             known = rates.get(kind)
             if known is None:

@@ -10,6 +10,7 @@ severe, starting at the clean value); "not reached" when it stays below at the m
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -77,15 +78,22 @@ def breaking_point(curve: list[dict], reference: float) -> float | None:
     return None
 
 
+def restrict(run: StudyRun, held_out: list[int] | None) -> StudyRun:
+    """`run` with its LOOCV predictions outside `held_out` set to None (None: unchanged), so a model run on
+    a subset of folds is compared with a reference on the same textures."""
+    if held_out is None:
+        return run
+    keep = set(held_out)
+    loocv = {k: [p if i in keep else None for i, p in enumerate(v)] for k, v in run.loocv.items()}
+    return replace(run, loocv=loocv, held_out=sorted(keep))
+
+
 def spread(runs: list[StudyRun], truth: np.ndarray, groups: list[str]) -> dict:
     """How stable a model is, as numbers: clean LOOCV MAE per seed and its std; per-texture (fold)
-    errors' std, inter-quartile range and worst; per material group MAE."""
-    per_seed = []
-    for r in runs:
-        p, _ = variant_texture_preds(r, CLEAN)
-        per_seed.append(per_texture_error(p, truth))
-    pred, _ = seed_mean(runs, CLEAN)
-    err = per_texture_error(pred, truth)
+    errors' std, inter-quartile range and worst; per material group MAE (over the folds the runs ran)."""
+    pred, present = seed_mean(runs, CLEAN)
+    per_seed = [per_texture_error(variant_texture_preds(r, CLEAN)[0][present], truth[present]) for r in runs]
+    err = per_texture_error(pred[present], truth[present])
     seed_mae = [float(e.mean()) for e in per_seed]
     return {
         "seeds": [r.seed for r in runs],
@@ -96,7 +104,9 @@ def spread(runs: list[StudyRun], truth: np.ndarray, groups: list[str]) -> dict:
         "fold_std": float(err.std()),
         "fold_iqr": [float(np.quantile(err, 0.25)), float(np.quantile(err, 0.75))],
         "fold_worst": float(err.max()),
-        "group_mae": {g: v["mean"] for g, v in group_errors(pred, truth, groups).items()},
+        "group_mae": {g: v["mean"] for g, v in group_errors(pred[present], truth[present],
+                                                            [g for g, ok in zip(groups, present) if ok]).items()},
+        "n_textures": int(present.sum()),
     }
 
 

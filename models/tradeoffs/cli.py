@@ -41,8 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = tsub.add_parser("robustness", help="fault curves, breaking points, spread, shift, interval coverage (§2, §3)")
     r.add_argument("--dataset", required=True)
     r.add_argument("--runs", nargs="+", default=list(DEFAULT_RUNS),
-                   help="model:seeds[:cal+aug] — cal: interval calibration fits, aug: augmented twins "
-                        f"(default: {' '.join(DEFAULT_RUNS)})")
+                   help="model:seeds[:cal+aug+sub] — cal: interval calibration fits, aug: augmented twins, sub: LOOCV "
+                        f"folds of --subset held-out textures only (default: {' '.join(DEFAULT_RUNS)})")
+    r.add_argument("--subset", type=int, default=20, help="held-out textures of the runs flagged 'sub' (fixed, seeded)")
+    r.add_argument("--served", default="selected", help="the served model's registry name (named in the report)")
     r.add_argument("--work", default=str(DEFAULT_WORK), help=f"per-texture intermediates (default {DEFAULT_WORK})")
     r.add_argument("--workers", type=int, default=2)
     r.add_argument("--out", default=str(DEFAULT_REPORT / "robustness.json"))
@@ -54,25 +56,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_report)
 
 
-DEFAULT_RUNS = ("mean:0", "ridge-both:0:cal+aug", "knn-both:0:cal", "svr-both:0,1,2:cal", "ann:0:cal+aug", "ann:1,2",
-                "ann-ensemble:0:cal", "ann-ensemble:1", "vtnet-compact:0")
+DEFAULT_RUNS = ("mean:0", "ridge-both:0:cal+aug", "knn-both:0:cal", "svr-both:0:cal", "ann:0:cal+aug", "ann:1,2",
+                "ann-ensemble:0", "selected:0:cal", "vtnet-compact:0")  # the full grid: hours on 2 cores
 
 
-def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool]]:
-    """"model:seeds[:cal+aug]" → (model, seeds, calibration on the first seed, augmentation on the first seed)."""
+def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool, bool]]:
+    """"model:seeds[:cal+aug+sub]" → (model, seeds, calibration on the first seed, augmentation on the first
+    seed, LOOCV on the held-out subset only)."""
     out = []
     for spec in specs:
         parts = spec.split(":")
         if len(parts) not in (2, 3) or not parts[0]:
-            raise ValueError(f"run {spec!r}: expected model:seeds[:cal+aug], e.g. ann:0,1,2:cal")
+            raise ValueError(f"run {spec!r}: expected model:seeds[:cal+aug+sub], e.g. ann:0,1,2:cal")
         try:
             seeds = [int(s) for s in parts[1].split(",")]
         except ValueError:
             raise ValueError(f"run {spec!r}: seeds must be comma-separated integers") from None
         flags = set(parts[2].split("+")) if len(parts) == 3 else set()
-        if flags - {"cal", "aug"}:
-            raise ValueError(f"run {spec!r}: unknown flags {sorted(flags - {'cal', 'aug'})} (cal, aug)")
-        out.append((parts[0], seeds, "cal" in flags, "aug" in flags))
+        if flags - {"cal", "aug", "sub"}:
+            raise ValueError(f"run {spec!r}: unknown flags {sorted(flags - {'cal', 'aug', 'sub'})} (cal, aug, sub)")
+        if {"cal", "sub"} <= flags:
+            raise ValueError(f"run {spec!r}: interval calibration needs every LOOCV fold; drop 'sub' or 'cal'")
+        out.append((parts[0], seeds, "cal" in flags, "aug" in flags, "sub" in flags))
     return out
 
 
@@ -81,20 +86,23 @@ def _robustness(args: argparse.Namespace) -> int:
 
     one_blas_thread()
     from models.tradeoffs.common import write_json
-    from models.tradeoffs.robustness import run_model, study_inputs, summarise
+    from models.tradeoffs.robustness import held_out_subset, run_model, study_inputs, summarise
 
     plan = parse_runs(args.runs)
     work = Path(args.work)
     data, inputs, part, tables = study_inputs(args.dataset, work, workers=args.workers)
+    subset = held_out_subset(len(data), args.subset)
     runs: dict[str, list] = {}
-    for model, seeds, cal, aug in plan:
+    for model, seeds, cal, aug, sub in plan:
         for k, seed in enumerate(seeds):
             runs.setdefault(model, []).append(run_model(
                 data, inputs, part, work, model, seed, options=_options(args) if model.startswith(("ann", "vtnet")) else {},
-                calibration=cal and k == 0, augmentation=aug and k == 0, workers=args.workers))
+                calibration=cal and k == 0, augmentation=aug and k == 0, workers=args.workers,
+                held_out=subset if sub else None))
     summary = summarise(data, runs, tables, part)
     out = Path(args.out)
-    write_json(out, {**summary, "runs": args.runs, "command": _command(args)})
+    write_json(out, {**summary, "runs": args.runs, "subset": args.subset, "net_options": _options(args), "served": args.served,
+                     "command": _command(args)})
     print(f"wrote {out}")
     return 0
 

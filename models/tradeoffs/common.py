@@ -10,17 +10,22 @@ from pathlib import Path
 import numpy as np
 
 from models.evaluation.data import TextureData, load_texture_data
-from models.evaluation.registry import CLASSICAL
+from models.evaluation.registry import CLASSICAL, POOLED_BASES, POOLED_MEANS
 from models.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice
 
 
+POOLING_MODELS = (*POOLED_BASES, *POOLED_MEANS, "selected")  # classical models that pool a texture's views
+
+
 def views_for(model: str) -> int:
     """Image views a model trains on: the networks and the *-views SVRs pair windows with augmented
-    views (8, as in their LOOCV); the other classical models read view 0 only, so 1 saves embedding."""
+    views, the *-pooled models and `selected` pool them (8, as in their LOOCV); the other classical
+    models read view 0 only, so 1 saves embedding. At test time every model sees one frame."""
     base = model.removeprefix("shuffled-")
-    return 1 if base in CLASSICAL and not base.endswith("-views") else DEFAULT_VIEWS
+    single = base in CLASSICAL and not base.endswith("-views") and base not in POOLING_MODELS
+    return 1 if single else DEFAULT_VIEWS
 
 
 def with_visual(data: TextureData, root: str | Path, config: VisualConfig, *, n_views: int,

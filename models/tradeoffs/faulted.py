@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.datasets.build import run_jobs
+from models.jobs import run_jobs
 from models.datasets.format import Dataset
 from models.datasets.simulate import simulated_recording, texture_rng
 from models.faults.catalog import FAULTS, TRAJECTORY_FAULTS, apply_camera, apply_touch, trajectory_transform

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from models.evaluation.bootstrap import bootstrap_mean, paired_difference, per_texture_error
+from models.evaluation.bootstrap import bootstrap_mean, per_texture_error
 from models.evaluation.data import TextureData
 from models.evaluation.evaluate import window_latency
 from models.evaluation.loocv import loocv
@@ -281,7 +281,7 @@ def run_frontier(root: str | Path, *, model: str = "ridge-both", options: dict |
             if acc is not None:
                 e = errors[label]
                 row.update(mae=float(e.mean()), mae_ci=bootstrap_mean(e), window_us=tactile_us + acc["model_us"],
-                           model_us=acc["model_us"], vs_best=paired_difference(e, errors[best_label]))
+                           model_us=acc["model_us"], vs_best=bootstrap_mean(e - errors[best_label]))
             frontier.append(row)
     for t in threads:
         scored = [r for r in frontier if r["threads"] == t and r["mae"] is not None]

@@ -58,20 +58,33 @@ def study_inputs(root: str | Path, work: Path, *, visual: bool = True, workers: 
     tag = hashlib.sha256(json.dumps([data.textures, data.meta.get("tactile_hash"), data.meta.get("visual_hash"),
                                      part.tolist()]).encode()).hexdigest()[:12]
     tables = _pickle(work / f"detector-tables-{tag}.pkl", lambda: {
-        "folds": fold_checks(data, inputs, with_visual=visual),
-        "calibration": calibration_distances(data, inputs, part, with_visual=visual),
-        "shift": shift_checks(data, inputs, with_visual=visual),
+        "folds": fold_checks(data, inputs, with_visual=visual, workers=workers),
+        "calibration": calibration_distances(data, inputs, part, with_visual=visual, workers=workers),
+        "shift": shift_checks(data, inputs, with_visual=visual, workers=workers),
     })
     return data, inputs, part, tables
 
 
+def held_out_subset(n: int, size: int, seed: int = 0) -> np.ndarray:
+    """A fixed, seeded subset of `size` texture indices (sorted): the folds slow models run."""
+    if not 2 <= size <= n:
+        raise ValueError(f"subset size must lie in 2…{n}, got {size}")
+    return np.sort(np.random.default_rng(seed).choice(n, size, replace=False))
+
+
 def run_model(data, inputs: FaultedInputs, part: np.ndarray, work: Path, model: str, seed: int, *,
               options: dict | None = None, calibration: bool, augmentation: bool, workers: int,
-              force: bool = False) -> StudyRun:
-    """One (model, seed) study run, cached in work/runs/."""
+              held_out: np.ndarray | None = None, force: bool = False) -> StudyRun:
+    """One (model, seed) study run, cached in work/runs/ under the data it saw (textures, feature hashes,
+    faulted inputs' variants) and the folds it ran."""
     opts = options or {}
     tag = "" if not opts else "-" + hashlib.sha256(json.dumps(opts, sort_keys=True).encode()).hexdigest()[:8]
-    path = work / "runs" / f"{model}{tag}-s{seed}{'-cal' if calibration else ''}{'-aug' if augmentation else ''}.pkl"
+    data_tag = hashlib.sha256(json.dumps([data.textures, data.meta.get("tactile_hash"), data.meta.get("visual_hash"),
+                                          sorted(inputs.tactile), inputs.visual_keys, part.tolist(),
+                                          None if held_out is None else [int(i) for i in held_out]]).encode()).hexdigest()[:10]
+    sub = "" if held_out is None else f"-sub{len(held_out)}"
+    path = (work / "runs" / f"{model}{tag}-s{seed}{'-cal' if calibration else ''}{'-aug' if augmentation else ''}"
+            f"{sub}-{data_tag}.pkl")
     if force and path.is_file():
         path.unlink()
     needs_visual = model.removeprefix("shuffled-") not in ("mean",) and data.visual is not None
@@ -79,7 +92,7 @@ def run_model(data, inputs: FaultedInputs, part: np.ndarray, work: Path, model: 
     if needs_visual and views_for(model) != data.visual.shape[1]:
         d = replace(data, visual=data.visual[:, : views_for(model)])
     return _pickle(path, lambda: run_study(d, inputs, part, model, seed=seed, options=opts, calibration=calibration,
-                                           augmentation=augmentation, workers=workers))
+                                           augmentation=augmentation, workers=workers, held_out=held_out))
 
 
 def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndarray) -> dict:
@@ -93,10 +106,16 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
     robustness, breaking, spread, shift, augmentation, coverage, recommended = [], [], {}, {}, [], [], {}
     by_windows: list[dict] = []
     for model, model_runs in runs.items():
-        full, _ = analysis.seed_mean(model_runs, CLEAN)
-        err = per_texture_error(np.stack([p.texture for p in model_runs[0].loocv[CLEAN]]) if len(model_runs) == 1
-                                else full, truth)
-        clean_all[model] = {"mae": float(err.mean()), "ci": bootstrap_mean(err)}
+        held_out = model_runs[0].held_out
+        if any(r.held_out != held_out for r in model_runs):
+            raise ValueError(f"the runs of {model!r} ran different folds; rerun them on the same held-out textures")
+        # a model run on a subset of folds breaks where it reaches predict-the-mean on the same textures
+        model_ref = reference if held_out is None else analysis.variant_mae(
+            [analysis.restrict(r, held_out) for r in mean_runs], truth, CLEAN)["mae"]
+        full, present = analysis.seed_mean(model_runs, CLEAN)
+        err = per_texture_error(full[present], truth[present])
+        clean_all[model] = {"mae": float(err.mean()), "ci": bootstrap_mean(err), "n_textures": int(present.sum()),
+                            "reference_mean_mae": model_ref, "subset": held_out is not None}
         spread[model] = analysis.spread(model_runs, truth, data.groups)
         shift[model] = analysis.shift_mae(model_runs, truth, data.groups)
         for name in FAULTS:
@@ -109,9 +128,10 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
                                    "strength": None if math.isinf(pt["strength"]) else pt["strength"], "clean": k == 0,
                                    "mae": pt["mae"], "ci": pt["ci"], "seed_std": pt["seed_std"],
                                    "n_textures": pt["n_textures"]})
-            bp = analysis.breaking_point(curve, reference)
+            bp = analysis.breaking_point(curve, model_ref)
             breaking.append({"model": model, "fault": name, "breaking_point": None if bp is None else _finite(bp),
-                             "reached": bp is not None, "broken_when_clean": curve[0]["mae"] >= reference,
+                             "reached": bp is not None, "broken_when_clean": curve[0]["mae"] >= model_ref,
+                             "reference_mean_mae": model_ref,
                              "worst_mae": max(p["mae"] for p in curve[1:]) if len(curve) > 1 else None})
         aug_runs = [r for r in model_runs if r.aug]
         for name in AUGMENTED_FAULTS:
@@ -122,8 +142,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
             augmentation.append({"model": model, "fault": name, "seeds": [r.seed for r in aug_runs],
                                  "before": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in before],
                                  "after": [{"strength": _finite(p["strength"]), "mae": p["mae"]} for p in after],
-                                 "breaking_before": _finite_or_none(analysis.breaking_point(before, reference)),
-                                 "breaking_after": _finite_or_none(analysis.breaking_point(after, reference))})
+                                 "breaking_before": _finite_or_none(analysis.breaking_point(before, model_ref)),
+                                 "breaking_after": _finite_or_none(analysis.breaking_point(after, model_ref))})
         for r in model_runs:
             if r.calib:
                 rows = coverage_study(r, truth, part, tables["folds"], tables["calibration"], tables["shift"], data.groups)

@@ -15,6 +15,10 @@ hl tradeoffs frontier --dataset $H --model ridge-both
 # §2/§3: faulted inputs of every texture, then fits per (model, seed): curves, breaking points,
 # spread, material-group shift, augmentation, interval coverage
 hl tradeoffs faults --dataset $H
-hl tradeoffs robustness --dataset $H
+# The grid the committed page ran (cut to fit 2 shared cores; the CLI default is the full grid):
+# every fold for the fast models, the LOOCV folds of 20 held-out textures (fixed, seeded) for the slow
+# ones; interval calibration for ridge-both and knn-both; augmentation for ridge-both.
+RUNS=${RUNS:-"mean:0 ridge-both:0:cal+aug knn-both:0:cal svr-both:0:sub ann:0,1:sub selected:0:sub"}
+hl tradeoffs robustness --dataset $H --workers 2 --subset 20 --runs $RUNS
 # §6: the page, its charts and results.json (merges reports/tradeoffs/adaptive.json when present)
 hl tradeoffs report --reports reports/tradeoffs

@@ -29,7 +29,7 @@ def media_type(request: Request) -> str:
              openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
              responses={**errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
                         **try_later("the session is saturated; resend after Retry-After s")},
-             summary="Send one sample block (robot token)")
+             summary="Send one block: samples or taps (robot token)")
 async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
     kind = media_type(request)
     if kind not in ("application/json", BINARY_CONTENT_TYPE):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import io
 import json
 import logging
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from drivers.blocks import Frame, SampleBlock
+from drivers.blocks import Frame, SampleBlock, TapBlock
 from drivers.camera import png_bytes
 from drivers.replay import ReplaySource
 from drivers.simulated import SimulatedSource
@@ -145,3 +146,18 @@ def test_simulated_from_library_with_an_image_file(kit, texture, tmp_path):
         SimulatedSource.from_library(lib_dir, "nope")
     with pytest.raises(ValueError, match="PNG or JPEG"):
         SimulatedSource(texture.model, b"GIF89a...")
+
+
+def test_simulated_robot_taps_before_stroking(kit, texture):
+    """taps=True: one tap block first — the texture's tap transients as recorded, at 1 kHz — then the stroke
+    (seq 1 on); a model without tap transients cannot tap."""
+    source = SimulatedSource(texture.model, seed=3, realtime=False, duration_s=0.5, taps=True)
+    items = asyncio.run(kit.take(source))
+    tap, blocks = items[0], blocks_of(items)
+    assert isinstance(tap, TapBlock) and (tap.t0, tap.seq, tap.accel.rate_hz, tap.accel.units) == (0.0, 0, 1000.0, "m/s^2")
+    np.testing.assert_array_equal(tap.speeds, texture.model.taps.speeds)
+    np.testing.assert_allclose(tap.accel.data, texture.model.taps.accel, rtol=1e-6, atol=1e-6)
+    assert [b.seq for b in blocks] == list(range(1, len(blocks) + 1)) and blocks[0].t0 == 0.0
+    assert not any(isinstance(i, TapBlock) for i in items[1:])
+    with pytest.raises(ValueError, match="no tap transients"):
+        SimulatedSource(dataclasses.replace(texture.model, taps=None), taps=True)

@@ -41,6 +41,11 @@ def test_bad_specs_say_what_is_wrong(spec, message):
         source_from_spec(spec)
 
 
+def test_only_the_simulated_source_taps():
+    with pytest.raises(ValueError, match="--taps: only the simulated source"):
+        source_from_spec("serial:COM3", taps=True)
+
+
 def test_good_specs_build_their_sources(tmp_path):
     s = source_from_spec("serial:/dev/ttyUSB0:115200")
     assert isinstance(s, SerialBoardSource) and (s.port, s.baudrate) == ("/dev/ttyUSB0", 115200)

@@ -93,3 +93,50 @@ def test_not_a_model_file(tmp_path):
         Predictor(bad)
     with pytest.raises(ValueError, match="not found"):
         Predictor(tmp_path / "missing.onnx")
+
+
+@pytest.fixture()
+def stand_in_images(monkeypatch):
+    """The dataset's tactile features with stand-in image features (8 views × 24 per texture, seeded by the
+    texture id): the selected model reads images, and real embeddings would cost minutes here."""
+    import zlib
+
+    import models.train as train_module
+
+    real = train_module.load_texture_data
+
+    def load(root, *, visual=True, visual_part="both", rated="yes", **kw):
+        data = real(root, visual=False, rated=rated, **kw)
+        views = np.stack([np.random.default_rng(zlib.crc32(t.encode())).normal(size=(8, 24)) for t in data.textures])
+        meta = {**data.meta, "backbone": "stand-in", "backbone_dim": 24, "visual_hash": "0" * 16, "visual_part": visual_part}
+        return replace(data, visual=views.astype(np.float32), meta=meta)
+
+    monkeypatch.setattr(train_module, "load_texture_data", load)
+    return load
+
+
+def test_train_selected_applies_the_rule_to_every_rated_texture_and_records_it(dataset, tmp_path, stand_in_images):
+    from models.evaluation.registry import build_estimator as build
+
+    path = train_and_export(dataset, "selected", tmp_path / "selected.onnx", seed=1, options={"folds": 3, "repeats": 1})
+    card = read_card(path)
+    assert card.model == "selected" and len(card.trained_on) == 6
+    assert card.visual["views"] == 8 and card.visual["pooling"] == "mean" and card.visual["views_stored"] == 8
+    assert set(card.fit_info["chosen"]) == set(ATTRIBUTES)
+    assert set(card.fit_info["chosen"].values()) <= {"ridge-pooled", "krr-pooled", "ksvr-pooled", "mean-pooled"}
+    # the exported graph, fed each window with the texture's 8 views pooled, answers as the fitted rule does
+    est = build("selected", folds=3, repeats=1).fit(stand_in_images(dataset), 1)
+    assert [est.fit_info()["chosen"][a] for a in ATTRIBUTES] == [card.fit_info["chosen"][a] for a in ATTRIBUTES]
+    textures, preds = predict_dataset(path, dataset, rated="withheld")
+    expected = est.predict(stand_in_images(dataset, rated="withheld"))
+    assert textures == ["synth_006", "synth_007"]
+    np.testing.assert_allclose(preds, expected, atol=1e-2)
+
+
+def test_train_refuses_metrics_of_another_model(dataset, tmp_path):
+    import json
+
+    metrics = tmp_path / "results.json"
+    metrics.write_text(json.dumps({"model": "ridge-both", "mae": {}, "rmse": {}, "seeds": [0]}))
+    with pytest.raises(ValueError, match="holds the LOOCV of 'ridge-both', not of 'ridge-tactile'"):
+        train_and_export(dataset, "ridge-tactile", tmp_path / "m.onnx", metrics=metrics)

@@ -32,7 +32,7 @@ def test_openapi_documents_every_route_with_examples(server):
     assert "Retry-After" in blocks["responses"]["429"]["headers"]
     assert set(paths["/sessions/{session_id}/frames"]["post"]["requestBody"]["content"]) == {"image/png", "image/jpeg"}
     schemas = spec["components"]["schemas"]
-    for name in ("SessionCreated", "BlockAck", "SessionStatus", "JsonBlock", "ReadyOut"):
+    for name in ("SessionCreated", "BlockAck", "SessionStatus", "JsonBlock", "JsonTapBlock", "ReadyOut"):
         assert schemas[name].get("examples"), f"{name} has no example"
     # the WebSockets cannot be OpenAPI operations; the description documents them
     for text in ("/sessions/{session_id}/ingest", "/sessions/{session_id}/events", "4429", "1008"):

@@ -70,7 +70,7 @@ def test_a_recording_with_no_complete_window_is_named(dataset_copy):
 def test_run_jobs_keeps_job_order_in_worker_processes():
     import math
 
-    from models.datasets.build import run_jobs
+    from models.jobs import run_jobs
 
     assert list(run_jobs(math.sqrt, [1.0, 4.0, 9.0, 16.0, 25.0], 2, "roots")) == [1.0, 2.0, 3.0, 4.0, 5.0]
     assert list(run_jobs(math.sqrt, [4.0], None, "one")) == [2.0]

@@ -34,10 +34,12 @@ def test_recording_features_shape_dtype_and_count(duration, hop_s, make_recordin
     sizes=st.lists(st.integers(1, 1500), min_size=1, max_size=6),
     motion=st.sampled_from(["speed", "position"]),
     feature_set=st.sampled_from(["mfcc", "dwt", "dft"]),
+    groups=st.sampled_from([(), ("friction", "spatial")]),
 )
-def test_train_serve_equivalence(sizes, motion, feature_set, make_recording):
-    """Serving pushes blocks and featurises each window alone; training featurises the recording."""
-    config = TactileConfig(feature_set=feature_set)
+def test_train_serve_equivalence(sizes, motion, feature_set, groups, make_recording):
+    """Serving pushes blocks and featurises each window alone; training featurises the recording
+    (the derived streams of the extra groups included)."""
+    config = TactileConfig(feature_set=feature_set, extra_groups=groups)
     rec = make_recording(2.5, 2000.0, 1000.0, 500.0, force_axes=3, motion=motion, seed=3)
     offline, t0 = recording_features(rec, config)
     pre = TactilePreprocessor(config)

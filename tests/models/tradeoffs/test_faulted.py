@@ -35,7 +35,8 @@ def test_touch_variants_through_the_feature_path_and_cached(dataset, tmp_path):
 
 
 def test_run_specs_are_parsed_or_refused():
-    assert parse_runs(["ann:0,1:cal+aug", "mean:0"]) == [("ann", [0, 1], True, True), ("mean", [0], False, False)]
-    for bad in ("ann", "ann:x", "ann:0:fast", ":0"):
+    assert parse_runs(["ann:0,1:cal+aug", "mean:0", "svr-both:0:sub"]) == [
+        ("ann", [0, 1], True, True, False), ("mean", [0], False, False, False), ("svr-both", [0], False, False, True)]
+    for bad in ("ann", "ann:x", "ann:0:fast", ":0", "ann:0:cal+sub"):
         with pytest.raises(ValueError):
             parse_runs([bad])

@@ -50,6 +50,28 @@ def test_noise_curve_rises_and_breaks_where_the_mean_is_reached(summary):
     assert max(flat) - min(flat) < 1e-9  # predict-the-mean ignores its input
 
 
+def test_a_model_run_on_a_subset_of_folds_is_judged_on_those_textures(world, summary):
+    data, runs, full = summary
+    inputs = world[1]
+    part = partition(len(data), 4, seed=0)
+    held = np.array([0, 2, 5])
+    sub = run_study(data, inputs, part, "ridge-both", seed=0, shift=False, held_out=held)
+    assert sub.held_out == [0, 2, 5]
+    assert [p is not None for p in sub.loocv[CLEAN]] == [i in (0, 2, 5) for i in range(len(data))]
+    for i in held:  # the same fold fits the same model: the same prediction as the full run
+        np.testing.assert_allclose(sub.loocv[CLEAN][i].texture, runs["ridge-both"][0].loocv[CLEAN][i].texture)
+    tables = {"folds": fold_checks(data, inputs, with_visual=True), "calibration": {}, "shift": {}}
+    s = summarise(data, {"mean": runs["mean"], "ridge-sub": [sub]}, tables, part)
+    truth = data.targets.astype(float)
+    mean_pred = np.stack([runs["mean"][0].loocv[CLEAN][i].texture for i in held])
+    assert s["clean"]["ridge-sub"]["n_textures"] == 3 and s["clean"]["ridge-sub"]["subset"]
+    assert s["clean"]["ridge-sub"]["reference_mean_mae"] == pytest.approx(per_texture_error(mean_pred, truth[held]).mean())
+    assert s["spread"]["ridge-sub"]["n_textures"] == 3
+    assert all(r["n_textures"] <= 3 for r in s["robustness"] if r["model"] == "ridge-sub")
+    with pytest.raises(ValueError, match="held_out"):
+        run_study(data, inputs, part, "ridge-both", held_out=np.array([len(data)]))
+
+
 def test_augmentation_is_reported_before_and_after(summary):
     _, _, s = summary
     blocks = {(a["model"], a["fault"]) for a in s["augmentation"]}
@@ -143,3 +165,16 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     page = build_tradeoffs_report(tmp_path).read_text()
     assert "compute ratio 6.00×" in page and "*Pending*" not in page
     assert json.loads((tmp_path / "results.json").read_text())["adaptive"]["compute_ratio"] == 6.0
+
+
+def test_detector_tables_in_worker_processes_equal_the_serial_ones(world):
+    data, inputs = world
+    part = partition(len(data), 4, seed=0)
+    for fn, args in ((fold_checks, ()), (calibration_distances, (part,)), (shift_checks, ())):
+        serial, forked = fn(data, inputs, *args, with_visual=True), fn(data, inputs, *args, with_visual=True, workers=2)
+        assert serial.keys() == forked.keys()
+        for k in serial:
+            a, b = serial[k], forked[k]
+            pairs = zip(a, b) if isinstance(a, list) else ((a[j], b[j]) for j in a) if isinstance(a, dict) else [(a, b)]
+            for x, y in pairs:
+                np.testing.assert_array_equal(getattr(x, "distance", x), getattr(y, "distance", y))

@@ -1,0 +1,171 @@
+"""Spatial spectra: the window's acceleration and normal force against position, per band of spatial periods.
+
+Bumps are a function of *where* the tool is: a bump train of period P stroked at v mm/s rings at
+v/P Hz, which wanders with the stroke's speed (and falls below the MFCC frames' resolution and
+the 20 Hz high-pass on a slow stroke). Against position it stays at 1/P mm⁻¹. Per window:
+
+  1. resample onto a uniform position grid (step dx mm) using the integrated speed
+     x(t) = Σ v/rate: each grid cell takes the mean of the signal over the cell (the exact
+     integral of the piecewise-constant samples, which also suppresses aliasing when the tool
+     moves slowly);
+  2. remove the (Hann-weighted) linear trend, Hann-window the cells the window covered,
+     zero-pad to n_fft, and take the one-sided power spectrum normalised so that it sums to the
+     mean square (a sinusoid of amplitude A → A²/2), summed over the signal's columns (so the
+     accelerometer's mounting orientation does not matter);
+  3. sum the bins in each band of spatial periods (geometric bands from max_period down to
+     min_period) and take log10(energy + floor).
+
+Two signals, one band set each:
+
+  spatial_accel_*  acceleration (high-passed only against gravity, at `spatial_highpass_hz` ≈ 1 Hz)
+                   speed-normalised to curvature — the tip's acceleration over a profile z(x) is
+                   z''(x)·v² (+ z'(x)·v̇, small), so the spectrum is divided by the window's
+                   position-weighted mean of v⁴ (floored at min_speed⁴: slow samples are not
+                   amplified) and by (2πk)⁴ (curvature → height): the band's mean-square height,
+                   mm². A bump train z = h·(1 + cos(2πx/P))/2 puts h²/8 mm² into the band holding
+                   1/P at any speed (up to the spread of the window's spectral line over
+                   neighbouring bands when the window covers only a few periods);
+                   floor ENERGY_FLOOR_MM2;
+  spatial_force_*  normal force (low-passed at 25 Hz): the hand–tool spring the bumps compress
+                   (texture_library.stroke), mean-square force per band, N² — it sees long
+                   periods at slow strokes, where the acceleration (∝ v²/P²) is faint;
+                   floor FORCE_FLOOR_N2.
+
+and two totals over all bands, linear (a bump train lifts whichever band its period falls in;
+their sum is what says "bumpy", and a linear model cannot sum exponentials of log bands):
+
+  spatial_accel_rms_mm  √(Σ accel band energies): the RMS profile height over 1–32 mm periods, mm
+  spatial_force_rms_n   √(Σ force band energies): the RMS normal-force fluctuation over them, N
+
+A window in which the tool moved less than MIN_CELLS grid cells has no spatial spectrum: every
+band then reads log10(floor) and the totals √(n_bands·floor) (documented fallback, never NaN).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft
+
+#: added to every accel band's energy before the log, mm² (a 0.3 µm bump train's energy)
+ENERGY_FLOOR_MM2 = 1e-8
+#: added to every force band's energy before the log, N² (well below 0.01 N sensor noise)
+FORCE_FLOOR_N2 = 1e-8
+MIN_CELLS = 4
+
+
+@lru_cache(maxsize=16)
+def band_edges_per_mm(min_period_mm: float, max_period_mm: float, n_bands: int) -> np.ndarray:
+    """(n_bands + 1,) spatial-frequency band edges, mm⁻¹, ascending (band 0 holds the longest periods)."""
+    if not (0 < min_period_mm < max_period_mm) or n_bands < 1:
+        raise ValueError(f"need 0 < min_period < max_period and n_bands ≥ 1, got {min_period_mm}, {max_period_mm}, {n_bands}")
+    edges = np.geomspace(1.0 / max_period_mm, 1.0 / min_period_mm, n_bands + 1)
+    edges.setflags(write=False)
+    return edges
+
+
+def band_names(min_period_mm: float, max_period_mm: float, n_bands: int) -> list[str]:
+    """Feature names: accel bands, force bands (longest periods first: spatial_{accel,force}_<long>-<short>mm),
+    then the two totals."""
+    edges = band_edges_per_mm(min_period_mm, max_period_mm, n_bands)
+    spans = [f"{1 / lo:.3g}-{1 / hi:.3g}mm" for lo, hi in zip(edges[:-1], edges[1:])]
+    bands = [f"spatial_{signal}_{span}" for signal in ("accel", "force") for span in spans]
+    return bands + ["spatial_accel_rms_mm", "spatial_force_rms_n"]
+
+
+@lru_cache(maxsize=16)
+def _band_weights(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int) -> np.ndarray:
+    """(n_fft//2 + 1, n_bands): 1/(2πk)^power for the bins of each band, 0 elsewhere (and at k = 0)."""
+    k = scipy.fft.rfftfreq(n_fft, dx_mm)
+    inv = np.zeros_like(k)
+    inv[1:] = 1.0 / (2 * np.pi * k[1:]) ** power
+    e = np.asarray(edges)
+    members = (k[:, None] >= e[None, :-1]) & (k[:, None] < e[None, 1:])
+    return members * inv[:, None]
+
+
+def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray:
+    """One-sided power spectra over spatial frequency of signals against position, n windows at once.
+
+    signal: (n, L, c), constant over each sample; x_edges: (n, L + 1) strictly increasing positions of
+    the samples' edges, mm, starting at 0. Per window: the cell means on a dx_mm grid over the
+    distance it covers (at most n_fft cells), a Hann-weighted least-squares line removed, Hann,
+    zero-padded to n_fft → power (n, n_fft//2 + 1, c), normalised to sum to the mean square;
+    all zeros for a window covering fewer than MIN_CELLS cells.
+    """
+    n, length, c = signal.shape
+    cells = np.minimum((x_edges[:, -1] / dx_mm).astype(np.int64), n_fft)  # (n,)
+    n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
+    integral = np.concatenate([np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1)
+    # one np.interp per column for every window: rows are laid end to end, `gap` mm apart
+    gap = float(x_edges[:, -1].max(initial=0.0)) + (n_grid + 2) * dx_mm
+    offset = (np.arange(n) * gap)[:, None]
+    grid = (np.arange(n_grid + 1) * dx_mm)[None, :] + offset  # (n, n_grid + 1) cell edges
+    xs = (x_edges + offset).ravel()
+    at = np.stack([np.interp(grid.ravel(), xs, integral[:, :, k].ravel()) for k in range(c)], axis=1)
+    # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part
+    means = (np.diff(at.reshape(n, n_grid + 1, c), axis=1) / dx_mm).astype(np.float32)  # (n, n_grid, c); beyond a window's cells: ignored
+    j = np.arange(n_grid, dtype=np.float32)[None, :]
+    m = np.maximum(cells, 2)[:, None].astype(np.float32)
+    inside = j < cells[:, None]
+    w = np.where(inside, np.sin(np.float32(np.pi) * (j + 1) / (m + 1)) ** 2, np.float32(0))  # Hann without its zero ends
+    t = np.where(inside, 2 * j / (m - 1) - 1, np.float32(0))
+    # weighted least-squares line a + b·t through each column (weights w²), removed before the taper
+    w2 = w * w
+    s0, s1, s2 = w2.sum(axis=1), (w2 * t).sum(axis=1), (w2 * t * t).sum(axis=1)
+    y0 = np.einsum("nj,njc->nc", w2, means)
+    y1 = np.einsum("nj,njc->nc", w2 * t, means)
+    det = np.where(s0 * s2 - s1 * s1 > 0, s0 * s2 - s1 * s1, 1.0)
+    a = (s2[:, None] * y0 - s1[:, None] * y1) / det[:, None]
+    b = (s0[:, None] * y1 - s1[:, None] * y0) / det[:, None]
+    tapered = w[:, :, None] * (means - a[:, None, :] - b[:, None, :] * t[:, :, None])
+    spec = scipy.fft.rfft(tapered, n=n_fft, axis=1)
+    norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
+    return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None, None]
+
+
+def spatial_features(
+    accel: np.ndarray,
+    force: np.ndarray,
+    speed: np.ndarray,
+    rate_hz: float,
+    *,
+    dx_mm: float = 0.25,
+    n_fft: int = 1024,
+    min_period_mm: float = 1.0,
+    max_period_mm: float = 32.0,
+    n_bands: int = 10,
+    min_speed: float = 30.0,
+) -> np.ndarray:
+    """accel: (n, L, 3) m/s², high-passed only against gravity; force: (n, L) normal force, N; speed:
+    (n, L) mm/s ≥ 0 (tool speed along the surface) → (n, 2·n_bands + 2) float64: log10 mean-square
+    profile height (mm²) then log10 mean-square normal force (N²) per band of spatial periods,
+    longest periods first, then the RMS height (mm) and RMS force (N) over all bands (names:
+    band_names; see the module docstring)."""
+    accel = np.asarray(accel, dtype=np.float64)
+    force = np.asarray(force, dtype=np.float64)
+    speed = np.asarray(speed, dtype=np.float64)
+    if accel.ndim != 3 or accel.shape[2] != 3 or speed.shape != accel.shape[:2] or force.shape != speed.shape:
+        raise ValueError(f"spatial features need accel (n, L, 3), force (n, L) and speed (n, L), "
+                         f"got {accel.shape}, {force.shape} and {speed.shape}")
+    if not (rate_hz > 0 and dx_mm > 0 and min_speed > 0):
+        raise ValueError(f"rate_hz, dx_mm and min_speed must be > 0, got {rate_hz}, {dx_mm}, {min_speed}")
+    if 2 * dx_mm > min_period_mm:
+        raise ValueError(f"dx_mm={dx_mm} cannot resolve periods of {min_period_mm} mm (needs dx ≤ period/2)")
+    edges = tuple(band_edges_per_mm(min_period_mm, max_period_mm, n_bands))
+    height_w = _band_weights(n_fft, dx_mm, edges, 4)
+    force_w = _band_weights(n_fft, dx_mm, edges, 0)
+    n = accel.shape[0]
+    if n == 0:
+        return np.empty((0, 2 * n_bands + 2))
+    v = np.maximum(speed, 0.0)
+    step = np.maximum(v, 1e-9) / rate_hz  # mm travelled during each sample (strictly > 0: x increases)
+    x = np.concatenate([np.zeros((n, 1)), np.cumsum(step, axis=1)], axis=1)  # (n, L + 1) sample edges
+    # position-weighted mean of v⁴ ((mm/s)⁴): the acceleration's power over a profile is |z''|²·v⁴
+    v4 = np.maximum(np.sum(v**4 * step, axis=1) / np.maximum(x[:, -1], 1e-12), min_speed**4)
+    power = position_power(np.concatenate([1e3 * accel, force[:, :, None]], axis=2), x, dx_mm, n_fft)
+    energy = np.concatenate([power[:, :, :3].sum(axis=2) @ height_w / v4[:, None] + ENERGY_FLOOR_MM2,
+                             power[:, :, 3] @ force_w + FORCE_FLOOR_N2], axis=1)  # mm² per accel band, N² per force band
+    totals = np.sqrt(np.stack([energy[:, :n_bands].sum(axis=1), energy[:, n_bands:].sum(axis=1)], axis=1))
+    return np.concatenate([np.log10(energy), totals], axis=1)
