@@ -24,6 +24,7 @@ from models.visual.image import load_image
 from service.events import WindowEvent
 from service.session import canonical_channels
 from service.settings import Settings
+from texture_library.attributes import ATTRIBUTES
 from texture_library.recording import Recording
 
 TEXTURE = "synth_002"
@@ -111,7 +112,8 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
                     assert ack["ok"] is True and ack["duplicate"] is False, ack
                     accepted.append(block)
         # every window the accepted blocks complete, by the stream contract the service enforces
-        contract = StreamContract(srv.app.state.service.runtime.tactile_config)
+        runtime = srv.app.state.service.runtime
+        contract = StreamContract(runtime.tactile_config)
         cursor, expected = contract.start(), 0
         for block in accepted:
             adv = contract.admit(cursor, canonical_channels(block), block.t0)
@@ -150,5 +152,18 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
 
     clean = [widths(w) for w in during(0.0, 1.5) if not w["out_of_distribution"]]
     assert clean and all(np.all(c < 200) for c in clean)
+    # ... they widen to the hull of their own band and the population band (IntervalCalibration's fallback,
+    # clipped to the rating range): never narrower than either, wherever the estimate's centre moved
+    cal = runtime.main.calibration
+    assert cal.scale == "none"  # the fixture's card: the unflagged band is a function of the estimate alone
+    _, prior = cal.quantile(settings.interval_level)
+    pop_lo, pop_hi = np.clip(cal.prior_center - prior, -100, 100), np.clip(cal.prior_center + prior, -100, 100)
+    widened = False
     for w in during(3.5, 4.5):
-        assert np.all(widths(w) >= clean[0] - 0.02) and np.any(widths(w) > clean[0] + 1), (widths(w), clean[0])
+        lo = np.array([w["interval"][a]["lo"] for a in ATTRIBUTES])
+        hi = np.array([w["interval"][a]["hi"] for a in ATTRIBUTES])
+        own_lo, own_hi = cal.interval(np.array([w["ratings"][a] for a in ATTRIBUTES]), None, settings.interval_level)
+        assert np.all(lo <= np.minimum(own_lo, pop_lo) + 0.02) and np.all(hi >= np.maximum(own_hi, pop_hi) - 0.02), \
+            (lo, hi, own_lo, own_hi, pop_lo, pop_hi)
+        widened |= bool(np.any(hi - lo > own_hi - own_lo + 1))
+    assert widened, "no flagged window's band grew beyond its own"
