@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import secrets
 import sys
@@ -75,8 +76,11 @@ async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
         report["session_flood"] = {"requests": 300, "seconds": round(time.perf_counter() - t0, 2),
                                    "statuses": {str(s): sum(r.status_code == s for r in codes) for s in {r.status_code for r in codes}}}
         # 3. seq 2^62, then good blocks: the session must keep producing windows
-        good = robot_streams(_library[0], 1, 2.0, block_s, seed=7)[0]
-        r = await client.post(blocks_url, content=encode_binary(SampleBlock(good[0].t0, good[0].channels, 2**62)), headers=robot)
+        # (a taps model's stream opens with its tap block; seq numbers every block of it in order)
+        good = [dataclasses.replace(b, seq=i) for i, b in enumerate(robot_streams(_library[0], 1, 2.0, block_s, seed=7,
+                                                                                   taps=_taps[0])[0])]
+        first = next(b for b in good if isinstance(b, SampleBlock))
+        r = await client.post(blocks_url, content=encode_binary(SampleBlock(first.t0, first.channels, 2**62)), headers=robot)
         statuses = [r.status_code]
         for b in good:
             statuses.append((await client.post(blocks_url, content=encode_binary(b), headers=robot)).status_code)
@@ -87,6 +91,7 @@ async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
 
 
 _library: list[Path] = []
+_taps: list[bool] = []
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     api_key = secrets.token_urlsafe(24)
     assets = prepare_assets(args.assets)["served"]
     _library.append(assets.library)
+    _taps.append(assets.taps)
     n = args.robots + args.burst_robots
-    streams = robot_streams(assets.library, n, args.duration, args.block_s)
+    streams = robot_streams(assets.library, n, args.duration, args.block_s, taps=assets.taps)
     frames = [frame_of(assets.library, k) for k in range(n)]
     server = ServerProcess.service(assets, api_key, instance_id="hostile",
                                    # every robot of this process is one address: a budget for them all

@@ -59,10 +59,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from drivers.blocks import Frame, SampleBlock
+from drivers.blocks import Block, Frame, TapBlock
 from drivers.protocol import ws_url
 from drivers.robot import RobotClient
+from drivers.simulated import tap_block
 from drivers.source import blocks_from_arrays
+from models.modelfile import read_card
 from texture_library.library import Library
 from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
@@ -76,7 +78,8 @@ CONFIGS = ("served", "tactile")
 # ---- assets --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Assets:
-    """What a configuration serves: model, optional tactile-only model and backbone, library (its images are the frames)."""
+    """What a configuration serves: model, optional tactile-only model and backbone, library (its images are the frames);
+    taps: its models read tap features (each robot taps its surface before stroking)."""
 
     name: str
     model: Path
@@ -84,6 +87,7 @@ class Assets:
     backbone: Path | None
     library: Path
     frames: bool
+    taps: bool = False
 
 
 def prepare_assets(root: Path) -> dict[str, Assets]:
@@ -91,25 +95,29 @@ def prepare_assets(root: Path) -> dict[str, Assets]:
     from service.demo import prepare_assets as demo_assets
 
     demo = demo_assets(root / "served")
+    taps = "taps" in read_card(demo.model).tactile_config.get("extra_groups", ())
     return {
-        "served": Assets("served", demo.model, demo.tactile, demo.backbone, demo.library, frames=True),
-        "tactile": Assets("tactile", demo.tactile, None, None, demo.library, frames=False),
+        "served": Assets("served", demo.model, demo.tactile, demo.backbone, demo.library, frames=True, taps=taps),
+        "tactile": Assets("tactile", demo.tactile, None, None, demo.library, frames=False, taps=taps),
     }
 
 
-def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0) -> list[list[SampleBlock]]:
-    """n_streams block sequences (seq from 0), each `seconds` long, over the library's textures."""
+def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0,
+                  taps: bool = False) -> list[list[Block]]:
+    """n_streams block sequences (seq from 0), each `seconds` long, over the library's textures; with `taps`
+    each starts with its texture's tap block, as a robot serving a model that reads tap features does."""
     lib = Library.load(library_dir)
     out = []
     for k in range(n_streams):
         model = lib.model(lib.ids[k % len(lib.ids)])
+        head: list[Block] = [tap_block(model)] if taps else []
         rng = np.random.default_rng([seed, k])
         traj = freehand(seconds + 0.5, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
         s = stroke(model, traj, rng)
         n = int(round(seconds * s.rate_hz))
         channels = {"accel": (s.accel[:n], s.rate_hz, "m/s^2"), "force": (s.force[:n], s.rate_hz, "N"),
                     "speed": (s.speed[:n], s.rate_hz, "mm/s")}
-        out.append(list(blocks_from_arrays(channels, block_s)))
+        out.append(head + list(blocks_from_arrays(channels, block_s)))
     return out
 
 
@@ -203,7 +211,7 @@ class PacedSource:
 
     name = "bench"
 
-    def __init__(self, blocks: list[SampleBlock], block_s: float, start: float, frame: bytes | None,
+    def __init__(self, blocks: list[Block], block_s: float, start: float, frame: bytes | None,
                  frame_every_s: float, realtime: bool = True) -> None:
         self.blocks, self.block_s, self.start = blocks, block_s, start
         self.frame, self.frame_every = frame, max(1, int(round(frame_every_s / block_s)))
@@ -212,16 +220,22 @@ class PacedSource:
         self.send_lag_ms: list[float] = []
 
     async def _items(self):
+        n = 0  # sample blocks so far (a tap block holds no stream time: it leaves at once)
         for i, block in enumerate(self.blocks):
+            if isinstance(block, TapBlock):
+                self.yielded[i] = time.perf_counter()
+                yield block
+                continue
+            n += 1
             if self.realtime:
-                due = self.start + (i + 1) * self.block_s  # a block leaves when its span has ended
+                due = self.start + n * self.block_s  # a block leaves when its span has ended
                 delay = due - time.perf_counter()
                 if delay > 0:
                     await asyncio.sleep(delay)
                 self.send_lag_ms.append(max(0.0, time.perf_counter() - due) * 1e3)
             elif i % 256 == 0:
                 await asyncio.sleep(0)
-            if self.frame is not None and i % self.frame_every == 0:
+            if self.frame is not None and (n - 1) % self.frame_every == 0:
                 yield Frame(block.t0, self.frame, "image/png")
             self.yielded[i] = time.perf_counter()
             yield block
@@ -283,7 +297,7 @@ async def _operate(url: str, session, source: PacedSource, view: OperatorView, r
         await asyncio.gather(reader, return_exceptions=True)
 
 
-async def run_load(urls: list[str], streams: list[list[SampleBlock]], frames: list[bytes | None], block_s: float,
+async def run_load(urls: list[str], streams: list[list[Block]], frames: list[bytes | None], block_s: float,
                    api_key: str, seed: int, realtime: bool = True, window: int = 64) -> tuple[list, list[OperatorView], list[PacedSource]]:
     """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views, sources."""
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
@@ -337,7 +351,7 @@ def _metric_sum(text: str, name: str, **labels: str) -> float:
     return total
 
 
-def measure(n: int, assets: Assets, streams: list[list[SampleBlock]], duration_s: float, block_s: float, seed: int,
+def measure(n: int, assets: Assets, streams: list[list[Block]], duration_s: float, block_s: float, seed: int,
             replicas: int, api_key: str) -> dict:
     """n robots against `replicas` service processes; CPU, memory and refusals summed over them."""
     servers: list[ServerProcess] = []
@@ -406,7 +420,7 @@ def measure(n: int, assets: Assets, streams: list[list[SampleBlock]], duration_s
 
 
 # ---- capacity: the service against the framework's floor -----------------------------------------
-def _pump(server: ServerProcess, blocks: list[SampleBlock], api_key: str, block_s: float) -> tuple[int, float, float]:
+def _pump(server: ServerProcess, blocks: list[Block], api_key: str, block_s: float) -> tuple[int, float, float]:
     """One RobotClient (+ operator) sending `blocks` as fast as acknowledged → (blocks acked, server CPU s, wall s)."""
     cpu0 = server.cpu_seconds()
     stats, _, sources = _run(run_load([server.url], [blocks], [None], block_s, api_key, 0, realtime=False, window=32))
@@ -415,7 +429,7 @@ def _pump(server: ServerProcess, blocks: list[SampleBlock], api_key: str, block_
     return stats[0].acked, cpu1 - cpu0, max(yielded) - min(yielded)  # the streaming itself, not the set-up
 
 
-def measure_capacity(assets: Assets, blocks: list[SampleBlock], api_key: str, block_s: float,
+def measure_capacity(assets: Assets, blocks: list[Block], api_key: str, block_s: float,
                      profile_out: Path | None = None) -> dict:
     """Server CPU per block of the service (windows, features, model, publishing included) and of the floor."""
     service = ServerProcess.service(assets, api_key, extra={"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
@@ -503,12 +517,13 @@ def main(argv: list[str] | None = None) -> int:
     all_assets = prepare_assets(args.assets)
     library = all_assets["tactile"].library
     print(f"rendering {max(args.robots)} streams of {args.duration:g} s …", flush=True)
-    streams = robot_streams(library, max(args.robots), args.duration, args.block_s, args.seed)
+    taps = all_assets["tactile"].taps  # both configurations serve the demo's features
+    streams = robot_streams(library, max(args.robots), args.duration, args.block_s, args.seed, taps=taps)
     capacity = None
     profile = None
     if not args.no_capacity:
         print("capacity: one session as fast as acknowledged, the service (tactile) and the floor …", flush=True)
-        blocks = robot_streams(library, 1, args.capacity_s, args.block_s, args.seed + 1)[0]
+        blocks = robot_streams(library, 1, args.capacity_s, args.block_s, args.seed + 1, taps=taps)[0]
         profile_path = args.out.with_name("service-profile.txt") if args.profile else None
         capacity = measure_capacity(all_assets["tactile"], blocks, api_key, args.block_s, profile_path)
         print(f"  service {capacity['server_cpu_us_per_block']:.0f} µs, floor {capacity['floor_cpu_us_per_block']:.0f} µs "

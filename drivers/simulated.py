@@ -41,6 +41,16 @@ def _cut_at_turnaround(traj: Trajectory, min_samples: int) -> Trajectory:
     return Trajectory(traj.speed[:cut], traj.force[:cut], traj.position[:cut], traj.rate_hz)
 
 
+def tap_block(model: VibrationModel, t0: float = 0.0, seq: int = 0) -> TapBlock:
+    """The tap procedure on a texture: its tap transients as recorded in its model (1 kHz, m/s²).
+    ValueError if the model has none."""
+    taps = model.taps
+    if taps is None:
+        raise ValueError(f"model {model.name!r} has no tap transients")
+    return TapBlock(t0, np.asarray(taps.speeds, dtype=np.float64),
+                    ChannelBlock(np.asarray(taps.accel, dtype=np.float32), TAP_RATE_HZ, "m/s^2"), seq)
+
+
 class SimulatedSource:
     """A robot stroking `model`'s texture: blocks of block_s seconds, generated chunk by chunk.
 
@@ -105,12 +115,8 @@ class SimulatedSource:
         return stroke(self.model, traj, rng, rotation=self._rotation)
 
     def tap_block(self, t0: float = 0.0, seq: int = 0) -> TapBlock:
-        """The tap procedure on this texture: its tap transients, as recorded in the model (1 kHz, m/s²)."""
-        taps = self.model.taps
-        if taps is None:
-            raise ValueError(f"model {self.model.name!r} has no tap transients")
-        return TapBlock(t0, np.asarray(taps.speeds, dtype=np.float64),
-                        ChannelBlock(np.asarray(taps.accel, dtype=np.float32), TAP_RATE_HZ, "m/s^2"), seq)
+        """The tap procedure on this texture (see tap_block)."""
+        return tap_block(self.model, t0, seq)
 
     def _frame(self, t: float) -> Frame:
         assert self.image is not None and self.content_type is not None
