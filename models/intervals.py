@@ -257,10 +257,7 @@ class IntervalCalibration:
 
     @classmethod
     def from_json(cls, text: str) -> "IntervalCalibration":
-        try:
-            return cls.from_dict(json.loads(text))
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"interval calibration is not JSON: {exc}") from None
+        return cls.from_dict(jsonarrays.parse(text, "interval calibration"))
 
 
 def _scale(scale: np.ndarray | None, kind: str, shape: tuple[int, int]) -> np.ndarray:

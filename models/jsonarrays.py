@@ -6,6 +6,7 @@ size of decimal text."""
 from __future__ import annotations
 
 import base64
+import json
 
 import numpy as np
 
@@ -34,3 +35,11 @@ def decode(obj: dict, what: str = "array") -> np.ndarray:
     if arr.size != int(np.prod(shape)):
         raise ValueError(f"{what}: {arr.size} values do not fill shape {shape}")
     return arr.reshape(shape).astype(dtype, copy=True)
+
+
+def parse(text: str, what: str) -> object:
+    """json.loads with a ValueError naming `what` (a model card's calibration, detector, …) on bad text."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} is not JSON: {exc}") from None

@@ -351,7 +351,4 @@ class OODDetector:
 
     @classmethod
     def from_json(cls, text: str) -> "OODDetector":
-        try:
-            return cls.from_dict(json.loads(text))
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"OOD detector is not JSON: {exc}") from None
+        return cls.from_dict(jsonarrays.parse(text, "OOD detector"))
