@@ -76,25 +76,37 @@ class Stream:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.adaptive", description=__doc__.splitlines()[0])
-    parser.add_argument("--textures", type=int, default=6, help="unseen textures streamed one after another (default 6)")
+    parser.add_argument(
+        "--textures", type=int, default=6, help="unseen textures streamed one after another (default 6)"
+    )
     parser.add_argument("--seconds", type=float, default=6.0, help="seconds of stroking per texture (default 6)")
     parser.add_argument("--fps", type=float, default=10.0, help="camera frames per second (default 10)")
     parser.add_argument("--full", default="ann-ensemble", help="the full (served) model (default ann-ensemble)")
     parser.add_argument("--cheap", default="ridge-both", help="the cheap model (default ridge-both)")
     parser.add_argument("--pool-frames", type=int, nargs="+", default=[1, 3], help="adaptive variants (default 1 3)")
-    parser.add_argument("--calibration-folds", type=int, default=10, help="K-fold calibration of both models (default 10)")
-    parser.add_argument("--full-calibration-folds", type=int, default=None,
-                        help="K of the full model's calibration if other than --calibration-folds (a network costs K more fits)")
+    parser.add_argument(
+        "--calibration-folds", type=int, default=10, help="K-fold calibration of both models (default 10)"
+    )
+    parser.add_argument(
+        "--full-calibration-folds",
+        type=int,
+        default=None,
+        help="K of the full model's calibration if other than --calibration-folds (a network costs K more fits)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--synthetic", action="store_true", help="use the synthetic world even if hatt-texnet exists")
-    parser.add_argument("--hatt-source", type=Path, default=HATT_SOURCE,
-                        help=f"the raw hatt-texnet folder, for the library's HaTT models (default {HATT_SOURCE})")
+    parser.add_argument(
+        "--hatt-source",
+        type=Path,
+        default=HATT_SOURCE,
+        help=f"the raw hatt-texnet folder, for the library's HaTT models (default {HATT_SOURCE})",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     if args.textures < 2 or args.seconds < 1.5 or args.fps <= 0:
         parser.error("--textures must be ≥ 2, --seconds ≥ 1.5 and --fps > 0")
 
-    from models.featurize import backbone_onnx
+    from models.offline.featurize import backbone_onnx
     from models.visual.config import VisualConfig
     from service.settings import Settings
 
@@ -106,34 +118,61 @@ def main(argv: list[str] | None = None) -> dict:
     cheap = _model(dataset, args.cheap, streamed, args, "distance", args.calibration_folds)
     backbone = backbone_onnx(VisualConfig())
     stream = _stream(dataset, streamed, args.seconds, args.fps, args.seed)
-    print(f"stream: {len(streamed)} × {args.seconds:g} s, {len(stream.blocks)} blocks, {len(stream.frames)} frames", flush=True)
+    print(
+        f"stream: {len(streamed)} × {args.seconds:g} s, {len(stream.blocks)} blocks, {len(stream.frames)} frames",
+        flush=True,
+    )
 
     base = dict(model_path=full, library_dir=library, backbone_path=backbone, instance_id="bench", api_keys="unused")
     runs = {"always-full": _replay(Settings(**base, serving_policy="always-full"), stream, "always-full")}
     for k in args.pool_frames:
         name = f"adaptive-pool{k}"
-        runs[name] = _replay(Settings(**base, serving_policy="adaptive", cheap_model_path=cheap, pool_frames=k), stream, name)
+        runs[name] = _replay(
+            Settings(**base, serving_policy="adaptive", cheap_model_path=cheap, pool_frames=k), stream, name
+        )
     reference = runs["always-full"]
-    variants = {name: _compare(reference, run, stream, args.seed) for name, run in runs.items() if name != "always-full"}
+    variants = {
+        name: _compare(reference, run, stream, args.seed) for name, run in runs.items() if name != "always-full"
+    }
     default_pool = Settings.model_fields["pool_frames"].default
-    headline_name = f"adaptive-pool{default_pool}" if f"adaptive-pool{default_pool}" in variants else next(iter(variants))
+    headline_name = (
+        f"adaptive-pool{default_pool}" if f"adaptive-pool{default_pool}" in variants else next(iter(variants))
+    )
     headline = variants[headline_name]
     result = {
-        "compute_ratio": headline["compute_ratio"], "mae_full": headline["mae_full"],
-        "mae_adaptive": headline["mae_adaptive"], "choice_agreement": headline["choice_agreement"],
-        "headline": headline_name, "targets": TARGETS,
+        "compute_ratio": headline["compute_ratio"],
+        "mae_full": headline["mae_full"],
+        "mae_adaptive": headline["mae_adaptive"],
+        "choice_agreement": headline["choice_agreement"],
+        "headline": headline_name,
+        "targets": TARGETS,
         "meets_targets": _meets(headline),
         "full": {k: v for k, v in reference.items() if k not in ("chosen", "ratings", "texture_of")},
         "variants": {n: {**v, "meets_targets": _meets(v)} for n, v in variants.items()},
-        "stream": {"source": source, "textures": len(streamed), "seconds_per_texture": args.seconds, "fps": args.fps,
-                   "stream_s": round(len(streamed) * args.seconds, 3), "frames": len(stream.frames),
-                   "blocks": len(stream.blocks)},
-        "models": {"full": args.full, "cheap": args.cheap, "calibration_folds": args.calibration_folds,
-                   "full_calibration_folds": full_folds,
-                   "trained_on": "every rated texture but the streamed ones"},
+        "stream": {
+            "source": source,
+            "textures": len(streamed),
+            "seconds_per_texture": args.seconds,
+            "fps": args.fps,
+            "stream_s": round(len(streamed) * args.seconds, 3),
+            "frames": len(stream.frames),
+            "blocks": len(stream.blocks),
+        },
+        "models": {
+            "full": args.full,
+            "cheap": args.cheap,
+            "calibration_folds": args.calibration_folds,
+            "full_calibration_folds": full_folds,
+            "trained_on": "every rated texture but the streamed ones",
+        },
         "command": "python -m benchmarks.adaptive " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                    "load_average": list(os.getloadavg()), "when": datetime.now(UTC).isoformat(timespec="seconds")},
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "load_average": list(os.getloadavg()),
+            "when": datetime.now(UTC).isoformat(timespec="seconds"),
+        },
     }
     _print(result)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -153,7 +192,7 @@ def _data(args) -> tuple[str, Path, Path]:
             print("importing the HaTT library (human ratings of the rated textures) …", flush=True)
             import_hatt(args.hatt_source, library)
         return "hatt-texnet", HATT_DATASET, library
-    from models.datasets.build import build
+    from models.offline.datasets.build import build
     from texture_library.synthetic_library import build_synthetic_library
 
     dataset, library = SYNTH_ROOT / "dataset", SYNTH_ROOT / "library"
@@ -166,7 +205,7 @@ def _data(args) -> tuple[str, Path, Path]:
 
 
 def _pick(dataset: Path, n: int, seed: int) -> list[str]:
-    from models.datasets.format import Dataset
+    from models.offline.datasets.format import Dataset
 
     rated = Dataset(dataset).texture_ids("yes")
     if n > len(rated) - 8:
@@ -176,7 +215,7 @@ def _pick(dataset: Path, n: int, seed: int) -> list[str]:
 
 def _model(dataset: Path, name: str, streamed: list[str], args, scale: str, folds: int) -> Path:
     """The model trained without the streamed textures (cached by its recipe)."""
-    from models.train import train_and_export
+    from models.offline.train import train_and_export
 
     key = f"{Path(dataset).name}-{name}-{scale}-k{folds}-s{args.seed}-" + "-".join(streamed)
     out = Path("cache") / "adaptive" / "models" / f"{hashlib.sha256(key.encode()).hexdigest()[:12]}-{name}.onnx"
@@ -186,15 +225,16 @@ def _model(dataset: Path, name: str, streamed: list[str], args, scale: str, fold
     out.parent.mkdir(parents=True, exist_ok=True)
     print(f"training {name} on the other rated textures (calibration: {folds}-fold, {scale}) …", flush=True)
     started = time.perf_counter()
-    train_and_export(dataset, name, out, seed=args.seed, calibration_folds=folds,
-                     interval_scale=scale, exclude=tuple(streamed))
+    train_and_export(
+        dataset, name, out, seed=args.seed, calibration_folds=folds, interval_scale=scale, exclude=tuple(streamed)
+    )
     recipe.write_text(json.dumps({"key": key, "train_s": round(time.perf_counter() - started, 1)}))
     return out
 
 
 def _stream(dataset: Path, textures: list[str], seconds: float, fps: float, seed: int) -> Stream:
     from drivers.source import blocks_from_arrays
-    from models.datasets.format import Dataset
+    from models.offline.datasets.format import Dataset
     from models.visual.image import load_image
 
     ds = Dataset(dataset)
@@ -206,14 +246,18 @@ def _stream(dataset: Path, textures: list[str], seconds: float, fps: float, seed
         for part, ch in ((accel, rec.accel), (force, rec.force), (speed, rec.speed)):
             n = int(round(seconds * ch.rate_hz))
             if len(ch.data) < n:
-                raise ValueError(f"{t}: its recording holds {len(ch.data) / ch.rate_hz:.1f} s, fewer than --seconds {seconds}")
+                raise ValueError(
+                    f"{t}: its recording holds {len(ch.data) / ch.rate_hz:.1f} s, fewer than --seconds {seconds}"
+                )
             part.append((ch.data[:n], ch.rate_hz))
         photo = load_image(ds.image_paths(t)[0], min_size=256)
         for i in range(int(round(seconds * fps))):
             frames.append((k * seconds + i / fps, _camera_frame(photo, rng)))
-    channels = {"accel": (np.concatenate([a for a, _ in accel]), accel[0][1], "m/s^2"),
-                "force": (np.concatenate([a for a, _ in force]), force[0][1], "N"),
-                "speed": (np.concatenate([a for a, _ in speed]), speed[0][1], "mm/s")}
+    channels = {
+        "accel": (np.concatenate([a for a, _ in accel]), accel[0][1], "m/s^2"),
+        "force": (np.concatenate([a for a, _ in force]), force[0][1], "N"),
+        "speed": (np.concatenate([a for a, _ in speed]), speed[0][1], "mm/s"),
+    }
     blocks = list(blocks_from_arrays(channels, BLOCK_S, t0=0.0, seq0=0))
     return Stream(textures, seconds, blocks, frames, np.array([means[t] for t in textures], float))
 
@@ -225,7 +269,7 @@ def _camera_frame(photo: np.ndarray, rng: np.random.Generator) -> bytes:
     side = int(CROP * min(h, w))
     y = (h - side) // 2 + int(rng.integers(-JITTER_PX, JITTER_PX + 1))
     x = (w - side) // 2 + int(rng.integers(-JITTER_PX, JITTER_PX + 1))
-    view = np.clip(photo[y:y + side, x:x + side] + rng.normal(0, FRAME_NOISE, (side, side)), 0, 1)
+    view = np.clip(photo[y : y + side, x : x + side] + rng.normal(0, FRAME_NOISE, (side, side)), 0, 1)
     buf = io.BytesIO()
     Image.fromarray((view * 255).astype(np.uint8)).save(buf, format="JPEG", quality=92)
     return buf.getvalue()
@@ -286,12 +330,25 @@ def _replay(settings, stream: Stream, name: str) -> dict:
     texture_of = np.minimum((mid // stream.seconds).astype(int), len(stream.textures) - 1)
     ratings = np.array([w.smoothed for w in windows])
     flagged = sum(1 for w in windows if w.assessment.out_of_distribution)
-    print(f"{name}: {cpu:.1f} s CPU ({cpu / stream_s * 1e3:.0f} ms per stream second), {embeds} embeddings, "
-          f"{len(windows)} windows, {escalated} by the full model, {flagged} flagged", flush=True)
-    return {"policy": name, "cpu_s": round(cpu, 3), "wall_s": round(wall, 3),
-            "cpu_ms_per_stream_s": round(cpu / stream_s * 1e3, 2), "embeddings": embeds, "frames": len(frames),
-            "windows": len(windows), "windows_full_model": escalated, "windows_flagged": flagged,
-            "chosen": [w.chosen for w in windows], "ratings": ratings, "texture_of": texture_of}
+    print(
+        f"{name}: {cpu:.1f} s CPU ({cpu / stream_s * 1e3:.0f} ms per stream second), {embeds} embeddings, "
+        f"{len(windows)} windows, {escalated} by the full model, {flagged} flagged",
+        flush=True,
+    )
+    return {
+        "policy": name,
+        "cpu_s": round(cpu, 3),
+        "wall_s": round(wall, 3),
+        "cpu_ms_per_stream_s": round(cpu / stream_s * 1e3, 2),
+        "embeddings": embeds,
+        "frames": len(frames),
+        "windows": len(windows),
+        "windows_full_model": escalated,
+        "windows_flagged": flagged,
+        "chosen": [w.chosen for w in windows],
+        "ratings": ratings,
+        "texture_of": texture_of,
+    }
 
 
 # ---- comparison ------------------------------------------------------------------------------------
@@ -314,31 +371,47 @@ def _compare(full: dict, adaptive: dict, stream: Stream, seed: int) -> dict:
     correct = lambda run: float(np.mean(np.array(run["chosen"]) == np.array(stream.textures)[tex]))  # noqa: E731
     return {
         "compute_ratio": round(full["cpu_s"] / adaptive["cpu_s"], 2),
-        "mae_full": round(float(ef.mean()), 3), "mae_adaptive": round(float(ea.mean()), 3),
+        "mae_full": round(float(ef.mean()), 3),
+        "mae_adaptive": round(float(ea.mean()), 3),
         "choice_agreement": round(float(same.mean()), 4),
-        "ci95": {"mae_full": ci(f_t), "mae_adaptive": ci(a_t), "mae_increase": ci(a_t - f_t), "choice_agreement": ci(s_t)},
+        "ci95": {
+            "mae_full": ci(f_t),
+            "mae_adaptive": ci(a_t),
+            "mae_increase": ci(a_t - f_t),
+            "choice_agreement": ci(s_t),
+        },
         "choice_correct": {"full": round(correct(full), 4), "adaptive": round(correct(adaptive), 4)},
         **{k: v for k, v in adaptive.items() if k not in ("chosen", "ratings", "texture_of", "policy")},
     }
 
 
 def _meets(v: dict) -> dict:
-    return {"compute_ratio": v["compute_ratio"] >= TARGETS["compute_ratio"],
-            "mae": v["mae_adaptive"] - v["mae_full"] <= TARGETS["mae_increase"],
-            "choice_agreement": v["choice_agreement"] >= TARGETS["choice_agreement"]}
+    return {
+        "compute_ratio": v["compute_ratio"] >= TARGETS["compute_ratio"],
+        "mae": v["mae_adaptive"] - v["mae_full"] <= TARGETS["mae_increase"],
+        "choice_agreement": v["choice_agreement"] >= TARGETS["choice_agreement"],
+    }
 
 
 def _print(result: dict) -> None:
     f = result["full"]
-    print(f"\nalways-full: {f['cpu_ms_per_stream_s']:.0f} ms CPU per stream second, {f['embeddings']} embeddings, "
-          f"{f['windows']} windows")
-    print(f"{'policy':<18} {'compute ratio':>13} {'MAE full':>9} {'MAE adaptive':>13} {'same choice':>12} "
-          f"{'full-model windows':>19} {'embeddings':>11}")
+    print(
+        f"\nalways-full: {f['cpu_ms_per_stream_s']:.0f} ms CPU per stream second, {f['embeddings']} embeddings, "
+        f"{f['windows']} windows"
+    )
+    print(
+        f"{'policy':<18} {'compute ratio':>13} {'MAE full':>9} {'MAE adaptive':>13} {'same choice':>12} "
+        f"{'full-model windows':>19} {'embeddings':>11}"
+    )
     for name, v in result["variants"].items():
-        print(f"{name:<18} {v['compute_ratio']:>12.1f}× {v['mae_full']:>9.2f} {v['mae_adaptive']:>13.2f} "
-              f"{100 * v['choice_agreement']:>11.1f}% {v['windows_full_model']:>8}/{v['windows']:<10} {v['embeddings']:>11}")
-    print(f"targets: ≥ {TARGETS['compute_ratio']:g}× less compute, ≤ +{TARGETS['mae_increase']} MAE, "
-          f"≥ {100 * TARGETS['choice_agreement']:g} % the same choice; headline {result['headline']}: {result['meets_targets']}")
+        print(
+            f"{name:<18} {v['compute_ratio']:>12.1f}× {v['mae_full']:>9.2f} {v['mae_adaptive']:>13.2f} "
+            f"{100 * v['choice_agreement']:>11.1f}% {v['windows_full_model']:>8}/{v['windows']:<10} {v['embeddings']:>11}"
+        )
+    print(
+        f"targets: ≥ {TARGETS['compute_ratio']:g}× less compute, ≤ +{TARGETS['mae_increase']} MAE, "
+        f"≥ {100 * TARGETS['choice_agreement']:g} % the same choice; headline {result['headline']}: {result['meets_targets']}"
+    )
 
 
 if __name__ == "__main__":

@@ -16,9 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from models.datasets.check import check_dataset
-from models.datasets.hatt import build_hatt
-from models.featurize import tactile_table, visual_table
+from models.offline.datasets.check import check_dataset
+from models.offline.datasets.hatt import build_hatt
+from models.offline.featurize import tactile_table, visual_table
 
 OUT = Path("reports/bench/dataset_build.json")
 

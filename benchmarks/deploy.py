@@ -63,8 +63,15 @@ async def _stream(topology: Topology, robots: int, warmup_s: float, duration_s: 
 
     library = topology.assets / "library"
     entries = [e["id"] for e in json.loads((library / "library.json").read_text())["entries"]]
-    clients = [RobotClient(topology.url, SimulatedSource.from_library(library, entries[k % len(entries)], seed=k),
-                           seed=k, **topology.robot_options) for k in range(robots)]
+    clients = [
+        RobotClient(
+            topology.url,
+            SimulatedSource.from_library(library, entries[k % len(entries)], seed=k),
+            seed=k,
+            **topology.robot_options,
+        )
+        for k in range(robots)
+    ]
     for client in clients:
         await client.open_session()
     instances = sorted(topology.replicas)
@@ -81,9 +88,11 @@ async def _stream(topology: Topology, robots: int, warmup_s: float, duration_s: 
 
     operators = [asyncio.create_task(operate(c)) for c in clients]
     runs = [asyncio.create_task(c.run()) for c in clients]
-    parts = {"nginx": process_tree(topology.services[topology.lb_name].proc.pid),
-             "redis": [topology.services[topology.redis_name].proc.pid],
-             **{i: [s.proc.pid] for i, s in topology.replicas.items()}}
+    parts = {
+        "nginx": process_tree(topology.services[topology.lb_name].proc.pid),
+        "redis": [topology.services[topology.redis_name].proc.pid],
+        **{i: [s.proc.pid] for i, s in topology.replicas.items()},
+    }
     await asyncio.sleep(warmup_s)  # sessions started, buffers and batches in their steady state
 
     def snapshot() -> tuple[dict[str, float], int, int, float, float]:
@@ -114,9 +123,11 @@ async def _stream(topology: Topology, robots: int, warmup_s: float, duration_s: 
         "cpu_us_per_block": {**per_block, "replicas": round(replicas_us, 1)},
         "redis_cpu_us_per_window_event": round(1e6 * cpu["redis"] / max(windows, 1), 1),
         # a 20 ms-block robot sends 50 blocks/s: the share of one core it costs each part
-        "core_percent_per_robot": {"nginx": round(per_block["nginx"] * robot_blocks_per_s / 1e4, 3),
-                                   "replicas": round(replicas_us * robot_blocks_per_s / 1e4, 3),
-                                   "redis": round(per_block["redis"] * robot_blocks_per_s / 1e4, 3)},
+        "core_percent_per_robot": {
+            "nginx": round(per_block["nginx"] * robot_blocks_per_s / 1e4, 3),
+            "replicas": round(replicas_us * robot_blocks_per_s / 1e4, 3),
+            "redis": round(per_block["redis"] * robot_blocks_per_s / 1e4, 3),
+        },
         "others_cpu_percent": round(100 * ((machine1 - machine0) - sum(cpu.values())) / wall, 1),
         "robot_errors": sum(s.rejected + s.lost for s in stats),
         "reconnects": sum(s.reconnects for s in stats),
@@ -128,8 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", type=int, default=20, help="simulated robots through nginx (default 20)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds measured, after --warmup (default 30)")
     p.add_argument("--warmup", type=float, default=3.0, help="seconds streamed before measuring (default 3)")
-    p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-deploy-assets",
-                   help="where the synthetic model and library are built and cached (deploy.local.synthetic_assets)")
+    p.add_argument(
+        "--assets",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "hapticlink-deploy-assets",
+        help="where the synthetic model and library are built and cached (deploy.local.synthetic_assets)",
+    )
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     if args.robots < 2 or not args.duration > 0:
@@ -138,18 +153,33 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.robots} robots through nginx to two replicas for {args.duration:g} s …", flush=True)
     with Topology(assets) as topology:
         result = asyncio.run(_stream(topology, args.robots, args.warmup, args.duration))
-    for part in ("nginx", *sorted(k for k in result["cpu_us_per_block"] if k.startswith("replica-")), "replicas", "redis"):
+    for part in (
+        "nginx",
+        *sorted(k for k in result["cpu_us_per_block"] if k.startswith("replica-")),
+        "replicas",
+        "redis",
+    ):
         print(f"{part:>10}: {result['cpu_us_per_block'][part]:>7.1f} µs CPU per block")
     print(f"     redis: {result['redis_cpu_us_per_window_event']:>7.1f} µs CPU per window event")
     print(f"per robot (50 blocks/s), % of a core: {result['core_percent_per_robot']}")
-    report = {"benchmark": "deploy", "command": " ".join(["python -m benchmarks.deploy", *(argv or sys.argv[1:])]),
-              "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                          "loadavg_1_5_15": list(os.getloadavg())},
-              "config": {"block_s": BLOCK_S, "transport": "RobotClient, WebSocket, binary blocks, through nginx",
-                         "operators": "one per robot, on the other replica (events cross Redis)",
-                         "model": "ridge-tactile, 12 synthetic textures (deploy.local.synthetic_assets)"},
-              "result": result}
+    report = {
+        "benchmark": "deploy",
+        "command": " ".join(["python -m benchmarks.deploy", *(argv or sys.argv[1:])]),
+        "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "loadavg_1_5_15": list(os.getloadavg()),
+        },
+        "config": {
+            "block_s": BLOCK_S,
+            "transport": "RobotClient, WebSocket, binary blocks, through nginx",
+            "operators": "one per robot, on the other replica (events cross Redis)",
+            "model": "ridge-tactile, 12 synthetic textures (deploy.local.synthetic_assets)",
+        },
+        "result": result,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {args.out}")

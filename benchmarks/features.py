@@ -27,7 +27,6 @@ import librosa
 import numpy as np
 import scipy
 
-from texture_library.recording import Recording, make_channel
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import window_features
@@ -36,6 +35,7 @@ from models.tactile.mfcc import librosa_mfcc, mfcc
 from models.tactile.preprocess import TactilePreprocessor
 from models.tactile.spatial import spatial_features
 from models.tactile.taps import tap_features
+from texture_library.recording import Recording, make_channel
 
 DEFAULT_OUT = Path("reports/bench/features.json")
 
@@ -82,19 +82,34 @@ def group_timings(per_window: dict[str, float], n: int, repeats: int) -> None:
     taps_rng = np.random.default_rng(1)
     tap_speeds = taps_rng.uniform(5, 80, 10)
     t = np.arange(100) / 1000
-    tap_accel = tap_speeds[:, None] * np.exp(-t / 0.008) * np.sin(2 * np.pi * 200 * t) + 0.05 * taps_rng.standard_normal((10, 100))
+    tap_accel = tap_speeds[:, None] * np.exp(-t / 0.008) * np.sin(
+        2 * np.pi * 200 * t
+    ) + 0.05 * taps_rng.standard_normal((10, 100))
     taps = np.tile(tap_features(tap_speeds, tap_accel), (n, 1))
     for name, config, extra in (("friction_spatial", demo, ()), ("all_groups", every, (taps,))):
         print(f"timing window_features with {name} (batched, then one window per call) ...", flush=True)
         per_window[f"window_features_batched_{name}"] = (
-            median_seconds(lambda: window_features(accel, speed, force, config, *extra), repeats) / n)
-        per_window[f"window_features_single_{name}"] = median_seconds(
-            lambda: [window_features(accel[i : i + 1], speed[i : i + 1], force[i : i + 1], config,
-                                     *(e[i : i + 1] for e in extra)) for i in range(n)], repeats) / n
+            median_seconds(lambda: window_features(accel, speed, force, config, *extra), repeats) / n
+        )
+        per_window[f"window_features_single_{name}"] = (
+            median_seconds(
+                lambda: [
+                    window_features(
+                        accel[i : i + 1], speed[i : i + 1], force[i : i + 1], config, *(e[i : i + 1] for e in extra)
+                    )
+                    for i in range(n)
+                ],
+                repeats,
+            )
+            / n
+        )
     print("timing friction, spatial and tap features alone ...", flush=True)
-    per_window["friction_batched"] = median_seconds(lambda: friction_features(force[:, :, 0], force[:, :, 1]), repeats) / n
-    per_window["spatial_batched"] = median_seconds(
-        lambda: spatial_features(accel[:, :, 3:], force[:, :, 0], speed, demo.rate_hz), repeats) / n
+    per_window["friction_batched"] = (
+        median_seconds(lambda: friction_features(force[:, :, 0], force[:, :, 1]), repeats) / n
+    )
+    per_window["spatial_batched"] = (
+        median_seconds(lambda: spatial_features(accel[:, :, 3:], force[:, :, 0], speed, demo.rate_hz), repeats) / n
+    )
     per_window["tap_features_per_texture"] = median_seconds(lambda: tap_features(tap_speeds, tap_accel), repeats)
 
 

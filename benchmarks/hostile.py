@@ -30,8 +30,17 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from benchmarks.service import HOP_S, ServerProcess, _metric_sum, _run, frame_of, percentile, prepare_assets, \
-    robot_streams, run_load
+from benchmarks.service import (
+    HOP_S,
+    ServerProcess,
+    _metric_sum,
+    _run,
+    frame_of,
+    percentile,
+    prepare_assets,
+    robot_streams,
+    run_load,
+)
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary
 from drivers.protocol import BINARY_CONTENT_TYPE, bearer, session_path
 
@@ -57,37 +66,61 @@ async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
         # 1. the 2.8 MB, 10 Hz block
         n = 100_000
         rng = np.random.default_rng(0)
-        huge = SampleBlock(0.0, {"accel": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), 10.0, "m/s^2"),
-                                 "force": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), 10.0, "N"),
-                                 "speed": ChannelBlock(np.full(n, 50.0, np.float32), 10.0, "mm/s")}, 0)
+        huge = SampleBlock(
+            0.0,
+            {
+                "accel": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), 10.0, "m/s^2"),
+                "force": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), 10.0, "N"),
+                "speed": ChannelBlock(np.full(n, 50.0, np.float32), 10.0, "mm/s"),
+            },
+            0,
+        )
         payload = encode_binary(huge)
         answers = []
         for _ in range(3):
             t0 = time.perf_counter()
             r = await client.post(blocks_url, content=payload, headers=robot)
-            answers.append({"status": r.status_code, "ms": round((time.perf_counter() - t0) * 1e3, 1),
-                            "detail": r.json().get("detail", "")[:120]})
+            answers.append(
+                {
+                    "status": r.status_code,
+                    "ms": round((time.perf_counter() - t0) * 1e3, 1),
+                    "detail": r.json().get("detail", "")[:120],
+                }
+            )
         report["huge_block"] = {"bytes": len(payload), "answers": answers}
         # 2. 300 session requests in about a second, from one client (named by X-Forwarded-For, which the
         # service trusts from loopback, as from nginx): the robots' own address keeps its budget
         t0 = time.perf_counter()
         flood = {**bearer(api_key), "X-Forwarded-For": "198.51.100.7"}
         codes = await asyncio.gather(*(client.post(f"{url}/sessions", json={}, headers=flood) for _ in range(300)))
-        report["session_flood"] = {"requests": 300, "seconds": round(time.perf_counter() - t0, 2),
-                                   "statuses": {str(s): sum(r.status_code == s for r in codes) for s in {r.status_code for r in codes}}}
+        report["session_flood"] = {
+            "requests": 300,
+            "seconds": round(time.perf_counter() - t0, 2),
+            "statuses": {str(s): sum(r.status_code == s for r in codes) for s in {r.status_code for r in codes}},
+        }
         # 3. seq 2^62, then good blocks: the session must keep producing windows
         # (a taps model's stream opens with its tap block; seq numbers every block of it in order)
-        good = [dataclasses.replace(b, seq=i) for i, b in enumerate(robot_streams(_library[0], 1, 2.0, block_s, seed=7,
-                                                                                   taps=_taps[0])[0])]
+        good = [
+            dataclasses.replace(b, seq=i)
+            for i, b in enumerate(robot_streams(_library[0], 1, 2.0, block_s, seed=7, taps=_taps[0])[0])
+        ]
         first = next(b for b in good if isinstance(b, SampleBlock))
-        r = await client.post(blocks_url, content=encode_binary(SampleBlock(first.t0, first.channels, 2**62)), headers=robot)
+        r = await client.post(
+            blocks_url, content=encode_binary(SampleBlock(first.t0, first.channels, 2**62)), headers=robot
+        )
         statuses = [r.status_code]
         for b in good:
             statuses.append((await client.post(blocks_url, content=encode_binary(b), headers=robot)).status_code)
         await asyncio.sleep(1.0)
-        status = (await client.get(url + session_path(session["session_id"]), headers=bearer(session["operator_token"]))).json()
-        report["seq_2_62"] = {"first_answer": statuses[0], "good_blocks_accepted": statuses[1:].count(202),
-                              "good_blocks": len(good), "windows_after": status["counters"]["windows"]}
+        status = (
+            await client.get(url + session_path(session["session_id"]), headers=bearer(session["operator_token"]))
+        ).json()
+        report["seq_2_62"] = {
+            "first_answer": statuses[0],
+            "good_blocks_accepted": statuses[1:].count(202),
+            "good_blocks": len(good),
+            "windows_after": status["counters"]["windows"],
+        }
 
 
 _library: list[Path] = []
@@ -110,9 +143,13 @@ def main(argv: list[str] | None = None) -> int:
     n = args.robots + args.burst_robots
     streams = robot_streams(assets.library, n, args.duration, args.block_s, taps=assets.taps)
     frames = [frame_of(assets.library, k) for k in range(n)]
-    server = ServerProcess.service(assets, api_key, instance_id="hostile",
-                                   # every robot of this process is one address: a budget for them all
-                                   extra={"HAPTICLINK_SESSION_BURST": "200", "HAPTICLINK_MAX_SESSIONS": "512"})
+    server = ServerProcess.service(
+        assets,
+        api_key,
+        instance_id="hostile",
+        # every robot of this process is one address: a budget for them all
+        extra={"HAPTICLINK_SESSION_BURST": "200", "HAPTICLINK_MAX_SESSIONS": "512"},
+    )
     report: dict = {"robots": args.robots, "burst_robots": args.burst_robots, "duration_s": args.duration}
     health: list[float] = []
 
@@ -120,12 +157,16 @@ def main(argv: list[str] | None = None) -> int:
         stop = asyncio.Event()
         poller = asyncio.create_task(poll_health(server.url, stop, health))
         # the well-behaved robots open their sessions before the flood (the flood may not starve them)
-        steady = asyncio.create_task(run_load([server.url], streams[:args.robots], frames[:args.robots], args.block_s,
-                                              api_key, 0))
+        steady = asyncio.create_task(
+            run_load([server.url], streams[: args.robots], frames[: args.robots], args.block_s, api_key, 0)
+        )
         await asyncio.sleep(3.0)
         await attacks(server.url, api_key, args.block_s, report)
-        burst = asyncio.create_task(run_load([server.url], streams[args.robots:], frames[args.robots:], args.block_s,
-                                             api_key, 1, realtime=True))
+        burst = asyncio.create_task(
+            run_load(
+                [server.url], streams[args.robots :], frames[args.robots :], args.block_s, api_key, 1, realtime=True
+            )
+        )
         steady_result, burst_result = await asyncio.gather(steady, burst, return_exceptions=True)
         stop.set()
         await poller
@@ -141,24 +182,36 @@ def main(argv: list[str] | None = None) -> int:
     _, views, _ = steady_result
     expected = args.robots * int(args.duration / HOP_S + 1e-9)
     e2e = [x for v in views for x in v.e2e_ms]
-    report["health_ms"] = {"p50": percentile(health, 50), "p99": percentile(health, 99), "max": percentile(health, 100),
-                           "polls": len(health)}
-    report["well_behaved"] = {"windows_expected": expected, "windows_received": sum(v.windows for v in views),
-                              "windows_lost": expected - sum(v.windows for v in views),
-                              "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99)},
-                              "features_ms_p99": percentile([x for v in views for x in v.stages_ms["features"]], 99)}
+    report["health_ms"] = {
+        "p50": percentile(health, 50),
+        "p99": percentile(health, 99),
+        "max": percentile(health, 100),
+        "polls": len(health),
+    }
+    report["well_behaved"] = {
+        "windows_expected": expected,
+        "windows_received": sum(v.windows for v in views),
+        "windows_lost": expected - sum(v.windows for v in views),
+        "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99)},
+        "features_ms_p99": percentile([x for v in views for x in v.stages_ms["features"]], 99),
+    }
     if isinstance(burst_result, BaseException):
         report["burst"] = {"error": f"{type(burst_result).__name__}: {burst_result}"}
     else:
         _, bviews, _ = burst_result
         bexpected = args.burst_robots * int(args.duration / HOP_S + 1e-9)
-        report["burst"] = {"windows_expected": bexpected, "windows_received": sum(v.windows for v in bviews),
-                           "windows_tactile_only": sum(v.inputs.get("tactile", 0) for v in bviews),
-                           "e2e_ms_p99": percentile([x for v in bviews for x in v.e2e_ms], 99)}
-    report["refused"] = {"blocks": int(_metric_sum(metrics, "hapticlink_blocks_total", outcome="refused")),
-                         "frames": int(_metric_sum(metrics, "hapticlink_frames_total", outcome="refused")),
-                         "sessions_rate": int(_metric_sum(metrics, "hapticlink_sessions_refused_total", reason="rate")),
-                         "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count"))}
+        report["burst"] = {
+            "windows_expected": bexpected,
+            "windows_received": sum(v.windows for v in bviews),
+            "windows_tactile_only": sum(v.inputs.get("tactile", 0) for v in bviews),
+            "e2e_ms_p99": percentile([x for v in bviews for x in v.e2e_ms], 99),
+        }
+    report["refused"] = {
+        "blocks": int(_metric_sum(metrics, "hapticlink_blocks_total", outcome="refused")),
+        "frames": int(_metric_sum(metrics, "hapticlink_frames_total", outcome="refused")),
+        "sessions_rate": int(_metric_sum(metrics, "hapticlink_sessions_refused_total", reason="rate")),
+        "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count")),
+    }
     print(json.dumps(report, indent=2))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2))

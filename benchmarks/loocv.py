@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from models.evaluation.data import TextureData
-from models.evaluation.loocv import loocv_seeds, ray_init
-from models.evaluation.registry import EstimatorSpec
+from models.offline.evaluation.data import TextureData
+from models.offline.evaluation.loocv import loocv_seeds, ray_init
+from models.offline.evaluation.registry import EstimatorSpec
 
 DEFAULT_OUT = Path("reports/bench/loocv.json")
 
@@ -37,8 +37,14 @@ def synthetic_data(n_textures: int = 40, n_windows: int = 40, seed: int = 0) -> 
     mix = rng.normal(size=(4, 526))
     tactile = [(factors[i] @ mix + rng.normal(size=(n_windows, 526))).astype(np.float32) for i in range(n_textures)]
     targets = np.clip(40 * factors + 3 * rng.normal(size=factors.shape), -100, 100)
-    return TextureData([f"t{i:03d}" for i in range(n_textures)], ["g"] * n_textures, tactile, visual.astype(np.float32),
-                       targets.astype(np.float32), {"dataset": "synthetic-benchmark"})
+    return TextureData(
+        [f"t{i:03d}" for i in range(n_textures)],
+        ["g"] * n_textures,
+        tactile,
+        visual.astype(np.float32),
+        targets.astype(np.float32),
+        {"dataset": "synthetic-benchmark"},
+    )
 
 
 def run(data: TextureData, model: str, seeds: tuple[int, ...], workers: int) -> dict:
@@ -50,7 +56,9 @@ def run(data: TextureData, model: str, seeds: tuple[int, ...], workers: int) -> 
             ray_init(None, num_cpus=workers)
             timings["ray_start_s"] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
-        runs = loocv_seeds(data, spec, seeds, workers=1 if backend == "serial" else workers, backend=backend, progress=True)
+        runs = loocv_seeds(
+            data, spec, seeds, workers=1 if backend == "serial" else workers, backend=backend, progress=True
+        )
         timings[f"{backend}_s"] = round(time.perf_counter() - t0, 2)
         predictions[backend] = np.stack([r.predictions for r in runs])
         print(f"{backend:8s} {timings[f'{backend}_s']:8.1f} s", flush=True)
@@ -59,8 +67,13 @@ def run(data: TextureData, model: str, seeds: tuple[int, ...], workers: int) -> 
         raise AssertionError(f"backends disagree by {diff} rating points")
     jobs = len(seeds) * len(data)
     return {
-        "model": model, "dataset": data.meta.get("dataset"), "n_textures": len(data), "seeds": list(seeds),
-        "jobs": jobs, "workers": workers, "wall_s": timings,
+        "model": model,
+        "dataset": data.meta.get("dataset"),
+        "n_textures": len(data),
+        "seeds": list(seeds),
+        "jobs": jobs,
+        "workers": workers,
+        "wall_s": timings,
         "speedup_over_serial": {b: round(timings["serial_s"] / timings[f"{b}_s"], 2) for b in ("process", "ray")},
         "speedup_ray_with_start": round(timings["serial_s"] / (timings["ray_s"] + timings["ray_start_s"]), 2),
         "max_abs_diff_between_backends": diff,
@@ -78,7 +91,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", default=str(DEFAULT_OUT))
     args = parser.parse_args(argv)
     if args.dataset:
-        from models.evaluation.data import load_texture_data
+        from models.offline.evaluation.data import load_texture_data
 
         data = load_texture_data(args.dataset)
     else:

@@ -47,7 +47,6 @@ import random
 import secrets
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -64,7 +63,8 @@ from drivers.protocol import ws_url
 from drivers.robot import RobotClient
 from drivers.simulated import tap_block
 from drivers.source import blocks_from_arrays
-from models.modelfile import read_card
+from models.inference.modelfile import read_card
+from service import launcher
 from texture_library.library import Library
 from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
@@ -92,7 +92,7 @@ class Assets:
 
 def prepare_assets(root: Path) -> dict[str, Assets]:
     """Both configurations, built under root once (the demo's assets: a synthetic world of 24 textures)."""
-    from service.demo import prepare_assets as demo_assets
+    from models.offline.demo_assets import prepare_assets as demo_assets
 
     demo = demo_assets(root / "served")
     taps = "taps" in read_card(demo.model).tactile_config.get("extra_groups", ())
@@ -102,8 +102,9 @@ def prepare_assets(root: Path) -> dict[str, Assets]:
     }
 
 
-def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0,
-                  taps: bool = False) -> list[list[Block]]:
+def robot_streams(
+    library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0, taps: bool = False
+) -> list[list[Block]]:
     """n_streams block sequences (seq from 0), each `seconds` long, over the library's textures; with `taps`
     each starts with its texture's tap block, as a robot serving a model that reads tap features does."""
     lib = Library.load(library_dir)
@@ -115,8 +116,11 @@ def robot_streams(library_dir: Path, n_streams: int, seconds: float, block_s: fl
         traj = freehand(seconds + 0.5, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
         s = stroke(model, traj, rng)
         n = int(round(seconds * s.rate_hz))
-        channels = {"accel": (s.accel[:n], s.rate_hz, "m/s^2"), "force": (s.force[:n], s.rate_hz, "N"),
-                    "speed": (s.speed[:n], s.rate_hz, "mm/s")}
+        channels = {
+            "accel": (s.accel[:n], s.rate_hz, "m/s^2"),
+            "force": (s.force[:n], s.rate_hz, "N"),
+            "speed": (s.speed[:n], s.rate_hz, "mm/s"),
+        }
         out.append(head + list(blocks_from_arrays(channels, block_s)))
     return out
 
@@ -126,7 +130,9 @@ def frame_of(library_dir: Path, k: int) -> bytes:
     lib = Library.load(library_dir)
     image = lib.image(lib.ids[k % len(lib.ids)])
     if image is None:
-        raise ValueError(f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one")
+        raise ValueError(
+            f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one"
+        )
     return image
 
 
@@ -144,48 +150,43 @@ def machine_cpu_seconds() -> float:
 
 
 # ---- server processes ----------------------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class ServerProcess:
-    """A server in a child process (the service, or the floor); CPU and memory read from /proc/<pid>."""
-
-    def __init__(self, argv: list[str], env: dict[str, str], ready_path: str = "/ready") -> None:
-        self.port = free_port()
-        self.proc = subprocess.Popen([*argv, "--port", str(self.port)], env={**os.environ, **env},
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                if httpx.get(f"{self.url}{ready_path}", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.proc.kill()
-                raise RuntimeError(f"the server did not start: {self.proc.stderr.read() if self.proc.stderr else ''}")
-            time.sleep(0.1)
+class ServerProcess(launcher.ServerProcess):
+    """The service, or the floor, in a child process; CPU and memory read from /proc/<pid>."""
 
     @classmethod
-    def service(cls, assets: Assets, api_key: str, instance_id: str = "bench", extra: dict[str, str] | None = None) -> "ServerProcess":
-        argv = [sys.executable, "-m", "service.cli", "serve", "--model", str(assets.model), "--library", str(assets.library),
-                "--log-level", "warning", "--instance-id", instance_id]
+    def service(
+        cls, assets: Assets, api_key: str, instance_id: str = "bench", extra: dict[str, str] | None = None
+    ) -> ServerProcess:
+        argv = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--model",
+            str(assets.model),
+            "--library",
+            str(assets.library),
+            "--log-level",
+            "warning",
+            "--instance-id",
+            instance_id,
+        ]
         if assets.backbone is not None:
             argv += ["--backbone", str(assets.backbone)]
-        env = {"HAPTICLINK_API_KEYS": api_key,
-               # one benchmark process is one client address for every robot: lift the per-client session rate;
-               # every session is opened before any streams: give them time to start
-               "HAPTICLINK_SESSION_BURST": "100000", "HAPTICLINK_SESSION_FIRST_BLOCK_S": "300", **(extra or {})}
+        env = {
+            "HAPTICLINK_API_KEYS": api_key,
+            # one benchmark process is one client address for every robot: lift the per-client session rate;
+            # every session is opened before any streams: give them time to start
+            "HAPTICLINK_SESSION_BURST": "100000",
+            "HAPTICLINK_SESSION_FIRST_BLOCK_S": "300",
+            **(extra or {}),
+        }
         if assets.tactile is not None:
             env["HAPTICLINK_TACTILE_MODEL_PATH"] = str(assets.tactile)
         return cls(argv, env)
 
     @classmethod
-    def floor(cls) -> "ServerProcess":
+    def floor(cls) -> ServerProcess:
         return cls([sys.executable, "-m", "benchmarks.service_floor"], {}, ready_path="/health")
 
     def cpu_seconds(self) -> float:
@@ -193,15 +194,10 @@ class ServerProcess:
 
     def memory_mb(self) -> tuple[float, float]:
         """(RSS, peak RSS) in MiB."""
-        status = dict(line.split(":", 1) for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines() if ":" in line)
+        status = dict(
+            line.split(":", 1) for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines() if ":" in line
+        )
         return int(status["VmRSS"].split()[0]) / 1024, int(status["VmHWM"].split()[0]) / 1024
-
-    def stop(self) -> None:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
 
 
 # ---- the robots ----------------------------------------------------------------------------------
@@ -211,8 +207,15 @@ class PacedSource:
 
     name = "bench"
 
-    def __init__(self, blocks: list[Block], block_s: float, start: float, frame: bytes | None,
-                 frame_every_s: float, realtime: bool = True) -> None:
+    def __init__(
+        self,
+        blocks: list[Block],
+        block_s: float,
+        start: float,
+        frame: bytes | None,
+        frame_every_s: float,
+        realtime: bool = True,
+    ) -> None:
         self.blocks, self.block_s, self.start = blocks, block_s, start
         self.frame, self.frame_every = frame, max(1, int(round(frame_every_s / block_s)))
         self.realtime = realtime
@@ -257,7 +260,9 @@ class OperatorView:
     error: str | None = None
 
 
-async def operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
+async def operate(
+    url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event
+) -> None:
     """An operator: reads the session's events until `done`, measuring each window against its block's yield time.
     An operator that cannot attach is recorded (view.error) and its windows count as lost."""
     try:
@@ -268,7 +273,9 @@ async def operate(url: str, session, source: PacedSource, view: OperatorView, re
         ready.set()
 
 
-async def _operate(url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event) -> None:
+async def _operate(
+    url: str, session, source: PacedSource, view: OperatorView, ready: asyncio.Event, done: asyncio.Event
+) -> None:
     from websockets.asyncio.client import connect
 
     async with connect(ws_url(url, session.session_id, "events", str(session.operator_token)), max_size=2**20) as ws:
@@ -297,23 +304,35 @@ async def _operate(url: str, session, source: PacedSource, view: OperatorView, r
         await asyncio.gather(reader, return_exceptions=True)
 
 
-async def run_load(urls: list[str], streams: list[list[Block]], frames: list[bytes | None], block_s: float,
-                   api_key: str, seed: int, realtime: bool = True, window: int = 64) -> tuple[list, list[OperatorView], list[PacedSource]]:
+async def run_load(
+    urls: list[str],
+    streams: list[list[Block]],
+    frames: list[bytes | None],
+    block_s: float,
+    api_key: str,
+    seed: int,
+    realtime: bool = True,
+    window: int = 64,
+) -> tuple[list, list[OperatorView], list[PacedSource]]:
     """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views, sources."""
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
     rng = random.Random(seed)
     offsets = [rng.uniform(0, HOP_S) if realtime else 0.0 for _ in streams]  # robots do not start in lockstep
     start = time.perf_counter() + 2.0 + 0.02 * len(streams)  # time to open every session and connection first
     sources = [PacedSource(s, block_s, start + off, f, 1.0, realtime) for s, f, off in zip(streams, frames, offsets)]
-    clients = [RobotClient(u, src, api_key=api_key, session_name=f"bench-{k}", window=window, seed=k, drain_timeout_s=10)
-               for k, (u, src) in enumerate(zip(robot_urls, sources))]
+    clients = [
+        RobotClient(u, src, api_key=api_key, session_name=f"bench-{k}", window=window, seed=k, drain_timeout_s=10)
+        for k, (u, src) in enumerate(zip(robot_urls, sources))
+    ]
     for c in clients:
         await c.open_session()
     views = [OperatorView() for _ in clients]
     readies = [asyncio.Event() for _ in clients]
     done = asyncio.Event()
-    operators = [asyncio.create_task(operate(u, c.session, src, v, r, done))
-                 for u, c, src, v, r in zip(robot_urls, clients, sources, views, readies)]
+    operators = [
+        asyncio.create_task(operate(u, c.session, src, v, r, done))
+        for u, c, src, v, r in zip(robot_urls, clients, sources, views, readies)
+    ]
     await asyncio.gather(*(r.wait() for r in readies))
     outcomes = await asyncio.gather(*(c.run() for c in clients), return_exceptions=True)
     for k, o in enumerate(outcomes):
@@ -351,8 +370,16 @@ def _metric_sum(text: str, name: str, **labels: str) -> float:
     return total
 
 
-def measure(n: int, assets: Assets, streams: list[list[Block]], duration_s: float, block_s: float, seed: int,
-            replicas: int, api_key: str) -> dict:
+def measure(
+    n: int,
+    assets: Assets,
+    streams: list[list[Block]],
+    duration_s: float,
+    block_s: float,
+    seed: int,
+    replicas: int,
+    api_key: str,
+) -> dict:
     """n robots against `replicas` service processes; CPU, memory and refusals summed over them."""
     servers: list[ServerProcess] = []
     frames = [frame_of(assets.library, k) if assets.frames else None for k in range(n)]
@@ -363,9 +390,19 @@ def measure(n: int, assets: Assets, streams: list[list[Block]], duration_s: floa
         def server_cpu() -> float:
             return sum(s.cpu_seconds() for s in servers)
 
-        cpu0, client0, machine0, wall0 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
+        cpu0, client0, machine0, wall0 = (
+            server_cpu(),
+            process_cpu_seconds("self"),
+            machine_cpu_seconds(),
+            time.perf_counter(),
+        )
         stats, views, sources = _run(run_load([s.url for s in servers], streams[:n], frames, block_s, api_key, seed))
-        cpu1, client1, machine1, wall1 = server_cpu(), process_cpu_seconds("self"), machine_cpu_seconds(), time.perf_counter()
+        cpu1, client1, machine1, wall1 = (
+            server_cpu(),
+            process_cpu_seconds("self"),
+            machine_cpu_seconds(),
+            time.perf_counter(),
+        )
         memory = [s.memory_mb() for s in servers]
         metrics = [httpx.get(f"{s.url}/metrics").text for s in servers]
     finally:
@@ -388,7 +425,8 @@ def measure(n: int, assets: Assets, streams: list[list[Block]], duration_s: floa
         "windows_received": received,
         "windows_lost": expected - received,
         # of those, windows that accepted blocks had completed: overload must never cost these
-        "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics)) - received,
+        "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics))
+        - received,
         "windows_tactile_only": inputs.get("tactile", 0) if assets.frames else None,
         "operators_failed": sum(v.error is not None for v in views),
         "blocks_refused": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="refused") for m in metrics)),
@@ -405,14 +443,19 @@ def measure(n: int, assets: Assets, streams: list[list[Block]], duration_s: floa
             "first_window_features_ms_max": round(max(firsts), 3) if firsts else None,
             "features_median_ms": median_features,
             "first_over_median": round(max(firsts) / median_features, 2) if firsts and median_features else None,
-            "features_p99_over_p50": round(stages["features"] and percentile(stages["features"], 99) / median_features, 2)
-            if median_features else None,
+            "features_p99_over_p50": round(
+                stages["features"] and percentile(stages["features"], 99) / median_features, 2
+            )
+            if median_features
+            else None,
         },
         "client_send_lag_ms": {"p50": percentile(lag, 50), "p99": percentile(lag, 99)},
         "server_cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
         "client_cpu_percent": round(100 * (client1 - client0) / (wall1 - wall0), 1),
         # other processes on this (shared) machine during the run: they compete for the same 2 cores
-        "others_cpu_percent": round(100 * ((machine1 - machine0) - (cpu1 - cpu0) - (client1 - client0)) / (wall1 - wall0), 1),
+        "others_cpu_percent": round(
+            100 * ((machine1 - machine0) - (cpu1 - cpu0) - (client1 - client0)) / (wall1 - wall0), 1
+        ),
         "server_rss_mb": round(sum(m[0] for m in memory), 1),
         "server_peak_rss_mb": round(sum(m[1] for m in memory), 1),
         "blocks_per_s": round(n / block_s, 1),
@@ -429,17 +472,33 @@ def _pump(server: ServerProcess, blocks: list[Block], api_key: str, block_s: flo
     return stats[0].acked, cpu1 - cpu0, max(yielded) - min(yielded)  # the streaming itself, not the set-up
 
 
-def measure_capacity(assets: Assets, blocks: list[Block], api_key: str, block_s: float,
-                     profile_out: Path | None = None) -> dict:
+def measure_capacity(
+    assets: Assets, blocks: list[Block], api_key: str, block_s: float, profile_out: Path | None = None
+) -> dict:
     """Server CPU per block of the service (windows, features, model, publishing included) and of the floor."""
     service = ServerProcess.service(assets, api_key, extra={"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
     profiler = None
     try:
         if profile_out is not None:
             py_spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))  # installed beside python
-            profiler = subprocess.Popen([py_spy, "record", "--pid", str(service.proc.pid), "--rate", "250", "--threads",
-                                         "--format", "raw", "--output", str(profile_out), "--nonblocking"],
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            profiler = subprocess.Popen(
+                [
+                    py_spy,
+                    "record",
+                    "--pid",
+                    str(service.proc.pid),
+                    "--rate",
+                    "250",
+                    "--threads",
+                    "--format",
+                    "raw",
+                    "--output",
+                    str(profile_out),
+                    "--nonblocking",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
             time.sleep(1.0)
         acked, cpu, wall = _pump(service, blocks, api_key, block_s)
     finally:
@@ -481,32 +540,47 @@ def summarize_profile(path: Path, top: int = 20) -> list[tuple[str, float]]:
 
 # ---- report --------------------------------------------------------------------------------------
 def print_table(rows: list[dict]) -> None:
-    head = (f"{'config':>7} {'robots':>6} {'repl':>4} {'win/s':>6} {'lost':>5} {'refused':>7} {'e2e p50':>8} {'e2e p99':>8} "
-            f"{'queue p99':>9} {'feat p99':>8} {'first/med':>9} {'cpu %':>6} {'client %':>8} {'others %':>8} {'lag p99':>8}")
+    head = (
+        f"{'config':>7} {'robots':>6} {'repl':>4} {'win/s':>6} {'lost':>5} {'refused':>7} {'e2e p50':>8} {'e2e p99':>8} "
+        f"{'queue p99':>9} {'feat p99':>8} {'first/med':>9} {'cpu %':>6} {'client %':>8} {'others %':>8} {'lag p99':>8}"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         st = r["stages_ms"]
-        print(f"{r['config']:>7} {r['robots']:>6} {r['replicas']:>4} {r['windows_received'] / r['duration_s']:>6.1f} "
-              f"{r['windows_lost']:>5} {r['blocks_refused'] + r['frames_refused']:>7} {r['e2e_ms']['p50'] or 0:>8.2f} "
-              f"{r['e2e_ms']['p99'] or 0:>8.2f} {st['queue']['p99'] or 0:>9.2f} {st['features']['p99'] or 0:>8.2f} "
-              f"{r['cold_start']['first_over_median'] or 0:>9.2f} {r['server_cpu_percent']:>6.1f} {r['client_cpu_percent']:>8.1f} "
-              f"{r['others_cpu_percent']:>8.1f} {r['client_send_lag_ms']['p99'] or 0:>8.2f}")
+        print(
+            f"{r['config']:>7} {r['robots']:>6} {r['replicas']:>4} {r['windows_received'] / r['duration_s']:>6.1f} "
+            f"{r['windows_lost']:>5} {r['blocks_refused'] + r['frames_refused']:>7} {r['e2e_ms']['p50'] or 0:>8.2f} "
+            f"{r['e2e_ms']['p99'] or 0:>8.2f} {st['queue']['p99'] or 0:>9.2f} {st['features']['p99'] or 0:>8.2f} "
+            f"{r['cold_start']['first_over_median'] or 0:>9.2f} {r['server_cpu_percent']:>6.1f} {r['client_cpu_percent']:>8.1f} "
+            f"{r['others_cpu_percent']:>8.1f} {r['client_send_lag_ms']['p99'] or 0:>8.2f}"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, nargs="+", default=[1, 10, 50, 100, 200])
-    p.add_argument("--replicas", type=int, nargs="+", default=[1, 2],
-                   help="service processes, robots pinned round-robin as nginx pins sessions; each runs every --robots N")
+    p.add_argument(
+        "--replicas",
+        type=int,
+        nargs="+",
+        default=[1, 2],
+        help="service processes, robots pinned round-robin as nginx pins sessions; each runs every --robots N",
+    )
     p.add_argument("--configs", nargs="+", choices=CONFIGS, default=list(CONFIGS))
     p.add_argument("--duration", type=float, default=20.0, help="seconds of stream per robot (default 20)")
     p.add_argument("--block-s", type=float, default=0.02, help="seconds per block (default 0.02)")
-    p.add_argument("--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement")
+    p.add_argument(
+        "--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement"
+    )
     p.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
     p.add_argument("--profile", action="store_true", help="sample the service with py-spy during the capacity run")
-    p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
-                   help="where the models and library are built and cached")
+    p.add_argument(
+        "--assets",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
+        help="where the models and library are built and cached",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
@@ -526,9 +600,12 @@ def main(argv: list[str] | None = None) -> int:
         blocks = robot_streams(library, 1, args.capacity_s, args.block_s, args.seed + 1, taps=taps)[0]
         profile_path = args.out.with_name("service-profile.txt") if args.profile else None
         capacity = measure_capacity(all_assets["tactile"], blocks, api_key, args.block_s, profile_path)
-        print(f"  service {capacity['server_cpu_us_per_block']:.0f} µs, floor {capacity['floor_cpu_us_per_block']:.0f} µs "
-              f"server CPU per block: {capacity['server_over_floor']:.2f} × the floor; "
-              f"{capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot", flush=True)
+        print(
+            f"  service {capacity['server_cpu_us_per_block']:.0f} µs, floor {capacity['floor_cpu_us_per_block']:.0f} µs "
+            f"server CPU per block: {capacity['server_over_floor']:.2f} × the floor; "
+            f"{capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot",
+            flush=True,
+        )
         if profile_path is not None and profile_path.is_file():
             profile = summarize_profile(profile_path)
             print("  where the service's CPU went (share of samples, self time):")
@@ -538,19 +615,31 @@ def main(argv: list[str] | None = None) -> int:
     for config in args.configs:
         for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
             print(f"{config}: {n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
-            rows.append(measure(n, all_assets[config], streams, args.duration, args.block_s, args.seed, replicas, api_key))
+            rows.append(
+                measure(n, all_assets[config], streams, args.duration, args.block_s, args.seed, replicas, api_key)
+            )
     print()
     print_table(rows)
     report = {
         "benchmark": "service",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "config": {"block_s": args.block_s, "duration_s": args.duration, "hop_s": HOP_S,
-                   "transport": "WebSocket, binary blocks, drivers.robot.RobotClient",
-                   "channels": "accel (n,3) + force (n,3) + speed (n,) at 1 kHz",
-                   "configs": {k: {"model": str(a.model), "tactile_model": str(a.tactile) if a.tactile else None,
-                                   "backbone": str(a.backbone) if a.backbone else None,
-                                   "frames": "1 fps, the texture's photo" if a.frames else None}
-                               for k, a in all_assets.items() if k in args.configs}},
+        "config": {
+            "block_s": args.block_s,
+            "duration_s": args.duration,
+            "hop_s": HOP_S,
+            "transport": "WebSocket, binary blocks, drivers.robot.RobotClient",
+            "channels": "accel (n,3) + force (n,3) + speed (n,) at 1 kHz",
+            "configs": {
+                k: {
+                    "model": str(a.model),
+                    "tactile_model": str(a.tactile) if a.tactile else None,
+                    "backbone": str(a.backbone) if a.backbone else None,
+                    "frames": "1 fps, the texture's photo" if a.frames else None,
+                }
+                for k, a in all_assets.items()
+                if k in args.configs
+            },
+        },
         "capacity": capacity,
         "profile_top": profile,
         "results": rows,

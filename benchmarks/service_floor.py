@@ -29,10 +29,19 @@ async def app(scope, receive, send) -> None:
     if scope["type"] == "http":
         while (await receive()).get("more_body"):
             pass
-        body = {"status": "ok"} if path == "/health" else {"session_id": "floor.0", "robot_token": "r", "operator_token": "o"}
+        body = (
+            {"status": "ok"}
+            if path == "/health"
+            else {"session_id": "floor.0", "robot_token": "r", "operator_token": "o"}
+        )
         data = json.dumps(body).encode()
-        await send({"type": "http.response.start", "status": 201 if path == "/sessions" else 200,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode())]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 201 if path == "/sessions" else 200,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode())],
+            }
+        )
         await send({"type": "http.response.body", "body": data})
         return
     # websocket

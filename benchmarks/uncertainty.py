@@ -36,9 +36,9 @@ def main(argv: list[str] | None = None) -> dict:
     if args.n < 10:
         parser.error("--n must be ≥ 10")
 
-    from models.intervals import EmaUncertainty, IntervalCalibration
-    from models.nets.latency import call_latency
-    from models.ood import OODDetector, frame_statistics
+    from models.inference.intervals import EmaUncertainty, IntervalCalibration
+    from models.inference.ood import OODDetector, frame_statistics
+    from models.offline.nets.latency import call_latency
 
     rng = np.random.default_rng(0)
     tactile = [rng.normal(size=(32, 526)) for _ in range(79)]
@@ -46,8 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
     frames = np.array([frame_statistics(rng.random((256, 256)).astype(np.float32)) for _ in range(79)])
     det = OODDetector.fit(tactile, visual, frames)
     truth = rng.normal(size=(1580, 4)) * 30
-    cal = IntervalCalibration.fit(truth + rng.normal(size=(1580, 4)) * 8, truth, groups=np.arange(1580) // 20,
-                                  prior_ratings=truth[::20])
+    cal = IntervalCalibration.fit(
+        truth + rng.normal(size=(1580, 4)) * 8, truth, groups=np.arange(1580) // 20, prior_ratings=truth[::20]
+    )
     one, batch, v = rng.normal(size=(1, 526)), rng.normal(size=(16, 526)), rng.normal(size=1536)
     pred1, pred16 = rng.normal(size=(1, 4)), rng.normal(size=(16, 4))
     frame = rng.random((1024, 1024)).astype(np.float32)
@@ -58,16 +59,25 @@ def main(argv: list[str] | None = None) -> dict:
         "ood_check_visual_per_frame_us": call_latency(lambda: det.check_visual(v), n=n, warmup=50),
         "ood_check_1_window_us": call_latency(lambda: det.check(one, frame=framecheck), n=n, warmup=50),
         "ood_check_16_windows_us": call_latency(lambda: det.check(batch, frame=framecheck), n=n, warmup=50),
-        "interval_1_window_us": call_latency(lambda: cal.interval(pred1, None, 0.9, ood=np.array([False])), n=n, warmup=50),
-        "interval_16_windows_us": call_latency(lambda: cal.interval(pred16, None, 0.9, ood=np.zeros(16, bool)), n=n, warmup=50),
+        "interval_1_window_us": call_latency(
+            lambda: cal.interval(pred1, None, 0.9, ood=np.array([False])), n=n, warmup=50
+        ),
+        "interval_16_windows_us": call_latency(
+            lambda: cal.interval(pred16, None, 0.9, ood=np.zeros(16, bool)), n=n, warmup=50
+        ),
         "ema_state_update_us": call_latency(lambda: state.update(False, 1.2), n=n, warmup=50),
         "check_frame_1024px_us": call_latency(lambda: det.check_frame(frame), n=max(10, n // 20), warmup=5),
     }
     steps.update(_service_window(max(20, n // 10)))
     card_bytes = len(json.dumps(det.to_dict())) + len(json.dumps(cal.to_dict()))
-    result = {"benchmark": "uncertainty", "command": " ".join(["python -m benchmarks.uncertainty", *(argv or sys.argv[1:])]),
-              "steps": steps, "card_json_bytes": card_bytes,
-              "loadavg_1_5_15": list(os.getloadavg()), "note": "single thread numpy; timed under whatever load the machine has"}
+    result = {
+        "benchmark": "uncertainty",
+        "command": " ".join(["python -m benchmarks.uncertainty", *(argv or sys.argv[1:])]),
+        "steps": steps,
+        "card_json_bytes": card_bytes,
+        "loadavg_1_5_15": list(os.getloadavg()),
+        "note": "single thread numpy; timed under whatever load the machine has",
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     for k, v in steps.items():
@@ -82,8 +92,8 @@ def _service_window(n: int) -> dict:
     import tempfile
     import time
 
-    from models.datasets.build import build
-    from models.train import train_and_export
+    from models.offline.datasets.build import build
+    from models.offline.train import train_and_export
     from service.pipeline import estimate_batch
     from service.runtime import load_runtime
     from service.session import stream_contract
@@ -93,15 +103,17 @@ def _service_window(n: int) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        model = train_and_export(build("synthetic", root / "dataset", n_textures=8, duration_s=4), "ridge-tactile",
-                                 root / "model.onnx")
+        model = train_and_export(
+            build("synthetic", root / "dataset", n_textures=8, duration_s=4), "ridge-tactile", root / "model.onnx"
+        )
         build_synthetic_library(root / "library", n_textures=8, image_size=64)
         settings = Settings(model_path=model, library_dir=root / "library", instance_id="bench", api_keys="unused")
         full = load_runtime(settings)
         if full.main.calibration is None or full.main.detector is None:
             raise RuntimeError("the benchmark model has no calibration or detector")
-        bare = dataclasses.replace(full, main=dataclasses.replace(full.main, calibration=None, window_calibration=None,
-                                                                  detector=None))
+        bare = dataclasses.replace(
+            full, main=dataclasses.replace(full.main, calibration=None, window_calibration=None, detector=None)
+        )
         contract = stream_contract(full, settings)
         rng = np.random.default_rng(0)
         times: dict[str, list[float]] = {"with": [], "without": []}
@@ -116,9 +128,11 @@ def _service_window(n: int) -> dict:
                 if i >= 5:  # warm-up calls
                     times[name].append(elapsed / WARM_UP_WINDOWS * 1e6)
     med = {k: float(np.median(v)) for k, v in times.items()}
-    return {"service_window_with_uncertainty_us": {"p50_us": med["with"]},
-            "service_window_without_uncertainty_us": {"p50_us": med["without"]},
-            "service_uncertainty_per_window_us": {"p50_us": med["with"] - med["without"]}}
+    return {
+        "service_window_with_uncertainty_us": {"p50_us": med["with"]},
+        "service_window_without_uncertainty_us": {"p50_us": med["without"]},
+        "service_uncertainty_per_window_us": {"p50_us": med["with"] - med["without"]},
+    }
 
 
 if __name__ == "__main__":

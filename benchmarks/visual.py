@@ -66,7 +66,8 @@ def bench_backbone(
     """Torch vs onnxruntime embedding time of one image's patches at each thread count, plus export time and parity."""
     import torch
 
-    from models.visual.onnx_backbone import OnnxBackbone, export_backbone_onnx
+    from models.offline.backbones.onnx_export import export_backbone_onnx
+    from models.visual.onnx_backbone import OnnxBackbone
 
     start = time.perf_counter()
     onnx_path = export_backbone_onnx(backbone, workdir / f"{backbone.name}.onnx", config_hash=config_hash)
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import onnxruntime
     import torch
 
-    from models.visual.backbone import efficientnet_lite0_backbone, resnet50_backbone
+    from models.offline.backbones.cnn import efficientnet_lite0_backbone, resnet50_backbone
     from models.visual.config import VisualConfig
     from models.visual.glcm import glcm_features
     from models.visual.patches import extract_patches

@@ -43,8 +43,8 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
-from benchmarks.service import free_port
 from service.fleet import parse_keys
+from service.launcher import free_port, wait_until_ready
 from service.settings import ENV_PREFIX, env_name
 
 DEPLOY_DIR = Path(__file__).resolve().parent
@@ -52,7 +52,13 @@ REPO_DIR = DEPLOY_DIR.parent  # replicas run this checkout's code (`python -m` p
 LOOPBACK = "127.0.0.1"
 #: pyproject's [project.scripts], as `python -m` modules: the image's CMD runs them by these names
 CONSOLE_SCRIPTS = {"hapticlink": "service.cli"}
-NGINX_TEMP_PATHS = ("client_body_temp_path", "proxy_temp_path", "fastcgi_temp_path", "uwsgi_temp_path", "scgi_temp_path")
+NGINX_TEMP_PATHS = (
+    "client_body_temp_path",
+    "proxy_temp_path",
+    "fastcgi_temp_path",
+    "uwsgi_temp_path",
+    "scgi_temp_path",
+)
 START_TIMEOUT_S = 120.0  # a replica loads and warms its model on a busy 2-core machine
 
 
@@ -76,7 +82,9 @@ def substitute(text: str, env: Mapping[str, str]) -> str:
 
 def _instructions(dockerfile: str) -> list[tuple[str, str]]:
     """(INSTRUCTION, rest) of the final build stage, continuation lines joined, comments dropped."""
-    joined = re.sub(r"\\\n", " ", "\n".join(line for line in dockerfile.splitlines() if not line.lstrip().startswith("#")))
+    joined = re.sub(
+        r"\\\n", " ", "\n".join(line for line in dockerfile.splitlines() if not line.lstrip().startswith("#"))
+    )
     out: list[tuple[str, str]] = []
     for line in joined.splitlines():
         if not line.strip():
@@ -243,12 +251,13 @@ def rewrite_mounts(value: str, mounts: Mapping[str, Path]) -> str:
     """A path inside a mounted container folder → the same path in the host folder it mounts."""
     for target, source in mounts.items():
         if value == target or value.startswith(target + "/"):
-            return str(source) + value[len(target):]
+            return str(source) + value[len(target) :]
     return value
 
 
-def replica_environment(files: DeployFiles, name: str, port: int, ports: Mapping[str, int],
-                        host_env: Mapping[str, str]) -> dict[str, str]:
+def replica_environment(
+    files: DeployFiles, name: str, port: int, ports: Mapping[str, int], host_env: Mapping[str, str]
+) -> dict[str, str]:
     """The replica's container environment with addresses and mounted paths made local (and nothing else)."""
     mounts = files.mounts(name, host_env)
     env = {k: rewrite_mounts(rewrite_addresses(v, ports), mounts) for k, v in files.environment(name, host_env).items()}
@@ -264,7 +273,9 @@ def nginx_config(conf: str, ports: Mapping[str, int], container_port: int, liste
     if n != 1:
         raise ValueError(f"nginx.conf must have one `listen {container_port}` (compose publishes that port), found {n}")
     logs = workdir / "logs"
-    out = re.sub(r"(\b(?:access|error)_log\s+)(/\S+?)(?=[\s;])", lambda m: f"{m.group(1)}{logs / Path(m.group(2)).name}", out)
+    out = re.sub(
+        r"(\b(?:access|error)_log\s+)(/\S+?)(?=[\s;])", lambda m: f"{m.group(1)}{logs / Path(m.group(2)).name}", out
+    )
     temp = "".join(f"    {d} {workdir / 'tmp' / d.split('_temp')[0]};\n" for d in NGINX_TEMP_PATHS)
     out, n = re.subn(r"^(http\s*\{[^\n]*\n)", lambda m: m.group(1) + temp, out, count=1, flags=re.M)
     if n != 1:
@@ -328,8 +339,17 @@ class Topology:
     RobotClient needs besides url and source (the API key).
     """
 
-    def __init__(self, assets: Path, *, files: DeployFiles | None = None, lb_port: int = 0, workdir: Path | None = None,
-                 keep_workdir: bool = False, start_timeout_s: float = START_TIMEOUT_S, api_key: str | None = None) -> None:
+    def __init__(
+        self,
+        assets: Path,
+        *,
+        files: DeployFiles | None = None,
+        lb_port: int = 0,
+        workdir: Path | None = None,
+        keep_workdir: bool = False,
+        start_timeout_s: float = START_TIMEOUT_S,
+        api_key: str | None = None,
+    ) -> None:
         self.files = files or DeployFiles.read()
         self.assets = Path(assets).resolve()
         self._own_workdir = workdir is None
@@ -378,19 +398,28 @@ class Topology:
         then HAPTICLINK_API_KEYS), else a new one appended to their key file (created 0600 if missing). A given
         `api_key` is written only into a file that holds no key yet: a user's key file is never edited."""
         files = self.key_files()
-        static = [key for name in self.replica_names
-                  for key in parse_keys(self.files.environment(name, self.host_env).get(env_name("api_keys"), ""), ",")]
+        static = [
+            key
+            for name in self.replica_names
+            for key in parse_keys(self.files.environment(name, self.host_env).get(env_name("api_keys"), ""), ",")
+        ]
         if not files and not static:
-            raise TopologyError("docker-compose.yml gives the replicas no fleet API key (neither HAPTICLINK_API_KEYS_FILE "
-                                "nor HAPTICLINK_API_KEYS): no robot could open a session")
-        in_files = [key for path in files if path.is_file() for key in parse_keys(path.read_text(encoding="utf-8"), "\n")]
+            raise TopologyError(
+                "docker-compose.yml gives the replicas no fleet API key (neither HAPTICLINK_API_KEYS_FILE "
+                "nor HAPTICLINK_API_KEYS): no robot could open a session"
+            )
+        in_files = [
+            key for path in files if path.is_file() for key in parse_keys(path.read_text(encoding="utf-8"), "\n")
+        ]
         known = in_files + static
         key = self.api_key or (known[0] if known else secrets.token_urlsafe(24))
         if key in known:
             return key
         if known or not files:
-            raise TopologyError("the given api_key is not one the replicas accept: add it to "
-                                f"{', '.join(map(str, files)) or 'HAPTICLINK_API_KEYS'}, or leave api_key out to use theirs")
+            raise TopologyError(
+                "the given api_key is not one the replicas accept: add it to "
+                f"{', '.join(map(str, files)) or 'HAPTICLINK_API_KEYS'}, or leave api_key out to use theirs"
+            )
         for path in files:  # none holds a key yet
             path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
@@ -406,8 +435,12 @@ class Topology:
             program = find_program(argv[0])
             if program is None:
                 raise TopologyError(f"{argv[0]} is not installed (apt-get install redis-server)")
-            return Service(name, port, log_path, [program, *argv[1:], "--bind", LOOPBACK, "--port", str(port),
-                                                  "--dir", str(self.workdir)])
+            return Service(
+                name,
+                port,
+                log_path,
+                [program, *argv[1:], "--bind", LOOPBACK, "--port", str(port), "--dir", str(self.workdir)],
+            )
         if name == self.lb_name:
             program = find_program("nginx")
             if program is None:
@@ -450,9 +483,15 @@ class Topology:
         env = {k: v for k, v in os.environ.items() if not k.startswith(ENV_PREFIX)}
         env.update(service.env)
         with open(service.log_path, "ab") as log:
-            service.proc = subprocess.Popen(service.argv, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                                            cwd=REPO_DIR if service.name in self.replica_names else self.workdir,
-                                            start_new_session=True)
+            service.proc = subprocess.Popen(
+                service.argv,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                cwd=REPO_DIR if service.name in self.replica_names else self.workdir,
+                start_new_session=True,
+            )
         self.services[service.name] = service
         if service.name in self.replica_names:
             self.replicas[self.instance_of(service.name)] = service
@@ -460,7 +499,9 @@ class Topology:
     def _check_running(self, service: Service) -> None:
         if not service.alive():
             code = service.proc.returncode if service.proc else None
-            raise TopologyError(f"{service.name} exited (code {code}); its log {service.log_path} ends:\n{service.log_tail()}")
+            raise TopologyError(
+                f"{service.name} exited (code {code}); its log {service.log_path} ends:\n{service.log_tail()}"
+            )
 
     def healthy(self, name: str) -> bool:
         """The service's compose healthcheck, made local: Redis answers PING; an HTTP check's URL answers 2xx."""
@@ -468,7 +509,10 @@ class Topology:
         if name == self.redis_name:
             import redis
 
-            with contextlib.suppress(redis.RedisError), redis.Redis(host=LOOPBACK, port=service.port, socket_timeout=2) as r:
+            with (
+                contextlib.suppress(redis.RedisError),
+                redis.Redis(host=LOOPBACK, port=service.port, socket_timeout=2) as r,
+            ):
                 return bool(r.ping())
             return False
         url = self.files.health_url(name)
@@ -486,20 +530,19 @@ class Topology:
         while not self.healthy(name):
             self._check_running(service)
             if time.monotonic() > deadline:
-                raise TopologyError(f"{name} did not become healthy in {self.start_timeout_s:g} s; log:\n{service.log_tail()}")
+                raise TopologyError(
+                    f"{name} did not become healthy in {self.start_timeout_s:g} s; log:\n{service.log_tail()}"
+                )
             time.sleep(0.1)
 
     def wait_ready(self, replica: Service) -> None:
         """Until GET /ready answers 200 (model and library loaded and warmed up)."""
-        deadline = time.monotonic() + self.start_timeout_s
-        while True:
-            self._check_running(replica)
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{replica.url}/ready", timeout=2).status_code == 200:
-                    return
-            if time.monotonic() > deadline:
-                raise TopologyError(f"{replica.name} not ready in {self.start_timeout_s:g} s; log:\n{replica.log_tail()}")
-            time.sleep(0.1)
+        try:
+            wait_until_ready(
+                f"{replica.url}/ready", timeout_s=self.start_timeout_s, alive=replica.alive, describe=replica.log_tail
+            )
+        except RuntimeError as exc:
+            raise TopologyError(f"{replica.name}: {exc}") from None
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Send `sig` to a service's process (SIGKILL: it dies at once, as a crashed container does)."""
@@ -549,9 +592,9 @@ def synthetic_assets(root: Path, n_textures: int = 12) -> Path:
     """A serving-assets folder (model.onnx, library/, as deploy/assets/README.md lays it out) holding a synthetic
     library and the demo's tactile-only model kind (ridge-tactile) trained on a synthetic dataset, built once
     under root/build. Tactile only (no backbone, no frames to embed): small to build and light to serve."""
-    from models.datasets.build import build
-    from models.train import train_and_export
-    from service.demo import TACTILE_MODEL
+    from models.offline.datasets.build import build
+    from models.offline.demo_assets import TACTILE_MODEL
+    from models.offline.train import train_and_export
     from texture_library.synthetic_library import build_synthetic_library
 
     library, model = root / "build" / "library", root / "build" / f"{TACTILE_MODEL}.onnx"
@@ -569,11 +612,18 @@ def synthetic_assets(root: Path, n_textures: int = 12) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m deploy.local", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--assets", type=Path, help="serving assets folder (default: a synthetic model and library, built once)")
-    p.add_argument("--build-dir", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-topology-assets",
-                   help="where the synthetic assets are built and cached")
+    p = argparse.ArgumentParser(
+        prog="python -m deploy.local", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--assets", type=Path, help="serving assets folder (default: a synthetic model and library, built once)"
+    )
+    p.add_argument(
+        "--build-dir",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "hapticlink-topology-assets",
+        help="where the synthetic assets are built and cached",
+    )
     p.add_argument("--port", type=int, default=None, help="nginx's port (default: the one compose publishes)")
     p.add_argument("--workdir", type=Path, help="logs and configs (default: a temporary folder, kept while running)")
     args = p.parse_args(argv)
@@ -590,8 +640,11 @@ def main(argv: list[str] | None = None) -> int:
     print(topology.describe())
     keys = topology.key_files()
     key = f"HAPTICLINK_API_KEY=$(grep -v '^#' {keys[0]} | head -1) " if keys else "HAPTICLINK_API_KEY=<a fleet key> "
-    print(f"\ntry:  {key}hapticlink robot --url {topology.url} --source simulated:{assets / 'library'}:<entry id>\n"
-          "Ctrl-C stops.", flush=True)
+    print(
+        f"\ntry:  {key}hapticlink robot --url {topology.url} --source simulated:{assets / 'library'}:<entry id>\n"
+        "Ctrl-C stops.",
+        flush=True,
+    )
     try:
         while all(s.alive() for s in topology.services.values()):
             time.sleep(0.5)

@@ -125,8 +125,9 @@ def _check_header(header: object) -> tuple[int, float, dict]:
     if kind == "taps":
         taps = header.get("taps")
         if channels is not None or not isinstance(taps, dict):
-            raise ValueError('a taps block carries "taps": {rate_hz, units, speeds, data (JSON) or shape (binary)} '
-                             'and no "channels"')
+            raise ValueError(
+                'a taps block carries "taps": {rate_hz, units, speeds, data (JSON) or shape (binary)} and no "channels"'
+            )
         return seq, float(t0), taps
     if "taps" in header:
         raise ValueError('"taps" belongs to a block of kind "taps"; this block\'s kind is "samples"')
@@ -157,9 +158,15 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
         raise ValueError(f"taps: {v.shape[0]} speed(s) for {k} tap(s); give one speed per tap")
     if units not in UNIT_SCALE["accel"]:
         raise ValueError(f"taps: units must be one of {list(UNIT_SCALE['accel'])}, got {units!r}")
-    if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float)) or not math.isfinite(rate_hz) \
-            or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise ValueError(f"taps: sample rate must be a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz!r}")
+    if (
+        isinstance(rate_hz, bool)
+        or not isinstance(rate_hz, (int, float))
+        or not math.isfinite(rate_hz)
+        or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ
+    ):
+        raise ValueError(
+            f"taps: sample rate must be a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz!r}"
+        )
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"taps: samples must be numbers, got dtype {arr.dtype}")
     arr = arr.astype(np.float32, copy=False)
@@ -197,26 +204,43 @@ def decode_json(obj: object) -> Block:
 def encode_json(block: Block) -> dict:
     if isinstance(block, TapBlock):
         a = block.accel
-        return {"seq": block.seq, "t0": block.t0, "kind": "taps",
-                "taps": {"rate_hz": a.rate_hz, "units": a.units, "speeds": block.speeds.tolist(), "data": a.data.tolist()}}
+        return {
+            "seq": block.seq,
+            "t0": block.t0,
+            "kind": "taps",
+            "taps": {"rate_hz": a.rate_hz, "units": a.units, "speeds": block.speeds.tolist(), "data": a.data.tolist()},
+        }
     return {
         "seq": block.seq,
         "t0": block.t0,
-        "channels": {k: {"rate_hz": c.rate_hz, "units": c.units, "data": c.data.tolist()} for k, c in block.channels.items()},
+        "channels": {
+            k: {"rate_hz": c.rate_hz, "units": c.units, "data": c.data.tolist()} for k, c in block.channels.items()
+        },
     }
 
 
 def encode_binary(block: Block) -> bytes:
     if isinstance(block, TapBlock):
         a = block.accel
-        header = {"seq": block.seq, "t0": block.t0, "kind": "taps",
-                  "taps": {"rate_hz": a.rate_hz, "units": a.units, "speeds": block.speeds.tolist(), "shape": list(a.data.shape)}}
+        header = {
+            "seq": block.seq,
+            "t0": block.t0,
+            "kind": "taps",
+            "taps": {
+                "rate_hz": a.rate_hz,
+                "units": a.units,
+                "speeds": block.speeds.tolist(),
+                "shape": list(a.data.shape),
+            },
+        }
         head = json.dumps(header).encode()
         return MAGIC + struct.pack("<I", len(head)) + head + np.ascontiguousarray(a.data, dtype="<f4").tobytes()
     header = {
         "seq": block.seq,
         "t0": block.t0,
-        "channels": {k: {"rate_hz": c.rate_hz, "units": c.units, "shape": list(c.data.shape)} for k, c in block.channels.items()},
+        "channels": {
+            k: {"rate_hz": c.rate_hz, "units": c.units, "shape": list(c.data.shape)} for k, c in block.channels.items()
+        },
     }
     head = json.dumps(header).encode()
     payload = b"".join(np.ascontiguousarray(c.data, dtype="<f4").tobytes() for c in block.channels.values())
@@ -250,21 +274,30 @@ def decode_binary(buf: bytes) -> Block:
     offset = 8 + n
     if header.get("kind") == "taps":
         shape = channels.get("shape")
-        if not (isinstance(shape, list) and len(shape) == 2
-                and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
+        if not (
+            isinstance(shape, list)
+            and len(shape) == 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+        ):
             raise ValueError(f"taps: shape must be [k, n] (k taps of n samples), got {shape!r}")
         if shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES:
             raise ValueError(f"taps: shape {shape} is too large")
         if offset + 4 * shape[0] * shape[1] != len(buf):
-            raise ValueError(f"taps: shape {shape} needs {4 * shape[0] * shape[1]} bytes of samples, the message "
-                             f"holds {len(buf) - offset}")
+            raise ValueError(
+                f"taps: shape {shape} needs {4 * shape[0] * shape[1]} bytes of samples, the message "
+                f"holds {len(buf) - offset}"
+            )
         arr = np.frombuffer(buf, dtype="<f4", count=shape[0] * shape[1], offset=offset).reshape(shape)
         speeds, accel = validate_taps(channels.get("speeds"), arr, channels.get("rate_hz"), channels.get("units"))
         return TapBlock(t0, speeds, accel, seq)
     out = {}
     for kind, spec in channels.items():
         shape = spec.get("shape")
-        if not (isinstance(shape, list) and 1 <= len(shape) <= 2 and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
+        if not (
+            isinstance(shape, list)
+            and 1 <= len(shape) <= 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+        ):
             raise ValueError(f"{kind}: shape must be [n] or [n, k] with non-negative integers, got {shape!r}")
         count = math.prod(shape)
         if count > 4 * MAX_BLOCK_SAMPLES:

@@ -82,7 +82,9 @@ class ImageFilesSource:
     loop=True cycles through them forever.
     """
 
-    def __init__(self, paths: Sequence[str | Path], interval_s: float = 1.0, realtime: bool = True, loop: bool = False) -> None:
+    def __init__(
+        self, paths: Sequence[str | Path], interval_s: float = 1.0, realtime: bool = True, loop: bool = False
+    ) -> None:
         self.paths = [Path(p) for p in paths]
         if not self.paths:
             raise ValueError("ImageFilesSource needs at least one image path")
@@ -210,7 +212,9 @@ class OpenCVCameraSource(ThreadedSource):
         try:
             import cv2  # noqa: F401 - checked here so the error comes at construction
         except ImportError:
-            raise ImportError("OpenCVCameraSource needs OpenCV: pip install opencv-python-headless (or use camera-dir / image files)") from None
+            raise ImportError(
+                "OpenCVCameraSource needs OpenCV: pip install opencv-python-headless (or use camera-dir / image files)"
+            ) from None
         super().__init__(queue_size=4)
         check_positive("interval_s", interval_s)
         if not 1 <= jpeg_quality <= 100:
@@ -234,7 +238,14 @@ class OpenCVCameraSource(ThreadedSource):
                     raise OSError(f"camera {self.index} stopped delivering frames")
                 ok, jpeg = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), self.jpeg_quality])
                 if ok:
-                    emit(Frame(t=time.monotonic() - t0, image=jpeg.tobytes(), content_type="image/jpeg", meta={"camera": self.index}))
+                    emit(
+                        Frame(
+                            t=time.monotonic() - t0,
+                            image=jpeg.tobytes(),
+                            content_type="image/jpeg",
+                            meta={"camera": self.index},
+                        )
+                    )
                 stop.wait(self.interval_s)
         finally:
             cap.release()

@@ -26,20 +26,48 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--session", metavar="ID", help="stream into this session (needs --token); default: create one")
     p.add_argument("--token", metavar="T", help="the session's robot token")
     p.add_argument("--name", help="name of the session to create")
-    p.add_argument("--api-key", metavar="KEY", help="the fleet API key that opens sessions (default: $HAPTICLINK_API_KEY)")
-    p.add_argument("--transport", choices=("ws", "http"), default="ws", help="WebSocket (default) or one HTTP POST per block")
+    p.add_argument(
+        "--api-key", metavar="KEY", help="the fleet API key that opens sessions (default: $HAPTICLINK_API_KEY)"
+    )
+    p.add_argument(
+        "--transport", choices=("ws", "http"), default="ws", help="WebSocket (default) or one HTTP POST per block"
+    )
     p.add_argument("--json", action="store_true", help="send JSON blocks instead of the binary format")
-    p.add_argument("--duration", type=float, metavar="S", help="stop reading after S seconds, deliver what is buffered, exit")
-    p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True, help="pace simulated/replay sources in real time (default)")
+    p.add_argument(
+        "--duration", type=float, metavar="S", help="stop reading after S seconds, deliver what is buffered, exit"
+    )
+    p.add_argument(
+        "--realtime",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="pace simulated/replay sources in real time (default)",
+    )
     p.add_argument("--block-s", type=float, default=0.02, metavar="S", help="seconds per block (default 0.02)")
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
-    p.add_argument("--taps", action="store_true",
-                   help="simulated: tap the surface before stroking it (one tap block of the texture's tap transients)")
-    p.add_argument("--recording", type=int, default=0, metavar="N", help="replay: which of the texture's recordings (default 0)")
+    p.add_argument(
+        "--taps",
+        action="store_true",
+        help="simulated: tap the surface before stroking it (one tap block of the texture's tap transients)",
+    )
+    p.add_argument(
+        "--recording", type=int, default=0, metavar="N", help="replay: which of the texture's recordings (default 0)"
+    )
     p.add_argument("--loop", action="store_true", help="replay: play the recording again and again")
-    p.add_argument("--start-seq", type=int, default=0, metavar="N", help="seq of the first block (resuming a session: above its last)")
-    p.add_argument("--max-buffer-s", type=float, default=60.0, metavar="S", help="seconds of unacknowledged data kept for resending (default 60)")
+    p.add_argument(
+        "--start-seq",
+        type=int,
+        default=0,
+        metavar="N",
+        help="seq of the first block (resuming a session: above its last)",
+    )
+    p.add_argument(
+        "--max-buffer-s",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="seconds of unacknowledged data kept for resending (default 60)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)
 
@@ -87,13 +115,16 @@ def source_from_spec(
         from drivers.simulated import SimulatedSource
 
         lib, entry = _split_dir_id(kind, rest, "ENTRY_ID")
-        return SimulatedSource.from_library(lib, entry, image_path=image, seed=seed, block_s=block_s, realtime=realtime,
-                                            taps=taps)
+        return SimulatedSource.from_library(
+            lib, entry, image_path=image, seed=seed, block_s=block_s, realtime=realtime, taps=taps
+        )
     if kind == "replay":
         from drivers.replay import ReplaySource
 
         dataset, texture = _split_dir_id(kind, rest, "TEXTURE_ID")
-        return ReplaySource.from_dataset(dataset, texture, recording=recording, block_s=block_s, realtime=realtime, loop=loop)
+        return ReplaySource.from_dataset(
+            dataset, texture, recording=recording, block_s=block_s, realtime=realtime, loop=loop
+        )
     if kind == "serial":
         from drivers.serial_board import SerialBoardSource
 
@@ -103,7 +134,11 @@ def source_from_spec(
             port, baud = head, int(tail)
         if baud is not None and baud <= 0:
             raise ValueError(f"source serial: baud rate must be positive, got {baud}")
-        return SerialBoardSource(port, block_s=block_s) if baud is None else SerialBoardSource(port, baudrate=baud, block_s=block_s)
+        return (
+            SerialBoardSource(port, block_s=block_s)
+            if baud is None
+            else SerialBoardSource(port, baudrate=baud, block_s=block_s)
+        )
     if kind == "usb":
         from drivers.usb_daq import UsbDaqSource
 
@@ -130,11 +165,20 @@ def _run_robot(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.INFO,
+            format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        )
         # httpx logs every request at INFO: 50 a second here.
         logging.getLogger("httpx").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     source = source_from_spec(
-        args.source, realtime=args.realtime, block_s=args.block_s, seed=args.seed, image=args.image, recording=args.recording, loop=args.loop,
+        args.source,
+        realtime=args.realtime,
+        block_s=args.block_s,
+        seed=args.seed,
+        image=args.image,
+        recording=args.recording,
+        loop=args.loop,
         taps=args.taps,
     )
     client = RobotClient(
@@ -168,7 +212,9 @@ async def _stream(client, duration_s: float | None):
 
     if client.session_id is None:
         info = await client.open_session()
-        print(f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True)
+        print(
+            f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True
+        )
     loop = asyncio.get_running_loop()
     main = asyncio.current_task()
     interrupted = False

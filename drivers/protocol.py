@@ -26,9 +26,25 @@ from urllib.parse import quote, urlencode, urlsplit, urlunsplit
 
 from drivers.blocks import BINARY_CONTENT_TYPE, MAGIC, peek_header
 
-__all__ = ["BINARY_CONTENT_TYPE", "MAGIC", "FRAME_CONTENT_TYPES", "API_KEY_ENV", "Close", "Ack", "ack_ok", "ack_error",
-           "parse_ack", "peek_seq", "bearer", "session_path", "ws_url", "RETRY_STATUSES", "SESSION_LOST",
-           "HANDSHAKE_REFUSALS", "FATAL_CLOSES"]
+__all__ = [
+    "BINARY_CONTENT_TYPE",
+    "MAGIC",
+    "FRAME_CONTENT_TYPES",
+    "API_KEY_ENV",
+    "Close",
+    "Ack",
+    "ack_ok",
+    "ack_error",
+    "parse_ack",
+    "peek_seq",
+    "bearer",
+    "session_path",
+    "ws_url",
+    "RETRY_STATUSES",
+    "SESSION_LOST",
+    "HANDSHAKE_REFUSALS",
+    "FATAL_CLOSES",
+]
 
 #: what a fleet's API key is read from by the robot client and the CLIs (`--api-key` overrides it)
 API_KEY_ENV = "HAPTICLINK_API_KEY"
@@ -115,4 +131,6 @@ def ws_url(base_url: str, session_id: str, route: str, token: str) -> str:
     """ws(s):// URL of a session's WebSocket `route` ("ingest" or "events") from the service's http(s) URL."""
     parts = urlsplit(base_url.rstrip("/"))
     scheme = "wss" if parts.scheme == "https" else "ws"
-    return urlunsplit((scheme, parts.netloc, parts.path + session_path(session_id, route), urlencode({"token": token}), ""))
+    return urlunsplit(
+        (scheme, parts.netloc, parts.path + session_path(session_id, route), urlencode({"token": token}), "")
+    )

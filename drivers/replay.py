@@ -72,7 +72,9 @@ class ReplaySource:
         self._closed = True
 
     @classmethod
-    def from_dataset(cls, dataset_dir: str | Path, texture_id: str, recording: int = 0, with_images: bool = True, **kwargs) -> ReplaySource:
+    def from_dataset(
+        cls, dataset_dir: str | Path, texture_id: str, recording: int = 0, with_images: bool = True, **kwargs
+    ) -> ReplaySource:
         """Replay recording number `recording` of a texture in a hapticlink dataset (docs/dataset-format.md).
 
         Reads DIR/textures/<id>/meta.json ("recordings": file names inside the texture's folder;
@@ -94,7 +96,9 @@ class ReplaySource:
         if not isinstance(recs, list) or not recs:
             raise ValueError(f"{meta_path}: no recordings listed")
         if not (isinstance(recording, int) and 0 <= recording < len(recs)):
-            raise ValueError(f"texture {texture_id!r} has {len(recs)} recording(s); index {recording!r} is out of range")
+            raise ValueError(
+                f"texture {texture_id!r} has {len(recs)} recording(s); index {recording!r} is out of range"
+            )
         rec = load_recording(folder / recs[recording])
         frames: list[Frame] = []
         for image in meta.get("images", []) if with_images else []:
@@ -105,4 +109,3 @@ class ReplaySource:
                 log.warning("replay %s: image skipped: %s", texture_id, exc)
         kwargs.setdefault("name", f"replay:{texture_id}:{recs[recording]}")
         return cls(rec, frames=frames, **kwargs)
-

@@ -21,7 +21,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.blocks import SampleBlock
-from drivers.source import Item, StreamAssembler, StreamStats, ThreadedSource, check_positive, device_rate, layout_channel
+from drivers.source import (
+    Item,
+    StreamAssembler,
+    StreamStats,
+    ThreadedSource,
+    check_positive,
+    device_rate,
+    layout_channel,
+)
 from texture_library.channels import UNIT_SCALE
 
 log = logging.getLogger(__name__)
@@ -196,7 +204,14 @@ class SerialBoardSource(ThreadedSource):
     Decoding counts live in `stats` (BoardStats).
     """
 
-    def __init__(self, port: str, baudrate: int = 921_600, block_s: float = 0.02, header: str | None = None, queue_size: int = 256) -> None:
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 921_600,
+        block_s: float = 0.02,
+        header: str | None = None,
+        queue_size: int = 256,
+    ) -> None:
         super().__init__(queue_size)
         if not port:
             raise ValueError("serial port name is empty")

@@ -47,8 +47,12 @@ def tap_block(model: VibrationModel, t0: float = 0.0, seq: int = 0) -> TapBlock:
     taps = model.taps
     if taps is None:
         raise ValueError(f"model {model.name!r} has no tap transients")
-    return TapBlock(t0, np.asarray(taps.speeds, dtype=np.float64),
-                    ChannelBlock(np.asarray(taps.accel, dtype=np.float32), TAP_RATE_HZ, "m/s^2"), seq)
+    return TapBlock(
+        t0,
+        np.asarray(taps.speeds, dtype=np.float64),
+        ChannelBlock(np.asarray(taps.accel, dtype=np.float32), TAP_RATE_HZ, "m/s^2"),
+        seq,
+    )
 
 
 class SimulatedSource:
@@ -170,7 +174,9 @@ class SimulatedSource:
         self._closed = True
 
     @classmethod
-    def from_library(cls, library_dir: str | Path, entry_id: str, image_path: str | Path | None = None, **kwargs) -> SimulatedSource:
+    def from_library(
+        cls, library_dir: str | Path, entry_id: str, image_path: str | Path | None = None, **kwargs
+    ) -> SimulatedSource:
         """Stroke library entry `entry_id`; its image (PNG/JPEG/any Pillow format) comes from image_path, or
         else from the entry's own image (`image` in library.json, relative to the library), if it has one."""
         lib = Library.load(library_dir)

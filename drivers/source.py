@@ -84,7 +84,9 @@ def blocks_from_arrays(
             raise ValueError(f"{kind}: expected (samples, rate_hz, units), got {type(spec).__name__}")
         arr, rate, units = check_channel(kind, spec[0], spec[1], spec[2], dtype=np.float32)
         if math.ceil(block_s * rate) + 1 > MAX_BLOCK_SAMPLES:
-            raise ValueError(f"{kind}: block_s={block_s} s at {rate:g} Hz exceeds {MAX_BLOCK_SAMPLES} samples per block")
+            raise ValueError(
+                f"{kind}: block_s={block_s} s at {rate:g} Hz exceeds {MAX_BLOCK_SAMPLES} samples per block"
+            )
         checked[kind] = (arr, rate, units)
     # Enough blocks that every channel's last sample falls in one.
     n_blocks = 0
@@ -255,12 +257,18 @@ Layout = tuple[tuple[str, int, str], ...]
 
 def device_rate(rate: object, where: str) -> float:
     """A device's declared sample rate, checked against texture_library.channels' limits; ValueError says `where`."""
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+    if (
+        isinstance(rate, bool)
+        or not isinstance(rate, (int, float))
+        or not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ)
+    ):
         raise ValueError(f"{where}: rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
     return float(rate)
 
 
-def layout_channel(layout: Sequence[tuple[str, int, str]], kind: object, columns: object, units: object, where: str) -> tuple[str, int, str]:
+def layout_channel(
+    layout: Sequence[tuple[str, int, str]], kind: object, columns: object, units: object, where: str
+) -> tuple[str, int, str]:
     """One (kind, columns, units) entry a device declares, checked against texture_library.channels (kinds,
     units, column counts) and against the entries before it; ValueError says `where`."""
     if kind not in UNIT_SCALE:
@@ -295,7 +303,17 @@ class StreamAssembler:
     reset) cannot be timed: it is counted as a resync and time continues after the last sample.
     """
 
-    def __init__(self, rate_hz: float, layout: Layout, block_s: float, *, wrap: int = 2**32, time_offset: float = 0.0, seq0: int = 0, stats: StreamStats | None = None) -> None:
+    def __init__(
+        self,
+        rate_hz: float,
+        layout: Layout,
+        block_s: float,
+        *,
+        wrap: int = 2**32,
+        time_offset: float = 0.0,
+        seq0: int = 0,
+        stats: StreamStats | None = None,
+    ) -> None:
         check_positive("block_s", block_s)
         if not layout:
             raise ValueError("a stream layout needs at least one channel")
@@ -336,7 +354,11 @@ class StreamAssembler:
                 self.next_index += jump
             else:
                 self.stats.resyncs += 1
-                log.warning("device counter went back to %d (expected %d): time continues after the last sample", counter, self._expected)
+                log.warning(
+                    "device counter went back to %d (expected %d): time continues after the last sample",
+                    counter,
+                    self._expected,
+                )
         self._expected = (counter + rows.shape[0]) % self.wrap
         i = 0
         while i < rows.shape[0]:

@@ -79,7 +79,9 @@ def parse_config(raw: bytes) -> DaqConfig:
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"USB DAQ config is not UTF-8 JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("protocol") != "HLD1":
-        raise ValueError(f"USB DAQ config: protocol must be 'HLD1', got {doc.get('protocol') if isinstance(doc, dict) else doc!r}")
+        raise ValueError(
+            f"USB DAQ config: protocol must be 'HLD1', got {doc.get('protocol') if isinstance(doc, dict) else doc!r}"
+        )
     rate = device_rate(doc.get("rate_hz"), "USB DAQ config")
     chans = doc.get("channels")
     if not isinstance(chans, list) or not chans:
@@ -154,7 +156,14 @@ class UsbDaqSource(ThreadedSource):
     the iterator) when no such device is attached. Decoding counts live in `stats` once open.
     """
 
-    def __init__(self, vid: int = DEFAULT_VID, pid: int = DEFAULT_PID, backend: object | None = None, block_s: float = 0.02, queue_size: int = 256) -> None:
+    def __init__(
+        self,
+        vid: int = DEFAULT_VID,
+        pid: int = DEFAULT_PID,
+        backend: object | None = None,
+        block_s: float = 0.02,
+        queue_size: int = 256,
+    ) -> None:
         super().__init__(queue_size)
         for label, value in (("vid", vid), ("pid", pid)):
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
@@ -177,7 +186,9 @@ class UsbDaqSource(ThreadedSource):
         try:
             dev = usb.core.find(idVendor=self.vid, idProduct=self.pid, backend=self.backend)
         except usb.core.NoBackendError:
-            raise DeviceNotFoundError(f"no USB backend available to look for {self.vid:04x}:{self.pid:04x} (install libusb-1.0)") from None
+            raise DeviceNotFoundError(
+                f"no USB backend available to look for {self.vid:04x}:{self.pid:04x} (install libusb-1.0)"
+            ) from None
         if dev is None:
             raise DeviceNotFoundError(
                 f"no USB device {self.vid:04x}:{self.pid:04x} found (is the DAQ plugged in? on Linux, does a udev rule give you access?)"
@@ -191,7 +202,9 @@ class UsbDaqSource(ThreadedSource):
         dev = self._open()
         try:
             dev.set_configuration()
-            self.config = parse_config(bytes(dev.ctrl_transfer(REQ_TYPE_VENDOR_IN, REQ_GET_CONFIG, 0, 0, CONFIG_MAX_BYTES)))
+            self.config = parse_config(
+                bytes(dev.ctrl_transfer(REQ_TYPE_VENDOR_IN, REQ_GET_CONFIG, 0, 0, CONFIG_MAX_BYTES))
+            )
             self._decoder = PacketDecoder(self.config, self.block_s)
             usb.util.claim_interface(dev, INTERFACE)
             dev.ctrl_transfer(REQ_TYPE_VENDOR_OUT, REQ_STREAM, 1, 0)

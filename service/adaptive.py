@@ -50,11 +50,13 @@ class ServingPolicy:
         if not isinstance(self.pool_frames, int) or self.pool_frames < 1:
             raise ValueError(f"pool_frames must be an integer ≥ 1, got {self.pool_frames!r}")
         if not (self.full_model_width >= 0 and self.full_model_margin >= 0):
-            raise ValueError(f"full_model_width and full_model_margin must be ≥ 0, got {self.full_model_width}, "
-                             f"{self.full_model_margin}")
+            raise ValueError(
+                f"full_model_width and full_model_margin must be ≥ 0, got {self.full_model_width}, "
+                f"{self.full_model_margin}"
+            )
 
     @classmethod
-    def from_settings(cls, settings) -> "ServingPolicy":
+    def from_settings(cls, settings) -> ServingPolicy:
         return cls(settings.serving_policy, settings.pool_frames, settings.full_model_width, settings.full_model_margin)
 
     @property

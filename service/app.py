@@ -71,8 +71,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="hapticlink", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     # Browsers only: no origin is allowed unless configured (preflights from others are answered 400).
-    app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST", "DELETE"],
-                       allow_headers=["Authorization", "Content-Type"], max_age=600)
+    app.add_middleware(
+        CORSMiddleware,
+        allow_origins=list(settings.cors_origins),
+        allow_methods=["GET", "POST", "DELETE"],
+        allow_headers=["Authorization", "Content-Type"],
+        max_age=600,
+    )
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
@@ -122,7 +127,9 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
             components.update(schema_part.pop("$defs", {}))
             components[model.__name__] = schema_part
         body = schema["paths"]["/sessions/{session_id}/blocks"]["post"]["requestBody"]["content"]["application/json"]
-        body["schema"] = {"oneOf": [{"$ref": "#/components/schemas/JsonBlock"}, {"$ref": "#/components/schemas/JsonTapBlock"}]}
+        body["schema"] = {
+            "oneOf": [{"$ref": "#/components/schemas/JsonBlock"}, {"$ref": "#/components/schemas/JsonTapBlock"}]
+        }
         body["example"] = JsonBlock.model_config["json_schema_extra"]["examples"][0]  # type: ignore[index]
         app.openapi_schema = schema
     return app.openapi_schema

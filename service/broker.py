@@ -213,8 +213,9 @@ class InMemoryBroker(Broker):
         record = self._records.get(session_id)
         if record is None or record.lost is not None:
             return False
-        self._records[session_id] = SessionRecord(record.session_id, record.name, record.instance, record.credentials,
-                                                  record.incarnation, reason)
+        self._records[session_id] = SessionRecord(
+            record.session_id, record.name, record.instance, record.credentials, record.incarnation, reason
+        )
         return True
 
 
@@ -302,13 +303,17 @@ class RedisBroker(Broker):
                     event.set()
             elif message["type"] == "message" and channel.startswith(CHANNEL_PREFIX):
                 data = message["data"]
-                self.deliver_locally(channel[len(CHANNEL_PREFIX):], data[1:], data[:1] == _FINAL)
+                self.deliver_locally(channel[len(CHANNEL_PREFIX) :], data[1:], data[:1] == _FINAL)
 
     async def register(self, record: SessionRecord) -> None:
         assert self._redis is not None
         key = DIRECTORY_PREFIX + record.session_id
-        fields = {"name": record.name, "instance": record.instance, "incarnation": self.incarnation,
-                  **asdict(record.credentials)}
+        fields = {
+            "name": record.name,
+            "instance": record.instance,
+            "incarnation": self.incarnation,
+            **asdict(record.credentials),
+        }
         await self._redis.hset(key, mapping=fields)
         await self._redis.expire(key, DIRECTORY_TTL_S)
 
@@ -319,8 +324,9 @@ class RedisBroker(Broker):
             return None
         try:
             creds = SessionCredentials(raw["robot_digest"], raw["operator_digest"])
-            return SessionRecord(session_id, raw.get("name", ""), raw["instance"], creds, raw.get("incarnation", ""),
-                                 raw.get("lost"))
+            return SessionRecord(
+                session_id, raw.get("name", ""), raw["instance"], creds, raw.get("incarnation", ""), raw.get("lost")
+            )
         except KeyError:
             log.warning("redis broker: incomplete directory entry for %s: %s", session_id, json.dumps(sorted(raw)))
             return None
@@ -338,19 +344,25 @@ class RedisBroker(Broker):
 
     async def heartbeat(self) -> bool:
         assert self._redis is not None
-        previous = await self._redis.set(ALIVE_PREFIX + self.instance_id, self.incarnation,
-                                         px=int(REPLICA_TTL_S * 1000), get=True)
+        previous = await self._redis.set(
+            ALIVE_PREFIX + self.instance_id, self.incarnation, px=int(REPLICA_TTL_S * 1000), get=True
+        )
         first, self._beats = self._beats == 0, self._beats + 1
         if previous not in (None, self.incarnation):
             if first:
                 log.info("replica %s restarted: sessions of its previous process are lost", self.instance_id)
             else:
-                log.error("another process also runs as replica %s: give every replica its own HAPTICLINK_INSTANCE_ID",
-                          self.instance_id)
+                log.error(
+                    "another process also runs as replica %s: give every replica its own HAPTICLINK_INSTANCE_ID",
+                    self.instance_id,
+                )
         lapsed = not first and previous != self.incarnation
         if lapsed:
-            log.warning("this replica's heartbeat lapsed (no beat for %.0f s: a stalled event loop or Redis unreachable "
-                        "or restarted); other replicas may have marked its sessions lost", REPLICA_TTL_S)
+            log.warning(
+                "this replica's heartbeat lapsed (no beat for %.0f s: a stalled event loop or Redis unreachable "
+                "or restarted); other replicas may have marked its sessions lost",
+                REPLICA_TTL_S,
+            )
         return lapsed
 
     async def alive(self, record: SessionRecord) -> bool:

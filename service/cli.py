@@ -1,24 +1,34 @@
-"""`hapticlink` — one console script; each part registers its own subcommands."""
+"""`hapticlink` — one console script; each part registers its own subcommands.
+
+The parts are found through the `hapticlink.commands` entry points (pyproject.toml), so the
+service names no offline module: the offline wing plugs its commands in from above.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from importlib.metadata import EntryPoint, entry_points
+
+COMMAND_GROUP = "hapticlink.commands"
+HELP_ORDER = ("service", "offline", "library", "drivers")  # parts not named here follow, by name
+
+
+def _help_rank(part: EntryPoint) -> tuple[int, str]:
+    return (HELP_ORDER.index(part.name) if part.name in HELP_ORDER else len(HELP_ORDER), part.name)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from drivers import cli as drivers_cli
-    from models import cli as models_cli
-    from service import commands as service_commands
-    from texture_library import cli as library_cli
-
     parser = argparse.ArgumentParser(
         prog="hapticlink",
         description="Perceptual haptic texture estimation for model-mediated teleoperation.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for part in (service_commands, models_cli, library_cli, drivers_cli):
-        part.register(sub)
+    parts = sorted(entry_points(group=COMMAND_GROUP), key=_help_rank)
+    if not parts:
+        raise RuntimeError(f"no {COMMAND_GROUP!r} entry points: install hapticlink first (pip install -e .)")
+    for part in parts:
+        part.load()(sub)
     return parser
 
 

@@ -1,4 +1,4 @@
-"""Subcommands of the service part: serve, demo."""
+"""Subcommands of the service part: serve."""
 
 from __future__ import annotations
 
@@ -16,30 +16,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--model", type=Path, metavar="PATH", help="exported model .onnx (HAPTICLINK_MODEL_PATH)")
     p.add_argument("--library", type=Path, metavar="DIR", help="texture library directory (HAPTICLINK_LIBRARY_DIR)")
-    p.add_argument("--backbone", type=Path, metavar="PATH", help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)")
-    p.add_argument("--cheap-model", type=Path, metavar="PATH",
-                   help="cheap model the adaptive policy asks first (HAPTICLINK_CHEAP_MODEL_PATH)")
+    p.add_argument(
+        "--backbone",
+        type=Path,
+        metavar="PATH",
+        help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)",
+    )
+    p.add_argument(
+        "--cheap-model",
+        type=Path,
+        metavar="PATH",
+        help="cheap model the adaptive policy asks first (HAPTICLINK_CHEAP_MODEL_PATH)",
+    )
     p.add_argument("--policy", choices=("adaptive", "always-full"), help="serving policy (HAPTICLINK_SERVING_POLICY)")
     p.add_argument("--host", help="address to listen on (HAPTICLINK_HOST, default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (HAPTICLINK_PORT, default 8000)")
     p.add_argument("--broker", choices=("memory", "redis"), help="event fan-out (HAPTICLINK_BROKER)")
     p.add_argument("--redis-url", help="Redis for --broker redis (HAPTICLINK_REDIS_URL)")
     p.add_argument("--instance-id", help="this replica's name (HAPTICLINK_INSTANCE_ID)")
-    p.add_argument("--log-level", choices=("critical", "error", "warning", "info", "debug"), help="HAPTICLINK_LOG_LEVEL")
-    p.set_defaults(func=_serve)
-
-    d = sub.add_parser(
-        "demo",
-        help="the whole loop on this machine: service + simulated robot + console",
-        description="Builds a synthetic world, trains and exports a model, starts the service and a simulated "
-        "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
+    p.add_argument(
+        "--log-level", choices=("critical", "error", "warning", "info", "debug"), help="HAPTICLINK_LOG_LEVEL"
     )
-    d.add_argument("--assets", type=Path, default=Path("artifacts/demo"), help="where demo assets are built and cached")
-    d.add_argument("--host", default="127.0.0.1")
-    d.add_argument("--port", type=int, default=8000)
-    d.add_argument("--per-texture", type=float, default=20.0, metavar="S", help="seconds the robot strokes each texture")
-    d.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
-    d.set_defaults(func=_demo)
+    p.set_defaults(func=_serve)
 
 
 FLAG_TO_FIELD = {
@@ -63,7 +61,9 @@ def settings_from_args(args: argparse.Namespace):
 
     from service.settings import Settings
 
-    overrides = {field: getattr(args, flag) for flag, field in FLAG_TO_FIELD.items() if getattr(args, flag, None) is not None}
+    overrides = {
+        field: getattr(args, flag) for flag, field in FLAG_TO_FIELD.items() if getattr(args, flag, None) is not None
+    }
     try:
         return Settings(**overrides)
     except ValidationError as exc:
@@ -77,7 +77,10 @@ def _serve(args: argparse.Namespace) -> int:
     from service.app import create_app, server_options
 
     settings = settings_from_args(args)
-    for label, path, flag in (("model", settings.model_path, "--model"), ("library", settings.library_dir, "--library")):
+    for label, path, flag in (
+        ("model", settings.model_path, "--model"),
+        ("library", settings.library_dir, "--library"),
+    ):
         if path is None:
             raise ValueError(f"no {label} configured: pass {flag} or set HAPTICLINK_{FLAG_TO_FIELD[flag[2:]].upper()}")
         if not path.exists():
@@ -86,9 +89,3 @@ def _serve(args: argparse.Namespace) -> int:
     # uvicorn handles SIGINT/SIGTERM: stop accepting, let open requests finish, run the lifespan shutdown.
     uvicorn.run(create_app(settings), **server_options(settings))
     return 0
-
-
-def _demo(args: argparse.Namespace) -> int:
-    from service.demo import demo
-
-    return demo(args.assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

@@ -29,90 +29,20 @@ from drivers.blocks import Frame, SampleBlock, TapBlock
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 log = logging.getLogger("hapticlink.demo")
-DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
-TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
-#: tactile feature groups of the demo's models: every physical cue (the robot taps each probe before stroking it)
-DEMO_GROUPS = ("friction", "spatial", "taps")
-DEMO_TEXTURES = 96  # the world the models learn from (the library holds the first 24 of them): error still falls with more textures at 48
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 
 
 @dataclasses.dataclass(frozen=True)
 class DemoAssets:
+    """What the demo runs on; built by `models.offline.demo_assets.prepare_assets`."""
+
     dataset: Path
     model: Path
     tactile: Path
     backbone: Path
     library: Path
     probes: Path
-
-
-def demo_features():
-    """The demo model's TactileConfig: the paper's MFCC set + DEMO_GROUPS."""
-    from models.tactile.config import TactileConfig
-
-    return TactileConfig(extra_groups=DEMO_GROUPS)
-
-
-#: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
-WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
-
-
-def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> dict:
-    from texture_library.procedural import WORLD_VERSION
-
-    return {"world_version": WORLD_VERSION, "model": DEMO_MODEL, "tactile_model": TACTILE_MODEL,
-            "tactile_hash": demo_features().hash(),
-            "n_textures": n_textures, "library_textures": library_textures, "n_probes": n_probes, "seed": seed}
-
-
-def prepare_assets(root: Path, *, n_textures: int = DEMO_TEXTURES, n_probes: int = 4, seed: int = 0,
-                   library_textures: int = 24) -> DemoAssets:
-    """Build whatever is missing under root (needs the train extra the first time); assets made for
-    another world version or size are rebuilt, models made for another model or feature set retrained."""
-    import shutil
-
-    from models.datasets.build import build
-    from models.featurize import backbone_onnx, featurize_dataset
-    from models.train import train_and_export
-    from models.visual.config import VisualConfig
-    from texture_library.synthetic_library import build_synthetic_library
-
-    root.mkdir(parents=True, exist_ok=True)
-    assets = DemoAssets(root / "dataset", root / "model.onnx", root / "tactile.onnx", Path(), root / "library", root / "probes")
-    stamp_path, stamp = root / "assets.json", _stamp(n_textures, library_textures, n_probes, seed)
-    old = json.loads(stamp_path.read_text()) if stamp_path.is_file() else None
-    if old is None and assets.model.is_file() or old is not None and any(old.get(k) != stamp[k] for k in WORLD_KEYS):
-        print("  · assets were made for another world: rebuilding them", flush=True)
-        for path in (assets.dataset, assets.library, assets.probes):
-            shutil.rmtree(path, ignore_errors=True)
-    if old != stamp:
-        assets.model.unlink(missing_ok=True)
-        assets.tactile.unlink(missing_ok=True)
-    features = demo_features()
-    library_textures = min(library_textures, n_textures)
-    groups = " + ".join(["MFCC", *DEMO_GROUPS])
-    steps = [
-        (not (assets.dataset / "dataset.json").is_file(), f"building a synthetic world of {n_textures} textures",
-         lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed)),
-        (True, "computing features (cached after the first run)",
-         lambda: featurize_dataset(assets.dataset, tactile_config=features)),
-        (not assets.model.is_file(), f"training {DEMO_MODEL} on it ({groups}) and exporting ONNX",
-         lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features)),
-        (not assets.tactile.is_file(), f"training {TACTILE_MODEL} ({groups}; windows before the first frame) and exporting ONNX",
-         lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed, tactile_config=features)),
-        (not (assets.library / "library.json").is_file(), "writing the texture library",
-         lambda: build_synthetic_library(assets.library, n_textures=library_textures, seed=seed)),
-        (not (assets.probes / "library.json").is_file(), f"making {n_probes} unseen probe textures",
-         lambda: build_synthetic_library(assets.probes, n_textures=n_probes, seed=seed + 1)),
-    ]
-    for needed, what, step in steps:
-        if needed:
-            print(f"  · {what} …", flush=True)
-            step()
-    stamp_path.write_text(json.dumps(stamp))
-    return dataclasses.replace(assets, backbone=backbone_onnx(VisualConfig()))
 
 
 def probe_clock(t_s: float, per_texture_s: float) -> tuple[int, float]:
@@ -147,8 +77,14 @@ class ProbeTour:
             self.current = entry
             model = self.library.model(entry)
             # the robot taps each probe before stroking it (a model without tap features ignores the taps)
-            source = SimulatedSource(model, self.library.image(entry), seed=self.seed + k,
-                                     duration_s=self.per_texture_s, name=entry, taps=model.taps is not None)
+            source = SimulatedSource(
+                model,
+                self.library.image(entry),
+                seed=self.seed + k,
+                duration_s=self.per_texture_s,
+                name=entry,
+                taps=model.taps is not None,
+            )
             try:
                 async for item in source:
                     if not isinstance(item, Frame):  # sample and tap blocks: onto the tour's clock
@@ -179,11 +115,20 @@ def _fmt(ratings: dict) -> str:
 def _interval(event: dict) -> str:
     """The event's interval and flag in one line (or why there is none)."""
     i = event.get("interval")
-    band = ("no interval (the model card has no calibration)" if i is None else
-            f"{round(100 * i['level'])} % interval " + " ".join(f"[{i[a]['lo']:+.0f}, {i[a]['hi']:+.0f}]" for a in ATTRIBUTES))
+    band = (
+        "no interval (the model card has no calibration)"
+        if i is None
+        else f"{round(100 * i['level'])} % interval "
+        + " ".join(f"[{i[a]['lo']:+.0f}, {i[a]['hi']:+.0f}]" for a in ATTRIBUTES)
+    )
     ood = event.get("out_of_distribution")
-    flag = ("" if ood is None else
-            f"; OUT OF DISTRIBUTION ({', '.join(event['ood_reasons'])})" if ood else "; in distribution")
+    flag = (
+        ""
+        if ood is None
+        else f"; OUT OF DISTRIBUTION ({', '.join(event['ood_reasons'])})"
+        if ood
+        else "; in distribution"
+    )
     return band + flag
 
 
@@ -218,22 +163,27 @@ class ProbeReport:
         mean = {a: float(np.mean([r[a] for r in windows])) for a in ATTRIBUTES}
         e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
         self.errors.append((probe, e_now, e_mean))
-        return [f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "
-                f"4 attributes, 0–100 scale)",
-                f"{'':10s}console estimate  {_fmt(ratings)}   error {e_now:5.1f}",
-                f"{'':10s}mean of windows   {_fmt(mean)}   error {e_mean:5.1f}",
-                f"{'':10s}truth             {_fmt(truth)}"]
+        return [
+            f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "
+            f"4 attributes, 0–100 scale)",
+            f"{'':10s}console estimate  {_fmt(ratings)}   error {e_now:5.1f}",
+            f"{'':10s}mean of windows   {_fmt(mean)}   error {e_mean:5.1f}",
+            f"{'':10s}truth             {_fmt(truth)}",
+        ]
 
     def summary(self) -> str | None:
         if not self.errors:
             return None
         now, mean = np.mean([e[1] for e in self.errors]), np.mean([e[2] for e in self.errors])
-        return (f"after {self.after_s:g} s of each of {len(self.errors)} probe stroke(s): mean error {now:.1f} "
-                f"(console estimate), {mean:.1f} (mean of windows) points on 0–100")
+        return (
+            f"after {self.after_s:g} s of each of {len(self.errors)} probe stroke(s): mean error {now:.1f} "
+            f"(console estimate), {mean:.1f} (mean of windows) points on 0–100"
+        )
 
 
-async def print_events(url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0,
-                       report: ProbeReport | None = None) -> None:
+async def print_events(
+    url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0, report: ProbeReport | None = None
+) -> None:
     """Subscribe like the console does and print a line every few seconds, and each probe's report."""
     import websockets
 
@@ -254,16 +204,26 @@ async def print_events(url: str, session: str, token: str, tour: ProbeTour, ever
             # the probe this window belongs to, from its time (the robot may be ahead, stroking the next)
             current = tour.probe_at(event["t_end_s"])
             truth = tour.library.entry(current).ratings
-            print(f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
-                  f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
-                  f"{'':10s}{_interval(event)}\n"
-                  f"{'':10s}nearest library texture: {event['chosen']} "
-                  f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
-                  f"pipeline {event['latency_ms']['total']:.1f} ms", flush=True)
+            print(
+                f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
+                f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
+                f"{'':10s}{_interval(event)}\n"
+                f"{'':10s}nearest library texture: {event['chosen']} "
+                f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
+                f"pipeline {event['latency_ms']['total']:.1f} ms",
+                flush=True,
+            )
 
 
-async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: float, duration_s: float | None,
-                   report_after_s: float = REPORT_AFTER_S) -> None:
+async def run_demo(
+    assets: DemoAssets,
+    *,
+    host: str,
+    port: int,
+    per_texture_s: float,
+    duration_s: float | None,
+    report_after_s: float = REPORT_AFTER_S,
+) -> None:
     import uvicorn
 
     from drivers.robot import RobotClient
@@ -271,8 +231,16 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     from service.settings import Settings
 
     api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
-    settings = Settings(model_path=assets.model, tactile_model_path=assets.tactile, library_dir=assets.library,
-                        backbone_path=assets.backbone, host=host, port=port, log_level="warning", api_keys=api_key)
+    settings = Settings(
+        model_path=assets.model,
+        tactile_model_path=assets.tactile,
+        library_dir=assets.library,
+        backbone_path=assets.backbone,
+        host=host,
+        port=port,
+        log_level="warning",
+        api_keys=api_key,
+    )
     server = uvicorn.Server(uvicorn.Config(create_app(settings), **server_options(settings)))
     serving = asyncio.create_task(server.serve())
     while not server.started:
@@ -284,8 +252,11 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     tour = ProbeTour(assets.probes, per_texture_s)
     robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key)
     info = await robot.open_session()
-    print(f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
-          f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n", flush=True)
+    print(
+        f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
+        f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
+        flush=True,
+    )
     truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
     report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
     printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour, report=report))
@@ -301,13 +272,15 @@ async def run_demo(assets: DemoAssets, *, host: str, port: int, per_texture_s: f
     print(f"robot stats: {robot.stats.as_dict()}")
 
 
-def demo(assets_dir: str | Path = "artifacts/demo", *, host: str = "127.0.0.1", port: int = 8000,
-         per_texture_s: float = 20.0, duration_s: float | None = None) -> int:
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    print("hapticlink demo — preparing assets", flush=True)
-    t0 = time.perf_counter()
-    assets = prepare_assets(Path(assets_dir))
-    print(f"  assets ready in {time.perf_counter() - t0:.0f} s: {assets.model}", flush=True)
+def demo(
+    assets: DemoAssets,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    per_texture_s: float = 20.0,
+    duration_s: float | None = None,
+) -> int:
+    """Run the loop on prepared assets until Ctrl-C or duration_s."""
     try:
         asyncio.run(run_demo(assets, host=host, port=port, per_texture_s=per_texture_s, duration_s=duration_s))
     except KeyboardInterrupt:

@@ -42,7 +42,9 @@ def get_runtime(state: State) -> Runtime:
 
 ReadyRuntime = Annotated[Runtime, Depends(get_runtime)]
 
-_bearer = HTTPBearer(auto_error=False, description="a session's robot or operator token, or (POST /sessions) a fleet API key")
+_bearer = HTTPBearer(
+    auto_error=False, description="a session's robot or operator token, or (POST /sessions) a fleet API key"
+)
 
 
 def bearer_token(credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str | None:
@@ -86,21 +88,31 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
     if not state.api_keys.check(token):
         state.metrics.sessions_refused.inc(reason="api_key")
         log.warning("POST /sessions from %s refused: %s API key", client, "no" if token is None else "an unknown")
-        raise ServiceError(401, "a fleet API key is required: send 'Authorization: Bearer <key>' (HAPTICLINK_API_KEY "
-                                "for the robot client)" if token is None else "the API key is not valid",
-                           {"WWW-Authenticate": "Bearer"})
+        raise ServiceError(
+            401,
+            "a fleet API key is required: send 'Authorization: Bearer <key>' (HAPTICLINK_API_KEY for the robot client)"
+            if token is None
+            else "the API key is not valid",
+            {"WWW-Authenticate": "Bearer"},
+        )
     wait = state.session_limiter.take(client)
     if wait > 0:
         state.metrics.sessions_refused.inc(reason="rate")
-        raise ServiceError(429, f"too many sessions opened from {client}; at most {state.settings.session_rate_per_s:g}/s "
-                                f"after a burst of {state.settings.session_burst}", {"Retry-After": f"{max(1, round(wait))}"})
+        raise ServiceError(
+            429,
+            f"too many sessions opened from {client}; at most {state.settings.session_rate_per_s:g}/s "
+            f"after a burst of {state.settings.session_burst}",
+            {"Retry-After": f"{max(1, round(wait))}"},
+        )
     return client
 
 
 FleetClient = Annotated[str, Depends(fleet_member)]
 
 
-async def socket_session(websocket: WebSocket, session_id: str, token: str | None, roles: frozenset[Role]) -> Session | None:
+async def socket_session(
+    websocket: WebSocket, session_id: str, token: str | None, roles: frozenset[Role]
+) -> Session | None:
     """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
     raises Refused after refusing the handshake (one WARNING line):
 
@@ -118,14 +130,23 @@ async def socket_session(websocket: WebSocket, session_id: str, token: str | Non
         _, session = await state.authorized(session_id, token, roles)
         return session
     except ServiceError as exc:
-        log.warning("%s socket for session %s from %s refused: %d %s", "ingest" if robot else "events", session_id,
-                    client_of(websocket), exc.status, exc.detail)
+        log.warning(
+            "%s socket for session %s from %s refused: %d %s",
+            "ingest" if robot else "events",
+            session_id,
+            client_of(websocket),
+            exc.status,
+            exc.detail,
+        )
         if robot:
             state.metrics.sockets_refused.inc(status=str(exc.status))
             known = state.sessions.get(session_id)
             if known is not None and exc.status in (401, 403):  # someone tried this session's ingest: say so
-                await state.publish(session_id, status_event(session_id, "robot_refused",
-                                                             f"an ingest connection was refused: {exc.detail}"), False)
+                await state.publish(
+                    session_id,
+                    status_event(session_id, "robot_refused", f"an ingest connection was refused: {exc.detail}"),
+                    False,
+                )
         await refuse(websocket, exc, robot=robot)
         raise Refused() from None
 

@@ -62,7 +62,7 @@ class Bounds(BaseModel):
 
 class Interval(BaseModel):
     """Conformal prediction interval of the smoothed `ratings`, per attribute, at nominal coverage `level`
-    (models/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training textures).
+    (models/inference/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training textures).
     target: the calibration used — "ema" (of the smoothed estimate at the service's alpha) or "window" (of one
     window's estimate; used when the service smooths with another alpha). Widens to include the population band
     while the estimate is out of distribution."""
@@ -108,24 +108,30 @@ class WindowEvent(BaseModel):
     raw_ratings: Ratings = Field(description="this window's model output")
     interval: Interval | None = Field(
         description="prediction interval of `ratings` per attribute; null when the served model's card carries no "
-        "interval calibration (models exported before calibration, or trained on < 8 textures): never a made-up one")
+        "interval calibration (models exported before calibration, or trained on < 8 textures): never a made-up one"
+    )
     out_of_distribution: bool | None = Field(
         description="the estimate rests on input unlike the model's training data (a flagged window, or one still "
-        "weighing in the smoothed ratings); null when the model's card carries no OOD detector")
+        "weighing in the smoothed ratings); null when the model's card carries no OOD detector"
+    )
     ood_reasons: list[str] = Field(
         description="why: force_out_of_range, speed_out_of_range, tactile_outlier, visual_outlier, no_frame, "
         "frame_underexposed, frame_overexposed, frame_dark_region, frame_low_contrast, frame_blurred; "
         "recent_window_flagged (this window is clean, earlier flagged ones still weigh in the smoothed ratings: their "
-        "reasons follow)")
+        "reasons follow)"
+    )
     steadiness: Steadiness
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
     latency_ms: Latency
-    model: str = Field(description="the model that produced raw_ratings (under the adaptive policy: the cheap model, or "
-                       "the full one where the cheap estimate was not good enough)")
+    model: str = Field(
+        description="the model that produced raw_ratings (under the adaptive policy: the cheap model, or "
+        "the full one where the cheap estimate was not good enough)"
+    )
     inputs: Literal["tactile", "tactile+visual"] = Field(
         description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
-        "has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap model's estimate)")
+        "has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap model's estimate)"
+    )
 
 
 class StatusEvent(BaseModel):
@@ -147,8 +153,14 @@ def _interval(a: Assessment) -> dict | None:
     i = a.interval
     if i is None:
         return None
-    return {"level": i.level, "target": i.target,
-            **{name: {"lo": round(float(lo), 2), "hi": round(float(hi), 2)} for name, lo, hi in zip(ATTRIBUTES, i.lo, i.hi, strict=True)}}
+    return {
+        "level": i.level,
+        "target": i.target,
+        **{
+            name: {"lo": round(float(lo), 2), "hi": round(float(hi), 2)}
+            for name, lo, hi in zip(ATTRIBUTES, i.lo, i.hi, strict=True)
+        },
+    }
 
 
 def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
@@ -182,8 +194,14 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
 
 
 def status_event(session_id: str, event: StatusKind, message: str, **extra: object) -> dict:
-    return {"type": "status", "session_id": session_id, "event": event, "message": message,
-            "time": round(time.time(), 3), **extra}
+    return {
+        "type": "status",
+        "session_id": session_id,
+        "event": event,
+        "message": message,
+        "time": round(time.time(), 3),
+        **extra,
+    }
 
 
 def encode(event: dict) -> str:

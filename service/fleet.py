@@ -20,9 +20,11 @@ from pydantic import SecretStr
 
 log = logging.getLogger(__name__)
 
-NOT_CONFIGURED = ("session creation is disabled: no fleet API key is configured; set HAPTICLINK_API_KEYS "
-                  "(comma-separated) or HAPTICLINK_API_KEYS_FILE (one key per line) and send "
-                  "'Authorization: Bearer <key>'")
+NOT_CONFIGURED = (
+    "session creation is disabled: no fleet API key is configured; set HAPTICLINK_API_KEYS "
+    "(comma-separated) or HAPTICLINK_API_KEYS_FILE (one key per line) and send "
+    "'Authorization: Bearer <key>'"
+)
 
 
 def _digest(key: str) -> bytes:

@@ -97,7 +97,9 @@ class Histogram(_Metric):
 
     kind = "histogram"
 
-    def __init__(self, name: str, help_text: str, labels: tuple[str, ...] = (), buckets: Iterable[float] = LATENCY_BUCKETS_S) -> None:
+    def __init__(
+        self, name: str, help_text: str, labels: tuple[str, ...] = (), buckets: Iterable[float] = LATENCY_BUCKETS_S
+    ) -> None:
         super().__init__(name, help_text, labels)
         self.buckets = tuple(sorted(buckets))
         self._counts: dict[tuple[str, ...], list[int]] = {}
@@ -136,23 +138,33 @@ class ServiceMetrics:
     def __init__(self) -> None:
         self.blocks = Counter("hapticlink_blocks_total", "Sample blocks received, by outcome.", ("outcome",))
         self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.")
-        self.windows_admitted = Counter("hapticlink_windows_admitted_total",
-                                        "Windows completed by accepted blocks (each is published, or its loss counted).")
+        self.windows_admitted = Counter(
+            "hapticlink_windows_admitted_total",
+            "Windows completed by accepted blocks (each is published, or its loss counted).",
+        )
         self.frames = Counter("hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",))
         self.events_dropped = Counter(
             "hapticlink_events_dropped_total", "Events dropped for slow operator connections (they keep the latest)."
         )
-        self.sessions_refused = Counter("hapticlink_sessions_refused_total",
-                                        "POST /sessions refused, by reason (api_key, rate).", ("reason",))
-        self.sessions_reaped = Counter("hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming.")
-        self.sockets_refused = Counter("hapticlink_ingest_sockets_refused_total",
-                                       "Ingest WebSocket handshakes refused, by HTTP-equivalent status.", ("status",))
-        self.robot_disconnects = Counter("hapticlink_robot_disconnects_total",
-                                         "Ingest WebSockets that closed, by reason.", ("reason",))
+        self.sessions_refused = Counter(
+            "hapticlink_sessions_refused_total", "POST /sessions refused, by reason (api_key, rate).", ("reason",)
+        )
+        self.sessions_reaped = Counter(
+            "hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming."
+        )
+        self.sockets_refused = Counter(
+            "hapticlink_ingest_sockets_refused_total",
+            "Ingest WebSocket handshakes refused, by HTTP-equivalent status.",
+            ("status",),
+        )
+        self.robot_disconnects = Counter(
+            "hapticlink_robot_disconnects_total", "Ingest WebSockets that closed, by reason.", ("reason",)
+        )
         self.publish_errors = Counter("hapticlink_publish_errors_total", "Events the broker failed to publish.")
         self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.")
         self.sessions_lost = Counter(
-            "hapticlink_sessions_lost_total", "Sessions of another replica found gone (stopped, crashed, restarted) here."
+            "hapticlink_sessions_lost_total",
+            "Sessions of another replica found gone (stopped, crashed, restarted) here.",
         )
         self.subscribers = Gauge("hapticlink_subscribers", "Open operator event connections on this replica.")
         self.ready = Gauge("hapticlink_ready", "1 when the model and library are loaded and warmed up.")
@@ -160,7 +172,9 @@ class ServiceMetrics:
             "hapticlink_window_latency_seconds", "Ingest-to-publish latency of windows, by pipeline stage.", ("stage",)
         )
         self.visual_seconds = Histogram(
-            "hapticlink_visual_embedding_seconds", "Time to embed one camera frame.", buckets=(0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10)
+            "hapticlink_visual_embedding_seconds",
+            "Time to embed one camera frame.",
+            buckets=(0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10),
         )
 
     def all(self) -> list[_Metric]:

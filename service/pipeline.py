@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-from models.ood import FrameCheck
+from models.inference.ood import FrameCheck
 from models.tactile.features import window_features
 from models.tactile.preprocess import TactilePreprocessor, WindowBatch
 from models.tactile.stream import StreamContract
@@ -71,7 +71,7 @@ class SessionJob:
     and how many windows those blocks complete; frame_checks: the visual input's FrameCheck per model name
     (service.runtime.Runtime.frame_checks; empty without a visual input)."""
 
-    estimator: "SessionEstimator"
+    estimator: SessionEstimator
     blocks: list[AdmittedBlock]
     visual: np.ndarray | None
     windows: int
@@ -84,7 +84,7 @@ class PreparedWindows:
     completed each window; preprocess_ns: what push + take cost; taps: (m, 3) tap features per window (those
     its completing block carried) for a model with the taps group, else None."""
 
-    estimator: "SessionEstimator"
+    estimator: SessionEstimator
     batch: WindowBatch
     origin_t0: float
     completed_by: list[tuple[int, int]]
@@ -108,7 +108,7 @@ class FeatureRows:
 
 @dataclass(frozen=True)
 class WindowCheck:
-    """One window's out-of-distribution check (models.ood.OODDetector.check): flag, reasons, distance (> 0)."""
+    """One window's out-of-distribution check (models.inference.ood.OODDetector.check): flag, reasons, distance (> 0)."""
 
     flagged: bool
     reasons: list[str]
@@ -171,8 +171,17 @@ class SessionResult:
 class SessionEstimator:
     """Per-session compute state: preprocessor (per stream segment), smoother, steadiness, uncertainty, selector."""
 
-    def __init__(self, runtime: Runtime, contract: StreamContract, *, alpha: float, steadiness_windows: int,
-                 top_k: int, hysteresis_margin: float, hysteresis_hold: int) -> None:
+    def __init__(
+        self,
+        runtime: Runtime,
+        contract: StreamContract,
+        *,
+        alpha: float,
+        steadiness_windows: int,
+        top_k: int,
+        hysteresis_margin: float,
+        hysteresis_hold: int,
+    ) -> None:
         self.runtime = runtime
         self.contract = contract
         self.config = contract.config
@@ -187,11 +196,17 @@ class SessionEstimator:
         self._pre: TactilePreprocessor | None = None
 
     @classmethod
-    def from_settings(cls, runtime: Runtime, contract: StreamContract, settings) -> "SessionEstimator":
+    def from_settings(cls, runtime: Runtime, contract: StreamContract, settings) -> SessionEstimator:
         """With the service Settings' smoothing, steadiness, top-k and hysteresis."""
-        return cls(runtime, contract, alpha=settings.smoothing_alpha, steadiness_windows=settings.steadiness_windows,
-                   top_k=settings.top_k, hysteresis_margin=settings.hysteresis_margin,
-                   hysteresis_hold=settings.hysteresis_hold)
+        return cls(
+            runtime,
+            contract,
+            alpha=settings.smoothing_alpha,
+            steadiness_windows=settings.steadiness_windows,
+            top_k=settings.top_k,
+            hysteresis_margin=settings.hysteresis_margin,
+            hysteresis_hold=settings.hysteresis_hold,
+        )
 
     def restart(self) -> None:
         """Forget the current segment (after a failure left the preprocessor's state unknown)."""
@@ -220,8 +235,18 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
             if any(b.taps is None for b in completing):
                 raise ValueError("a window's surface has no tap features; the session holds such windows back")
             taps = np.stack([b.taps for b in completing])
-        out.append(PreparedWindows(est, batch, first.origin_t0, [(b.seq, b.arrived_ns) for b in completing], job.visual,
-                                   time.perf_counter_ns() - t0, job.frame_checks, taps))
+        out.append(
+            PreparedWindows(
+                est,
+                batch,
+                first.origin_t0,
+                [(b.seq, b.arrived_ns) for b in completing],
+                job.visual,
+                time.perf_counter_ns() - t0,
+                job.frame_checks,
+                taps,
+            )
+        )
     return out
 
 
@@ -229,8 +254,13 @@ def featurize(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> FeatureR
     """Features step: THE training feature function on every window of the batch at once."""
     t0 = time.perf_counter_ns()
     taps = np.concatenate([p.taps for p in prepared]) if runtime.needs_taps else None  # type: ignore[misc]
-    rows = window_features(np.concatenate([p.batch.accel for p in prepared]), np.concatenate([p.batch.speed for p in prepared]),
-                           np.concatenate([p.batch.force for p in prepared]), runtime.tactile_config, taps)
+    rows = window_features(
+        np.concatenate([p.batch.accel for p in prepared]),
+        np.concatenate([p.batch.speed for p in prepared]),
+        np.concatenate([p.batch.force for p in prepared]),
+        runtime.tactile_config,
+        taps,
+    )
     return FeatureRows(rows, (time.perf_counter_ns() - t0) / 1e6)
 
 
@@ -282,8 +312,15 @@ def _run(model: ServedModel, tactile: np.ndarray, visual: np.ndarray | None) -> 
     return p.predict(tactile if p.needs_tactile else None, visual if p.needs_visual else None)
 
 
-def _check(model: ServedModel, rows_features: np.ndarray, prepared: Sequence[PreparedWindows], rows: np.ndarray,
-           owner: np.ndarray, models: list[ServedModel], checks: list[WindowCheck | None]) -> None:
+def _check(
+    model: ServedModel,
+    rows_features: np.ndarray,
+    prepared: Sequence[PreparedWindows],
+    rows: np.ndarray,
+    owner: np.ndarray,
+    models: list[ServedModel],
+    checks: list[WindowCheck | None],
+) -> None:
     """Record `model` as the estimator of `rows` and its detector's check of them, one call per session segment
     (each has its own frame)."""
     for i in np.unique(owner):
@@ -291,12 +328,22 @@ def _check(model: ServedModel, rows_features: np.ndarray, prepared: Sequence[Pre
         result = model.check(rows_features[mine], prepared[int(i)].frame_checks.get(model.name))
         for k, r in enumerate(mine):
             models[r] = model
-            checks[r] = None if result is None else WindowCheck(bool(result.flags[k]), result.reasons[k],
-                                                                float(result.distance[k]))
+            checks[r] = (
+                None
+                if result is None
+                else WindowCheck(bool(result.flags[k]), result.reasons[k], float(result.distance[k]))
+            )
 
 
-def lookup(p: PreparedWindows, raw: np.ndarray, models: Sequence[ServedModel], checks: Sequence[WindowCheck | None],
-           started_ns: int, features_ms: float, model_ms: float) -> list[WindowEstimate]:
+def lookup(
+    p: PreparedWindows,
+    raw: np.ndarray,
+    models: Sequence[ServedModel],
+    checks: Sequence[WindowCheck | None],
+    started_ns: int,
+    features_ms: float,
+    model_ms: float,
+) -> list[WindowEstimate]:
     """Lookup step: smoothing, steadiness, interval and flag, and the library's nearest entries of one session's
     windows, in order. raw: (n, 4) for p's windows; models, checks: (n,) who estimated each and its check."""
     est, rt = p.estimator, p.estimator.runtime
@@ -307,21 +354,39 @@ def lookup(p: PreparedWindows, raw: np.ndarray, models: Sequence[ServedModel], c
         smoothed = est.smoother.update(raw[i])
         steadiness = est.steadiness.update(raw[i])
         c = checks[i]
-        assessment = est.uncertainty.update(models[i], smoothed, None if c is None else c.flagged,
-                                            None if c is None else c.reasons, None if c is None else c.distance)
+        assessment = est.uncertainty.update(
+            models[i],
+            smoothed,
+            None if c is None else c.flagged,
+            None if c is None else c.reasons,
+            None if c is None else c.distance,
+        )
         distances = rt.index.distances(smoothed)  # once, for the matches and the choice
         matches = rt.index.query(smoothed, est.top_k, distances)
         chosen = est.selector.update(rt.index, smoothed, distances)
         lookup_ms = (time.perf_counter_ns() - t0) / 1e6
         t_start = p.origin_t0 + float(p.batch.t_start_s[i])
-        out.append(WindowEstimate(
-            index=est.next_index, t_start_s=t_start, t_end_s=t_start + window_s,
-            raw=raw[i].astype(np.float64), smoothed=smoothed, steadiness=steadiness, assessment=assessment,
-            matches=matches, chosen=chosen, completed_by=seq, ingest_ns=arrived_ns,
-            started_ns=started_ns, features_ms=p.preprocess_ns / 1e6 + features_ms, model_ms=model_ms,
-            lookup_ms=lookup_ms, model=models[i].name,
-            inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
-        ))
+        out.append(
+            WindowEstimate(
+                index=est.next_index,
+                t_start_s=t_start,
+                t_end_s=t_start + window_s,
+                raw=raw[i].astype(np.float64),
+                smoothed=smoothed,
+                steadiness=steadiness,
+                assessment=assessment,
+                matches=matches,
+                chosen=chosen,
+                completed_by=seq,
+                ingest_ns=arrived_ns,
+                started_ns=started_ns,
+                features_ms=p.preprocess_ns / 1e6 + features_ms,
+                model_ms=model_ms,
+                lookup_ms=lookup_ms,
+                model=models[i].name,
+                inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
+            )
+        )
         est.next_index += 1
     return out
 
@@ -382,5 +447,7 @@ def _concatenate(blocks: list[AdmittedBlock]) -> dict[str, Channel]:
     for b in blocks:
         for kind, ch in b.channels.items():
             parts.setdefault(kind, []).append(ch)
-    return {kind: Channel(np.concatenate([c.data for c in chs]) if len(chs) > 1 else chs[0].data, chs[0].rate_hz)
-            for kind, chs in parts.items()}
+    return {
+        kind: Channel(np.concatenate([c.data for c in chs]) if len(chs) > 1 else chs[0].data, chs[0].rate_hz)
+        for kind, chs in parts.items()
+    }

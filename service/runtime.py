@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from models.ood import FrameCheck
-from models.predictor import Predictor
+from models.inference.ood import FrameCheck
+from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
 from models.visual.embedding import visual_features, visual_slice
@@ -96,7 +96,9 @@ class Runtime:
         if visual or not self.needs_visual:
             return self.main
         if self.fallback is None:
-            raise ValueError(f"model {self.model_name} needs a camera frame first and no tactile-only model is configured")
+            raise ValueError(
+                f"model {self.model_name} needs a camera frame first and no tactile-only model is configured"
+            )
         return self.fallback
 
     def first_model(self, visual: bool) -> ServedModel:
@@ -165,24 +167,41 @@ def load_runtime(settings: Settings) -> Runtime:
     if settings.tactile_model_path is not None and predictor.needs_visual:
         tactile = Predictor(settings.tactile_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
         if tactile.needs_visual:
-            raise ValueError(f"{settings.tactile_model_path}: the tactile-only model ({tactile.card.model}) reads images")
+            raise ValueError(
+                f"{settings.tactile_model_path}: the tactile-only model ({tactile.card.model}) reads images"
+            )
     cheap = None
     if settings.cheap_model_path is not None:
         cheap = Predictor(settings.cheap_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
         if cheap.needs_visual and (not predictor.needs_visual or cheap.card.visual != predictor.card.visual):
-            raise ValueError(f"{settings.cheap_model_path}: the cheap model ({cheap.card.model}) reads visual features "
-                             f"{cheap.card.visual}; the main model reads {predictor.card.visual}")
+            raise ValueError(
+                f"{settings.cheap_model_path}: the cheap model ({cheap.card.model}) reads visual features "
+                f"{cheap.card.visual}; the main model reads {predictor.card.visual}"
+            )
     alpha = settings.smoothing_alpha
     library = Library.load(settings.library_dir)
     index = PerceptualIndex(library.ids, library.ratings, np.asarray(settings.nearest_weights))
     visual_config = VisualConfig()
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
-        backbone, columns, problem = _load_backbone(predictor, visual_config, settings.backbone_path, settings.visual_threads)
-    return Runtime(ServedModel.load(predictor, alpha), None if tactile is None else ServedModel.load(tactile, alpha),
-                   None if cheap is None else ServedModel.load(cheap, alpha), ServingPolicy.from_settings(settings),
-                   tactile_config, library, index, visual_config, backbone, columns, problem, time.perf_counter() - started,
-                   settings.interval_level)
+        backbone, columns, problem = _load_backbone(
+            predictor, visual_config, settings.backbone_path, settings.visual_threads
+        )
+    return Runtime(
+        ServedModel.load(predictor, alpha),
+        None if tactile is None else ServedModel.load(tactile, alpha),
+        None if cheap is None else ServedModel.load(cheap, alpha),
+        ServingPolicy.from_settings(settings),
+        tactile_config,
+        library,
+        index,
+        visual_config,
+        backbone,
+        columns,
+        problem,
+        time.perf_counter() - started,
+        settings.interval_level,
+    )
 
 
 def _load_backbone(
@@ -192,9 +211,13 @@ def _load_backbone(
     card = predictor.card
     wanted = card.visual or {}
     if path is None:
-        return None, None, (
-            f"model {card.model} needs visual features from {wanted.get('backbone', '?')}; "
-            "set HAPTICLINK_BACKBONE_PATH (or --backbone) to its ONNX export"
+        return (
+            None,
+            None,
+            (
+                f"model {card.model} needs visual features from {wanted.get('backbone', '?')}; "
+                "set HAPTICLINK_BACKBONE_PATH (or --backbone) to its ONNX export"
+            ),
         )
     backbone = OnnxBackbone(path, intra_op_threads=threads, expected_config_hash=config.hash())
     if wanted.get("backbone") != backbone.name or wanted.get("visual_hash") != backbone.config_hash:
@@ -205,5 +228,7 @@ def _load_backbone(
     columns = visual_slice(backbone.dim + config.glcm_dim, wanted.get("visual_part", "both"))
     width = columns.stop - columns.start
     if width != predictor.n_visual:
-        raise ValueError(f"model {card.model} reads {predictor.n_visual} visual features; {backbone.name} gives {width}")
+        raise ValueError(
+            f"model {card.model} reads {predictor.n_visual} visual features; {backbone.name} gives {width}"
+        )
     return backbone, columns, None

@@ -28,8 +28,13 @@ class SessionCreate(BaseModel):
 
 
 class SessionCreated(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [
-        {"session_id": SESSION_ID_EXAMPLE, "robot_token": TOKEN_EXAMPLE, "operator_token": TOKEN_EXAMPLE[::-1]}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"session_id": SESSION_ID_EXAMPLE, "robot_token": TOKEN_EXAMPLE, "operator_token": TOKEN_EXAMPLE[::-1]}
+            ]
+        }
+    )
     session_id: str = Field(description="prefixed with the replica's instance id")
     robot_token: str = Field(description="sends blocks and frames (Authorization: Bearer, or ?token= on WebSockets)")
     operator_token: str = Field(description="reads events and the session's status")
@@ -38,19 +43,27 @@ class SessionCreated(BaseModel):
 class BlockAck(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{"seq": 41, "duplicate": False, "windows_ready": 1}]})
     seq: int
-    duplicate: bool = Field(description="true: the session already had this seq (or a later one); nothing was processed")
-    windows_ready: int = Field(ge=0, description="complete windows of the session not yet published (0 when it keeps up)")
+    duplicate: bool = Field(
+        description="true: the session already had this seq (or a later one); nothing was processed"
+    )
+    windows_ready: int = Field(
+        ge=0, description="complete windows of the session not yet published (0 when it keeps up)"
+    )
 
 
 class FrameAck(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [
-        {"accepted": True, "used": True, "outcome": "embedding", "width": 448, "height": 448}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"accepted": True, "used": True, "outcome": "embedding", "width": 448, "height": 448}]
+        }
+    )
     accepted: bool = True
     used: bool = Field(description="false when the model reads no images (a tactile model ignores frames)")
     outcome: Literal["ignored", "unchanged", "embedding", "superseded"] = Field(
         description="ignored: the model reads no images; unchanged: same scene as the frame last embedded (no new "
         "embedding); embedding: the scene changed, an embedding started; superseded: it replaces a frame waiting "
-        "for the running embedding")
+        "for the running embedding"
+    )
     width: int
     height: int
 
@@ -76,15 +89,43 @@ class SessionCounters:
 
 
 class SessionStatus(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "session_id": SESSION_ID_EXAMPLE, "name": "robot-7 on fabric", "instance": "replica-a", "state": "streaming",
-        "created_at": 1767225600.0, "idle_s": 0.02, "model": "ridge-tactile", "needs_visual": False,
-        "visual_ready": False, "last_seq": 400, "segments": 1, "windows_ready": 0, "pending_blocks": 12,
-        "counters": {"blocks_accepted": 401, "blocks_duplicate": 0, "blocks_rejected": 1, "blocks_refused": 0,
-                     "windows": 16, "frames_received": 0, "frames_rejected": 0, "frames_refused": 0,
-                     "frames_unchanged": 0, "frames_embedded": 0,
-                     "frames_superseded": 0, "pipeline_errors": 0, "tap_blocks_used": 0,
-                     "tap_blocks_ignored": 0}}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "session_id": SESSION_ID_EXAMPLE,
+                    "name": "robot-7 on fabric",
+                    "instance": "replica-a",
+                    "state": "streaming",
+                    "created_at": 1767225600.0,
+                    "idle_s": 0.02,
+                    "model": "ridge-tactile",
+                    "needs_visual": False,
+                    "visual_ready": False,
+                    "last_seq": 400,
+                    "segments": 1,
+                    "windows_ready": 0,
+                    "pending_blocks": 12,
+                    "counters": {
+                        "blocks_accepted": 401,
+                        "blocks_duplicate": 0,
+                        "blocks_rejected": 1,
+                        "blocks_refused": 0,
+                        "windows": 16,
+                        "frames_received": 0,
+                        "frames_rejected": 0,
+                        "frames_refused": 0,
+                        "frames_unchanged": 0,
+                        "frames_embedded": 0,
+                        "frames_superseded": 0,
+                        "pipeline_errors": 0,
+                        "tap_blocks_used": 0,
+                        "tap_blocks_ignored": 0,
+                    },
+                }
+            ]
+        }
+    )
     session_id: str
     name: str
     instance: str
@@ -105,7 +146,9 @@ class LibraryEntryOut(BaseModel):
     id: str
     name: str
     group: str
-    ratings: dict[str, float] = Field(examples=[{"rough_smooth": -40.0, "flat_bumpy": 12.5, "sticky_slippery": 8.0, "hard_soft": -60.0}])
+    ratings: dict[str, float] = Field(
+        examples=[{"rough_smooth": -40.0, "flat_bumpy": 12.5, "sticky_slippery": 8.0, "hard_soft": -60.0}]
+    )
 
 
 class LibraryOut(BaseModel):
@@ -120,14 +163,28 @@ class HealthOut(BaseModel):
 
 
 class ReadyOut(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [
-        {"ready": True, "detail": "ready", "model": "ridge-tactile", "modality": "tactile", "library": "synthetic-24-s0",
-         "library_entries": 24, "backbone": None}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "ready": True,
+                    "detail": "ready",
+                    "model": "ridge-tactile",
+                    "modality": "tactile",
+                    "library": "synthetic-24-s0",
+                    "library_entries": 24,
+                    "backbone": None,
+                }
+            ]
+        }
+    )
     ready: bool
     detail: str
     model: str | None = None
     modality: str | None = None
-    tactile_model: str | None = Field(None, description="the tactile-only model used until a session's first frame is embedded")
+    tactile_model: str | None = Field(
+        None, description="the tactile-only model used until a session's first frame is embedded"
+    )
     library: str | None = None
     library_entries: int | None = None
     backbone: str | None = None
@@ -136,17 +193,29 @@ class ReadyOut(BaseModel):
 class JsonChannel(BaseModel):
     rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
     units: str = Field(description="accel: m/s^2 | g; force: N; speed: mm/s | m/s; position: mm | m")
-    data: NonEmpty[list[float]] | NonEmpty[list[NonEmpty[list[float]]]] = Field(description="(n,) or (n, k) samples, n ≥ 1")
+    data: NonEmpty[list[float]] | NonEmpty[list[NonEmpty[list[float]]]] = Field(
+        description="(n,) or (n, k) samples, n ≥ 1"
+    )
 
 
 class JsonBlock(BaseModel):
     """A sample block as JSON (drivers/blocks.py); the binary form carries the same header."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "seq": 0, "t0": 0.0,
-        "channels": {"accel": {"rate_hz": 1000, "units": "m/s^2", "data": [[0.1, -0.2, 9.8], [0.0, 0.1, 9.7]]},
-                     "force": {"rate_hz": 1000, "units": "N", "data": [1.5, 1.52]},
-                     "speed": {"rate_hz": 1000, "units": "mm/s", "data": [80.0, 80.4]}}}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "seq": 0,
+                    "t0": 0.0,
+                    "channels": {
+                        "accel": {"rate_hz": 1000, "units": "m/s^2", "data": [[0.1, -0.2, 9.8], [0.0, 0.1, 9.7]]},
+                        "force": {"rate_hz": 1000, "units": "N", "data": [1.5, 1.52]},
+                        "speed": {"rate_hz": 1000, "units": "mm/s", "data": [80.0, 80.4]},
+                    },
+                }
+            ]
+        }
+    )
     seq: int = Field(ge=0, lt=2**63, description="one more per block; required")
     t0: float = Field(description="time of the first sample on the robot's clock, s")
     kind: Literal["samples"] = Field("samples", description="block kind (drivers.blocks.BLOCK_KINDS)")
@@ -158,19 +227,37 @@ class JsonTaps(BaseModel):
 
     rate_hz: float = Field(ge=10, le=100_000, description="samples per second, 10…100000")
     units: Literal["m/s^2", "g"] = Field(description="acceleration units")
-    speeds: NonEmpty[list[float]] = Field(max_length=32, description="each tap's approach speed, mm/s (≥ 0), one per tap")
+    speeds: NonEmpty[list[float]] = Field(
+        max_length=32, description="each tap's approach speed, mm/s (≥ 0), one per tap"
+    )
     data: NonEmpty[list[NonEmpty[list[float]]]] = Field(
-        max_length=32, description="k taps × n samples (16 ≤ n ≤ 500): each tap's acceleration transient")
+        max_length=32, description="k taps × n samples (16 ≤ n ≤ 500): each tap's acceleration transient"
+    )
 
 
 class JsonTapBlock(BaseModel):
     """A tap block as JSON (drivers/blocks.py): the tap exploratory procedure on the surface under the tool."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "seq": 0, "t0": 0.0, "kind": "taps",
-        "taps": {"rate_hz": 1000, "units": "m/s^2", "speeds": [22.5, 41.0],
-                 "data": [[0.0] * 5 + [3.1, -2.4, 1.7, -1.1, 0.6] + [0.0] * 6,
-                          [0.0] * 5 + [5.8, -4.5, 3.2, -2.0, 1.1] + [0.0] * 6]}}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "seq": 0,
+                    "t0": 0.0,
+                    "kind": "taps",
+                    "taps": {
+                        "rate_hz": 1000,
+                        "units": "m/s^2",
+                        "speeds": [22.5, 41.0],
+                        "data": [
+                            [0.0] * 5 + [3.1, -2.4, 1.7, -1.1, 0.6] + [0.0] * 6,
+                            [0.0] * 5 + [5.8, -4.5, 3.2, -2.0, 1.1] + [0.0] * 6,
+                        ],
+                    },
+                }
+            ]
+        }
+    )
     seq: int = Field(ge=0, lt=2**63, description="one more per block (shared with sample blocks); required")
     t0: float = Field(description="time of the first tap on the robot's clock, s")
     kind: Literal["taps"]
@@ -182,17 +269,30 @@ BLOCK_REQUEST_BODY = {
     "content": {
         "application/json": {"schema": JsonBlock.model_json_schema(ref_template="#/components/schemas/{model}")},
         BINARY_CONTENT_TYPE: {
-            "schema": {"type": "string", "format": "binary",
-                       "description": "b'HLB1' | uint32 LE header length | header JSON | float32 LE samples"},
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "b'HLB1' | uint32 LE header length | header JSON | float32 LE samples",
+            },
         },
     },
 }
 FRAME_REQUEST_BODY = {
     "required": True,
     "content": {
-        "image/png": {"schema": {"type": "string", "format": "binary",
-                                 "description": "at least 224×224 pixels (one patch), at most 4096×4096"}},
-        "image/jpeg": {"schema": {"type": "string", "format": "binary",
-                                  "description": "at least 224×224 pixels (one patch), at most 4096×4096"}},
+        "image/png": {
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "at least 224×224 pixels (one patch), at most 4096×4096",
+            }
+        },
+        "image/jpeg": {
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "at least 224×224 pixels (one patch), at most 4096×4096",
+            }
+        },
     },
 }

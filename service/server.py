@@ -67,8 +67,9 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
     def _expired(self) -> None:
         self._deadline = None
         if not self.transport.is_closing():
-            log.warning("closing a connection from %s: no complete request within %g s", _peer(self.client),
-                        self.read_timeout_s)
+            log.warning(
+                "closing a connection from %s: no complete request within %g s", _peer(self.client), self.read_timeout_s
+            )
             self.transport.close()
 
 
@@ -101,14 +102,21 @@ def install_log_redaction() -> None:
 def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
     """uvicorn options for `settings` (uvicorn.run / uvicorn.Config keywords)."""
     install_log_redaction()
-    protocol = type("DeadlineHttpProtocol", (DeadlineHttpProtocol,), {"read_timeout_s": settings.request_read_timeout_s})
+    protocol = type(
+        "DeadlineHttpProtocol", (DeadlineHttpProtocol,), {"read_timeout_s": settings.request_read_timeout_s}
+    )
     options: dict[str, Any] = {
-        "host": settings.host, "port": settings.port, "log_level": settings.log_level,
-        "ws_max_size": settings.max_body_bytes, "timeout_graceful_shutdown": 5,
+        "host": settings.host,
+        "port": settings.port,
+        "log_level": settings.log_level,
+        "ws_max_size": settings.max_body_bytes,
+        "timeout_graceful_shutdown": 5,
         # small JSON messages on a LAN: compressing every event and ack costs more CPU than it saves
         "ws_per_message_deflate": False,
-        "timeout_keep_alive": settings.timeout_keep_alive_s, "http": protocol,
-        "proxy_headers": True, "forwarded_allow_ips": settings.forwarded_allow_ips,
+        "timeout_keep_alive": settings.timeout_keep_alive_s,
+        "http": protocol,
+        "proxy_headers": True,
+        "forwarded_allow_ips": settings.forwarded_allow_ips,
         "access_log": settings.log_level == "debug",  # lines without query strings (RedactQueries), but many
     }
     return {**options, **overrides}

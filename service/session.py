@@ -35,10 +35,10 @@ import numpy as np
 
 from drivers.blocks import Block, SampleBlock, TapBlock
 from drivers.protocol import SESSION_LOST
-from models.ood import FrameCheck
+from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
-from service.adaptive import SceneViews
 from models.tactile.taps import tap_features
+from service.adaptive import SceneViews
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
@@ -62,8 +62,12 @@ PUBLISH_YIELD_EVERY = 8  # events published between yields to the event loop
 
 def stream_contract(runtime: Runtime, settings: Settings) -> StreamContract:
     """The stream rules a session of this service enforces (the preprocessor gets the same object)."""
-    return StreamContract(runtime.tactile_config, max_lag_s=settings.max_lag_s, max_block_s=settings.max_block_s,
-                          max_block_windows=settings.max_block_windows)
+    return StreamContract(
+        runtime.tactile_config,
+        max_lag_s=settings.max_lag_s,
+        max_block_s=settings.max_block_s,
+        max_block_windows=settings.max_block_windows,
+    )
 
 
 def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
@@ -79,9 +83,19 @@ def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
 class Session:
     """A session's state on its owner replica (see the module docstring)."""
 
-    def __init__(self, session_id: str, name: str, credentials: SessionCredentials, runtime: Runtime,
-                 settings: Settings, visual_pool: Executor, publish: Publish,
-                 metrics: ServiceMetrics, notify: Notify, visual_done: Callable[[], None] = lambda: None) -> None:
+    def __init__(
+        self,
+        session_id: str,
+        name: str,
+        credentials: SessionCredentials,
+        runtime: Runtime,
+        settings: Settings,
+        visual_pool: Executor,
+        publish: Publish,
+        metrics: ServiceMetrics,
+        notify: Notify,
+        visual_done: Callable[[], None] = lambda: None,
+    ) -> None:
         self.id = session_id
         self.name = name
         self.credentials = credentials
@@ -133,27 +147,43 @@ class Session:
             self.counters.blocks_duplicate += 1
             return {"seq": block.seq, "duplicate": True, "windows_ready": self.backlog()}
         if block.seq - max(self.last_seq, 0) > self.settings.max_seq_gap:
-            raise ServiceError(422, f"seq jumps from {self.last_seq} to {block.seq}, more than max_seq_gap "
-                                    f"({self.settings.max_seq_gap}) blocks; send the blocks that follow {self.last_seq}, "
-                                    "or open a new session for a new stream")
+            raise ServiceError(
+                422,
+                f"seq jumps from {self.last_seq} to {block.seq}, more than max_seq_gap "
+                f"({self.settings.max_seq_gap}) blocks; send the blocks that follow {self.last_seq}, "
+                "or open a new session for a new stream",
+            )
         if isinstance(block, TapBlock):
             return self._ingest_taps(block)
         try:
             advance = self.contract.admit(self.cursor, canonical_channels(block), block.t0)
         except ValueError as exc:
             raise bad_input(exc) from None
-        if (self.backlog() + advance.windows_added > self.settings.session_queue_windows
-                or len(self._pending) >= self.settings.session_queue_blocks):
+        if (
+            self.backlog() + advance.windows_added > self.settings.session_queue_windows
+            or len(self._pending) >= self.settings.session_queue_blocks
+        ):
             self.counters.blocks_refused += 1
             raise saturated(
                 f"session {self.id} is saturated ({self.backlog()} windows, {len(self._pending)} blocks waiting); "
-                f"resend block {block.seq} later", RETRY_AFTER_S)
+                f"resend block {block.seq} later",
+                RETRY_AFTER_S,
+            )
         self.cursor = advance.cursor
         if advance.new_segment and not self._taps_fresh:
             self._taps = None  # a new surface: its taps are not known yet
         self._taps_fresh = False
-        self._pending.append(AdmittedBlock(block.seq, advance.cursor.segment, advance.cursor.origin_t0,
-                                           advance.channels, advance.windows_after, arrived_ns, self._taps))
+        self._pending.append(
+            AdmittedBlock(
+                block.seq,
+                advance.cursor.segment,
+                advance.cursor.origin_t0,
+                advance.channels,
+                advance.windows_after,
+                arrived_ns,
+                self._taps,
+            )
+        )
         self._pending_windows += advance.windows_added
         self._windows_admitted += advance.windows_added
         if advance.windows_added:
@@ -194,8 +224,10 @@ class Session:
 
     def saturated(self) -> bool:
         """True when the next block that completes a window would be refused."""
-        return (self.backlog() >= self.settings.session_queue_windows
-                or len(self._pending) >= self.settings.session_queue_blocks)
+        return (
+            self.backlog() >= self.settings.session_queue_windows
+            or len(self._pending) >= self.settings.session_queue_blocks
+        )
 
     # ---- estimation (called by the batcher) ------------------------------------------------------------
     def waiting_for_frame(self) -> bool:
@@ -221,15 +253,21 @@ class Session:
         if self.waiting_for_taps() and not self.waiting_for_frame():
             if not self._told_waiting_taps:
                 self._told_waiting_taps = True
-                await self._status("waiting_for_taps", f"model {self.runtime.model_name} reads tap features and the "
-                                   "surface under the tool has not been tapped; windows wait for a tap block, at most "
-                                   f"{self.settings.session_queue_windows} of them, then blocks are refused (429)")
+                await self._status(
+                    "waiting_for_taps",
+                    f"model {self.runtime.model_name} reads tap features and the "
+                    "surface under the tool has not been tapped; windows wait for a tap block, at most "
+                    f"{self.settings.session_queue_windows} of them, then blocks are refused (429)",
+                )
             return
         if not self._told_waiting:
             self._told_waiting = True
-            await self._status("waiting_for_frame", f"model {self.runtime.model_name} needs a camera frame and no "
-                               "tactile-only model is configured (HAPTICLINK_TACTILE_MODEL_PATH); windows wait for the "
-                               f"first frame, at most {self.settings.session_queue_windows} of them, then blocks are refused (429)")
+            await self._status(
+                "waiting_for_frame",
+                f"model {self.runtime.model_name} needs a camera frame and no "
+                "tactile-only model is configured (HAPTICLINK_TACTILE_MODEL_PATH); windows wait for the "
+                f"first frame, at most {self.settings.session_queue_windows} of them, then blocks are refused (429)",
+            )
 
     async def apply_result(self, result: SessionResult) -> None:
         """Publish a job's windows (yielding to the event loop every few events); after a failure the stream
@@ -241,8 +279,11 @@ class Session:
             log.error("session %s: estimation failed: %r", self.id, result.error)
             self.counters.pipeline_errors += 1
             self.cursor = self.cursor.restarted()
-            await self._status("error", f"estimation failed ({type(result.error).__name__}: {result.error}); "
-                                        "the stream restarts at the next block")
+            await self._status(
+                "error",
+                f"estimation failed ({type(result.error).__name__}: {result.error}); "
+                "the stream restarts at the next block",
+            )
             return
         for i, w in enumerate(result.estimates):
             if i and i % PUBLISH_YIELD_EVERY == 0:
@@ -297,7 +338,9 @@ class Session:
                 (gray, new_scene), self._frame = self._frame, None
                 started = time.perf_counter()
                 try:
-                    vector, reasons = await loop.run_in_executor(self._visual_pool, self.runtime.embed_and_inspect, gray)
+                    vector, reasons = await loop.run_in_executor(
+                        self._visual_pool, self.runtime.embed_and_inspect, gray
+                    )
                 except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
                     log.exception("session %s: embedding a frame failed", self.id)
                     self.counters.pipeline_errors += 1
@@ -311,8 +354,13 @@ class Session:
                 self.frame_checks = self.runtime.frame_checks(reasons, self.visual)
                 self.counters.frames_embedded += 1
                 flagged = sorted({r for c in self.frame_checks.values() if c is not None for r in c.reasons})
-                await self._status("visual_updated", "visual embedding updated" + (" (first frame)" if first else ""),
-                                   embed_ms=round(seconds * 1e3, 1), views=self._scene.views, frame_reasons=flagged)
+                await self._status(
+                    "visual_updated",
+                    "visual embedding updated" + (" (first frame)" if first else ""),
+                    embed_ms=round(seconds * 1e3, 1),
+                    views=self._scene.views,
+                    frame_reasons=flagged,
+                )
                 if self.has_work():
                     self._notify(self)
         finally:

@@ -34,26 +34,44 @@ class Settings(BaseSettings):
     model_path: Path | None = Field(None, description="exported perceptual model (.onnx with a hapticlink card)")
     library_dir: Path | None = Field(None, description="texture library directory (library.json + models/)")
     backbone_path: Path | None = Field(
-        None, description="visual backbone ONNX (models/featurize.py backbone_onnx); needed only by visual models"
+        None,
+        description="visual backbone ONNX (models/offline/featurize.py backbone_onnx); needed only by visual models",
     )
     tactile_model_path: Path | None = Field(
-        None, description="optional tactile-only model (same feature configuration) that estimates a visual model's "
-        "windows until the session's first frame is embedded (events say `\"inputs\": \"tactile\"`); without it those windows wait",
+        None,
+        description="optional tactile-only model (same feature configuration) that estimates a visual model's "
+        'windows until the session\'s first frame is embedded (events say `"inputs": "tactile"`); without it those windows wait',
     )
     cheap_model_path: Path | None = Field(
-        None, description="optional cheap model (same feature configuration; if it reads images, the same visual features) "
-        "the adaptive policy asks first; the full model then runs only where the cheap estimate is not good enough")
+        None,
+        description="optional cheap model (same feature configuration; if it reads images, the same visual features) "
+        "the adaptive policy asks first; the full model then runs only where the cheap estimate is not good enough",
+    )
     serving_policy: Literal["adaptive", "always-full"] = Field(
-        "adaptive", description="`adaptive`: embed a frame only when the scene changes (and pool_frames of each scene), "
-        "the cheap model first; `always-full`: embed every frame, the full model on every window (service/adaptive.py)")
-    pool_frames: int = Field(1, ge=1, le=32, description="adaptive: embeddings of one scene pooled (mean) into its visual input")
+        "adaptive",
+        description="`adaptive`: embed a frame only when the scene changes (and pool_frames of each scene), "
+        "the cheap model first; `always-full`: embed every frame, the full model on every window (service/adaptive.py)",
+    )
+    pool_frames: int = Field(
+        1, ge=1, le=32, description="adaptive: embeddings of one scene pooled (mean) into its visual input"
+    )
     full_model_width: float = Field(
-        40.0, ge=0, le=200, description="adaptive: the full model runs on a window whose cheap estimate's interval is wider "
-        "than this on some attribute (bipolar; at interval_level)")
+        40.0,
+        ge=0,
+        le=200,
+        description="adaptive: the full model runs on a window whose cheap estimate's interval is wider "
+        "than this on some attribute (bipolar; at interval_level)",
+    )
     full_model_margin: float = Field(
-        5.0, ge=0, le=400, description="adaptive: the full model runs on a window whose cheap estimate lies within this "
-        "distance margin (bipolar) of a library decision boundary")
-    interval_level: float = Field(0.9, ge=0.5, le=0.99, description="nominal coverage of the intervals in window events")
+        5.0,
+        ge=0,
+        le=400,
+        description="adaptive: the full model runs on a window whose cheap estimate lies within this "
+        "distance margin (bipolar) of a library decision boundary",
+    )
+    interval_level: float = Field(
+        0.9, ge=0.5, le=0.99, description="nominal coverage of the intervals in window events"
+    )
     # ---- network ----------------------------------------------------------------------------------
     host: str = Field("127.0.0.1", description="address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
@@ -63,77 +81,123 @@ class Settings(BaseSettings):
     )
     # ---- credentials and admission ------------------------------------------------------------------
     api_keys: SecretStr | None = Field(
-        None, description="fleet API keys, comma-separated, any of which opens sessions (`POST /sessions` with "
+        None,
+        description="fleet API keys, comma-separated, any of which opens sessions (`POST /sessions` with "
         "`Authorization: Bearer <key>`); with neither this nor api_keys_file, session creation is refused (503)",
     )
     api_keys_file: Path | None = Field(
-        None, description="file of fleet API keys, one per line (# comments); re-read when it changes, so keys rotate "
+        None,
+        description="file of fleet API keys, one per line (# comments); re-read when it changes, so keys rotate "
         "without a restart",
     )
-    session_rate_per_s: float = Field(0.5, gt=0, description="sessions a client (IP address) may open per second, sustained; "
-                                      "beyond it `POST /sessions` answers 429 with Retry-After")
-    session_burst: int = Field(10, ge=1, description="sessions a client may open at once before session_rate_per_s applies")
+    session_rate_per_s: float = Field(
+        0.5,
+        gt=0,
+        description="sessions a client (IP address) may open per second, sustained; "
+        "beyond it `POST /sessions` answers 429 with Retry-After",
+    )
+    session_burst: int = Field(
+        10, ge=1, description="sessions a client may open at once before session_rate_per_s applies"
+    )
     forwarded_allow_ips: str = Field(
-        "127.0.0.1", description="proxies whose X-Forwarded-For names the client (comma-separated IPs, or *), so the "
-        "session-creation rate applies per real client behind nginx")
+        "127.0.0.1",
+        description="proxies whose X-Forwarded-For names the client (comma-separated IPs, or *), so the "
+        "session-creation rate applies per real client behind nginx",
+    )
     cors_origins: tuple[str, ...] = Field(
         (), description="origins allowed to call the API from a browser (JSON list; default none: no CORS headers)"
     )
     # ---- estimation -------------------------------------------------------------------------------
-    hop_s: float = Field(0.5, gt=0, le=10, description="window hop for serving; the model's TactileConfig fixes the rest")
+    hop_s: float = Field(
+        0.5, gt=0, le=10, description="window hop for serving; the model's TactileConfig fixes the rest"
+    )
     smoothing_alpha: float = Field(0.5, gt=0, le=1, description="EMA weight of the newest window (1: no smoothing)")
     steadiness_windows: int = Field(5, ge=2, le=100, description="recent windows whose spread gives the steadiness")
     top_k: int = Field(3, ge=1, le=50, description="library matches per window event")
     nearest_weights: tuple[float, float, float, float] = Field(
-        (1.0, 1.0, 1.0, 1.0), description="per-attribute weights of the perceptual distance (JSON list in the environment)"
+        (1.0, 1.0, 1.0, 1.0),
+        description="per-attribute weights of the perceptual distance (JSON list in the environment)",
     )
-    hysteresis_margin: float = Field(5.0, ge=0, description="bipolar distance a challenger must gain to replace the choice")
+    hysteresis_margin: float = Field(
+        5.0, ge=0, description="bipolar distance a challenger must gain to replace the choice"
+    )
     hysteresis_hold: int = Field(2, ge=1, description="windows in a row a challenger must win")
     # ---- bounds -----------------------------------------------------------------------------------
     session_queue_windows: int = Field(
         8, ge=1, description="complete windows a session may have waiting; beyond it ingest answers 429 / closes 4429"
     )
-    session_queue_blocks: int = Field(1024, ge=1, description="blocks a session may hold unprocessed (guards against tiny blocks)")
-    max_lag_s: float = Field(5.0, gt=0, description="how far one channel may run ahead of another before blocks are refused")
-    subscriber_queue: int = Field(16, ge=1, description="events buffered per operator connection; older ones are dropped")
-    max_body_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="largest request body or WebSocket message (413 / close 1009)")
+    session_queue_blocks: int = Field(
+        1024, ge=1, description="blocks a session may hold unprocessed (guards against tiny blocks)"
+    )
+    max_lag_s: float = Field(
+        5.0, gt=0, description="how far one channel may run ahead of another before blocks are refused"
+    )
+    subscriber_queue: int = Field(
+        16, ge=1, description="events buffered per operator connection; older ones are dropped"
+    )
+    max_body_bytes: int = Field(
+        8 * 1024 * 1024, ge=1024, description="largest request body or WebSocket message (413 / close 1009)"
+    )
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
     session_idle_s: float = Field(60.0, gt=0, description="a session with no traffic for this long is ended")
     session_first_block_s: float = Field(
-        15.0, gt=0, description="a session that has received no block this long after its creation is ended (abandoned)")
+        15.0, gt=0, description="a session that has received no block this long after its creation is ended (abandoned)"
+    )
     max_block_s: float = Field(1.0, gt=0, le=60, description="stream time one block may span, s (422 beyond it)")
     max_block_windows: int = Field(
-        4, ge=1, description="windows one block may complete (422 beyond it); at most session_queue_windows")
+        4, ge=1, description="windows one block may complete (422 beyond it); at most session_queue_windows"
+    )
     max_seq_gap: int = Field(
-        1_000_000, ge=1, description="largest jump of seq over the last accepted one (≈ 5.5 h of 20 ms blocks); a larger "
-        "jump is refused (422) instead of making every later block a duplicate")
+        1_000_000,
+        ge=1,
+        description="largest jump of seq over the last accepted one (≈ 5.5 h of 20 ms blocks); a larger "
+        "jump is refused (422) instead of making every later block a duplicate",
+    )
     visual_queue: int = Field(
-        4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429")
+        4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429"
+    )
     frame_change: float = Field(
-        0.015, ge=0, le=2, description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
+        0.015,
+        ge=0,
+        le=2,
+        description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
         "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of each, summed; "
-        "service/scene_change.py)")
+        "service/scene_change.py)",
+    )
     timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
     request_read_timeout_s: float = Field(
-        10.0, gt=0, description="a request's headers and body must arrive within this, s (half-open requests are closed)")
+        10.0,
+        gt=0,
+        description="a request's headers and body must arrive within this, s (half-open requests are closed)",
+    )
     # ---- compute ----------------------------------------------------------------------------------
-    pool_threads: int = Field(2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time")
-    visual_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)")
+    pool_threads: int = Field(
+        2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time"
+    )
+    visual_threads: int = Field(
+        1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)"
+    )
     gil_switch_interval_s: float = Field(
-        0.0005, gt=0, le=0.1,
+        0.0005,
+        gt=0,
+        le=0.1,
         description="Python's GIL switch interval (sys.setswitchinterval); short keeps the event loop's socket "
         "writes from waiting behind pool threads",
     )
     # ---- fan-out ----------------------------------------------------------------------------------
-    broker: Literal["memory", "redis"] = Field("memory", description="event fan-out: in-process, or Redis pub/sub across replicas")
+    broker: Literal["memory", "redis"] = Field(
+        "memory", description="event fan-out: in-process, or Redis pub/sub across replicas"
+    )
     redis_url: str = Field("redis://localhost:6379/0", description="Redis for broker=redis")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info", description="log verbosity")
 
     @model_validator(mode="after")
-    def _block_fits_the_queue(self) -> "Settings":
+    def _block_fits_the_queue(self) -> Settings:
         if self.max_block_windows > self.session_queue_windows:
-            raise ValueError(f"max_block_windows ({self.max_block_windows}) must be ≤ session_queue_windows "
-                             f"({self.session_queue_windows}): such a block could never be admitted")
+            raise ValueError(
+                f"max_block_windows ({self.max_block_windows}) must be ≤ session_queue_windows "
+                f"({self.session_queue_windows}): such a block could never be admitted"
+            )
         return self
 
     @field_validator("instance_id")

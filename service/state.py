@@ -17,8 +17,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 from starlette.requests import Request
 
-from service.batcher import WindowBatcher
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
+from service.batcher import WindowBatcher
 from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord, Subscription, make_broker
 from service.errors import ServiceError, saturated
 from service.events import encode, status_event
@@ -42,8 +42,12 @@ class ServiceState:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.metrics = ServiceMetrics()
-        self.broker: Broker = make_broker(settings.broker, subscriber_queue=settings.subscriber_queue,
-                                          redis_url=settings.redis_url, instance_id=settings.instance_id)
+        self.broker: Broker = make_broker(
+            settings.broker,
+            subscriber_queue=settings.subscriber_queue,
+            redis_url=settings.redis_url,
+            instance_id=settings.instance_id,
+        )
         self.sessions: dict[str, Session] = {}
         self.runtime: Runtime | None = None
         self.load_error: str | None = None
@@ -67,9 +71,11 @@ class ServiceState:
         sys.setswitchinterval(self.settings.gil_switch_interval_s)
         await self.broker.start()
         self.batcher.start()
-        self._tasks = [asyncio.create_task(self._load(), name="load-runtime"),
-                       asyncio.create_task(self._reap_idle(), name="reap-idle-sessions"),
-                       asyncio.create_task(self._keep_alive(), name="replica-heartbeat")]
+        self._tasks = [
+            asyncio.create_task(self._load(), name="load-runtime"),
+            asyncio.create_task(self._reap_idle(), name="reap-idle-sessions"),
+            asyncio.create_task(self._keep_alive(), name="replica-heartbeat"),
+        ]
 
     async def _load(self) -> None:
         loop = asyncio.get_running_loop()
@@ -87,10 +93,17 @@ class ServiceState:
         gc.freeze()
         self.runtime = rt = runtime
         self.metrics.ready.set(1 if rt.problem is None else 0)
-        log.info("model %s (%s)%s and library %s (%d entries) loaded in %.1f s, warmed up in %.1f s%s",
-                 rt.model_name, rt.predictor.card.modality, f" with tactile-only {rt.tactile.card.model}" if rt.tactile else "",
-                 rt.library.name, len(rt.library.ids), rt.load_s, warm_s,
-                 f"; NOT READY: {rt.problem}" if rt.problem else "")
+        log.info(
+            "model %s (%s)%s and library %s (%d entries) loaded in %.1f s, warmed up in %.1f s%s",
+            rt.model_name,
+            rt.predictor.card.modality,
+            f" with tactile-only {rt.tactile.card.model}" if rt.tactile else "",
+            rt.library.name,
+            len(rt.library.ids),
+            rt.load_s,
+            warm_s,
+            f"; NOT READY: {rt.problem}" if rt.problem else "",
+        )
 
     async def close(self) -> None:
         for task in self._tasks:
@@ -126,14 +139,25 @@ class ServiceState:
         """A new session for `client` (its address, for the log) → (session, robot token, operator token)."""
         runtime = self.require_runtime()
         if len(self.sessions) >= self.settings.max_sessions:
-            raise ServiceError(503, f"this replica already runs {len(self.sessions)} sessions (max_sessions)",
-                               {"Retry-After": "5"})
+            raise ServiceError(
+                503, f"this replica already runs {len(self.sessions)} sessions (max_sessions)", {"Retry-After": "5"}
+            )
         # The replica's name prefixes the id so a load balancer can send all of a session's traffic here.
         session_id = f"{self.settings.instance_id}.{secrets.token_urlsafe(9)}"
         robot, operator, credentials = issue_credentials()
         name = name or session_id
-        session = Session(session_id, name, credentials, runtime, self.settings, self.visual_pool,
-                          self.publish, self.metrics, self.batcher.notify, self._visual_done)
+        session = Session(
+            session_id,
+            name,
+            credentials,
+            runtime,
+            self.settings,
+            self.visual_pool,
+            self.publish,
+            self.metrics,
+            self.batcher.notify,
+            self._visual_done,
+        )
         self.sessions[session_id] = session
         self.metrics.sessions_active.set(len(self.sessions))
         try:
@@ -141,8 +165,11 @@ class ServiceState:
         except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable
             await self._drop(session_id)
             raise _directory_unavailable(exc) from None
-        await self.publish(session_id, status_event(session_id, "session_created", f"session {name!r} created",
-                                                    model=runtime.model_name), False)
+        await self.publish(
+            session_id,
+            status_event(session_id, "session_created", f"session {name!r} created", model=runtime.model_name),
+            False,
+        )
         log.info("session %s created for %s", session_id, client)
         return session, robot, operator
 
@@ -155,8 +182,11 @@ class ServiceState:
         await self._drop(session_id)
         with contextlib.suppress(Exception):
             await (self.broker.mark_lost(session_id, why) if lost else self.broker.forget(session_id))
-        event = (_lost_event(session_id, why, self.settings.instance_id) if lost
-                 else status_event(session_id, "session_ended", why))
+        event = (
+            _lost_event(session_id, why, self.settings.instance_id)
+            if lost
+            else status_event(session_id, "session_ended", why)
+        )
         await self.publish(session_id, {**event, "counters": status["counters"]}, True)
         return {**status, "state": "ended"}
 
@@ -186,7 +216,9 @@ class ServiceState:
                 for sid in self.broker.subscribed():
                     if sid not in self.sessions:
                         with contextlib.suppress(ServiceError):
-                            await self.credentials(sid)  # marks it lost (and ends its subscriptions) if its owner is gone
+                            await self.credentials(
+                                sid
+                            )  # marks it lost (and ends its subscriptions) if its owner is gone
             except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: the next beat tries again
                 log.warning("replica heartbeat failed: %s: %s", type(exc).__name__, exc)
 
@@ -195,7 +227,9 @@ class ServiceState:
         for sid, session in list(self.sessions.items()):
             record = await self.broker.lookup(sid)
             if record is None:
-                await self.broker.register(SessionRecord(sid, session.name, self.settings.instance_id, session.credentials))
+                await self.broker.register(
+                    SessionRecord(sid, session.name, self.settings.instance_id, session.credentials)
+                )
             elif record.lost is not None:  # its operators were told by the replica that marked it; its robot gets 410
                 log.warning("session %s was marked lost while this replica was silent; ending it here", sid)
                 await self._drop(sid)
@@ -234,7 +268,9 @@ class ServiceState:
         except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: 503, not 500
             raise _directory_unavailable(exc) from None
 
-    async def authorized(self, session_id: str, token: str | None, roles: frozenset[Role]) -> tuple[Role, Session | None]:
+    async def authorized(
+        self, session_id: str, token: str | None, roles: frozenset[Role]
+    ) -> tuple[Role, Session | None]:
         creds, session = await self.credentials(session_id)
         return authorize(creds, token, roles, session_id), session
 
@@ -244,8 +280,11 @@ class ServiceState:
         if session is None:
             record = await self._lookup(session_id)
             owner = record.instance if record else "another replica"
-            raise ServiceError(421, f"session {session_id} runs on {owner}; route its traffic by session id "
-                                    f"(if {owner} is down, this becomes 410 within {REPLICA_TTL_S:g} s)")
+            raise ServiceError(
+                421,
+                f"session {session_id} runs on {owner}; route its traffic by session id "
+                f"(if {owner} is down, this becomes 410 within {REPLICA_TTL_S:g} s)",
+            )
         return session
 
     # ---- robots ----------------------------------------------------------------------------------
@@ -254,8 +293,11 @@ class ServiceState:
         self.metrics.robot_disconnects.inc(reason=why.replace(" ", "_"))
         log.info("robot of session %s disconnected (%s)", session.id, why)
         if not session.closed:
-            await self.publish(session.id, status_event(session.id, "robot_disconnected", f"the robot's ingest socket closed: {why}",
-                                                        reason=why), False)
+            await self.publish(
+                session.id,
+                status_event(session.id, "robot_disconnected", f"the robot's ingest socket closed: {why}", reason=why),
+                False,
+            )
 
     async def receive_frame(self, session: Session, runtime: Runtime, request: Request) -> FrameAck:
         """One camera frame: refused early (429) when the visual queue is full or the session's previous frame is
@@ -263,8 +305,11 @@ class ServiceState:
         if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
             self.metrics.frames.inc(outcome="refused")
             session.counters.frames_refused += 1
-            what = (f"session {session.id} is still decoding its previous frame" if session.decoding_frame else
-                    f"the visual queue is full ({self.settings.visual_queue} frames)")
+            what = (
+                f"session {session.id} is still decoding its previous frame"
+                if session.decoding_frame
+                else f"the visual queue is full ({self.settings.visual_queue} frames)"
+            )
             raise saturated(f"{what}; send the newest frame later", RETRY_AFTER_S)
         session.decoding_frame = True
         self.visual_load += 1
@@ -286,12 +331,17 @@ class ServiceState:
         self.metrics.frames.inc(outcome=outcome)
         height, width = gray.shape
         used = outcome != "ignored"
-        message = {"ignored": f"frame received (ignored: model {runtime.model_name} reads no images)",
-                   "unchanged": "frame received (scene unchanged: the current embedding stays)",
-                   "embedding": "frame received (scene changed: embedding it)",
-                   "superseded": "frame received (replaces a frame waiting for the embedder)"}[outcome]
-        await self.publish(session.id, status_event(session.id, "frame_received", message, used=used, outcome=outcome,
-                                                    width=width, height=height), False)
+        message = {
+            "ignored": f"frame received (ignored: model {runtime.model_name} reads no images)",
+            "unchanged": "frame received (scene unchanged: the current embedding stays)",
+            "embedding": "frame received (scene changed: embedding it)",
+            "superseded": "frame received (replaces a frame waiting for the embedder)",
+        }[outcome]
+        await self.publish(
+            session.id,
+            status_event(session.id, "frame_received", message, used=used, outcome=outcome, width=width, height=height),
+            False,
+        )
         return FrameAck(used=used, outcome=outcome, width=width, height=height)
 
     def _visual_done(self) -> None:
@@ -341,8 +391,13 @@ def reap_due(sessions, now: float, settings: Settings) -> list[tuple[str, str]]:
 
 def _lost_event(session_id: str, reason: str, instance: str) -> dict:
     """The final event of a session whose replica is gone: operators learn that its robot must start over."""
-    return status_event(session_id, "session_ended", f"session lost: {reason}; the robot must open a new session",
-                        lost=True, instance=instance)
+    return status_event(
+        session_id,
+        "session_ended",
+        f"session lost: {reason}; the robot must open a new session",
+        lost=True,
+        instance=instance,
+    )
 
 
 def _directory_unavailable(exc: Exception) -> ServiceError:

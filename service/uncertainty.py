@@ -1,7 +1,7 @@
 """What the service says about how far to trust a window: its interval and its out-of-distribution flag.
 
-A served model's card may carry interval calibrations (`models.intervals.IntervalCalibration`) and an
-`models.ood.OODDetector`, both written by `hapticlink train`. `ServedModel` is a loaded model with
+A served model's card may carry interval calibrations (`models.inference.intervals.IntervalCalibration`) and an
+`models.inference.ood.OODDetector`, both written by `hapticlink train`. `ServedModel` is a loaded model with
 them; `SessionUncertainty` is one session's running state. Per window:
 
     ood check     detector.check(the window's features, the frame's FrameCheck)   → flag, reasons, distance
@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.intervals import EmaUncertainty, IntervalCalibration, calibrations_from_card
-from models.ood import FrameCheck, OODDetector, OODResult
-from models.predictor import Predictor
+from models.inference.intervals import EmaUncertainty, IntervalCalibration, calibrations_from_card
+from models.inference.ood import FrameCheck, OODDetector, OODResult
+from models.inference.predictor import Predictor
 
 #: the reason a clean window of a smoothed estimate still carries when earlier flagged windows taint its EMA
 RECENT_FLAGGED = "recent_window_flagged"
@@ -61,7 +61,7 @@ class ServedModel:
     detector: OODDetector | None
 
     @classmethod
-    def load(cls, predictor: Predictor, smoothing_alpha: float) -> "ServedModel":
+    def load(cls, predictor: Predictor, smoothing_alpha: float) -> ServedModel:
         """ValueError if the card's calibrations or detector cannot be read, or do not fit the model's inputs."""
         card = predictor.card
         try:
@@ -70,14 +70,26 @@ class ServedModel:
         except ValueError as exc:
             raise ValueError(f"{predictor.path}: unreadable uncertainty in its card ({exc})") from None
         if detector is not None and predictor.needs_tactile and detector.n_tactile != predictor.n_tactile:
-            raise ValueError(f"{predictor.path}: its OOD detector reads {detector.n_tactile} tactile features, the model "
-                             f"{predictor.n_tactile}")
+            raise ValueError(
+                f"{predictor.path}: its OOD detector reads {detector.n_tactile} tactile features, the model "
+                f"{predictor.n_tactile}"
+            )
         if detector is not None and detector.visual is not None and detector.n_visual != predictor.n_visual:
-            raise ValueError(f"{predictor.path}: its OOD detector reads {detector.n_visual} visual features, the model "
-                             f"{predictor.n_visual}")
+            raise ValueError(
+                f"{predictor.path}: its OOD detector reads {detector.n_visual} visual features, the model "
+                f"{predictor.n_visual}"
+            )
         ema = cals.get("ema")
-        smoothed = ema if (ema is not None and smoothing_alpha < 1 and ema.ema_alpha is not None
-                           and abs(ema.ema_alpha - smoothing_alpha) < 1e-9) else cals.get("window")
+        smoothed = (
+            ema
+            if (
+                ema is not None
+                and smoothing_alpha < 1
+                and ema.ema_alpha is not None
+                and abs(ema.ema_alpha - smoothing_alpha) < 1e-9
+            )
+            else cals.get("window")
+        )
         return cls(predictor, smoothed, cals.get("window"), detector)
 
     @property
@@ -105,8 +117,9 @@ class ServedModel:
             frame = self.detector.check_visual(None)
         return self.detector.check(features, frame=frame)
 
-    def window_width(self, raw: np.ndarray, flagged: np.ndarray | None, distance: np.ndarray | None,
-                     level: float) -> np.ndarray | None:
+    def window_width(
+        self, raw: np.ndarray, flagged: np.ndarray | None, distance: np.ndarray | None, level: float
+    ) -> np.ndarray | None:
         """(n, A) width of each raw window estimate's interval (None without a window calibration).
         raw: (n, A); flagged, distance: (n,) the windows' checks (None: no detector)."""
         cal = self.window_calibration
@@ -131,8 +144,14 @@ class SessionUncertainty:
             raise ValueError(f"interval level must lie in (0, 1), got {self.level}")
         self._ema = EmaUncertainty(self.alpha)
 
-    def update(self, model: ServedModel, smoothed: np.ndarray, flagged: bool | None, reasons: list[str] | None,
-               distance: float | None) -> Assessment:
+    def update(
+        self,
+        model: ServedModel,
+        smoothed: np.ndarray,
+        flagged: bool | None,
+        reasons: list[str] | None,
+        distance: float | None,
+    ) -> Assessment:
         """One window, in order: the model that produced its raw estimate, the smoothed ratings (4,), and the
         window's own check (None without a detector)."""
         if flagged is None or distance is None:

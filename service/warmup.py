@@ -42,8 +42,11 @@ def warm_up(runtime: Runtime, settings: Settings, seed: int = 0) -> float:
     if runtime.needs_visual and runtime.tactile is None:
         inputs = inputs[1:]  # no tactile-only model: windows are only ever estimated with an embedding
     for batch_sessions in (1, 3):  # one session alone, and a batch of several (other array shapes)
-        jobs = [synthetic_job(runtime, settings, contract, rng, v, checks if v is not None else {}) for v in inputs
-                for _ in range(batch_sessions)]
+        jobs = [
+            synthetic_job(runtime, settings, contract, rng, v, checks if v is not None else {})
+            for v in inputs
+            for _ in range(batch_sessions)
+        ]
         for result in estimate_batch(runtime, jobs):
             if result.error is not None:
                 raise result.error
@@ -53,21 +56,29 @@ def warm_up(runtime: Runtime, settings: Settings, seed: int = 0) -> float:
     return time.perf_counter() - started
 
 
-def synthetic_job(runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual, checks: dict) -> SessionJob:
+def synthetic_job(
+    runtime: Runtime, settings: Settings, contract, rng: np.random.Generator, visual, checks: dict
+) -> SessionJob:
     """A fresh session's job of WARM_UP_WINDOWS windows of random vibration at constant speed and force
     (warm-up, and benchmarks.uncertainty's per-window cost)."""
     rate = runtime.tactile_config.rate_hz
     n = int(round(rate * (runtime.tactile_config.window_s + (WARM_UP_WINDOWS - 1) * runtime.tactile_config.hop_s)))
     # 3-column force (tangential x, y, normal): what a friction model needs, and what the others take the normal of
     force = np.column_stack([np.full(n, 0.45), np.zeros(n), np.full(n, 1.5)])
-    channels = {"accel": Channel(rng.normal(0, 1, size=(n, 3)), rate), "force": Channel(force, rate),
-                "speed": Channel(np.full(n, 80.0), rate)}
+    channels = {
+        "accel": Channel(rng.normal(0, 1, size=(n, 3)), rate),
+        "force": Channel(force, rate),
+        "speed": Channel(np.full(n, 80.0), rate),
+    }
     est = SessionEstimator.from_settings(runtime, contract, settings)
     adv = contract.advance(contract.start(), channels, 0.0)
     taps = None
     if runtime.needs_taps:  # a model with tap features: the tap function runs once too
         ringing = np.exp(-np.arange(100) / 8.0) * np.sin(np.arange(100) * 0.9)
-        taps = tap_features(np.array([20.0, 40.0]), np.stack([20.0 * ringing, 40.0 * ringing]) + rng.normal(0, 0.05, (2, 100)))
-    block = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, time.perf_counter_ns(),
-                          taps)
+        taps = tap_features(
+            np.array([20.0, 40.0]), np.stack([20.0 * ringing, 40.0 * ringing]) + rng.normal(0, 0.05, (2, 100))
+        )
+    block = AdmittedBlock(
+        0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, time.perf_counter_ns(), taps
+    )
     return SessionJob(est, [block], visual, adv.windows_added, checks)

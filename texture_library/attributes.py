@@ -26,9 +26,13 @@ def check_ratings(ratings: np.ndarray, what: str = "ratings") -> np.ndarray:
     """Validate bipolar ratings: (..., 4) finite values in [−100, 100]."""
     arr = np.asarray(ratings, dtype=float)
     if arr.ndim == 0 or arr.shape[-1] != len(ATTRIBUTES):
-        raise ValueError(f"{what}: last axis must have {len(ATTRIBUTES)} attributes {ATTRIBUTES}, got shape {arr.shape}")
+        raise ValueError(
+            f"{what}: last axis must have {len(ATTRIBUTES)} attributes {ATTRIBUTES}, got shape {arr.shape}"
+        )
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{what}: contains NaN or Inf")
     if arr.min() < RATING_MIN or arr.max() > RATING_MAX:
-        raise ValueError(f"{what}: values must lie in [{RATING_MIN:g}, {RATING_MAX:g}], got [{arr.min():g}, {arr.max():g}]")
+        raise ValueError(
+            f"{what}: values must lie in [{RATING_MIN:g}, {RATING_MAX:g}], got [{arr.min():g}, {arr.max():g}]"
+        )
     return arr

@@ -26,8 +26,9 @@ MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
 
 
-def check_channel(kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64,
-                  copy: bool = True) -> tuple[np.ndarray, float, str]:
+def check_channel(
+    kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64, copy: bool = True
+) -> tuple[np.ndarray, float, str]:
     """Validate one channel: (samples as `dtype`, (n,) or (n, k), in their own units; rate; units).
     copy=False returns `data` itself when it already has `dtype` (e.g. a read-only view of a wire message).
 
@@ -39,7 +40,11 @@ def check_channel(kind: str, data: object, rate_hz: object, units: object | None
     units = CANONICAL_UNITS[kind] if units is None else units
     if units not in UNIT_SCALE[kind]:
         raise ValueError(f"{kind}: units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
-    if isinstance(rate_hz, bool) or not isinstance(rate_hz, (int, float, np.integer, np.floating)) or not math.isfinite(rate_hz):
+    if (
+        isinstance(rate_hz, bool)
+        or not isinstance(rate_hz, (int, float, np.integer, np.floating))
+        or not math.isfinite(rate_hz)
+    ):
         raise ValueError(f"{kind}: sample rate must be a finite number, got {rate_hz!r}")
     if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
         raise ValueError(f"{kind}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g}")

@@ -86,10 +86,18 @@ def _render(args: argparse.Namespace) -> int:
 
         wavfile.write(out, int(model.rate_hz), accel.astype(np.float32))
     elif out.suffix == ".csv":
-        np.savetxt(out, np.column_stack([np.arange(n) / model.rate_hz, accel]), delimiter=",", header="t_s,accel_m_s2", comments="")
+        np.savetxt(
+            out,
+            np.column_stack([np.arange(n) / model.rate_hz, accel]),
+            delimiter=",",
+            header="t_s,accel_m_s2",
+            comments="",
+        )
     else:
         np.save(out, accel)
     clipped = args.speed > model.max_speed or args.force > model.max_force
-    print(f"rendered {n} samples ({args.seconds:g} s at {model.rate_hz:g} Hz), RMS {accel.std():.3f} m/s² → {out}"
-          + (f" (clamped to the model's range {model.max_speed:.0f} mm/s, {model.max_force:.1f} N)" if clipped else ""))
+    print(
+        f"rendered {n} samples ({args.seconds:g} s at {model.rate_hz:g} Hz), RMS {accel.std():.3f} m/s² → {out}"
+        + (f" (clamped to the model's range {model.max_speed:.0f} mm/s, {model.max_force:.1f} N)" if clipped else "")
+    )
     return 0

@@ -36,7 +36,9 @@ def read_predictions(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
-def import_hatt(src: str | Path, out: str | Path, *, predictions: str | Path | None = None) -> tuple[Library, list[str]]:
+def import_hatt(
+    src: str | Path, out: str | Path, *, predictions: str | Path | None = None
+) -> tuple[Library, list[str]]:
     """Build the library; returns it and the textures left out (no human ratings, no prediction)."""
     src, out = Path(src), Path(out)
     if not (src / "models").is_dir() or not (src / "textures.csv").is_file():
@@ -50,7 +52,11 @@ def import_hatt(src: str | Path, out: str | Path, *, predictions: str | Path | N
         tid = r["texture"]
         if tid in human:
             per_attr = [np.array([v for _, p, v in human[tid][a] if p == 1]) for a in ATTRIBUTES]
-            ratings, spread, source = np.array([x.mean() for x in per_attr]), np.array([x.std() for x in per_attr]), "human"
+            ratings, spread, source = (
+                np.array([x.mean() for x in per_attr]),
+                np.array([x.std() for x in per_attr]),
+                "human",
+            )
         elif tid in predicted:
             ratings, spread, source = predicted[tid], None, "predicted"
         else:
@@ -58,8 +64,20 @@ def import_hatt(src: str | Path, out: str | Path, *, predictions: str | Path | N
             continue
         taps = src / "taps" / f"{tid}.xml"
         model = read_model(src / "models" / f"{tid}.xml", taps if taps.is_file() else None, name=tid)
-        entries.append(add_entry(out, tid, model, name=r["name"], group=r["group"] or "unknown", ratings=np.round(ratings, 2),
-                                 ratings_source=source, provenance=model.provenance, licence=LICENCE, spread=spread))
+        entries.append(
+            add_entry(
+                out,
+                tid,
+                model,
+                name=r["name"],
+                group=r["group"] or "unknown",
+                ratings=np.round(ratings, 2),
+                ratings_source=source,
+                provenance=model.provenance,
+                licence=LICENCE,
+                spread=spread,
+            )
+        )
     lib = Library(out, "hatt", entries)
     lib.save()
     return lib, skipped

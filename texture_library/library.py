@@ -47,9 +47,13 @@ class LibraryEntry:
         if self.spread is not None:
             spread = np.asarray(self.spread, float)
             if spread.shape != (len(ATTRIBUTES),) or not np.all(np.isfinite(spread)) or np.any(spread < 0):
-                raise ValueError(f"entry {self.id!r}: spread must be {len(ATTRIBUTES)} finite values ≥ 0, got {self.spread!r}")
+                raise ValueError(
+                    f"entry {self.id!r}: spread must be {len(ATTRIBUTES)} finite values ≥ 0, got {self.spread!r}"
+                )
         if self.ratings_source not in RATING_SOURCES:
-            raise ValueError(f"entry {self.id!r}: ratings_source must be one of {RATING_SOURCES}, got {self.ratings_source!r}")
+            raise ValueError(
+                f"entry {self.id!r}: ratings_source must be one of {RATING_SOURCES}, got {self.ratings_source!r}"
+            )
 
     def to_json(self) -> dict:
         return {
@@ -66,14 +70,16 @@ class LibraryEntry:
         }
 
     @classmethod
-    def from_json(cls, raw: dict) -> "LibraryEntry":
+    def from_json(cls, raw: dict) -> LibraryEntry:
         missing = [k for k in ("id", "name", "ratings", "model") if k not in raw]
         if missing:
             raise ValueError(f"library entry {raw.get('id', '?')!r}: missing key(s) {missing}")
         ratings = raw["ratings"]
         unknown = set(ratings) - set(ATTRIBUTES)
         if unknown or set(ratings) != set(ATTRIBUTES):
-            raise ValueError(f"entry {raw['id']!r}: ratings must have exactly {list(ATTRIBUTES)}, got {sorted(ratings)}")
+            raise ValueError(
+                f"entry {raw['id']!r}: ratings must have exactly {list(ATTRIBUTES)}, got {sorted(ratings)}"
+            )
         spread = raw.get("spread")
         if spread is not None and (not isinstance(spread, dict) or set(spread) != set(ATTRIBUTES)):
             raise ValueError(f"entry {raw['id']!r}: spread must be null or have exactly {list(ATTRIBUTES)}")
@@ -141,7 +147,7 @@ class Library:
         return self.root
 
     @classmethod
-    def load(cls, root: str | Path) -> "Library":
+    def load(cls, root: str | Path) -> Library:
         root = Path(root)
         path = root / "library.json"
         if not path.is_file():

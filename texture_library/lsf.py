@@ -91,7 +91,9 @@ def poly_to_lsf(a: np.ndarray) -> np.ndarray:
         angles.append(ang[(ang > 1e-9) & (ang < np.pi - 1e-9)])
     lsf = np.sort(np.concatenate(angles))
     if lsf.size != p or np.any(np.diff(lsf) <= 0):
-        raise ValueError(f"LSFs of a could not be resolved numerically (found {lsf.size} of {p}); a is too close to instability")
+        raise ValueError(
+            f"LSFs of a could not be resolved numerically (found {lsf.size} of {p}); a is too close to instability"
+        )
     return lsf
 
 

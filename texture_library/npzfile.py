@@ -40,7 +40,9 @@ def load_npz(path: str | Path, fmt: str, version: int) -> tuple[dict, dict[str, 
         if header.get("format") != fmt:
             raise ValueError(f"{path}: format is {header.get('format')!r}, expected {fmt!r}")
         if header.get("version") != version:
-            raise ValueError(f"{path}: unsupported {fmt} version {header.get('version')!r} (this hapticlink reads {version})")
+            raise ValueError(
+                f"{path}: unsupported {fmt} version {header.get('version')!r} (this hapticlink reads {version})"
+            )
         try:
             arrays = {k: z[k] for k in z.files if k != "header"}
         except Exception as exc:  # noqa: BLE001 - a corrupt member (bad zip, bad zlib stream)

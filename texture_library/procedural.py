@@ -56,7 +56,11 @@ PARAM_RANGES: dict[str, tuple[float, float, bool]] = {
     "roughness_um": (1.0, 200.0, True),  # RMS height of the micro-texture
     "grain_mm": (0.3, 3.0, True),  # spatial period of the micro-texture
     "bump_height_mm": (0.0, 1.5, False),  # height of macro bumps
-    "bump_period_mm": (5.0, 25.0, True),  # spacing of macro bumps: felt against position (at 150 mm/s they ring at 6–30 Hz)
+    "bump_period_mm": (
+        5.0,
+        25.0,
+        True,
+    ),  # spacing of macro bumps: felt against position (at 150 mm/s they ring at 6–30 Hz)
     "mu": (0.15, 1.2, False),  # kinetic friction coefficient
     "stiffness_n_per_mm": (0.05, 50.0, True),  # contact stiffness
     "albedo": (0.25, 0.75, False),  # mean grey level: perceptually irrelevant on purpose
@@ -94,11 +98,11 @@ def _unit_log(x: float, name: str) -> float:
 def true_ratings(p: PhysicalParams) -> np.ndarray:
     """The documented mapping from physics to bipolar ratings (4,), −100…100.
 
-    rough_smooth    = −100·tanh(1.0·log10(roughness_um / 15))     rougher → −100
-    flat_bumpy      = +100·tanh(1.5·(bump_height_mm − 0.5))        higher bumps → +100
-    sticky_slippery = −100·tanh(2.0·(mu − 0.6))                    more friction → −100
-    hard_soft       = −100·tanh(0.9·log10(stiffness_n_per_mm / 1)) stiffer → −100
-Slopes are gentle enough that ratings spread over the scale instead of piling up at ±100.
+        rough_smooth    = −100·tanh(1.0·log10(roughness_um / 15))     rougher → −100
+        flat_bumpy      = +100·tanh(1.5·(bump_height_mm − 0.5))        higher bumps → +100
+        sticky_slippery = −100·tanh(2.0·(mu − 0.6))                    more friction → −100
+        hard_soft       = −100·tanh(0.9·log10(stiffness_n_per_mm / 1)) stiffer → −100
+    Slopes are gentle enough that ratings spread over the scale instead of piling up at ±100.
     """
     return 100.0 * np.array(
         [
@@ -228,12 +232,16 @@ def tap_transients(p: PhysicalParams, rng: np.random.Generator, n_taps: int = 10
     tau = 0.003 + 0.012 * _unit_log(p.stiffness_n_per_mm, "stiffness_n_per_mm")
     amp = 0.2 * speeds[:, None] * np.sqrt(p.stiffness_n_per_mm)
     onset = 5
-    shape = np.where(t >= onset / RATE_HZ, np.exp(-(t - onset / RATE_HZ) / tau) * np.sin(2 * np.pi * f * (t - onset / RATE_HZ)), 0.0)
+    shape = np.where(
+        t >= onset / RATE_HZ, np.exp(-(t - onset / RATE_HZ) / tau) * np.sin(2 * np.pi * f * (t - onset / RATE_HZ)), 0.0
+    )
     return TapSet(speeds, amp * shape[None, :] + 0.05 * rng.standard_normal((n_taps, n)))
 
 
 # ---- image --------------------------------------------------------------------------------------
-def _bandpass_noise(shape: tuple[int, int], period_px: float, rng: np.random.Generator, bandwidth: float = 0.5) -> np.ndarray:
+def _bandpass_noise(
+    shape: tuple[int, int], period_px: float, rng: np.random.Generator, bandwidth: float = 0.5
+) -> np.ndarray:
     """Gaussian noise band-passed around spatial frequency 1/period_px (unit std)."""
     ky = np.fft.fftfreq(shape[0])[:, None]
     kx = np.fft.rfftfreq(shape[1])[None, :]

@@ -11,11 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from texture_library.npzfile import load_npz, save_npz
 from texture_library.channels import CANONICAL_UNITS, CHANNEL_KINDS, UNIT_SCALE, check_channel
+from texture_library.npzfile import load_npz, save_npz
 
 FILE_FORMAT = "hapticlink-recording"
 FILE_VERSION = 1
+
 
 @dataclass(frozen=True)
 class Channel:
@@ -65,7 +66,7 @@ class Recording:
             out["position"] = self.position
         return out
 
-    def crop(self, start_s: float, stop_s: float) -> "Recording":
+    def crop(self, start_s: float, stop_s: float) -> Recording:
         """The part between start_s and stop_s (s from the start), every channel cut at its own rate."""
         if not (0 <= start_s < stop_s):
             raise ValueError(f"crop needs 0 ≤ start < stop, got {start_s}, {stop_s}")
@@ -92,7 +93,9 @@ def save_recording(path: str | Path, recording: Recording) -> Path:
     """Write a recording as .npz: one array per channel plus a JSON header of rates and units."""
     channels = recording.channels()
     header = {"channels": {k: {"rate_hz": c.rate_hz, "units": CANONICAL_UNITS[k]} for k, c in channels.items()}}
-    return save_npz(path, FILE_FORMAT, FILE_VERSION, header, {k: c.data.astype(np.float32) for k, c in channels.items()})
+    return save_npz(
+        path, FILE_FORMAT, FILE_VERSION, header, {k: c.data.astype(np.float32) for k, c in channels.items()}
+    )
 
 
 def load_recording(path: str | Path) -> Recording:
@@ -101,7 +104,7 @@ def load_recording(path: str | Path) -> Recording:
     header, arrays = load_npz(path, FILE_FORMAT, FILE_VERSION)
     specs = header.get("channels")
     if not isinstance(specs, dict) or not all(isinstance(s, dict) for s in specs.values()):
-        raise ValueError(f"{path}: header 'channels' must map each channel to {{\"rate_hz\": …, \"units\": …}}")
+        raise ValueError(f'{path}: header \'channels\' must map each channel to {{"rate_hz": …, "units": …}}')
     chans: dict[str, Channel] = {}
     for kind, spec in specs.items():
         if kind not in CHANNEL_KINDS:

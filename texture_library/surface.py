@@ -47,7 +47,7 @@ class SurfaceProfile:
         return {k: float(v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: object) -> "SurfaceProfile":
+    def from_dict(cls, d: object) -> SurfaceProfile:
         if not isinstance(d, dict) or set(d) != {"bump_height_mm", "bump_period_mm"}:
             raise ValueError(f"surface profile must be {{'bump_height_mm': …, 'bump_period_mm': …}}, got {d!r}")
         return cls(float(d["bump_height_mm"]), float(d["bump_period_mm"]))

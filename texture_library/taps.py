@@ -21,6 +21,8 @@ class TapSet:
         speeds = np.asarray(self.speeds)
         accel = np.asarray(self.accel)
         if speeds.ndim != 1 or accel.ndim != 2 or accel.shape[0] != speeds.shape[0] or speeds.shape[0] == 0:
-            raise ValueError(f"taps: need speeds (k,) and accel (k, n) with k ≥ 1, got {speeds.shape} and {accel.shape}")
+            raise ValueError(
+                f"taps: need speeds (k,) and accel (k, n) with k ≥ 1, got {speeds.shape} and {accel.shape}"
+            )
         if not (np.all(np.isfinite(speeds)) and np.all(np.isfinite(accel))):
             raise ValueError("taps: contain NaN or Inf")

@@ -37,7 +37,9 @@ def read_texnet_ratings(path) -> dict[str, dict[str, list[tuple[str, int, float]
     out: dict[str, dict[str, list[tuple[str, int, float]]]] = {}
     with open(path, newline="") as fh:
         reader = csv.DictReader(fh)
-        missing = [c for c in ("texture", "rater", "presentation", "attribute", "rating") if c not in (reader.fieldnames or [])]
+        missing = [
+            c for c in ("texture", "rater", "presentation", "attribute", "rating") if c not in (reader.fieldnames or [])
+        ]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}")
         for line, r in enumerate(reader, start=2):

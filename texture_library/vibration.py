@@ -137,11 +137,13 @@ class VibrationModel:
         return save_npz(path, FILE_FORMAT, FORMAT_VERSION, header, arrays)
 
     @classmethod
-    def load(cls, path: str | Path) -> "VibrationModel":
+    def load(cls, path: str | Path) -> VibrationModel:
         path = Path(path)
         header, arrays = load_npz(path, FILE_FORMAT, FORMAT_VERSION)
         missing = [k for k in ("name", "mu", "max_speed", "max_force", "rate_hz") if k not in header]
-        missing += [k for k in ("speeds", "forces", "triangles", "ar_lsf", "ma_lsf", "variance", "gain") if k not in arrays]
+        missing += [
+            k for k in ("speeds", "forces", "triangles", "ar_lsf", "ma_lsf", "variance", "gain") if k not in arrays
+        ]
         if missing:
             raise ValueError(f"{path}: missing {missing}")
         try:

@@ -12,5 +12,15 @@ from drivers.robot.errors import RobotAuthError, ServiceRefused, SessionLostErro
 from drivers.robot.resend import Pending, ResendBuffer
 from drivers.robot.session import SessionInfo, open_session
 
-__all__ = ["Backoff", "Pending", "ResendBuffer", "RobotAuthError", "RobotClient", "RobotStats", "ServiceRefused",
-           "SessionInfo", "SessionLostError", "open_session"]
+__all__ = [
+    "Backoff",
+    "Pending",
+    "ResendBuffer",
+    "RobotAuthError",
+    "RobotClient",
+    "RobotStats",
+    "ServiceRefused",
+    "SessionInfo",
+    "SessionLostError",
+    "open_session",
+]

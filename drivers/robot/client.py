@@ -65,7 +65,6 @@ class RobotStats:
         return asdict(self)
 
 
-
 class RobotClient:
     """Streams `source` to the service at `url` (http(s)://host:port[/prefix]).
 
@@ -149,8 +148,13 @@ class RobotClient:
             raise RuntimeError("this client already has a session")
         http = self._http or httpx.AsyncClient(timeout=self.request_timeout_s)
         try:
-            info = await open_session(http, self.url, self.api_key, self.session_name,
-                                      Backoff(self._block_backoff.base_s, self._block_backoff.cap_s))
+            info = await open_session(
+                http,
+                self.url,
+                self.api_key,
+                self.session_name,
+                Backoff(self._block_backoff.base_s, self._block_backoff.cap_s),
+            )
         finally:
             if http is not self._http:
                 await http.aclose()
@@ -188,7 +192,9 @@ class RobotClient:
                 self._reader = asyncio.create_task(self._read_source(), name="robot-reader")
                 if self._stopping:
                     self._reader.cancel()
-                sender = asyncio.create_task(send_ws(self) if self.transport == "ws" else send_http(self), name="robot-sender")
+                sender = asyncio.create_task(
+                    send_ws(self) if self.transport == "ws" else send_http(self), name="robot-sender"
+                )
                 framer = asyncio.create_task(send_frames(self), name="robot-frames")
                 tasks = [self._reader, sender, framer]
                 if duration_s is not None:
@@ -212,7 +218,9 @@ class RobotClient:
             self._http = None
             self.stats.unsent = len(self._buffer)
             if self.stats.unsent:
-                log.error("%d block(s) (%.1f s of data) were never acknowledged", self.stats.unsent, self._buffer.held_s)
+                log.error(
+                    "%d block(s) (%.1f s of data) were never acknowledged", self.stats.unsent, self._buffer.held_s
+                )
         return self.stats
 
     async def _drain(self, sender: asyncio.Task, framer: asyncio.Task) -> None:
@@ -224,8 +232,12 @@ class RobotClient:
         for task in done:
             task.result()
         if pending:
-            log.error("gave up delivering after %.0f s: %d block(s) still unacknowledged, %d frame(s) unsent",
-                      self.drain_timeout_s, len(self._buffer), len(self._frames))
+            log.error(
+                "gave up delivering after %.0f s: %d block(s) still unacknowledged, %d frame(s) unsent",
+                self.drain_timeout_s,
+                len(self._buffer),
+                len(self._frames),
+            )
 
     # ---- source → buffer ------------------------------------------------------------------------
     async def _read_source(self) -> None:
@@ -294,7 +306,10 @@ class RobotClient:
             self.stats.duplicates += 1
             if self.stats.resent == 0 and not self._warned_duplicate_start:
                 self._warned_duplicate_start = True
-                log.warning("the service already had block %d: this session received blocks before; pass start_seq above its last seq", seq)
+                log.warning(
+                    "the service already had block %d: this session received blocks before; pass start_seq above its last seq",
+                    seq,
+                )
         self._block_backoff.reset()
         self._blocks_changed.set()
 

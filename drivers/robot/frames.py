@@ -20,7 +20,7 @@ log = logging.getLogger("drivers.robot")
 FRAME_QUEUE = 4  # frames kept during an outage: the newest matter, older ones are superseded
 
 
-async def send_frames(client: "RobotClient") -> None:
+async def send_frames(client: RobotClient) -> None:
     """Send queued frames in order until drained; 429 (visual queue full) waits Retry-After and sends the newest."""
     http = client._http
     assert http is not None
@@ -35,7 +35,11 @@ async def send_frames(client: "RobotClient") -> None:
             continue
         frame = frames[0]
         try:
-            r = await http.post(url, content=frame.image, headers={**bearer(str(client.robot_token)), "Content-Type": frame.content_type})
+            r = await http.post(
+                url,
+                content=frame.image,
+                headers={**bearer(str(client.robot_token)), "Content-Type": frame.content_type},
+            )
         except httpx.TransportError as exc:
             delay = client._frame_backoff.next()
             log.warning("POST frame: %s: %s; retrying in %.2f s", type(exc).__name__, exc, delay)

@@ -18,13 +18,16 @@ if TYPE_CHECKING:
 log = logging.getLogger("drivers.robot")
 
 
-async def send_http(client: "RobotClient") -> None:
+async def send_http(client: RobotClient) -> None:
     """Deliver the client's blocks by HTTP POST until drained; RobotAuthError / ServiceRefused (SessionLostError on
     410) when final."""
     http = client._http
     assert http is not None
     url = client.url + session_path(str(client.session_id), "blocks")
-    headers = {**bearer(str(client.robot_token)), "Content-Type": BINARY_CONTENT_TYPE if client.binary else "application/json"}
+    headers = {
+        **bearer(str(client.robot_token)),
+        "Content-Type": BINARY_CONTENT_TYPE if client.binary else "application/json",
+    }
     buffer = client._buffer
     outage = False
     while True:
@@ -42,8 +45,14 @@ async def send_http(client: "RobotClient") -> None:
                 client._count_send(entry.seq)  # it may have arrived: the resend will tell
             outage = True
             delay = client._block_backoff.next()
-            log.warning("POST block %d: %s: %s; retrying in %.2f s (%d block(s) buffered)", entry.seq, type(exc).__name__, exc,
-                        delay, len(buffer))
+            log.warning(
+                "POST block %d: %s: %s; retrying in %.2f s (%d block(s) buffered)",
+                entry.seq,
+                type(exc).__name__,
+                exc,
+                delay,
+                len(buffer),
+            )
             await asyncio.sleep(delay)
             continue
         client._count_send(entry.seq)

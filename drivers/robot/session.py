@@ -30,8 +30,9 @@ def api_key_from_env(api_key: str | None) -> str | None:
     return api_key if api_key is not None else (os.environ.get(API_KEY_ENV) or None)
 
 
-async def open_session(http: httpx.AsyncClient, url: str, api_key: str | None, name: str | None,
-                       backoff: Backoff) -> SessionInfo:
+async def open_session(
+    http: httpx.AsyncClient, url: str, api_key: str | None, name: str | None, backoff: Backoff
+) -> SessionInfo:
     """Create a session at the service `url`, retrying transport errors, 5xx and 429 (after Retry-After).
 
     The operator token and console link are in the result, never in the log: logs travel further than
@@ -56,8 +57,10 @@ async def open_session(http: httpx.AsyncClient, url: str, api_key: str | None, n
             await asyncio.sleep(delay)
             continue
         if r.status_code in (401, 403):
-            raise RobotAuthError(f"creating a session: HTTP {r.status_code}: {detail(r)}"
-                                 + ("" if api_key else f" (pass --api-key or set {API_KEY_ENV})"))
+            raise RobotAuthError(
+                f"creating a session: HTTP {r.status_code}: {detail(r)}"
+                + ("" if api_key else f" (pass --api-key or set {API_KEY_ENV})")
+            )
         if r.status_code not in (200, 201):
             raise ServiceRefused(f"creating a session: HTTP {r.status_code}: {detail(r)}")
         doc = r.json()

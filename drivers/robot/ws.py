@@ -27,7 +27,7 @@ class Disconnected(Exception):
         self.reason = reason
 
 
-async def send_ws(client: "RobotClient") -> None:
+async def send_ws(client: RobotClient) -> None:
     """Deliver the client's blocks over WebSocket until drained; RobotAuthError / ServiceRefused (SessionLostError
     on 410) when final."""
     from websockets.asyncio.client import connect
@@ -39,8 +39,14 @@ async def send_ws(client: "RobotClient") -> None:
         if client._draining and not client._buffer:
             return
         try:
-            async with connect(uri, open_timeout=client.request_timeout_s, close_timeout=2.0, max_size=2**20,
-                               compression=None, proxy=None) as ws:
+            async with connect(
+                uri,
+                open_timeout=client.request_timeout_s,
+                close_timeout=2.0,
+                max_size=2**20,
+                compression=None,
+                proxy=None,
+            ) as ws:
                 if failed:
                     client.stats.reconnects += 1
                     log.info("reconnected to %s; resending from block %s", client.url, client._buffer.oldest_seq)
@@ -60,7 +66,9 @@ async def send_ws(client: "RobotClient") -> None:
             why = f"HTTP {status}"
         except Disconnected as exc:
             if exc.close_code == Close.POLICY:
-                raise RobotAuthError(f"the service closed the connection: authentication failed ({exc.reason or 'close 1008'})") from None
+                raise RobotAuthError(
+                    f"the service closed the connection: authentication failed ({exc.reason or 'close 1008'})"
+                ) from None
             if exc.close_code == Close.LOST:
                 raise session_lost(client.session_id, exc.reason or f"close {int(Close.LOST)}") from None
             if exc.close_code == Close.SESSION_ENDED and exc.reason == "session ended":
@@ -72,11 +80,17 @@ async def send_ws(client: "RobotClient") -> None:
             why = f"{type(exc).__name__}: {exc}"
         failed = True
         delay = client._block_backoff.next()
-        log.warning("WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)", client.url, why, delay, len(client._buffer))
+        log.warning(
+            "WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)",
+            client.url,
+            why,
+            delay,
+            len(client._buffer),
+        )
         await asyncio.sleep(delay)
 
 
-async def _stream(client: "RobotClient", ws) -> None:
+async def _stream(client: RobotClient, ws) -> None:
     """Send over one connection, from the oldest unacknowledged block, until drained (return) or the
     connection ends (Disconnected)."""
     from websockets.exceptions import ConnectionClosed
@@ -108,7 +122,7 @@ async def _stream(client: "RobotClient", ws) -> None:
     raise Disconnected(ws.close_code, ws.close_reason or "")
 
 
-async def _receive(client: "RobotClient", ws, sent_order: deque[int]) -> None:
+async def _receive(client: RobotClient, ws, sent_order: deque[int]) -> None:
     from websockets.exceptions import ConnectionClosed
 
     try:

@@ -219,7 +219,9 @@ class TactileConfig(BaseModel):
     def _check_spatial(self) -> None:
         nyq = self.rate_hz / 2
         if not (math.isfinite(self.spatial_highpass_hz) and 0 < self.spatial_highpass_hz < nyq):
-            raise ValueError(f"spatial_highpass_hz must lie in (0, rate_hz/2 = {nyq:g}) Hz, got {self.spatial_highpass_hz}")
+            raise ValueError(
+                f"spatial_highpass_hz must lie in (0, rate_hz/2 = {nyq:g}) Hz, got {self.spatial_highpass_hz}"
+            )
         for name in ("spatial_dx_mm", "spatial_min_period_mm", "spatial_max_period_mm", "spatial_min_speed"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -227,18 +229,24 @@ class TactileConfig(BaseModel):
         if self.spatial_bands < 1:
             raise ValueError(f"spatial_bands must be ≥ 1, got {self.spatial_bands}")
         if 2 * self.spatial_dx_mm > self.spatial_min_period_mm:
-            raise ValueError(f"spatial_dx_mm={self.spatial_dx_mm} cannot resolve spatial_min_period_mm="
-                             f"{self.spatial_min_period_mm} (needs dx ≤ period/2)")
+            raise ValueError(
+                f"spatial_dx_mm={self.spatial_dx_mm} cannot resolve spatial_min_period_mm="
+                f"{self.spatial_min_period_mm} (needs dx ≤ period/2)"
+            )
         if not self.spatial_min_period_mm < self.spatial_max_period_mm <= self.spatial_n_fft * self.spatial_dx_mm / 4:
-            raise ValueError(f"need spatial_min_period_mm < spatial_max_period_mm ≤ spatial_n_fft·spatial_dx_mm/4 = "
-                             f"{self.spatial_n_fft * self.spatial_dx_mm / 4:g} mm, got {self.spatial_min_period_mm}, "
-                             f"{self.spatial_max_period_mm}")
+            raise ValueError(
+                f"need spatial_min_period_mm < spatial_max_period_mm ≤ spatial_n_fft·spatial_dx_mm/4 = "
+                f"{self.spatial_n_fft * self.spatial_dx_mm / 4:g} mm, got {self.spatial_min_period_mm}, "
+                f"{self.spatial_max_period_mm}"
+            )
         ratio = (self.spatial_max_period_mm / self.spatial_min_period_mm) ** (1 / self.spatial_bands)
         bin_per_mm = 1 / (self.spatial_n_fft * self.spatial_dx_mm)
         if (ratio - 1) / self.spatial_max_period_mm < bin_per_mm:
-            raise ValueError(f"spatial_bands={self.spatial_bands}: the longest-period band is narrower than one "
-                             f"bin ({bin_per_mm:g} mm⁻¹) of a {self.spatial_n_fft}-point spectrum at {self.spatial_dx_mm} mm; "
-                             "use fewer bands or a larger spatial_n_fft")
+            raise ValueError(
+                f"spatial_bands={self.spatial_bands}: the longest-period band is narrower than one "
+                f"bin ({bin_per_mm:g} mm⁻¹) of a {self.spatial_n_fft}-point spectrum at {self.spatial_dx_mm} mm; "
+                "use fewer bands or a larger spatial_n_fft"
+            )
 
     # ---- derived sizes -------------------------------------------------------------------
     @property

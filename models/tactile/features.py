@@ -27,7 +27,6 @@ import math
 
 import numpy as np
 
-from texture_library.recording import Recording
 from models.tactile.config import TactileConfig
 from models.tactile.dft import dft_features
 from models.tactile.dft321 import dft321
@@ -37,6 +36,7 @@ from models.tactile.mfcc import mfcc
 from models.tactile.preprocess import TactilePreprocessor
 from models.tactile.spatial import spatial_features
 from models.tactile.taps import TAP_NAMES
+from texture_library.recording import Recording
 
 #: windows per block inside window_features (keeps temporaries in cache; results equal up to float32 rounding)
 CHUNK = 64
@@ -74,8 +74,11 @@ def window_features(
     speed = _check("speed", speed, (n, L))
     force = _check("force", force, (n, L) if config.force_columns == 1 else (n, L, config.force_columns))
     if ("taps" in config.extra_groups) != (taps is not None):
-        raise ValueError("this configuration has the taps group: pass taps (n, 3) from tap_features"
-                         if taps is None else "taps given, but this configuration has no taps group")
+        raise ValueError(
+            "this configuration has the taps group: pass taps (n, 3) from tap_features"
+            if taps is None
+            else "taps given, but this configuration has no taps group"
+        )
     normal = force if force.ndim == 2 else force[:, :, 0]
     out = np.empty((n, config.n_features), dtype=np.float32)
     for lo in range(0, n, CHUNK):  # blocks of windows keep the temporaries in cache
@@ -93,16 +96,27 @@ def window_features(
         out[:, groups["friction"]] = friction_features(normal, force[:, :, 1])
     if "spatial" in groups:
         out[:, groups["spatial"]] = spatial_features(
-            accel[:, :, 3:], normal, speed, config.rate_hz, dx_mm=config.spatial_dx_mm, n_fft=config.spatial_n_fft,
-            min_period_mm=config.spatial_min_period_mm, max_period_mm=config.spatial_max_period_mm,
-            n_bands=config.spatial_bands, min_speed=config.spatial_min_speed)
+            accel[:, :, 3:],
+            normal,
+            speed,
+            config.rate_hz,
+            dx_mm=config.spatial_dx_mm,
+            n_fft=config.spatial_n_fft,
+            min_period_mm=config.spatial_min_period_mm,
+            max_period_mm=config.spatial_max_period_mm,
+            n_bands=config.spatial_bands,
+            min_speed=config.spatial_min_speed,
+        )
     if "taps" in groups:
         out[:, groups["taps"]] = _check("taps", taps, (n, len(TAP_NAMES)))
     return out
 
 
 def recording_features(
-    recording: Recording, config: TactileConfig, skip_s: float = 0.0, stop_s: float | None = None,
+    recording: Recording,
+    config: TactileConfig,
+    skip_s: float = 0.0,
+    stop_s: float | None = None,
     taps: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Features of every window of a recording → (features (n_win, n_features) float32, t_start (n_win,) s).

@@ -43,6 +43,7 @@ def friction_features(normal: np.ndarray, tangential: np.ndarray) -> np.ndarray:
     count = pressed.sum(axis=1)
     r = np.divide(tangential, normal, out=np.zeros_like(normal), where=pressed)
     mean = np.divide(r.sum(axis=1), count, out=np.zeros_like(nn), where=count > 0)
-    var = np.divide(np.sum(np.where(pressed, (r - mean[:, None]) ** 2, 0.0), axis=1), count,
-                    out=np.zeros_like(nn), where=count > 1)
+    var = np.divide(
+        np.sum(np.where(pressed, (r - mean[:, None]) ** 2, 0.0), axis=1), count, out=np.zeros_like(nn), where=count > 1
+    )
     return np.stack([ratio, np.sqrt(var)], axis=1)

@@ -34,12 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.filters import StatefulSOS, design_highpass, design_lowpass
 from models.tactile.resample import Resampler, check_rate
-from models.tactile.stream import INPUT_COLUMNS, STREAMS as STREAM_SPECS, StreamContract
+from models.tactile.stream import INPUT_COLUMNS, StreamContract
+from models.tactile.stream import STREAMS as STREAM_SPECS
 from models.tactile.windows import sliding_windows
+from texture_library.recording import Channel
 
 STREAMS = tuple(spec.name for spec in STREAM_SPECS)  # ("accel", "speed", "force")
 
@@ -141,13 +142,18 @@ class TactilePreprocessor:
     """
 
     def __init__(
-        self, config: TactileConfig | None = None, skip_s: float = 0.0, max_buffer_s: float | None = 60.0,
+        self,
+        config: TactileConfig | None = None,
+        skip_s: float = 0.0,
+        max_buffer_s: float | None = 60.0,
         contract: StreamContract | None = None,
     ) -> None:
         if contract is None:
             config = config if config is not None else TactileConfig()
             if max_buffer_s is not None and not (math.isfinite(max_buffer_s) and max_buffer_s >= 2 * config.window_s):
-                raise ValueError(f"max_buffer_s must be ≥ 2·window_s = {2 * config.window_s} s or None, got {max_buffer_s!r}")
+                raise ValueError(
+                    f"max_buffer_s must be ≥ 2·window_s = {2 * config.window_s} s or None, got {max_buffer_s!r}"
+                )
             contract = StreamContract(config, max_lag_s=max_buffer_s, skip_s=skip_s)
         self.contract = contract
         self.config = c = contract.config
@@ -160,12 +166,18 @@ class TactilePreprocessor:
             "force": StatefulSOS(design_lowpass(c.lowpass_hz, c.rate_hz, c.lowpass_order), "steady"),
         }
         # the spatial group's accel: same axes, high-passed only against gravity
-        self._spatial = (StatefulSOS(design_highpass(c.spatial_highpass_hz, c.rate_hz, 2), "steady")
-                         if "spatial" in c.extra_groups else None)
+        self._spatial = (
+            StatefulSOS(design_highpass(c.spatial_highpass_hz, c.rate_hz, 2), "steady")
+            if "spatial" in c.extra_groups
+            else None
+        )
         self._position_speed = PositionSpeed(c.rate_hz)
         force_shape = (0,) if c.force_columns == 1 else (0, c.force_columns)
-        self._buf: dict[str, np.ndarray] = {"accel": np.empty((0, c.accel_columns)), "speed": np.empty(0),
-                                            "force": np.empty(force_shape)}
+        self._buf: dict[str, np.ndarray] = {
+            "accel": np.empty((0, c.accel_columns)),
+            "speed": np.empty(0),
+            "force": np.empty(force_shape),
+        }
         self._n: dict[str, int] = dict.fromkeys(STREAMS, 0)  # samples produced per stream
         self._buf_start = 0  # global 1 kHz index of each buffer's first sample
         self._next = 0  # index of the next window to emit
@@ -173,7 +185,7 @@ class TactilePreprocessor:
 
     @property
     def speed_source(self) -> str | None:
-        """"speed" or "position": the channel feeding speed, fixed by the first block with either."""
+        """ "speed" or "position": the channel feeding speed, fixed by the first block with either."""
         return self._cursor.sources.get("speed")
 
     # ---- input ---------------------------------------------------------------------------
@@ -201,8 +213,11 @@ class TactilePreprocessor:
                 self._resamplers[name] = Resampler(ch.rate_hz, self.config.rate_hz)
             if name == "force" and data.ndim == 2:
                 # (tangential x, tangential y, normal) → normal [, tangential magnitude]
-                data = data[:, 2] if self.config.force_columns == 1 else np.stack(
-                    [data[:, 2], np.hypot(data[:, 0], data[:, 1])], axis=1)
+                data = (
+                    data[:, 2]
+                    if self.config.force_columns == 1
+                    else np.stack([data[:, 2], np.hypot(data[:, 0], data[:, 1])], axis=1)
+                )
             self._feed(name, self._resamplers[name].process(data))
         self._trim()
         return self.n_ready
@@ -268,7 +283,9 @@ class TactilePreprocessor:
             t_start_s=starts / c.rate_hz,
             accel=np.ascontiguousarray(np.swapaxes(views["accel"], 1, 2)),  # (m, 3, L) → (m, L, 3)
             speed=views["speed"].copy(),
-            force=views["force"].copy() if views["force"].ndim == 2 else np.ascontiguousarray(np.swapaxes(views["force"], 1, 2)),
+            force=views["force"].copy()
+            if views["force"].ndim == 2
+            else np.ascontiguousarray(np.swapaxes(views["force"], 1, 2)),
         )
         self._next += m
         self._trim()

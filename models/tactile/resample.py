@@ -100,7 +100,9 @@ class Resampler:
             buf, base = np.concatenate([self._last[None], x]), self._n_in - 1
         self._n_in += x.shape[0]
         # positions in input samples of every output now due (resampled_count states which are)
-        ks = np.arange(self._k, max(self._k, resampled_count(self._n_in, self.rate_in, self.rate_out)), dtype=np.float64)
+        ks = np.arange(
+            self._k, max(self._k, resampled_count(self._n_in, self.rate_in, self.rate_out)), dtype=np.float64
+        )
         pos = ks * self.rate_in / self.rate_out
         self._last = buf[-1].copy()
         if pos.size == 0:

@@ -59,7 +59,9 @@ MIN_CELLS = 4
 def band_edges_per_mm(min_period_mm: float, max_period_mm: float, n_bands: int) -> np.ndarray:
     """(n_bands + 1,) spatial-frequency band edges, mm⁻¹, ascending (band 0 holds the longest periods)."""
     if not (0 < min_period_mm < max_period_mm) or n_bands < 1:
-        raise ValueError(f"need 0 < min_period < max_period and n_bands ≥ 1, got {min_period_mm}, {max_period_mm}, {n_bands}")
+        raise ValueError(
+            f"need 0 < min_period < max_period and n_bands ≥ 1, got {min_period_mm}, {max_period_mm}, {n_bands}"
+        )
     edges = np.geomspace(1.0 / max_period_mm, 1.0 / min_period_mm, n_bands + 1)
     edges.setflags(write=False)
     return edges
@@ -97,7 +99,9 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     n, length, c = signal.shape
     cells = np.minimum((x_edges[:, -1] / dx_mm).astype(np.int64), n_fft)  # (n,)
     n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
-    integral = np.concatenate([np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1)
+    integral = np.concatenate(
+        [np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1
+    )
     # one np.interp per column for every window: rows are laid end to end, `gap` mm apart
     gap = float(x_edges[:, -1].max(initial=0.0)) + (n_grid + 2) * dx_mm
     offset = (np.arange(n) * gap)[:, None]
@@ -105,11 +109,15 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     xs = (x_edges + offset).ravel()
     at = np.stack([np.interp(grid.ravel(), xs, integral[:, :, k].ravel()) for k in range(c)], axis=1)
     # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part
-    means = (np.diff(at.reshape(n, n_grid + 1, c), axis=1) / dx_mm).astype(np.float32)  # (n, n_grid, c); beyond a window's cells: ignored
+    means = (np.diff(at.reshape(n, n_grid + 1, c), axis=1) / dx_mm).astype(
+        np.float32
+    )  # (n, n_grid, c); beyond a window's cells: ignored
     j = np.arange(n_grid, dtype=np.float32)[None, :]
     m = np.maximum(cells, 2)[:, None].astype(np.float32)
     inside = j < cells[:, None]
-    w = np.where(inside, np.sin(np.float32(np.pi) * (j + 1) / (m + 1)) ** 2, np.float32(0))  # Hann without its zero ends
+    w = np.where(
+        inside, np.sin(np.float32(np.pi) * (j + 1) / (m + 1)) ** 2, np.float32(0)
+    )  # Hann without its zero ends
     t = np.where(inside, 2 * j / (m - 1) - 1, np.float32(0))
     # weighted least-squares line a + b·t through each column (weights w²), removed before the taper
     w2 = w * w
@@ -147,8 +155,10 @@ def spatial_features(
     force = np.asarray(force, dtype=np.float64)
     speed = np.asarray(speed, dtype=np.float64)
     if accel.ndim != 3 or accel.shape[2] != 3 or speed.shape != accel.shape[:2] or force.shape != speed.shape:
-        raise ValueError(f"spatial features need accel (n, L, 3), force (n, L) and speed (n, L), "
-                         f"got {accel.shape}, {force.shape} and {speed.shape}")
+        raise ValueError(
+            f"spatial features need accel (n, L, 3), force (n, L) and speed (n, L), "
+            f"got {accel.shape}, {force.shape} and {speed.shape}"
+        )
     if not (rate_hz > 0 and dx_mm > 0 and min_speed > 0):
         raise ValueError(f"rate_hz, dx_mm and min_speed must be > 0, got {rate_hz}, {dx_mm}, {min_speed}")
     if 2 * dx_mm > min_period_mm:
@@ -165,7 +175,12 @@ def spatial_features(
     # position-weighted mean of v⁴ ((mm/s)⁴): the acceleration's power over a profile is |z''|²·v⁴
     v4 = np.maximum(np.sum(v**4 * step, axis=1) / np.maximum(x[:, -1], 1e-12), min_speed**4)
     power = position_power(np.concatenate([1e3 * accel, force[:, :, None]], axis=2), x, dx_mm, n_fft)
-    energy = np.concatenate([power[:, :, :3].sum(axis=2) @ height_w / v4[:, None] + ENERGY_FLOOR_MM2,
-                             power[:, :, 3] @ force_w + FORCE_FLOOR_N2], axis=1)  # mm² per accel band, N² per force band
+    energy = np.concatenate(
+        [
+            power[:, :, :3].sum(axis=2) @ height_w / v4[:, None] + ENERGY_FLOOR_MM2,
+            power[:, :, 3] @ force_w + FORCE_FLOOR_N2,
+        ],
+        axis=1,
+    )  # mm² per accel band, N² per force band
     totals = np.sqrt(np.stack([energy[:, :n_bands].sum(axis=1), energy[:, n_bands:].sum(axis=1)], axis=1))
     return np.concatenate([np.log10(energy), totals], axis=1)

@@ -90,7 +90,7 @@ class StreamCursor:
     next_t0: float | None = None
     windows: int = 0  # complete windows of the current segment (set by the contract)
 
-    def restarted(self) -> "StreamCursor":
+    def restarted(self) -> StreamCursor:
         """The same stream with its segment broken: the next block starts a new one (after a failure)."""
         return replace(self, samples={}, next_t0=math.nan, windows=0)
 
@@ -118,17 +118,25 @@ class StreamContract:
     max_lag_s / max_block_s / max_block_windows: None disables that bound (offline use).
     """
 
-    def __init__(self, config: TactileConfig | None = None, *, max_lag_s: float | None = 5.0,
-                 gap_tolerance_s: float = GAP_TOLERANCE_S, max_block_s: float | None = None,
-                 max_block_windows: int | None = None, skip_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        config: TactileConfig | None = None,
+        *,
+        max_lag_s: float | None = 5.0,
+        gap_tolerance_s: float = GAP_TOLERANCE_S,
+        max_block_s: float | None = None,
+        max_block_windows: int | None = None,
+        skip_s: float = 0.0,
+    ) -> None:
         self.config = config if config is not None else TactileConfig()
         for name, value in (("max_lag_s", max_lag_s), ("max_block_s", max_block_s)):
             if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number of seconds > 0 or None, got {value!r}")
         if not (isinstance(gap_tolerance_s, (int, float)) and math.isfinite(gap_tolerance_s) and gap_tolerance_s >= 0):
             raise ValueError(f"gap_tolerance_s must be a finite number ≥ 0 s, got {gap_tolerance_s!r}")
-        if max_block_windows is not None and (isinstance(max_block_windows, bool) or not isinstance(max_block_windows, int)
-                                              or max_block_windows < 1):
+        if max_block_windows is not None and (
+            isinstance(max_block_windows, bool) or not isinstance(max_block_windows, int) or max_block_windows < 1
+        ):
             raise ValueError(f"max_block_windows must be an integer ≥ 1 or None, got {max_block_windows!r}")
         if not (isinstance(skip_s, (int, float)) and math.isfinite(skip_s) and skip_s >= 0):
             raise ValueError(f"skip_s must be a finite number ≥ 0 s, got {skip_s!r}")
@@ -143,8 +151,9 @@ class StreamContract:
         return StreamCursor()
 
     # ---- one block ---------------------------------------------------------------------------------
-    def advance(self, cursor: StreamCursor, channels: Mapping[str, Channel], t0: float | None = None, *,
-                bounded: bool = False) -> Advance:
+    def advance(
+        self, cursor: StreamCursor, channels: Mapping[str, Channel], t0: float | None = None, *, bounded: bool = False
+    ) -> Advance:
         """The stream after a block of `channels` (canonical units) starting at sender time t0 (s).
 
         t0=None: the block continues the current segment (the preprocessor, which sees no clock).
@@ -152,8 +161,10 @@ class StreamContract:
         """
         for kind in channels:
             if kind not in _FEEDS:
-                raise ValueError(f"unknown channel(s) {sorted(k for k in channels if k not in _FEEDS)}; "
-                                 f"expected some of {sorted(INPUT_COLUMNS)}")
+                raise ValueError(
+                    f"unknown channel(s) {sorted(k for k in channels if k not in _FEEDS)}; "
+                    f"expected some of {sorted(INPUT_COLUMNS)}"
+                )
         sources = cursor.sources
         used: dict[str, Channel] = {}
         for spec in STREAMS:
@@ -167,7 +178,9 @@ class StreamContract:
                 if kind == chosen:
                     used[kind] = channels[kind]
                 elif spec.sources.index(kind) < spec.sources.index(chosen):  # a preferred source after a fallback
-                    raise ValueError(f"{kind}: got a {kind} channel after {spec.name} was already being derived from {chosen}")
+                    raise ValueError(
+                        f"{kind}: got a {kind} channel after {spec.name} was already being derived from {chosen}"
+                    )
         rates, columns = cursor.rates, cursor.columns
         span = 0.0
         counts = []
@@ -179,9 +192,11 @@ class StreamContract:
                 allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in INPUT_COLUMNS[kind])
                 raise ValueError(f"{kind}: shape must be {allowed}, got {shape}")
             if kind == "force" and cols == 1 and self.config.force_columns > 1:
-                raise ValueError("force: the friction features need 3-column force (tangential x, tangential y, "
-                                 "normal); this stream sends the normal force only — use a model without the "
-                                 "friction group")
+                raise ValueError(
+                    "force: the friction features need 3-column force (tangential x, tangential y, "
+                    "normal); this stream sends the normal force only — use a model without the "
+                    "friction group"
+                )
             rate = float(ch.rate_hz)
             known = rates.get(kind)
             if known is None:
@@ -194,7 +209,9 @@ class StreamContract:
             span = max(span, shape[0] / rate)
         if bounded and self.max_block_s is not None and span > self.max_block_s + 1e-9:
             raise ValueError(f"a block spans at most {self.max_block_s:g} s of stream time, got {span:g} s")
-        new_segment = t0 is not None and (cursor.next_t0 is None or not abs(t0 - cursor.next_t0) <= self.gap_tolerance_s)
+        new_segment = t0 is not None and (
+            cursor.next_t0 is None or not abs(t0 - cursor.next_t0) <= self.gap_tolerance_s
+        )
         before = 0 if new_segment else cursor.windows
         samples = {} if new_segment else dict(cursor.samples)
         for kind, n in counts:
@@ -210,8 +227,10 @@ class StreamContract:
         windows = self.windows_in(self.covered(after))
         object.__setattr__(after, "windows", windows)  # frozen: set once, here
         if bounded and self.max_block_windows is not None and windows - before > self.max_block_windows:
-            raise ValueError(f"this block would complete {windows - before} windows; a block may complete at most "
-                             f"{self.max_block_windows} (send every channel in every block, in shorter blocks)")
+            raise ValueError(
+                f"this block would complete {windows - before} windows; a block may complete at most "
+                f"{self.max_block_windows} (send every channel in every block, in shorter blocks)"
+            )
         return Advance(after, used, new_segment, before, windows, span)
 
     def admit(self, cursor: StreamCursor, channels: Mapping[str, Channel], t0: float) -> Advance:
@@ -227,8 +246,10 @@ class StreamContract:
         lead = max(seconds.values())
         behind = [name for name, s in seconds.items() if lead - s > self.max_lag_s]
         if behind:
-            raise ValueError(f"{', '.join(behind)} lag(s) the other channels by more than {self.max_lag_s:g} s; "
-                             "is every channel being sent?")
+            raise ValueError(
+                f"{', '.join(behind)} lag(s) the other channels by more than {self.max_lag_s:g} s; "
+                "is every channel being sent?"
+            )
 
     @staticmethod
     def _seconds(cursor: StreamCursor, spec: StreamSpec) -> float:

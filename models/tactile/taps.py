@@ -60,7 +60,7 @@ def tap_features(speeds: np.ndarray, accel: np.ndarray, rate_hz: float = 1000.0)
     decay = np.empty(k)
     centroid = np.empty(k)
     for i in range(k):
-        after = envelope[i, peak_at[i]:] < peak[i] / np.e
+        after = envelope[i, peak_at[i] :] < peak[i] / np.e
         steps = int(np.argmax(after)) if after.any() else n - peak_at[i]
         decay[i] = max(steps, 1) / rate_hz
         # the ringing only: after a few time constants a fast-decaying tap is sensor noise

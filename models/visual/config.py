@@ -61,9 +61,11 @@ class VisualConfig(BaseModel):
         return value
 
     @model_validator(mode="after")
-    def _resize_holds_a_patch(self) -> "VisualConfig":
+    def _resize_holds_a_patch(self) -> VisualConfig:
         if self.resize is not None and self.resize < self.patch_size:
-            raise ValueError(f"resize ({self.resize} px) must be ≥ patch_size ({self.patch_size} px): one patch must fit")
+            raise ValueError(
+                f"resize ({self.resize} px) must be ≥ patch_size ({self.patch_size} px): one patch must fit"
+            )
         return self
 
     @property

@@ -1,7 +1,6 @@
-"""The visual backbone as an ONNX file: export (torch, training side) and `OnnxBackbone` (onnxruntime, serving side).
+"""The visual backbone as an ONNX file, run by onnxruntime on the serving side (`OnnxBackbone`).
 
-Importing this module does not import torch: the service runs `OnnxBackbone`
-without it. Only `export_backbone_onnx` imports torch and onnx, inside the call.
+The export (torch) lives in the offline wing: `models.offline.backbones.onnx_export`.
 
 The graph takes the same input as `Backbone.embed` — "patches", (batch, 224, 224)
 float32 grayscale in [0, 1] — and returns "features", (batch, dim) float32;
@@ -15,83 +14,18 @@ RGB replication and normalisation are inside it. metadata_props:
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import warnings
-from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import onnxruntime as ort
 
 from models.visual.patches import check_patch_batch
 
-if TYPE_CHECKING:  # annotations only; never imported at run time here
-    from models.visual.backbone import Backbone
-
 INPUT_NAME = "patches"
 OUTPUT_NAME = "features"
 META_PREFIX = "hapticlink.visual."
 META_KEYS = ("backbone", "dim", "weights_fingerprint", "config_hash", "input_size")
-DEFAULT_OPSET = 18  # the dynamo exporter's native opset: no version conversion step
 DEFAULT_BATCH_SIZE = 16
-
-
-def export_backbone_onnx(
-    backbone: Backbone,
-    path: str | Path,
-    *,
-    config_hash: str,
-    opset: int = DEFAULT_OPSET,
-    dynamo: bool = True,
-) -> Path:
-    """Write `backbone` (patch batch → pooled features) to `path` as ONNX with a dynamic batch axis.
-
-    dynamo  True: torch.export-based exporter (torch's supported path, offline, needs onnxscript);
-            False: the legacy TorchScript exporter (faster to run, deprecated in torch ≥ 2.9).
-    returns the written path
-    """
-    import onnx
-    import torch
-
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    example = torch.rand(2, backbone.input_size, backbone.input_size, generator=torch.Generator().manual_seed(0))
-    encoder = backbone.encoder.eval()
-    with _quiet_exporter():
-        if dynamo:
-            torch.onnx.export(
-                encoder,
-                (example,),
-                str(out),
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                opset_version=opset,
-                dynamo=True,
-                dynamic_shapes={INPUT_NAME: {0: torch.export.Dim("batch")}},
-                external_data=False,  # one self-contained file to ship
-                verbose=False,
-            )
-        else:
-            torch.onnx.export(
-                encoder,
-                (example,),
-                str(out),
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                opset_version=opset,
-                dynamo=False,
-                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
-            )
-    model = onnx.load(str(out))
-    meta = backbone_metadata(backbone.name, backbone.dim, backbone.fingerprint, config_hash, backbone.input_size)
-    existing = {p.key: p for p in model.metadata_props}
-    for key, value in meta.items():
-        prop = existing.get(key) or model.metadata_props.add()
-        prop.key, prop.value = key, value
-    onnx.save(model, str(out))
-    return out
 
 
 def backbone_metadata(name: str, dim: int, fingerprint: str, config_hash: str, input_size: int) -> dict[str, str]:
@@ -104,22 +38,6 @@ def backbone_metadata(name: str, dim: int, fingerprint: str, config_hash: str, i
         "input_size": str(input_size),
     }
     return {META_PREFIX + key: value for key, value in values.items()}
-
-
-@contextlib.contextmanager
-def _quiet_exporter() -> Iterator[None]:
-    # The exporter logs a warning per missing torchvision op and emits deprecation
-    # chatter; none of it concerns this graph. Errors still raise.
-    logger = logging.getLogger("torch.onnx")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FutureWarning)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            yield
-    finally:
-        logger.setLevel(level)
 
 
 class OnnxBackbone:

@@ -64,7 +64,9 @@ class ViewPool:
         if vec.ndim != 1:
             raise ValueError(f"a view vector must be (D,), got shape {vec.shape}")
         if self._views and vec.shape != self._views[0].shape:
-            raise ValueError(f"a view vector of width {vec.shape[0]} does not match the pool's {self._views[0].shape[0]}")
+            raise ValueError(
+                f"a view vector of width {vec.shape[0]} does not match the pool's {self._views[0].shape[0]}"
+            )
         pool_views(vec[None])  # same checks as the pooled value: float, finite
         self._views.append(vec.astype(np.float32))
         del self._views[: -self.max_views]

@@ -13,4 +13,6 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 def try_later(description: str) -> dict[int | str, dict[str, Any]]:
     """The documented 429 answer, with its Retry-After header."""
-    return {429: {"model": ErrorOut, "description": description, "headers": {"Retry-After": {"schema": {"type": "string"}}}}}
+    return {
+        429: {"model": ErrorOut, "description": description, "headers": {"Retry-After": {"schema": {"type": "string"}}}}
+    }

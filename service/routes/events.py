@@ -32,11 +32,14 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
             await state.credentials(session_id)
         except ServiceError as exc:  # it ended (or was lost) while this socket was set up: its final event has passed
             gone = exc.status in (404, SESSION_LOST)
-            await websocket.close(int(Close.SESSION_ENDED if gone else Close.SERVER_ERROR),
-                                  "session ended" if exc.status == 404 else exc.detail[:120])
+            await websocket.close(
+                int(Close.SESSION_ENDED if gone else Close.SERVER_ERROR),
+                "session ended" if exc.status == 404 else exc.detail[:120],
+            )
             return
-        await websocket.send_text(encode(status_event(session_id, "subscribed", "receiving events",
-                                                      instance=state.settings.instance_id)))
+        await websocket.send_text(
+            encode(status_event(session_id, "subscribed", "receiving events", instance=state.settings.instance_id))
+        )
         forward = asyncio.create_task(_forward(websocket, subscription, state))
         listen = asyncio.create_task(_until_disconnect(websocket))
         done, pending = await asyncio.wait({forward, listen}, return_when=asyncio.FIRST_COMPLETED)

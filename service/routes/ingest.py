@@ -25,26 +25,42 @@ def media_type(request: Request) -> str:
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
-@router.post("/sessions/{session_id}/blocks", status_code=202, response_model=BlockAck,
-             openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
-             responses={**errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
-                        **try_later("the session is saturated; resend after Retry-After s")},
-             summary="Send one block: samples or taps (robot token)")
+@router.post(
+    "/sessions/{session_id}/blocks",
+    status_code=202,
+    response_model=BlockAck,
+    openapi_extra={"requestBody": BLOCK_REQUEST_BODY},
+    responses={
+        **errors(400, 401, 403, 404, 410, 413, 415, 421, 422, 503),
+        **try_later("the session is saturated; resend after Retry-After s"),
+    },
+    summary="Send one block: samples or taps (robot token)",
+)
 async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
     kind = media_type(request)
     if kind not in ("application/json", BINARY_CONTENT_TYPE):
         count_rejected(state.metrics, session)
-        raise ServiceError(415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}")
+        raise ServiceError(
+            415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}"
+        )
     payload = await request.body()
     return receive_block(state.metrics, session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
 
 
-@router.post("/sessions/{session_id}/frames", status_code=202, response_model=FrameAck,
-             openapi_extra={"requestBody": FRAME_REQUEST_BODY},
-             responses={**errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
-                        **try_later("the visual queue is full, or this session's previous frame is still being decoded; "
-                                    "send the newest frame after Retry-After s")},
-             summary="Send one camera frame (robot token)")
+@router.post(
+    "/sessions/{session_id}/frames",
+    status_code=202,
+    response_model=FrameAck,
+    openapi_extra={"requestBody": FRAME_REQUEST_BODY},
+    responses={
+        **errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
+        **try_later(
+            "the visual queue is full, or this session's previous frame is still being decoded; "
+            "send the newest frame after Retry-After s"
+        ),
+    },
+    summary="Send one camera frame (robot token)",
+)
 async def post_frame(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> FrameAck:
     kind = media_type(request)
     if kind not in FRAME_CONTENT_TYPES:

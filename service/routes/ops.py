@@ -14,11 +14,20 @@ from service.schemas import HealthOut, LibraryEntryOut, LibraryOut, ReadyOut
 router = APIRouter(tags=["service"])
 
 
-@router.get("/library", response_model=LibraryOut, responses=errors(503), summary="The texture library: ids, names, groups, ratings")
+@router.get(
+    "/library",
+    response_model=LibraryOut,
+    responses=errors(503),
+    summary="The texture library: ids, names, groups, ratings",
+)
 async def library(runtime: ReadyRuntime) -> LibraryOut:
     lib = runtime.library
-    return LibraryOut(name=lib.name, entries=[
-        LibraryEntryOut(id=e.id, name=e.name, group=e.group, ratings=e.to_json()["ratings"]) for e in lib.entries])
+    return LibraryOut(
+        name=lib.name,
+        entries=[
+            LibraryEntryOut(id=e.id, name=e.name, group=e.group, ratings=e.to_json()["ratings"]) for e in lib.entries
+        ],
+    )
 
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")
@@ -26,28 +35,45 @@ async def health(state: State) -> HealthOut:
     return HealthOut(status="ok", instance=state.settings.instance_id)
 
 
-@router.get("/ready", response_model=ReadyOut, responses={503: {"model": ReadyOut, "description": "not ready; detail says why"}},
-            summary="Readiness: model and library loaded, checked and warmed up")
+@router.get(
+    "/ready",
+    response_model=ReadyOut,
+    responses={503: {"model": ReadyOut, "description": "not ready; detail says why"}},
+    summary="Readiness: model and library loaded, checked and warmed up",
+)
 async def ready(state: State) -> JSONResponse:
     ok, why = state.readiness()
     rt = state.runtime
     body = ReadyOut(ready=ok, detail=why)
     if rt is not None:
-        body = ReadyOut(ready=ok, detail=why, model=rt.model_name, modality=rt.predictor.card.modality,
-                        tactile_model=rt.tactile.card.model if rt.tactile else None,
-                        library=rt.library.name, library_entries=len(rt.library.ids),
-                        backbone=rt.backbone.name if rt.backbone else None)
+        body = ReadyOut(
+            ready=ok,
+            detail=why,
+            model=rt.model_name,
+            modality=rt.predictor.card.modality,
+            tactile_model=rt.tactile.card.model if rt.tactile else None,
+            library=rt.library.name,
+            library_entries=len(rt.library.ids),
+            backbone=rt.backbone.name if rt.backbone else None,
+        )
     return JSONResponse(body.model_dump(), status_code=200 if ok else 503)
 
 
-@router.get("/metrics", response_class=PlainTextResponse,
-            responses={200: {"content": {"text/plain": {"example": "hapticlink_windows_total 1234\n"}}}},
-            summary="Prometheus metrics (text exposition)")
+@router.get(
+    "/metrics",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/plain": {"example": "hapticlink_windows_total 1234\n"}}}},
+    summary="Prometheus metrics (text exposition)",
+)
 async def metrics(state: State) -> Response:
     return Response(state.metrics.render(), media_type=METRICS_CONTENT_TYPE)
 
 
-@router.get("/console", response_class=HTMLResponse, summary="The operator console (open with ?session=…&token=<operator token>)")
+@router.get(
+    "/console",
+    response_class=HTMLResponse,
+    summary="The operator console (open with ?session=…&token=<operator token>)",
+)
 async def console_page() -> HTMLResponse:
     # The URL carries the operator token: never send it on as a Referer.
     return HTMLResponse(console.page(), headers={"Referrer-Policy": "no-referrer"})

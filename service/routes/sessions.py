@@ -11,21 +11,36 @@ from service.schemas import SessionCreate, SessionCreated, SessionStatus
 router = APIRouter(tags=["sessions"])
 
 
-@router.post("/sessions", status_code=201, response_model=SessionCreated,
-             responses={**errors(400, 401, 422, 503), **try_later("too many sessions opened by this client; retry after Retry-After s")},
-             summary="Open a session (fleet API key)")
+@router.post(
+    "/sessions",
+    status_code=201,
+    response_model=SessionCreated,
+    responses={
+        **errors(400, 401, 422, 503),
+        **try_later("too many sessions opened by this client; retry after Retry-After s"),
+    },
+    summary="Open a session (fleet API key)",
+)
 async def create_session(state: State, client: FleetClient, body: SessionCreate | None = None) -> SessionCreated:
     session, robot, operator = await state.create_session(body.name if body else None, client)
     return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
 
 
-@router.get("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 410, 421, 503),
-            summary="A session's status and counters (operator token)")
+@router.get(
+    "/sessions/{session_id}",
+    response_model=SessionStatus,
+    responses=errors(401, 403, 404, 410, 421, 503),
+    summary="A session's status and counters (operator token)",
+)
 async def get_session(session: OperatorSession) -> dict:
     return session.status()
 
 
-@router.delete("/sessions/{session_id}", response_model=SessionStatus, responses=errors(401, 403, 404, 410, 421, 503),
-               summary="End a session (robot or operator token)")
+@router.delete(
+    "/sessions/{session_id}",
+    response_model=SessionStatus,
+    responses=errors(401, 403, 404, 410, 421, 503),
+    summary="End a session (robot or operator token)",
+)
 async def delete_session(state: State, session: EitherSession) -> dict:
     return await state.end_session(session.id, "ended by request")

@@ -21,8 +21,16 @@ import pytest
 
 pytest.importorskip("yaml", reason="PyYAML is not installed (dev extra)")
 
-from deploy.local import (DeployFiles, Topology, TopologyError, find_program, nginx_command,  # noqa: E402
-                          nginx_config, replica_environment, synthetic_assets)
+from deploy.local import (
+    DeployFiles,
+    Topology,
+    TopologyError,
+    find_program,
+    nginx_command,  # noqa: E402
+    nginx_config,
+    replica_environment,
+    synthetic_assets,
+)
 from drivers.protocol import bearer  # noqa: E402
 from drivers.robot import RobotClient  # noqa: E402
 from drivers.simulated import SimulatedSource  # noqa: E402
@@ -30,7 +38,9 @@ from drivers.simulated import SimulatedSource  # noqa: E402
 NGINX, REDIS = find_program("nginx"), find_program("redis-server")
 MISSING = [name for name, path in (("nginx", NGINX), ("redis-server", REDIS)) if path is None]
 needs_programs = pytest.mark.skipif(
-    bool(MISSING), reason=f"{' and '.join(MISSING)} not installed (apt-get install {' '.join(MISSING)}; .ci/run installs them)")
+    bool(MISSING),
+    reason=f"{' and '.join(MISSING)} not installed (apt-get install {' '.join(MISSING)}; .ci/run installs them)",
+)
 STREAM_S = 4.0  # stream time per robot in the pinning test: ~7 windows each
 ROBOTS = 4  # sessions opened through nginx one after another: least_conn spreads them over both replicas
 GUARD_S = 60.0  # hang guard of every wait (never a timing assertion)
@@ -151,8 +161,10 @@ def metric(text: str, name: str, labels: str = "") -> float:
 def access_log(topology: Topology) -> list[tuple[str, str, int, str]]:
     """(method, uri, status, upstream addresses tried) of every request nginx logged (its own no_query format)."""
     text = (topology.workdir / "logs" / "access.log").read_text()
-    return [(m.group(1), m.group(2), int(m.group(3)), m.group(4))
-            for m in re.finditer(r'"(\w+) (\S+) HTTP/[\d.]+" (\d{3}) .*? upstream="([^"]*)"', text)]
+    return [
+        (m.group(1), m.group(2), int(m.group(3)), m.group(4))
+        for m in re.finditer(r'"(\w+) (\S+) HTTP/[\d.]+" (\d{3}) .*? upstream="([^"]*)"', text)
+    ]
 
 
 def logs(topology: Topology) -> dict[str, str]:
@@ -181,9 +193,12 @@ def test_the_local_nginx_config_differs_from_deploys_only_in_addresses_and_paths
     original = files.nginx_conf.splitlines()
     changed = [line for line in local.splitlines() if line not in original]
     for line in changed:
-        assert re.search(r"127\.0\.0\.1:\d+|" + re.escape(str(tmp_path)), line), f"rewrote more than an address or path: {line}"
+        assert re.search(r"127\.0\.0\.1:\d+|" + re.escape(str(tmp_path)), line), (
+            f"rewrote more than an address or path: {line}"
+        )
     assert [line for line in original if line not in local.splitlines()] == [
-        line for line in original if re.search(r"\bserver [\w-]+:\d+|\blisten \d+|(access|error)_log /", line)]
+        line for line in original if re.search(r"\bserver [\w-]+:\d+|\blisten \d+|(access|error)_log /", line)
+    ]
     for name in ports:  # no container host name is left for nginx to resolve
         assert not re.search(rf"\b{name}:\d+", local)
     if NGINX is not None:  # and nginx itself accepts the result
@@ -201,8 +216,11 @@ def test_each_replica_runs_with_composes_environment_only_addresses_and_mounts_r
         assert local.keys() == declared.keys()
         for key, value in declared.items():
             if local[key] != value:  # only an address, a port or a path inside the mounted folder may differ
-                assert (key in ("HAPTICLINK_HOST", "HAPTICLINK_PORT") or "127.0.0.1:" in local[key]
-                        or local[key].startswith(str(tmp_path))), (key, value, local[key])
+                assert (
+                    key in ("HAPTICLINK_HOST", "HAPTICLINK_PORT")
+                    or "127.0.0.1:" in local[key]
+                    or local[key].startswith(str(tmp_path))
+                ), (key, value, local[key])
         assert local["HAPTICLINK_MODEL_PATH"] == str(tmp_path / "model.onnx")
         assert local["HAPTICLINK_API_KEYS_FILE"] == str(tmp_path / "api-keys")  # the fleet keys, in the mounted folder
         assert local["HAPTICLINK_FORWARDED_ALLOW_IPS"] == "*"  # the client is the one nginx names (see the rate test)
@@ -220,7 +238,10 @@ def test_the_topology_opens_sessions_with_the_key_file_the_replicas_read(tmp_pat
     assert Topology(tmp_path, workdir=tmp_path / "w2").fleet_key() == key  # later runs use the file's (first) key
     keys.write_text("# the fleet's own file\nfleet-key-one-0123456789\nfleet-key-two-0123456789\n")
     assert Topology(tmp_path, workdir=tmp_path / "w3").fleet_key() == "fleet-key-one-0123456789"
-    assert Topology(tmp_path, workdir=tmp_path / "w4", api_key="fleet-key-two-0123456789").fleet_key() == "fleet-key-two-0123456789"
+    assert (
+        Topology(tmp_path, workdir=tmp_path / "w4", api_key="fleet-key-two-0123456789").fleet_key()
+        == "fleet-key-two-0123456789"
+    )
     with pytest.raises(TopologyError, match="not one the replicas accept"):  # a user's key file is never edited
         Topology(tmp_path, workdir=tmp_path / "w5", api_key="some-other-key-0123456789").fleet_key()
     assert "some-other-key" not in keys.read_text()
@@ -241,14 +262,18 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
         await robot.open_session()
     owners = [instance_of(r.session.session_id) for r in robots]
     assert set(owners) == set(instances), f"nginx put every new session on one replica: {owners}"
-    operators = [await Operator(topology.replicas[other[o]].ws_url, r.session.session_id, r.session.operator_token).start()
-                 for r, o in zip(robots, owners)]
+    operators = [
+        await Operator(topology.replicas[other[o]].ws_url, r.session.session_id, r.session.operator_token).start()
+        for r, o in zip(robots, owners)
+    ]
     assert [op.instance for op in operators] == [other[o] for o in owners]  # attached to the other replica
 
     stats = await asyncio.gather(*(r.run(duration_s=STREAM_S) for r in robots))
     async with httpx.AsyncClient(timeout=10) as http:
         for robot, operator in zip(robots, operators):
-            await until(lambda: all_windows_delivered(http, topology, robot, operator), f"the windows of {robot.session_id}")
+            await until(
+                lambda: all_windows_delivered(http, topology, robot, operator), f"the windows of {robot.session_id}"
+            )
         accepted_by = dict.fromkeys(instances, 0)
         for robot, st, owner, operator in zip(robots, stats, owners, operators):
             info = robot.session
@@ -261,7 +286,9 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
             assert status["instance"] == owner
             assert status["counters"]["blocks_accepted"] == st.read and status["counters"]["frames_received"] == 1
             accepted_by[owner] += st.read
-            misdirected = await status_on(http, topology.replicas[other[owner]].url, info.session_id, info.operator_token)
+            misdirected = await status_on(
+                http, topology.replicas[other[owner]].url, info.session_id, info.operator_token
+            )
             assert misdirected.status_code == 421 and owner in misdirected.json()["detail"]
             # nginx's routing by path and by ?session= (the console's link)
             for _ in range(4):
@@ -282,11 +309,18 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
     # nginx's own record: every request of a session went to its owner's address, and succeeded
     address = {instance: f"127.0.0.1:{replica.port}" for instance, replica in topology.replicas.items()}
     sids = {r.session_id for r in robots}
-    routed = [(uri, status, upstream) for _, uri, status, upstream in access_log(topology)
-              if uri.split("/")[2:3] and uri.split("/")[2] in sids]
+    routed = [
+        (uri, status, upstream)
+        for _, uri, status, upstream in access_log(topology)
+        if uri.split("/")[2:3] and uri.split("/")[2] in sids
+    ]
     assert len(routed) >= 4 * ROBOTS  # frames, ingest, status × 4 per session at least
     for uri, status, upstream in routed:
-        assert upstream == address[instance_of(uri.split("/")[2])] and status in (101, 200, 202), (uri, status, upstream)
+        assert upstream == address[instance_of(uri.split("/")[2])] and status in (101, 200, 202), (
+            uri,
+            status,
+            upstream,
+        )
     # no secret in any log, though the replicas logged these sessions' sockets (?token= cut off) and nginx every request
     text = logs(topology)
     for robot, owner in zip(robots, owners):
@@ -321,13 +355,17 @@ async def _rate_per_client(topology: Topology) -> None:
         elapsed = time.monotonic() - start
         assert refused, f"{tries} sessions from one client in {elapsed:.1f} s, none refused"
         assert len(created) <= len(topology.replicas) * (burst + rate * elapsed) + 1, (len(created), elapsed)
-        assert all("too many sessions opened from 127.0.0.2" in r.json()["detail"] and r.headers["Retry-After"]
-                   for r in refused), refused[0].text
+        assert all(
+            "too many sessions opened from 127.0.0.2" in r.json()["detail"] and r.headers["Retry-After"]
+            for r in refused
+        ), refused[0].text
         # a second client meanwhile is not held up by the first one's bucket
         r = await other.post(f"{topology.url}/sessions", headers={**key, "X-Forwarded-For": "127.0.0.2"})
         assert r.status_code == 201, r.text
         for session in [r.json()] + [c.json() for c in created]:  # end them (through nginx, pinned)
-            ended = await other.delete(f"{topology.url}/sessions/{session['session_id']}", headers=bearer(session["robot_token"]))
+            ended = await other.delete(
+                f"{topology.url}/sessions/{session['session_id']}", headers=bearer(session["robot_token"])
+            )
             assert ended.status_code == 200, ended.text
     # the replicas logged the real clients, never a forged address
     text = "".join(logs(topology)[f"{replica.name}.log"] for replica in topology.replicas.values())
@@ -352,10 +390,18 @@ async def _kill_a_replica(topology: Topology) -> None:
     owners = [instance_of(r.session.session_id) for r in robots]
     assert set(owners) == set(instances), owners
     # each session: an operator through nginx (pinned to the owner) and one on the other replica
-    pinned = [await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
-              for r in robots]
-    across = [await Operator(topology.replicas[survivor if o == victim else victim].ws_url, r.session.session_id,
-                             r.session.operator_token).start() for r, o in zip(robots, owners)]
+    pinned = [
+        await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
+        for r in robots
+    ]
+    across = [
+        await Operator(
+            topology.replicas[survivor if o == victim else victim].ws_url,
+            r.session.session_id,
+            r.session.operator_token,
+        ).start()
+        for r, o in zip(robots, owners)
+    ]
     runs = [asyncio.create_task(r.run()) for r in robots]
     await until(lambda: all(len(op.windows) >= 2 for op in pinned), "two windows for every session")
 
@@ -388,7 +434,9 @@ async def _kill_a_replica(topology: Topology) -> None:
         for k, st in zip(kept, kept_stats):
             assert st.acked == st.read and st.reconnects == st.lost == st.unsent == st.rejected == 0, st
             await until(lambda: all_windows_delivered(http, topology, robots[k], pinned[k]), f"robot {k}'s windows")
-            status = (await status_on(http, topology.url, robots[k].session.session_id, robots[k].session.operator_token)).json()
+            status = (
+                await status_on(http, topology.url, robots[k].session.session_id, robots[k].session.operator_token)
+            ).json()
             assert pinned[k].windows == list(range(status["counters"]["windows"]))
             assert pinned[k].final is None
 
@@ -401,10 +449,16 @@ async def _kill_a_replica(topology: Topology) -> None:
         for robot in again:
             await robot.open_session()
             assert instance_of(robot.session.session_id) == survivor
-        created = [status for method, uri, status, _ in access_log(topology)[logged:] if (method, uri) == ("POST", "/sessions")]
+        created = [
+            status for method, uri, status, _ in access_log(topology)[logged:] if (method, uri) == ("POST", "/sessions")
+        ]
         assert created == [201] * len(again), created  # each answered at once: never nginx's 502 from the dead one
-        watchers = [await Operator(topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token).start()
-                    for r in again]
+        watchers = [
+            await Operator(
+                topology.url.replace("http", "ws", 1), r.session.session_id, r.session.operator_token
+            ).start()
+            for r in again
+        ]
         stats = await asyncio.gather(*(r.run(duration_s=2.5) for r in again))
         for robot, st, op in zip(again, stats, watchers):
             assert st.acked == st.read > 0 and st.reconnects == st.lost == st.unsent == 0, st
@@ -415,8 +469,11 @@ async def _kill_a_replica(topology: Topology) -> None:
     # nginx tried the dead owner, then let the survivor answer for its sessions (@owner_unreachable) ...
     dead, alive = (f"127.0.0.1:{topology.replicas[i].port}" for i in (victim, survivor))
     lost_sids = {robots[k].session_id for k in lost}
-    answered = [(status, upstream) for _, uri, status, upstream in access_log(topology)
-                if uri.split("/")[2:3] and uri.split("/")[2] in lost_sids and status == 410]
+    answered = [
+        (status, upstream)
+        for _, uri, status, upstream in access_log(topology)
+        if uri.split("/")[2:3] and uri.split("/")[2] in lost_sids and status == 410
+    ]
     assert answered and all(upstream.endswith(alive) for _, upstream in answered), answered
     assert any(dead in upstream for _, upstream in answered), answered
     # ... and logged those failures without a token (nginx's error lines quote the request line, ?token= included),

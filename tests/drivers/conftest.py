@@ -32,9 +32,10 @@ from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, decode_binary, deco
 from drivers.protocol import SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from drivers.source import blocks_from_arrays, paced
 
-
 # ---- the fake service --------------------------------------------------------------------------
-LOST_DETAIL = "session s-fixed is lost: its replica replica-z is gone (stopped, crashed or restarted); open a new session"
+LOST_DETAIL = (
+    "session s-fixed is lost: its replica replica-z is gone (stopped, crashed or restarted); open a new session"
+)
 
 
 @dataclass
@@ -81,7 +82,9 @@ class FakeService:
     async def create_session(self, request: Request) -> Response:
         sid = f"s{next(self._ids)}"
         sess = self.add_session(sid, f"robot-{sid}")
-        return JSONResponse({"session_id": sid, "robot_token": sess.robot_token, "operator_token": sess.operator_token}, status_code=201)
+        return JSONResponse(
+            {"session_id": sid, "robot_token": sess.robot_token, "operator_token": sess.operator_token}, status_code=201
+        )
 
     def _ingest(self, sess: FakeSession, payload: bytes, content_type: str) -> tuple[int, dict]:
         """(HTTP status, body) for one block, as the real service would treat it."""
@@ -144,8 +147,10 @@ class FakeService:
         await ws.accept()
         sess = self._session(ws.path_params["sid"], ws.query_params.get("token"))
         if isinstance(sess, int):
-            await ws.close(code=Close.LOST if sess == SESSION_LOST else Close.POLICY,
-                           reason=LOST_DETAIL if sess == SESSION_LOST else "bad token")
+            await ws.close(
+                code=Close.LOST if sess == SESSION_LOST else Close.POLICY,
+                reason=LOST_DETAIL if sess == SESSION_LOST else "bad token",
+            )
             return
         if self.saturate > 0:
             self.saturate -= 1
@@ -199,7 +204,9 @@ class LoopbackServer:
         sock.bind(("127.0.0.1", self.port))
         sock.listen(128)
         self.port = sock.getsockname()[1]
-        config = uvicorn.Config(self.app, log_level="critical", lifespan="off", access_log=False, timeout_graceful_shutdown=2)
+        config = uvicorn.Config(
+            self.app, log_level="critical", lifespan="off", access_log=False, timeout_graceful_shutdown=2
+        )
         self._server = uvicorn.Server(config)
         self._server.capture_signals = contextlib.nullcontext  # the test owns signals
         self._task = asyncio.create_task(self._server.serve(sockets=[sock]))

@@ -25,7 +25,9 @@ def test_image_files_become_frames_with_their_content_type(tmp_path):
     png, jpeg, bmp = image_bytes("PNG"), image_bytes("JPEG"), image_bytes("BMP")
     for name, data in (("a.png", png), ("b.jpg", jpeg), ("c.bmp", bmp)):
         (tmp_path / name).write_bytes(data)
-    source = ImageFilesSource([tmp_path / "a.png", tmp_path / "b.jpg", tmp_path / "c.bmp"], interval_s=0.5, realtime=False)
+    source = ImageFilesSource(
+        [tmp_path / "a.png", tmp_path / "b.jpg", tmp_path / "c.bmp"], interval_s=0.5, realtime=False
+    )
 
     async def main():
         return [f async for f in source]
@@ -33,7 +35,9 @@ def test_image_files_become_frames_with_their_content_type(tmp_path):
     frames = asyncio.run(main())
     assert [(f.t, f.content_type) for f in frames] == [(0.0, "image/png"), (0.5, "image/jpeg"), (1.0, "image/png")]
     assert frames[0].image == png and frames[1].image == jpeg
-    assert np.array_equal(np.asarray(Image.open(io.BytesIO(frames[2].image))), np.asarray(Image.open(io.BytesIO(bmp)))), "BMP re-encoded losslessly"
+    assert np.array_equal(
+        np.asarray(Image.open(io.BytesIO(frames[2].image))), np.asarray(Image.open(io.BytesIO(bmp)))
+    ), "BMP re-encoded losslessly"
     with pytest.raises(ValueError, match="not found"):
         ImageFilesSource([tmp_path / "missing.png"])
     with pytest.raises(ValueError, match="interval_s"):
@@ -74,7 +78,11 @@ def test_watched_directory_sends_new_images_and_skips_partial_and_other_files(tm
 
     with caplog.at_level(logging.WARNING, logger="drivers.camera"):
         frames = asyncio.run(main())
-    assert [(f.meta["path"], f.content_type) for f in frames] == [("000.png", "image/png"), ("001.png", "image/png"), ("002.jpg", "image/jpeg")]
+    assert [(f.meta["path"], f.content_type) for f in frames] == [
+        ("000.png", "image/png"),
+        ("001.png", "image/png"),
+        ("002.jpg", "image/jpeg"),
+    ]
     assert frames[0].image == first and frames[1].image == later and frames[2].image == jpeg
     assert "partial or unreadable" in caplog.text and "notes.txt" in caplog.text
 

@@ -56,7 +56,9 @@ def test_replay_sends_the_image_then_the_recording_in_canonical_units(kit, datas
     for kind, ch in rec.channels().items():
         np.testing.assert_array_equal(kit.concat(blocks, kind), ch.data.astype(np.float32))
     assert blocks[0].channels["accel"].units == "m/s^2", "the recording holds canonical units (g converted on load)"
-    assert [b.channels["position"].data.shape for b in blocks[:2]] == [(13, 2), (12, 2)], "12.5 samples per block at 250 Hz: remainders carried"
+    assert [b.channels["position"].data.shape for b in blocks[:2]] == [(13, 2), (12, 2)], (
+        "12.5 samples per block at 250 Hz: remainders carried"
+    )
 
 
 def test_replay_loops_with_running_time(kit, dataset):
@@ -88,7 +90,9 @@ def texture():
 
 def test_simulated_robot_strokes_the_texture_continuously(kit, texture):
     image = png_bytes(texture.image)
-    source = SimulatedSource(texture.model, image, seed=3, realtime=False, chunk_s=1.0, duration_s=3.0, frame_every_s=1.0)
+    source = SimulatedSource(
+        texture.model, image, seed=3, realtime=False, chunk_s=1.0, duration_s=3.0, frame_every_s=1.0
+    )
     items = asyncio.run(kit.take(source))
     frames = [i for i in items if isinstance(i, Frame)]
     assert [f.t for f in frames] == [0.0, 1.0, 2.0] and isinstance(items[0], Frame) and frames[0].image == image
@@ -126,8 +130,16 @@ def test_simulated_source_is_reproducible_from_its_seed(kit, texture):
 def test_simulated_from_library_with_an_image_file(kit, texture, tmp_path):
     lib_dir = tmp_path / "lib"
     entry = add_entry(
-        lib_dir, "t-11", texture.model, name="t 11", group=texture.group, ratings=texture.truth,
-        ratings_source="ground-truth", provenance="procedural", licence="CC0", image_path="images/t-11.png",
+        lib_dir,
+        "t-11",
+        texture.model,
+        name="t 11",
+        group=texture.group,
+        ratings=texture.truth,
+        ratings_source="ground-truth",
+        provenance="procedural",
+        licence="CC0",
+        image_path="images/t-11.png",
     )
     Library(lib_dir, "test", [entry]).save()
     (lib_dir / "images").mkdir()
@@ -137,7 +149,9 @@ def test_simulated_from_library_with_an_image_file(kit, texture, tmp_path):
     jpeg = io.BytesIO()
     Image.fromarray(texture.image).save(jpeg, format="JPEG")
     (tmp_path / "t11.jpg").write_bytes(jpeg.getvalue())
-    source = SimulatedSource.from_library(lib_dir, "t-11", image_path=tmp_path / "t11.jpg", realtime=False, duration_s=0.1)
+    source = SimulatedSource.from_library(
+        lib_dir, "t-11", image_path=tmp_path / "t11.jpg", realtime=False, duration_s=0.1
+    )
     items = asyncio.run(kit.take(source))
     assert items[0].content_type == "image/jpeg" and items[0].image == jpeg.getvalue()
     assert sum(b.channels["accel"].data.shape[0] for b in blocks_of(items)) == 100
@@ -154,7 +168,12 @@ def test_simulated_robot_taps_before_stroking(kit, texture):
     source = SimulatedSource(texture.model, seed=3, realtime=False, duration_s=0.5, taps=True)
     items = asyncio.run(kit.take(source))
     tap, blocks = items[0], blocks_of(items)
-    assert isinstance(tap, TapBlock) and (tap.t0, tap.seq, tap.accel.rate_hz, tap.accel.units) == (0.0, 0, 1000.0, "m/s^2")
+    assert isinstance(tap, TapBlock) and (tap.t0, tap.seq, tap.accel.rate_hz, tap.accel.units) == (
+        0.0,
+        0,
+        1000.0,
+        "m/s^2",
+    )
     np.testing.assert_array_equal(tap.speeds, texture.model.taps.speeds)
     np.testing.assert_allclose(tap.accel.data, texture.model.taps.accel, rtol=1e-6, atol=1e-6)
     assert [b.seq for b in blocks] == list(range(1, len(blocks) + 1)) and blocks[0].t0 == 0.0

@@ -56,7 +56,9 @@ def test_good_specs_build_their_sources(tmp_path):
 
 
 def test_robot_arguments(tmp_path):
-    args = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--no-realtime", "--transport", "http"])
+    args = parser().parse_args(
+        ["robot", "--source", "serial:COM3", "--url", "http://h:1", "--no-realtime", "--transport", "http"]
+    )
     assert (args.realtime, args.transport, args.duration, args.session) == (False, "http", None, None)
     only_session = parser().parse_args(["robot", "--source", "serial:COM3", "--url", "http://h:1", "--session", "s1"])
     with pytest.raises(ValueError, match="--session and --token go together"):
@@ -80,12 +82,17 @@ def test_robot_command_replays_a_recording_into_a_new_session(kit, fake_service,
 
     # The service runs in its own thread and loop: the command owns the main thread's loop.
     with kit.ServerThread(fake_service.app) as server:
-        args = parser().parse_args(["robot", "--source", f"replay:{tmp_path}:t1", "--url", server.url, "--no-realtime", "--transport", "http"])
+        args = parser().parse_args(
+            ["robot", "--source", f"replay:{tmp_path}:t1", "--url", server.url, "--no-realtime", "--transport", "http"]
+        )
         status = args.func(args)
     out = capsys.readouterr().out.splitlines()
     sess = fake_service.only_session()
     assert status == 0
-    assert out[0].startswith("session s1") and out[2] == f"console {server.url}/console?session=s1&token={sess.operator_token}"
+    assert (
+        out[0].startswith("session s1")
+        and out[2] == f"console {server.url}/console?session=s1&token={sess.operator_token}"
+    )
     stats = json.loads(out[-1])
     assert stats["acked"] == stats["read"] == 25 and stats["lost"] == stats["unsent"] == 0
     np.testing.assert_array_equal(kit.concat(sess.accepted, "speed"), rec.speed.data.astype(np.float32))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.blocks import Frame
-from drivers.robot import Backoff, ResendBuffer, RobotAuthError, RobotClient, Pending, ServiceRefused, SessionLostError
+from drivers.robot import Backoff, Pending, ResendBuffer, RobotAuthError, RobotClient, ServiceRefused, SessionLostError
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -111,7 +111,14 @@ def test_full_buffer_drops_the_oldest_and_counts_them_lost(kit, fake_service, ca
     async def main():
         await server.start()  # learn a free port, then take the service away before the robot starts
         await server.stop()
-        client = RobotClient(server.url, kit.ListSource(blocks), session_id="s-fixed", robot_token="robot-secret", max_buffer_s=0.2, **FAST)
+        client = RobotClient(
+            server.url,
+            kit.ListSource(blocks),
+            session_id="s-fixed",
+            robot_token="robot-secret",
+            max_buffer_s=0.2,
+            **FAST,
+        )
         run = asyncio.create_task(client.run())
         await _wait_until(lambda: client.stats.read == len(blocks))
         await server.start()
@@ -163,7 +170,9 @@ def test_a_refused_token_is_fatal(kit, fake_service, transport):
     async def main():
         await server.start()
         try:
-            client = RobotClient(server.url, kit.EndlessSource(), session_id="s-fixed", robot_token="wrong", transport=transport, **FAST)
+            client = RobotClient(
+                server.url, kit.EndlessSource(), session_id="s-fixed", robot_token="wrong", transport=transport, **FAST
+            )
             await client.run()
         finally:
             await server.stop()
@@ -182,8 +191,14 @@ def test_a_lost_session_stops_the_run_with_the_services_reason(kit, fake_service
     async def main():
         await server.start()
         try:
-            client = RobotClient(server.url, kit.EndlessSource(speed=4.0), session_id="s-fixed", robot_token="robot-secret",
-                                 transport=transport, **FAST)
+            client = RobotClient(
+                server.url,
+                kit.EndlessSource(speed=4.0),
+                session_id="s-fixed",
+                robot_token="robot-secret",
+                transport=transport,
+                **FAST,
+            )
             with pytest.raises(SessionLostError) as lost:
                 await client.run()
             return client.stats, lost.value

@@ -88,7 +88,11 @@ def test_values_gaps_and_garbled_lines_over_a_pty(kit, pty_port):
     np.testing.assert_allclose(accel, truth[:, 0:3], atol=1e-4)
     np.testing.assert_allclose(force, truth[:, 3:6], atol=1e-4)
     np.testing.assert_allclose(position, truth[:, 6], atol=1e-4)
-    assert {(k, c.units) for b in blocks for k, c in b.channels.items()} == {("accel", "g"), ("force", "N"), ("position", "mm")}
+    assert {(k, c.units) for b in blocks for k, c in b.channels.items()} == {
+        ("accel", "g"),
+        ("force", "N"),
+        ("position", "mm"),
+    }
     assert {c.rate_hz for b in blocks for c in b.channels.values()} == {1000.0}
 
     # time is never shifted: every block starts at its first sample's counter / rate

@@ -32,7 +32,11 @@ def test_concatenated_blocks_give_back_the_arrays(rates, duration_s, block_s, t0
     for kind, rate in zip(kinds, rates):
         n = max(1, int(duration_s * rate * rng.uniform(0.9, 1.1)))  # lengths need not agree exactly
         shape = (n, 3) if kind == "accel" else (n,)
-        channels[kind] = (rng.standard_normal(shape).astype(np.float32), rate, "m/s^2" if kind == "accel" else "N" if kind == "force" else "mm/s")
+        channels[kind] = (
+            rng.standard_normal(shape).astype(np.float32),
+            rate,
+            "m/s^2" if kind == "accel" else "N" if kind == "force" else "mm/s",
+        )
     blocks = list(blocks_from_arrays(channels, block_s, t0=t0, seq0=seq0))
 
     assert [b.seq for b in blocks] == list(range(seq0, seq0 + len(blocks)))
@@ -197,7 +201,13 @@ def test_assembler_splits_on_the_grid_and_at_gaps_with_true_times():
     out = asm.add(0, _rows(range(25)))  # counters 0..24 in one packet
     out += asm.add(28, _rows(range(28, 40)))  # 25, 26, 27 lost
     out += asm.flush()
-    assert [(round(b.t0 * 1000), b.channels["force"].data.shape[0]) for b in out] == [(0, 10), (10, 10), (20, 5), (28, 2), (30, 10)]
+    assert [(round(b.t0 * 1000), b.channels["force"].data.shape[0]) for b in out] == [
+        (0, 10),
+        (10, 10),
+        (20, 5),
+        (28, 2),
+        (30, 10),
+    ]
     assert out[3].channels["accel"].data[0].tolist() == [28, 28.5, -28]
     assert asm.stats.gaps == 1 and asm.stats.missing_samples == 3 and asm.stats.samples == 37
     assert [b.seq for b in out] == [0, 1, 2, 3, 4]

@@ -33,7 +33,9 @@ SCALES = np.array([0.0005] * 3 + [0.001] * 3 + [0.01])
 def raw_samples(first: int, n: int) -> np.ndarray:
     """(n, 7) int16 the simulated DAQ measures from sample index `first` on."""
     idx = np.arange(first, first + n)[:, None]
-    return ((idx * np.array([3, -5, 7, 11, 13, -17, 19]) + np.array([0, 100, 2000, -300, 40, 5, -6])) % 30000).astype(np.int16)
+    return ((idx * np.array([3, -5, 7, 11, 13, -17, 19]) + np.array([0, 100, 2000, -300, 40, 5, -6])) % 30000).astype(
+        np.int16
+    )
 
 
 def packet(first: int, n: int, magic: bytes = b"HLD1") -> bytes:
@@ -59,33 +61,71 @@ class SimulatedDaq(usb.backend.IBackend):
 
     def get_device_descriptor(self, dev):
         return SimpleNamespace(
-            bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0xFF, bDeviceSubClass=0, bDeviceProtocol=0,
-            bMaxPacketSize0=64, idVendor=self.vid, idProduct=self.pid, bcdDevice=0x0100, iManufacturer=0, iProduct=0,
-            iSerialNumber=0, bNumConfigurations=1, address=5, bus=1, port_number=2, port_numbers=(2,), speed=3,
+            bLength=18,
+            bDescriptorType=1,
+            bcdUSB=0x0200,
+            bDeviceClass=0xFF,
+            bDeviceSubClass=0,
+            bDeviceProtocol=0,
+            bMaxPacketSize0=64,
+            idVendor=self.vid,
+            idProduct=self.pid,
+            bcdDevice=0x0100,
+            iManufacturer=0,
+            iProduct=0,
+            iSerialNumber=0,
+            bNumConfigurations=1,
+            address=5,
+            bus=1,
+            port_number=2,
+            port_numbers=(2,),
+            speed=3,
         )
 
     def get_configuration_descriptor(self, dev, config):
         if config != 0:
             raise IndexError(config)
         return SimpleNamespace(
-            bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1, bConfigurationValue=1,
-            iConfiguration=0, bmAttributes=0x80, bMaxPower=50, extra_descriptors=[],
+            bLength=9,
+            bDescriptorType=2,
+            wTotalLength=32,
+            bNumInterfaces=1,
+            bConfigurationValue=1,
+            iConfiguration=0,
+            bmAttributes=0x80,
+            bMaxPower=50,
+            extra_descriptors=[],
         )
 
     def get_interface_descriptor(self, dev, intf, alt, config):
         if intf != 0 or alt != 0:
             raise IndexError((intf, alt))
         return SimpleNamespace(
-            bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0, bNumEndpoints=1,
-            bInterfaceClass=0xFF, bInterfaceSubClass=0, bInterfaceProtocol=0, iInterface=0, extra_descriptors=[],
+            bLength=9,
+            bDescriptorType=4,
+            bInterfaceNumber=0,
+            bAlternateSetting=0,
+            bNumEndpoints=1,
+            bInterfaceClass=0xFF,
+            bInterfaceSubClass=0,
+            bInterfaceProtocol=0,
+            iInterface=0,
+            extra_descriptors=[],
         )
 
     def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
         if ep != 0:
             raise IndexError(ep)
         return SimpleNamespace(
-            bLength=7, bDescriptorType=5, bEndpointAddress=0x81, bmAttributes=0x02, wMaxPacketSize=512,
-            bInterval=0, bRefresh=0, bSynchAddress=0, extra_descriptors=[],
+            bLength=7,
+            bDescriptorType=5,
+            bEndpointAddress=0x81,
+            bmAttributes=0x02,
+            wMaxPacketSize=512,
+            bInterval=0,
+            bRefresh=0,
+            bSynchAddress=0,
+            extra_descriptors=[],
         )
 
     # -- handles and interfaces --
@@ -152,8 +192,14 @@ def test_decoded_values_gaps_and_bad_packets(kit):
     np.testing.assert_array_equal(accel, truth[:, 0:3].astype(np.float32))
     np.testing.assert_array_equal(force, truth[:, 3:6].astype(np.float32))
     np.testing.assert_array_equal(position, truth[:, 6].astype(np.float32))
-    assert {(k, c.units) for b in blocks for k, c in b.channels.items()} == {("accel", "g"), ("force", "N"), ("position", "mm")}
-    assert [round(b.t0 * 1000) for b in blocks] == [0, 20, 40, 85, 100], "blocks on the 20-sample grid; after the gap, at the true time"
+    assert {(k, c.units) for b in blocks for k, c in b.channels.items()} == {
+        ("accel", "g"),
+        ("force", "N"),
+        ("position", "mm"),
+    }
+    assert [round(b.t0 * 1000) for b in blocks] == [0, 20, 40, 85, 100], (
+        "blocks on the 20-sample grid; after the gap, at the true time"
+    )
     s = source.stats
     assert (s.packets, s.bad_packets, s.gaps, s.missing_samples) == (4, 1, 1, 25)
     assert backend.streaming == [1, 0], "streaming started, and stopped on close"

@@ -66,5 +66,5 @@ def test_cycle_finder_finds_a_known_circle():
 
 def test_models_has_no_import_circles():
     graph = module_graph(ROOT)
-    assert "models.evaluation.registry" in graph and "models.jobs" in graph
+    assert "models.offline.evaluation.registry" in graph and "models.offline.jobs" in graph
     assert cycles(graph) == []

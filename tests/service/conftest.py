@@ -25,6 +25,7 @@ from PIL import Image
 from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, encode_json
 from drivers.source import blocks_from_arrays
 from service.app import create_app, server_options
+from service.launcher import free_port
 from service.settings import Settings
 from texture_library.library import Library
 from texture_library.recording import Recording, recording_from_stroke
@@ -56,13 +57,17 @@ class ServerThread:
     def ws_url(self) -> str:
         return f"ws://127.0.0.1:{self.port}"
 
-    def start(self, wait_ready: bool = True, timeout_s: float = 60.0) -> "ServerThread":
+    def start(self, wait_ready: bool = True, timeout_s: float = 60.0) -> ServerThread:
         sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", 0))
         self.port = sock.getsockname()[1]
-        config = uvicorn.Config(self.app, **server_options(self.settings, lifespan="on", log_level=self.log_level,
-                                                           access_log=False, timeout_graceful_shutdown=3))
+        config = uvicorn.Config(
+            self.app,
+            **server_options(
+                self.settings, lifespan="on", log_level=self.log_level, access_log=False, timeout_graceful_shutdown=3
+            ),
+        )
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
         self._thread.start()
@@ -136,12 +141,6 @@ def wait_for(predicate, timeout_s: float = 30.0, every_s: float = 0.02):
         time.sleep(every_s)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def png(size: int = 256) -> bytes:
     """A size×size RGB PNG (a valid camera frame from 224 px up)."""
     buf = io.BytesIO()
@@ -149,14 +148,19 @@ def png(size: int = 256) -> bytes:
     return buf.getvalue()
 
 
-def post_block(client: httpx.Client, session: dict, block: SampleBlock | bytes, content_type: str | None = None) -> httpx.Response:
+def post_block(
+    client: httpx.Client, session: dict, block: SampleBlock | bytes, content_type: str | None = None
+) -> httpx.Response:
     """POST one block with the session's robot token: a SampleBlock encoded as `content_type` (binary by default,
     or application/json), raw bytes as they are."""
     content_type = content_type or BINARY_CONTENT_TYPE
     if isinstance(block, SampleBlock):
         block = json.dumps(encode_json(block)).encode() if content_type == "application/json" else encode_binary(block)
-    return client.post(f"/sessions/{session['session_id']}/blocks", content=block,
-                       headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": content_type})
+    return client.post(
+        f"/sessions/{session['session_id']}/blocks",
+        content=block,
+        headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": content_type},
+    )
 
 
 def socket_url(server: ServerThread, session: dict, route: str) -> str:
@@ -172,7 +176,9 @@ def create_session(client: httpx.Client, name: str = "test") -> dict:
 
 
 def session_status(client: httpx.Client, session: dict) -> dict:
-    r = client.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+    r = client.get(
+        f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"}
+    )
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -190,8 +196,8 @@ def library_dir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tactile_model(tmp_path_factory) -> Path:
     """ridge-tactile trained on a small synthetic dataset (needs no visual features: fast)."""
-    from models.datasets.build import build
-    from models.train import train_and_export
+    from models.offline.datasets.build import build
+    from models.offline.train import train_and_export
 
     root = tmp_path_factory.mktemp("tactile-model")
     dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
@@ -205,9 +211,9 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
     Exporting the backbone and embedding 3 × 8 image views takes ~30 s the first time; both are
     cached under ./cache (HAPTICLINK_CACHE) and reused by later runs.
     """
-    from models.datasets.build import build
-    from models.featurize import backbone_onnx
-    from models.train import train_and_export
+    from models.offline.datasets.build import build
+    from models.offline.featurize import backbone_onnx
+    from models.offline.train import train_and_export
     from models.visual.config import VisualConfig
 
     root = tmp_path_factory.mktemp("visual-model")
@@ -222,9 +228,9 @@ def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
     """ridge-both on 8 synthetic textures (enough for `hapticlink train` to calibrate intervals and fit the OOD
     detector, frame ranges included), its ridge-tactile fallback, the backbone, and the dataset (8 s of stroking
     per texture: tests stream a texture's own recording as the in-distribution case)."""
-    from models.datasets.build import build
-    from models.featurize import backbone_onnx
-    from models.train import train_and_export
+    from models.offline.datasets.build import build
+    from models.offline.featurize import backbone_onnx
+    from models.offline.train import train_and_export
     from models.visual.config import VisualConfig
 
     root = tmp_path_factory.mktemp("calibrated-visual-model")
@@ -238,8 +244,16 @@ def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
 def base_settings(tactile_model, library_dir) -> Settings:
     # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
     # the backpressure tests set a tight one.
-    return Settings(model_path=tactile_model, library_dir=library_dir, instance_id="test-a", session_idle_s=600,
-                    session_first_block_s=600, session_queue_windows=64, api_keys=API_KEY, session_burst=10_000)
+    return Settings(
+        model_path=tactile_model,
+        library_dir=library_dir,
+        instance_id="test-a",
+        session_idle_s=600,
+        session_first_block_s=600,
+        session_queue_windows=64,
+        api_keys=API_KEY,
+        session_burst=10_000,
+    )
 
 
 @pytest.fixture(scope="session")

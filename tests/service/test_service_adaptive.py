@@ -80,9 +80,18 @@ def test_a_live_server_embeds_what_its_policy_says(kit, visual_model, library_di
     two of each scene; windows report the visual input either way."""
     from service.settings import Settings
 
-    settings = Settings(model_path=visual_model.model, tactile_model_path=visual_model.tactile, library_dir=library_dir,
-                        backbone_path=visual_model.backbone, instance_id="test-adaptive", api_keys=kit.API_KEY,
-                        session_burst=1000, session_queue_windows=64, serving_policy=policy, pool_frames=2)
+    settings = Settings(
+        model_path=visual_model.model,
+        tactile_model_path=visual_model.tactile,
+        library_dir=library_dir,
+        backbone_path=visual_model.backbone,
+        instance_id="test-adaptive",
+        api_keys=kit.API_KEY,
+        session_burst=1000,
+        session_queue_windows=64,
+        serving_policy=policy,
+        pool_frames=2,
+    )
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
         session = kit.create_session(client)
         robot = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
@@ -92,9 +101,14 @@ def test_a_live_server_embeds_what_its_policy_says(kit, visual_model, library_di
                 r = client.post(f"/sessions/{session['session_id']}/frames", content=_frame(kit, level), headers=robot)
                 assert r.status_code == 202, r.text
                 # one at a time, so none is superseded while the previous is embedded
-                kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_received"]
-                             == kit.session_status(client, session)["counters"]["frames_embedded"]
-                             + kit.session_status(client, session)["counters"]["frames_unchanged"], timeout_s=60)
+                kit.wait_for(
+                    lambda: (
+                        kit.session_status(client, session)["counters"]["frames_received"]
+                        == kit.session_status(client, session)["counters"]["frames_embedded"]
+                        + kit.session_status(client, session)["counters"]["frames_unchanged"]
+                    ),
+                    timeout_s=60,
+                )
             updates = []
             while len(updates) < (5 if policy == "always-full" else 3):
                 event = json.loads(sub.recv(timeout=30))
@@ -119,7 +133,8 @@ def test_thumbnail_of_a_frame_is_what_scene_views_compare():
 # ---- through the pipeline with real models -------------------------------------------------------
 @pytest.mark.parametrize("width, expect", [(200.0, "cheap"), (0.0, "full")])
 def test_the_cheap_model_answers_unless_the_policy_sends_the_window_to_the_full_one(
-        kit, visual_model, tactile_model, library_dir, width, expect):
+    kit, visual_model, tactile_model, library_dir, width, expect
+):
     """Main ridge-both (with an embedding), cheap ridge-tactile with a calibrated card: with a generous width
     bound and no margin the cheap estimate stands (except flagged windows); with width 0 every window goes to
     the full model. Either way raw_ratings are exactly that model's prediction of the window's features."""
@@ -129,9 +144,16 @@ def test_the_cheap_model_answers_unless_the_policy_sends_the_window_to_the_full_
     from service.session import canonical_channels, stream_contract
     from service.settings import Settings
 
-    settings = Settings(model_path=visual_model.model, cheap_model_path=tactile_model, library_dir=library_dir,
-                        backbone_path=visual_model.backbone, instance_id="t", api_keys=kit.API_KEY,
-                        full_model_width=width, full_model_margin=0.0)
+    settings = Settings(
+        model_path=visual_model.model,
+        cheap_model_path=tactile_model,
+        library_dir=library_dir,
+        backbone_path=visual_model.backbone,
+        instance_id="t",
+        api_keys=kit.API_KEY,
+        full_model_width=width,
+        full_model_margin=0.0,
+    )
     rt = load_runtime(settings)
     assert rt.cheap is not None and rt.cheap.window_calibration is not None
     gray = np.random.default_rng(1).uniform(0, 1, (256, 256)).astype(np.float32)
@@ -151,7 +173,7 @@ def test_the_cheap_model_answers_unless_the_policy_sends_the_window_to_the_full_
     full_raw = rt.main.predictor.predict(features[:6], np.repeat(visual[None], 6, axis=0))
     cheap_raw = rt.cheap.predictor.predict(features[:6])
     for k, w in enumerate(result.estimates):
-        flagged_input = bool(rt.cheap.detector.check(features[k:k + 1]).flags[0])
+        flagged_input = bool(rt.cheap.detector.check(features[k : k + 1]).flags[0])
         uses_full = expect == "full" or flagged_input
         assert w.model == (rt.main.name if uses_full else rt.cheap.name)
         assert np.allclose(w.raw, full_raw[k] if uses_full else cheap_raw[k], atol=1e-3)

@@ -6,8 +6,8 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
-from drivers.protocol import Close
 from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
+from drivers.protocol import Close
 
 
 @pytest.fixture
@@ -18,7 +18,11 @@ def two_sessions(kit, client):
 def _requests(kit, library_dir, sid):
     block = encode_binary(kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))[0])
     return {
-        "blocks": ("POST", f"/sessions/{sid}/blocks", {"content": block, "headers": {"Content-Type": BINARY_CONTENT_TYPE}}),
+        "blocks": (
+            "POST",
+            f"/sessions/{sid}/blocks",
+            {"content": block, "headers": {"Content-Type": BINARY_CONTENT_TYPE}},
+        ),
         "frames": ("POST", f"/sessions/{sid}/frames", {"content": kit.png(), "headers": {"Content-Type": "image/png"}}),
         "status": ("GET", f"/sessions/{sid}", {}),
     }
@@ -54,7 +58,12 @@ def test_each_route_opens_only_to_its_role(kit, client, library_dir, two_session
 def test_delete_takes_either_token_of_its_own_session(kit, client, two_sessions):
     a, b = two_sessions
     assert client.delete(f"/sessions/{a['session_id']}").status_code == 401
-    assert client.delete(f"/sessions/{a['session_id']}", headers={"Authorization": f"Bearer {b['robot_token']}"}).status_code == 401
+    assert (
+        client.delete(
+            f"/sessions/{a['session_id']}", headers={"Authorization": f"Bearer {b['robot_token']}"}
+        ).status_code
+        == 401
+    )
     r = client.delete(f"/sessions/{a['session_id']}", headers={"Authorization": f"Bearer {a['robot_token']}"})
     assert r.status_code == 200 and r.json()["state"] == "ended"
     r = client.delete(f"/sessions/{b['session_id']}", headers={"Authorization": f"Bearer {b['operator_token']}"})

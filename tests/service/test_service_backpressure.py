@@ -18,8 +18,8 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from drivers.protocol import Close
 from drivers.blocks import encode_binary
+from drivers.protocol import Close
 from drivers.robot import RobotClient
 from drivers.source import paced
 
@@ -28,8 +28,9 @@ QUEUE_WINDOWS = 2
 
 @pytest.fixture
 def tight_server(kit, base_settings):
-    settings = base_settings.model_copy(update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS,
-                                                "max_block_windows": 1})
+    settings = base_settings.model_copy(
+        update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS, "max_block_windows": 1}
+    )
     with kit.running(settings) as srv:
         yield srv
 
@@ -41,7 +42,7 @@ class PoolStall:
         self.release = threading.Event()
         self.future = getattr(server.app.state.service, pool).submit(self.release.wait, 60)
 
-    def __enter__(self) -> "PoolStall":
+    def __enter__(self) -> PoolStall:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -121,8 +122,9 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_004", 3.0))
 
     async def main():
-        robot = RobotClient(tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1,
-                            api_key=kit.API_KEY)
+        robot = RobotClient(
+            tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
+        )
         stall = PoolStall(tight_server)
         loop = asyncio.get_running_loop()
         loop.call_later(1.0, stall.release.set)  # the slow spell ends after a second
@@ -159,8 +161,10 @@ def test_a_subscriber_that_never_reads_does_not_hold_back_another(kit, server, c
 
 
 def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_server):
-    with httpx.Client(base_url=tight_server.url, timeout=10) as client, \
-            httpx.Client(base_url=tight_server.url, timeout=10) as other:
+    with (
+        httpx.Client(base_url=tight_server.url, timeout=10) as client,
+        httpx.Client(base_url=tight_server.url, timeout=10) as other,
+    ):
         session = kit.create_session(client)
         url = f"/sessions/{session['session_id']}/frames"
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}

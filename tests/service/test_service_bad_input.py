@@ -44,6 +44,7 @@ def _set(path: list, value):
         for key in path[:-1]:
             node = node[key]
         node[path[-1]] = value
+
     return mutate
 
 
@@ -57,19 +58,79 @@ def _bad_requests(block: SampleBlock) -> list[tuple[str, bytes, str, int, str]]:
         ("not json", b"{seq: 1", "application/json", 400, "not valid JSON"),
         ("json array", b"[1, 2, 3]", "application/json", 422, "must be a JSON object"),
         ("no channels", _json({"seq": block.seq, "t0": 0.0}), "application/json", 422, "channels must be"),
-        ("strings as samples", _mutated(block, _set(["channels", "force", "data"], ["a", "b"])), "application/json", 422, "list of numbers"),
-        ("ragged samples", _mutated(block, _set(["channels", "accel", "data"], [[1, 2, 3], [1, 2]])), "application/json", 422, "rectangular"),
-        ("accel with 2 axes", _mutated(block, _set(["channels", "accel", "data"], [[1.0, 2.0]] * 20)), "application/json", 422, "accel: shape"),
-        ("NaN in JSON", _mutated(block, _set(["channels", "speed", "data"], [float("nan")] * 20)), "application/json", 422, "NaN or Inf"),
+        (
+            "strings as samples",
+            _mutated(block, _set(["channels", "force", "data"], ["a", "b"])),
+            "application/json",
+            422,
+            "list of numbers",
+        ),
+        (
+            "ragged samples",
+            _mutated(block, _set(["channels", "accel", "data"], [[1, 2, 3], [1, 2]])),
+            "application/json",
+            422,
+            "rectangular",
+        ),
+        (
+            "accel with 2 axes",
+            _mutated(block, _set(["channels", "accel", "data"], [[1.0, 2.0]] * 20)),
+            "application/json",
+            422,
+            "accel: shape",
+        ),
+        (
+            "NaN in JSON",
+            _mutated(block, _set(["channels", "speed", "data"], [float("nan")] * 20)),
+            "application/json",
+            422,
+            "NaN or Inf",
+        ),
         ("NaN in binary", _binary_with(block, accel=nan_accel), BINARY_CONTENT_TYPE, 422, "NaN or Inf"),
         ("Inf in binary", _binary_with(block, force=inf_force), BINARY_CONTENT_TYPE, 422, "NaN or Inf"),
-        ("absurd rate", _mutated(block, _set(["channels", "accel", "rate_hz"], 1e9)), "application/json", 422, "sample rate must lie in"),
-        ("zero rate", _mutated(block, _set(["channels", "force", "rate_hz"], 0)), "application/json", 422, "sample rate must lie in"),
-        ("astronomic rate", _mutated(block, _set(["channels", "force", "rate_hz"], 10**400)), "application/json", 422, "force: sample rate must be a finite number"),
+        (
+            "absurd rate",
+            _mutated(block, _set(["channels", "accel", "rate_hz"], 1e9)),
+            "application/json",
+            422,
+            "sample rate must lie in",
+        ),
+        (
+            "zero rate",
+            _mutated(block, _set(["channels", "force", "rate_hz"], 0)),
+            "application/json",
+            422,
+            "sample rate must lie in",
+        ),
+        (
+            "astronomic rate",
+            _mutated(block, _set(["channels", "force", "rate_hz"], 10**400)),
+            "application/json",
+            422,
+            "force: sample rate must be a finite number",
+        ),
         ("astronomic seq", _mutated(block, _set(["seq"], 10**30)), "application/json", 422, "seq must be below 2^63"),
-        ("rate change", _mutated(block, _set(["channels", "speed", "rate_hz"], 2000.0)), "application/json", 422, "rate changed"),
-        ("unknown channel", _mutated(block, _set(["channels", "temperature"], {"rate_hz": 10, "units": "C", "data": [1.0]})), "application/json", 422, "unknown channel"),
-        ("unknown units", _mutated(block, _set(["channels", "force", "units"], "lbf")), "application/json", 422, "units must be one of"),
+        (
+            "rate change",
+            _mutated(block, _set(["channels", "speed", "rate_hz"], 2000.0)),
+            "application/json",
+            422,
+            "rate changed",
+        ),
+        (
+            "unknown channel",
+            _mutated(block, _set(["channels", "temperature"], {"rate_hz": 10, "units": "C", "data": [1.0]})),
+            "application/json",
+            422,
+            "unknown channel",
+        ),
+        (
+            "unknown units",
+            _mutated(block, _set(["channels", "force", "units"], "lbf")),
+            "application/json",
+            422,
+            "units must be one of",
+        ),
         ("negative seq", _mutated(block, _set(["seq"], -3)), "application/json", 422, "seq must be"),
         ("t0 not a number", _mutated(block, _set(["t0"], "noon")), "application/json", 422, "t0 must be"),
         ("deep nesting", b"[" * 100_000 + b"]" * 100_000, "application/json", 400, "not valid JSON"),
@@ -106,38 +167,58 @@ def test_each_bad_block_is_refused_clearly_and_nothing_accepted_is_lost(kit, ser
 
 def _png_header(width: int, height: int) -> bytes:
     """A PNG that declares width × height pixels but holds (almost) none: what a decompression bomb looks like."""
+
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b"")
 
 
-@pytest.mark.parametrize("body, ctype, status, words", [
-    (b"GIF89a not really", "image/gif", 415, "image/png or image/jpeg"),
-    (b"hello", "text/plain", 415, "image/png"),
-    (b"\x89PNG\r\n\x1a\n garbage", "image/png", 422, "not a readable image"),
-    (100, "image/png", 422, "need at least 224"),  # an int: a real PNG of that size
-    (_png_header(30_000, 30_000), "image/png", 422, "too large"),
-    (_png_header(8_000, 8_000), "image/png", 422, "pixels are decoded"),
-])
+@pytest.mark.parametrize(
+    "body, ctype, status, words",
+    [
+        (b"GIF89a not really", "image/gif", 415, "image/png or image/jpeg"),
+        (b"hello", "text/plain", 415, "image/png"),
+        (b"\x89PNG\r\n\x1a\n garbage", "image/png", 422, "not a readable image"),
+        (100, "image/png", 422, "need at least 224"),  # an int: a real PNG of that size
+        (_png_header(30_000, 30_000), "image/png", 422, "too large"),
+        (_png_header(8_000, 8_000), "image/png", 422, "pixels are decoded"),
+    ],
+)
 def test_bad_frames_are_refused_with_a_message(kit, client, body, ctype, status, words):
     session = kit.create_session(client)
-    r = client.post(f"/sessions/{session['session_id']}/frames", content=kit.png(body) if isinstance(body, int) else body,
-                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": ctype})
+    r = client.post(
+        f"/sessions/{session['session_id']}/frames",
+        content=kit.png(body) if isinstance(body, int) else body,
+        headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": ctype},
+    )
     assert r.status_code == status and words in r.json()["detail"], r.text
-    ok = client.post(f"/sessions/{session['session_id']}/frames", content=kit.png(256),
-                     headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
-    assert ok.status_code == 202 and ok.json() == {"accepted": True, "used": False, "outcome": "ignored", "width": 256,
-                                                "height": 256}
+    ok = client.post(
+        f"/sessions/{session['session_id']}/frames",
+        content=kit.png(256),
+        headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
+    )
+    assert ok.status_code == 202 and ok.json() == {
+        "accepted": True,
+        "used": False,
+        "outcome": "ignored",
+        "width": 256,
+        "height": 256,
+    }
 
 
 def test_oversized_bodies_are_refused_before_they_are_read(kit, base_settings, library_dir):
     limit = 64 * 1024
-    with kit.running(base_settings.model_copy(update={"max_body_bytes": limit})) as srv, \
-            httpx.Client(base_url=srv.url, timeout=10) as client:
+    with (
+        kit.running(base_settings.model_copy(update={"max_body_bytes": limit})) as srv,
+        httpx.Client(base_url=srv.url, timeout=10) as client,
+    ):
         session = kit.create_session(client)
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": BINARY_CONTENT_TYPE}
-        declared = client.post(f"/sessions/{session['session_id']}/blocks", content=b"\0" * (limit + 1), headers=headers)
+        declared = client.post(
+            f"/sessions/{session['session_id']}/blocks", content=b"\0" * (limit + 1), headers=headers
+        )
         assert declared.status_code == 413 and f"at most {limit} bytes" in declared.json()["detail"]
 
         def chunks():  # no Content-Length: counted while streaming
@@ -146,8 +227,11 @@ def test_oversized_bodies_are_refused_before_they_are_read(kit, base_settings, l
 
         streamed = client.post(f"/sessions/{session['session_id']}/blocks", content=chunks(), headers=headers)
         assert streamed.status_code == 413
-        frame = client.post(f"/sessions/{session['session_id']}/frames", content=b"\0" * (2 * limit),
-                            headers={**headers, "Content-Type": "image/png"})
+        frame = client.post(
+            f"/sessions/{session['session_id']}/frames",
+            content=b"\0" * (2 * limit),
+            headers={**headers, "Content-Type": "image/png"},
+        )
         assert frame.status_code == 413
         good = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))[0]
         assert kit.post_block(client, session, good).status_code == 202
@@ -166,15 +250,20 @@ json_values = st.recursive(
     max_leaves=30,
 )
 kinds = st.sampled_from(["accel", "force", "speed", "position", "temperature", ""])
-numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(min_value=-10**30, max_value=10**30))
+numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(min_value=-(10**30), max_value=10**30))
 channel_specs = st.fixed_dictionaries(
-    {"rate_hz": numbers | st.text(max_size=4) | st.none(),
-     "units": st.sampled_from(["m/s^2", "g", "N", "mm/s", "m/s", "mm", "m", "furlong", ""]) | st.none(),
-     "data": st.lists(st.lists(numbers, max_size=4) | numbers, max_size=40)},
+    {
+        "rate_hz": numbers | st.text(max_size=4) | st.none(),
+        "units": st.sampled_from(["m/s^2", "g", "N", "mm/s", "m/s", "mm", "m", "furlong", ""]) | st.none(),
+        "data": st.lists(st.lists(numbers, max_size=4) | numbers, max_size=40),
+    },
 )
 plausible_blocks = st.fixed_dictionaries(
-    {"seq": st.integers(min_value=-5, max_value=10**6) | st.none(), "t0": numbers | st.none(),
-     "channels": st.dictionaries(kinds, channel_specs, max_size=4)},
+    {
+        "seq": st.integers(min_value=-5, max_value=10**6) | st.none(),
+        "t0": numbers | st.none(),
+        "channels": st.dictionaries(kinds, channel_specs, max_size=4),
+    },
 )
 
 
@@ -184,10 +273,22 @@ def _garbled_binary(header: dict, payload: bytes, length_delta: int) -> bytes:
 
 
 HEADERS = st.fixed_dictionaries(
-    {"seq": st.integers(min_value=0, max_value=10**6), "t0": st.floats(min_value=0, max_value=1e6),
-     "channels": st.dictionaries(kinds, st.fixed_dictionaries(
-         {"rate_hz": numbers, "units": st.sampled_from(["m/s^2", "N", "mm/s", "mm", "x"]),
-          "shape": st.lists(st.integers(min_value=-2, max_value=70), min_size=0, max_size=3)}), max_size=4)})
+    {
+        "seq": st.integers(min_value=0, max_value=10**6),
+        "t0": st.floats(min_value=0, max_value=1e6),
+        "channels": st.dictionaries(
+            kinds,
+            st.fixed_dictionaries(
+                {
+                    "rate_hz": numbers,
+                    "units": st.sampled_from(["m/s^2", "N", "mm/s", "mm", "x"]),
+                    "shape": st.lists(st.integers(min_value=-2, max_value=70), min_size=0, max_size=3),
+                }
+            ),
+            max_size=4,
+        ),
+    }
+)
 
 
 @pytest.fixture(scope="module")
@@ -197,9 +298,16 @@ def fuzz_session(server, kit):
         yield r.json()
 
 
-@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True)
-@given(body=st.one_of(json_values.map(lambda v: json.dumps(v).encode()), plausible_blocks.map(lambda v: json.dumps(v).encode()),
-                      st.binary(max_size=300)))
+@settings(
+    max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True
+)
+@given(
+    body=st.one_of(
+        json_values.map(lambda v: json.dumps(v).encode()),
+        plausible_blocks.map(lambda v: json.dumps(v).encode()),
+        st.binary(max_size=300),
+    )
+)
 def test_garbled_json_never_yields_a_server_error(kit, server, fuzz_session, body):
     with httpx.Client(base_url=server.url, timeout=10) as client:
         r = kit.post_block(client, fuzz_session, body, "application/json")
@@ -207,9 +315,16 @@ def test_garbled_json_never_yields_a_server_error(kit, server, fuzz_session, bod
     assert isinstance(r.json().get("detail", ""), str)
 
 
-@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True)
-@given(header=HEADERS, payload=st.binary(max_size=2000), delta=st.integers(min_value=-3, max_value=3),
-       raw=st.booleans(), junk=st.binary(max_size=64))
+@settings(
+    max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture], derandomize=True
+)
+@given(
+    header=HEADERS,
+    payload=st.binary(max_size=2000),
+    delta=st.integers(min_value=-3, max_value=3),
+    raw=st.booleans(),
+    junk=st.binary(max_size=64),
+)
 def test_garbled_binary_never_yields_a_server_error(kit, server, fuzz_session, header, payload, delta, raw, junk):
     body = (MAGIC + junk) if raw else _garbled_binary(header, payload, delta)
     with httpx.Client(base_url=server.url, timeout=10) as client:

@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 
 from service.cli import build_parser, main
 from service.commands import settings_from_args
+from service.launcher import ServerProcess
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -38,24 +36,27 @@ def test_bad_settings_are_named_without_a_traceback(capsys, tmp_path):
 
 
 def test_serve_runs_and_stops_cleanly_on_ctrl_c(kit, tactile_model, library_dir):
-    port = kit.free_port()
-    env = {**os.environ, "HAPTICLINK_LOG_LEVEL": "info", "HAPTICLINK_API_KEYS": kit.API_KEY}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--model", str(tactile_model), "--library", str(library_dir),
-         "--port", str(port), "--instance-id", "cli"],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    env = {"HAPTICLINK_LOG_LEVEL": "info", "HAPTICLINK_API_KEYS": kit.API_KEY}
+    server = ServerProcess(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--model",
+            str(tactile_model),
+            "--library",
+            str(library_dir),
+            "--instance-id",
+            "cli",
+        ],
+        env,
+        cwd=REPO,
+        timeout_s=60,
+        capture=True,
     )
+    proc, port = server.proc, server.port
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/ready", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, proc.stdout.read()
-            assert time.monotonic() < deadline, "the server did not become ready"
-            time.sleep(0.1)
         created = httpx.post(f"http://127.0.0.1:{port}/sessions", json={}, headers=kit.FLEET).json()
         assert created["session_id"].startswith("cli.")
         proc.send_signal(signal.SIGINT)

@@ -17,11 +17,22 @@ from texture_library.attributes import ATTRIBUTES
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
 selenium = pytest.importorskip("selenium", reason="selenium is not installed (pip install selenium)")
-pytestmark = pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
-                                reason="chromium and chromedriver are not installed (apt-get install chromium chromium-driver)")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="chromium and chromedriver are not installed (apt-get install chromium chromium-driver)",
+)
 
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync", "--no-first-run", "--window-size=1280,900")
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-dev-shm-usage",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--window-size=1280,900",
+)
 
 
 @pytest.fixture
@@ -96,7 +107,9 @@ def test_console_shows_live_ratings_texture_and_latency(kit, server, client, lib
         # the last minute: one point per window so far, the band's upper edge and lower edge back
         line = browser.find_element("id", f"plot-line-{attr}").get_attribute("points").split()
         assert len(line) == 6
-        assert float(line[-1].split(",")[0]) == pytest.approx(60.0) and float(line[-1].split(",")[1]) == pytest.approx(-last["ratings"][attr], abs=0.01)
+        assert float(line[-1].split(",")[0]) == pytest.approx(60.0) and float(line[-1].split(",")[1]) == pytest.approx(
+            -last["ratings"][attr], abs=0.01
+        )
         band = browser.find_element("id", f"plot-band-{attr}").get_attribute("points").split()
         assert len(band) == 12 and float(band[5].split(",")[1]) == pytest.approx(-hi, abs=0.01)
     assert _text(browser, "interval-level") == "90 %"

@@ -2,7 +2,8 @@
 
 import asyncio
 
-from service.demo import prepare_assets, run_demo
+from models.offline.demo_assets import prepare_assets
+from service.demo import run_demo
 
 
 def test_demo_builds_its_assets_and_streams_estimates(tmp_path, kit, capsys):

@@ -54,7 +54,7 @@ def test_every_variable_compose_sets_is_a_setting_with_a_valid_value(compose, mo
         env = svc["environment"]
         for key in env:
             assert key.startswith(ENV_PREFIX), f"{name}: {key} is not a HAPTICLINK_ setting"
-            assert key[len(ENV_PREFIX):].lower() in fields, f"{name}: {key} is no field of Settings"
+            assert key[len(ENV_PREFIX) :].lower() in fields, f"{name}: {key} is no field of Settings"
         for key, value in env.items():
             monkeypatch.setenv(key, str(value))
         settings = Settings()  # parses every value the way the container will

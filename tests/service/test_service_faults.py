@@ -2,7 +2,7 @@
 WebSocket, frames over HTTP and an operator on the events WebSocket. Noisy, clipped, gapped and out-of-range
 blocks, invalid blocks, an unreadable frame, an under-exposed frame and then no frame at all: the service keeps
 serving, never answers 5xx, flags the windows whose input it was not trained on, and loses no window of an
-accepted block. The faults are models/faults' pure functions, as in the offline study."""
+accepted block. The faults are models/offline/faults' pure functions, as in the offline study."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary, encode_json
 from drivers.source import blocks_from_arrays
-from models.datasets.format import Dataset
-from models.faults import camera, touch
+from models.offline.datasets.format import Dataset
+from models.offline.faults import camera, touch
 from models.tactile.stream import StreamContract
 from models.visual.image import load_image
 from service.events import WindowEvent
@@ -38,28 +38,41 @@ def _png(gray: np.ndarray) -> bytes:
 
 def _blocks(rec: Recording, start_s: float, stop_s: float, t0: float, seq0: int, accel=None, force_factor: float = 1.0):
     """Wire blocks of rec[start_s:stop_s] starting at stream time t0 (accel replaced by `accel` if given)."""
-    cut = lambda c: c.data[int(start_s * c.rate_hz):int(stop_s * c.rate_hz)]  # noqa: E731
-    channels = {"accel": (cut(rec.accel) if accel is None else accel, rec.accel.rate_hz, "m/s^2"),
-                "force": (cut(rec.force) * force_factor, rec.force.rate_hz, "N"),
-                "speed": (cut(rec.speed), rec.speed.rate_hz, "mm/s")}
+    cut = lambda c: c.data[int(start_s * c.rate_hz) : int(stop_s * c.rate_hz)]  # noqa: E731
+    channels = {
+        "accel": (cut(rec.accel) if accel is None else accel, rec.accel.rate_hz, "m/s^2"),
+        "force": (cut(rec.force) * force_factor, rec.force.rate_hz, "N"),
+        "speed": (cut(rec.speed), rec.speed.rate_hz, "mm/s"),
+    }
     return list(blocks_from_arrays(channels, 0.02, t0=t0, seq0=seq0))
 
 
 def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_visual_model, library_dir):
     m = calibrated_visual_model
-    settings = Settings(model_path=m.model, tactile_model_path=m.tactile, library_dir=library_dir,
-                        backbone_path=m.backbone, instance_id="test-faults", api_keys=kit.API_KEY, session_burst=1000,
-                        session_queue_windows=64, session_idle_s=600, session_first_block_s=600,
-                        interval_level=0.8)  # 8 calibration textures: a finite conformal quantile needs level ≤ 8/9
+    settings = Settings(
+        model_path=m.model,
+        tactile_model_path=m.tactile,
+        library_dir=library_dir,
+        backbone_path=m.backbone,
+        instance_id="test-faults",
+        api_keys=kit.API_KEY,
+        session_burst=1000,
+        session_queue_windows=64,
+        session_idle_s=600,
+        session_first_block_s=600,
+        interval_level=0.8,
+    )  # 8 calibration textures: a finite conformal quantile needs level ≤ 8/9
     rng = np.random.default_rng(kit.FIXED_SEED)
     rec = Dataset(m.dataset).recordings(TEXTURE)[0]  # in distribution by construction: a training stroke
-    accel = lambda a, b: rec.accel.data[int(a * 1000):int(b * 1000)]  # noqa: E731
+    accel = lambda a, b: rec.accel.data[int(a * 1000) : int(b * 1000)]  # noqa: E731
     # (label, blocks): one second each; the gap drops 150 ms of stream time (a new segment)
-    plan = [("clean", _blocks(rec, 0.0, 1.5, 0.0, 0)),
-            ("noise_0dB", _blocks(rec, 1.5, 2.5, 1.5, 75, accel=touch.add_noise(accel(1.5, 2.5), 0.0, rng))),
-            ("clipped_10pc", _blocks(rec, 2.5, 3.5, 2.5, 125, accel=touch.clip_range(accel(2.5, 3.5), 0.1))),
-            ("force_x4", _blocks(rec, 3.5, 4.5, 3.5, 175, force_factor=4.0)),
-            ("after_gap", _blocks(rec, 4.65, 7.0, 4.65, 225))]
+    plan = [
+        ("clean", _blocks(rec, 0.0, 1.5, 0.0, 0)),
+        ("noise_0dB", _blocks(rec, 1.5, 2.5, 1.5, 75, accel=touch.add_noise(accel(1.5, 2.5), 0.0, rng))),
+        ("clipped_10pc", _blocks(rec, 2.5, 3.5, 2.5, 125, accel=touch.clip_range(accel(2.5, 3.5), 0.1))),
+        ("force_x4", _blocks(rec, 3.5, 4.5, 3.5, 175, force_factor=4.0)),
+        ("after_gap", _blocks(rec, 4.65, 7.0, 4.65, 225)),
+    ]
     photo = load_image(Dataset(m.dataset).image_paths(TEXTURE)[0])
     statuses: list[int] = []
     acks: list[dict] = []
@@ -91,6 +104,7 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
         kit.wait_for(lambda: any(e.get("event") == "visual_updated" for e in events), timeout_s=60)
         accepted = []
         with connect(kit.socket_url(srv, session, "ingest")) as ingest:
+
             def send(message) -> dict:
                 ingest.send(message)
                 ack = json.loads(ingest.recv(timeout=20))
@@ -118,8 +132,9 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
         for block in accepted:
             adv = contract.admit(cursor, canonical_channels(block), block.t0)
             cursor, expected = adv.cursor, expected + adv.windows_added
-        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= expected and s,
-                              timeout_s=60)
+        status = kit.wait_for(
+            lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= expected and s, timeout_s=60
+        )
         kit.wait_for(lambda: sum(e["type"] == "window" for e in events) >= expected, timeout_s=30)
         stop.set()
         watcher.join(timeout=5)
@@ -143,12 +158,17 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
         assert w["out_of_distribution"] and "force_out_of_range" in w["ood_reasons"], w["ood_reasons"]
     dark = during(4.65, 7.0)
     assert dark and all(w["out_of_distribution"] for w in dark)
-    assert all(any(r.startswith("frame_") for r in w["ood_reasons"]) for w in dark[3:]), [w["ood_reasons"] for w in dark]
+    assert all(any(r.startswith("frame_") for r in w["ood_reasons"]) for w in dark[3:]), [
+        w["ood_reasons"] for w in dark
+    ]
     for w in during(1.5, 3.5):  # noise at 0 dB SNR, a sensor clipping at 10 % of the range
         assert w["out_of_distribution"], (w["t_start_s"], w["ood_reasons"])
+
     # flagged windows never keep the clean windows' narrow band
     def widths(w: dict) -> np.ndarray:
-        return np.array([w["interval"][a]["hi"] - w["interval"][a]["lo"] for a in w["interval"] if a not in ("level", "target")])
+        return np.array(
+            [w["interval"][a]["hi"] - w["interval"][a]["lo"] for a in w["interval"] if a not in ("level", "target")]
+        )
 
     clean = [widths(w) for w in during(0.0, 1.5) if not w["out_of_distribution"]]
     assert clean and all(np.all(c < 200) for c in clean)
@@ -163,7 +183,13 @@ def test_the_live_service_keeps_serving_and_flags_faulty_input(kit, calibrated_v
         lo = np.array([w["interval"][a]["lo"] for a in ATTRIBUTES])
         hi = np.array([w["interval"][a]["hi"] for a in ATTRIBUTES])
         own_lo, own_hi = cal.interval(np.array([w["ratings"][a] for a in ATTRIBUTES]), None, settings.interval_level)
-        assert np.all(lo <= np.minimum(own_lo, pop_lo) + 0.02) and np.all(hi >= np.maximum(own_hi, pop_hi) - 0.02), \
-            (lo, hi, own_lo, own_hi, pop_lo, pop_hi)
+        assert np.all(lo <= np.minimum(own_lo, pop_lo) + 0.02) and np.all(hi >= np.maximum(own_hi, pop_hi) - 0.02), (
+            lo,
+            hi,
+            own_lo,
+            own_hi,
+            pop_lo,
+            pop_hi,
+        )
         widened |= bool(np.any(hi - lo > own_hi - own_lo + 1))
     assert widened, "no flagged window's band grew beyond its own"

@@ -95,16 +95,24 @@ def test_an_abandoned_session_is_ended_and_its_slot_freed(kit, base_settings):
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         session = kit.create_session(client)
         kit.wait_for(lambda: not srv.app.state.service.sessions, timeout_s=10)
-        r = client.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+        r = client.get(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"}
+        )
         assert r.status_code == 404
 
 
 # ---- the cost of one block ------------------------------------------------------------------------------
 def _block(seq: int, t0: float, n: int = 20, rate: float = 1000.0) -> SampleBlock:
     rng = np.random.default_rng(seq)
-    return SampleBlock(t0, {"accel": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), rate, "m/s^2"),
-                            "force": ChannelBlock(np.full(n, 1.5, np.float32), rate, "N"),
-                            "speed": ChannelBlock(np.full(n, 80.0, np.float32), rate, "mm/s")}, seq)
+    return SampleBlock(
+        t0,
+        {
+            "accel": ChannelBlock(rng.normal(size=(n, 3)).astype(np.float32), rate, "m/s^2"),
+            "force": ChannelBlock(np.full(n, 1.5, np.float32), rate, "N"),
+            "speed": ChannelBlock(np.full(n, 80.0, np.float32), rate, "mm/s"),
+        },
+        seq,
+    )
 
 
 def test_the_huge_legal_block_is_refused_by_stream_time_at_once(kit, server, client):
@@ -143,8 +151,10 @@ def test_publishing_many_windows_yields_to_the_event_loop(base_settings):
         await asyncio.sleep(0)
         z = np.zeros(4)
         unknown = Assessment(None, None, ())
-        estimates = [WindowEstimate(i, 0.5 * i, 0.5 * i + 0.5, z, z, z, unknown, [], "x", i, 0, 0, 1.0, 1.0, 1.0,
-                                    "tactile", "m") for i in range(40)]
+        estimates = [
+            WindowEstimate(i, 0.5 * i, 0.5 * i + 0.5, z, z, z, unknown, [], "x", i, 0, 0, 1.0, 1.0, 1.0, "tactile", "m")
+            for i in range(40)
+        ]
         await session.apply_result(SessionResult(estimates, 40))
         tick.cancel()
 
@@ -225,8 +235,9 @@ def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_sett
         assert not any(secret in line for line in lines), [line for line in lines if secret in line]
     refusals = [r for r in capture.records if "refused" in r.getMessage() and "ingest socket" in r.getMessage()]
     assert len(refusals) == 1 and refusals[0].levelno == logging.WARNING
-    assert not any(r.levelno >= logging.ERROR for r in capture.records), [r.getMessage() for r in capture.records
-                                                                            if r.levelno >= logging.ERROR]
+    assert not any(r.levelno >= logging.ERROR for r in capture.records), [
+        r.getMessage() for r in capture.records if r.levelno >= logging.ERROR
+    ]
     assert not any(r.exc_info for r in capture.records)
 
 
@@ -240,7 +251,9 @@ def test_operators_are_told_when_the_robot_disconnects(kit, server, client):
         event = json.loads(sub.recv(timeout=5))
         assert event["event"] == "robot_disconnected" and "closed" in event["message"]
         with pytest.raises(ConnectionClosed):  # the operator's token is no robot token
-            with connect(f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['operator_token']}") as ws:
+            with connect(
+                f"{server.ws_url}/sessions/{session['session_id']}/ingest?token={session['operator_token']}"
+            ) as ws:
                 ws.recv(timeout=5)
         event = json.loads(sub.recv(timeout=5))
         assert event["event"] == "robot_refused" and "refused" in event["message"]
@@ -249,9 +262,11 @@ def test_operators_are_told_when_the_robot_disconnects(kit, server, client):
 
 # ---- slow and half-open connections -----------------------------------------------------------------------
 def test_half_open_requests_and_silent_connections_are_closed(kit, base_settings):
-    settings = base_settings.model_copy(update={"request_read_timeout_s": 0.5, "timeout_keep_alive_s": 0.5,
-                                                "instance_id": "halfopen"})
+    settings = base_settings.model_copy(
+        update={"request_read_timeout_s": 0.5, "timeout_keep_alive_s": 0.5, "instance_id": "halfopen"}
+    )
     with kit.running(settings) as srv:
+
         def closed_within(send: bytes, seconds: float) -> float:
             with socket.create_connection(("127.0.0.1", srv.port)) as sock:
                 sock.settimeout(seconds)
@@ -279,8 +294,11 @@ def test_half_open_requests_and_silent_connections_are_closed(kit, base_settings
 # ---- smaller findings ---------------------------------------------------------------------------------------
 def test_frame_errors_do_not_leak_object_reprs(kit, server, client):
     session = kit.create_session(client)
-    r = client.post(f"/sessions/{session['session_id']}/frames", content=b"\x89PNG\r\n\x1a\n garbage",
-                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
+    r = client.post(
+        f"/sessions/{session['session_id']}/frames",
+        content=b"\x89PNG\r\n\x1a\n garbage",
+        headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
+    )
     assert r.status_code == 422 and "not a readable image" in r.json()["detail"]
     assert "BytesIO" not in r.json()["detail"] and " at 0x" not in r.json()["detail"]
 
@@ -321,6 +339,16 @@ def test_the_routers_serve_every_route():
     from service.app import route_paths
 
     paths = route_paths(create_app(Settings()))
-    assert {"/sessions", "/sessions/{session_id}", "/sessions/{session_id}/blocks", "/sessions/{session_id}/frames",
-            "/sessions/{session_id}/ingest", "/sessions/{session_id}/events", "/health", "/ready", "/metrics",
-            "/library", "/console"} <= paths
+    assert {
+        "/sessions",
+        "/sessions/{session_id}",
+        "/sessions/{session_id}/blocks",
+        "/sessions/{session_id}/frames",
+        "/sessions/{session_id}/ingest",
+        "/sessions/{session_id}/events",
+        "/health",
+        "/ready",
+        "/metrics",
+        "/library",
+        "/console",
+    } <= paths

@@ -18,7 +18,9 @@ def test_ending_a_session_tells_its_operators_and_closes_their_sockets(kit, serv
     session = kit.create_session(client)
     with connect(kit.socket_url(server, session, "events")) as sub:
         sub.recv(timeout=5)
-        r = client.delete(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"})
+        r = client.delete(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"}
+        )
         assert r.status_code == 200 and r.json()["state"] == "ended"
         last = StatusEvent.model_validate(json.loads(sub.recv(timeout=5)))
         assert last.event == "session_ended" and last.message == "ended by request"
@@ -48,8 +50,9 @@ def test_health_ready_library_and_metrics(kit, server, client, library_dir):
     lib = client.get("/library").json()
     expected = Library.load(library_dir)
     assert [e["id"] for e in lib["entries"]] == expected.ids
-    assert lib["entries"][0]["ratings"] == pytest.approx(dict(zip(
-        ("rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft"), expected.ratings[0])))
+    assert lib["entries"][0]["ratings"] == pytest.approx(
+        dict(zip(("rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft"), expected.ratings[0]))
+    )
 
     session = kit.create_session(client)
     for block in kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 1.0)):

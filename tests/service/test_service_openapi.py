@@ -20,9 +20,15 @@ def test_openapi_documents_every_route_with_examples(server):
     spec = httpx.get(f"{server.url}/openapi.json").json()
     paths = spec["paths"]
     expected = {
-        "/sessions": {"post"}, "/sessions/{session_id}": {"get", "delete"},
-        "/sessions/{session_id}/blocks": {"post"}, "/sessions/{session_id}/frames": {"post"},
-        "/library": {"get"}, "/health": {"get"}, "/ready": {"get"}, "/metrics": {"get"}, "/console": {"get"},
+        "/sessions": {"post"},
+        "/sessions/{session_id}": {"get", "delete"},
+        "/sessions/{session_id}/blocks": {"post"},
+        "/sessions/{session_id}/frames": {"post"},
+        "/library": {"get"},
+        "/health": {"get"},
+        "/ready": {"get"},
+        "/metrics": {"get"},
+        "/console": {"get"},
     }
     for path, methods in expected.items():
         assert methods <= set(paths[path]), path
@@ -40,7 +46,9 @@ def test_openapi_documents_every_route_with_examples(server):
 
 
 def test_docs_carry_the_current_settings_table():
-    assert settings_table() in DOCS.read_text(), "docs/service.md: regenerate the table with service.settings.settings_table()"
+    assert settings_table() in DOCS.read_text(), (
+        "docs/service.md: regenerate the table with service.settings.settings_table()"
+    )
 
 
 # ---- schemathesis against the live server --------------------------------------------------------
@@ -81,12 +89,19 @@ def test_api_never_fails_and_conforms_to_its_schema(api_schema, live_session):
         for mode in (schemathesis.GenerationMode.POSITIVE, schemathesis.GenerationMode.NEGATIVE):
 
             @given(case=operation.as_strategy(generation_mode=mode))
-            @settings(max_examples=EXAMPLES_PER_OPERATION, deadline=None, suppress_health_check=list(HealthCheck),
-                      derandomize=True, database=None)
+            @settings(
+                max_examples=EXAMPLES_PER_OPERATION,
+                deadline=None,
+                suppress_health_check=list(HealthCheck),
+                derandomize=True,
+                database=None,
+            )
             def check(case):
                 if keep_session and "session_id" in (case.path_parameters or {}):
                     case.path_parameters["session_id"] = live_session["session_id"]  # reach past the 404
-                case.call_and_validate(headers={"Authorization": f"Bearer {live_session[role]}"}, excluded_checks=excluded)
+                case.call_and_validate(
+                    headers={"Authorization": f"Bearer {live_session[role]}"}, excluded_checks=excluded
+                )
                 calls[name] = calls.get(name, 0) + 1
 
             try:

@@ -13,7 +13,7 @@ import pytest
 from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary, encode_json
-from models.predictor import Predictor
+from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
 from service.events import StatusEvent, WindowEvent
 from texture_library.attributes import ATTRIBUTES
@@ -32,8 +32,10 @@ def read_windows(sub, n: int, timeout_s: float = 20.0) -> tuple[list[dict], list
 
 def float32_recording(rec: Recording) -> Recording:
     """What the service receives: the wire carries float32."""
+
     def f32(c: Channel) -> Channel:
         return Channel(c.data.astype(np.float32).astype(np.float64), c.rate_hz)
+
     return Recording(f32(rec.accel), f32(rec.force), f32(rec.speed))
 
 
@@ -128,8 +130,10 @@ def test_websocket_ingest_acknowledges_each_block_and_survives_bad_ones(kit, ser
     rec = kit.stroke_recording(library_dir, "synth_005", 1.0)
     blocks = kit.recording_blocks(rec)
     session = kit.create_session(client)
-    with connect(kit.socket_url(server, session, "ingest")) as ws, \
-         connect(kit.socket_url(server, session, "events")) as sub:
+    with (
+        connect(kit.socket_url(server, session, "ingest")) as ws,
+        connect(kit.socket_url(server, session, "events")) as sub,
+    ):
         sub.recv(timeout=5)
         for i, block in enumerate(blocks):
             if i == 10:  # garbage, then a well-formed block that lies about its rate: both refused, socket stays
@@ -140,7 +144,11 @@ def test_websocket_ingest_acknowledges_each_block_and_survives_bad_ones(kit, ser
                 lying["channels"]["accel"]["rate_hz"] = 2000.0
                 ws.send(json.dumps(lying))
                 bad = json.loads(ws.recv(timeout=5))
-                assert bad == {"seq": block.seq, "ok": False, "error": "accel: rate changed from 1000 Hz to 2000 Hz mid-stream"}
+                assert bad == {
+                    "seq": block.seq,
+                    "ok": False,
+                    "error": "accel: rate changed from 1000 Hz to 2000 Hz mid-stream",
+                }
             ws.send(encode_binary(block) if i % 2 else json.dumps(encode_json(block)))
             ack = json.loads(ws.recv(timeout=5))
             assert ack == {"seq": block.seq, "ok": True, "duplicate": False}

@@ -21,8 +21,11 @@ pytestmark = pytest.mark.skipif(REDIS is None, reason="redis-server is not insta
 @pytest.fixture(scope="module")
 def redis_url(kit):
     port = kit.free_port()
-    proc = subprocess.Popen([REDIS, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [REDIS, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     url = f"redis://127.0.0.1:{port}/0"
     try:
         deadline = time.monotonic() + 10
@@ -46,8 +49,12 @@ def test_events_cross_replicas_through_redis(kit, base_settings, redis_url, libr
     settings_a = base_settings.model_copy(update={**common, "instance_id": "replica-a"})
     settings_b = base_settings.model_copy(update={**common, "instance_id": "replica-b"})
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
-    with kit.running(settings_a) as a, kit.running(settings_b) as b, \
-            httpx.Client(base_url=a.url, timeout=10) as client_a, httpx.Client(base_url=b.url, timeout=10) as client_b:
+    with (
+        kit.running(settings_a) as a,
+        kit.running(settings_b) as b,
+        httpx.Client(base_url=a.url, timeout=10) as client_a,
+        httpx.Client(base_url=b.url, timeout=10) as client_b,
+    ):
         session = kit.create_session(client_a)
         sid = session["session_id"]
         assert sid.startswith("replica-a.")
@@ -59,7 +66,10 @@ def test_events_cross_replicas_through_redis(kit, base_settings, redis_url, libr
             connect(f"{b.ws_url}/sessions/{sid}/events?token={session['robot_token']}")
         assert err.value.response.status_code == 403
 
-        with connect(kit.socket_url(b, session, "events")) as on_b, connect(kit.socket_url(a, session, "events")) as on_a:
+        with (
+            connect(kit.socket_url(b, session, "events")) as on_b,
+            connect(kit.socket_url(a, session, "events")) as on_a,
+        ):
             assert json.loads(on_b.recv(timeout=5))["instance"] == "replica-b"
             assert json.loads(on_a.recv(timeout=5))["instance"] == "replica-a"
             for block in blocks:
@@ -75,7 +85,9 @@ def test_events_cross_replicas_through_redis(kit, base_settings, redis_url, libr
             assert [w["window_index"] for w in received["b"]] == [0, 1, 2, 3]
             assert received["a"] == received["b"]  # the same events, byte for byte, on both replicas
 
-            ended = client_a.delete(f"/sessions/{sid}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+            ended = client_a.delete(
+                f"/sessions/{sid}", headers={"Authorization": f"Bearer {session['operator_token']}"}
+            )
             assert ended.status_code == 200
             last = json.loads(on_b.recv(timeout=10))
             assert last["event"] == "session_ended"
@@ -94,7 +106,9 @@ def _foreign_session(url: str, instance: str, incarnation: str, alive: bool) -> 
     robot, operator, creds = issue_credentials()
     sid = f"{instance}.{incarnation}x"
     r = redis.Redis.from_url(url)
-    r.hset(DIRECTORY_PREFIX + sid, mapping={"name": sid, "instance": instance, "incarnation": incarnation, **asdict(creds)})
+    r.hset(
+        DIRECTORY_PREFIX + sid, mapping={"name": sid, "instance": instance, "incarnation": incarnation, **asdict(creds)}
+    )
     if alive:
         r.set(ALIVE_PREFIX + instance, incarnation, px=600_000)
     return {"session_id": sid, "robot_token": robot, "operator_token": operator}
@@ -107,15 +121,23 @@ def _robot_error(url: str, session: dict, transport: str, library_dir) -> Except
     from drivers.simulated import SimulatedSource
 
     source = SimulatedSource.from_library(library_dir, "synth_001", realtime=False, duration_s=1.0)
-    client = RobotClient(url, source, session_id=session["session_id"], robot_token=session["robot_token"],
-                         transport=transport, backoff=(0.01, 0.05), seed=1)
+    client = RobotClient(
+        url,
+        source,
+        session_id=session["session_id"],
+        robot_token=session["robot_token"],
+        transport=transport,
+        backoff=(0.01, 0.05),
+        seed=1,
+    )
     with pytest.raises(Exception) as err:
         asyncio.run(client.run())
     return err.value
 
 
-def test_when_a_replicas_heartbeat_lapses_its_sessions_are_lost_for_operators_and_robots(kit, base_settings, redis_url,
-                                                                                         library_dir):
+def test_when_a_replicas_heartbeat_lapses_its_sessions_are_lost_for_operators_and_robots(
+    kit, base_settings, redis_url, library_dir
+):
     settings = base_settings.model_copy(update={"broker": "redis", "redis_url": redis_url, "instance_id": "replica-b"})
     session = _foreign_session(redis_url, "replica-z", "cafe01", alive=True)
     sid, auth = session["session_id"], {"Authorization": f"Bearer {session['operator_token']}"}
@@ -134,7 +156,7 @@ def test_when_a_replicas_heartbeat_lapses_its_sessions_are_lost_for_operators_an
         with pytest.raises(InvalidStatus) as refused:
             connect(kit.socket_url(b, session, "ingest"))
         assert refused.value.response.status_code == 410
-        assert 'hapticlink_sessions_lost_total 1' in client.get("/metrics").text
+        assert "hapticlink_sessions_lost_total 1" in client.get("/metrics").text
         for transport in ("ws", "http"):  # the robot client stops with the reason instead of retrying forever
             error = _robot_error(b.url, session, transport, library_dir)
             assert type(error).__name__ == "SessionLostError" and "open a new session" in str(error), repr(error)
@@ -146,12 +168,15 @@ def test_a_restarted_replica_answers_410_for_its_previous_processs_sessions(kit,
     settings = base_settings.model_copy(update={"broker": "redis", "redis_url": redis_url, "instance_id": "replica-c"})
     session = _foreign_session(redis_url, "replica-c", "0ld0ld", alive=False)
     with kit.running(settings) as c, httpx.Client(base_url=c.url, timeout=10) as client:
-        r = client.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+        r = client.get(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"}
+        )
         assert r.status_code == 410 and "replica-c is gone" in r.json()["detail"]
 
 
-def test_a_replica_whose_heartbeat_lapsed_ends_the_sessions_others_marked_lost(kit, base_settings, redis_url,
-                                                                                library_dir):
+def test_a_replica_whose_heartbeat_lapsed_ends_the_sessions_others_marked_lost(
+    kit, base_settings, redis_url, library_dir
+):
     from drivers.blocks import encode_binary
     from drivers.protocol import Close
 
@@ -183,7 +208,9 @@ def test_a_replica_whose_heartbeat_lapsed_ends_the_sessions_others_marked_lost(k
         assert "is lost: its replica replica-d is gone" in closed.value.rcvd.reason
 
 
-def test_a_replica_shutting_down_tells_robots_and_operators_on_other_replicas_to_start_over(kit, base_settings, redis_url):
+def test_a_replica_shutting_down_tells_robots_and_operators_on_other_replicas_to_start_over(
+    kit, base_settings, redis_url
+):
     common = {"broker": "redis", "redis_url": redis_url}
     settings_a = base_settings.model_copy(update={**common, "instance_id": "replica-f"})
     settings_b = base_settings.model_copy(update={**common, "instance_id": "replica-g"})
@@ -196,8 +223,14 @@ def test_a_replica_shutting_down_tells_robots_and_operators_on_other_replicas_to
                 assert json.loads(operator.recv(timeout=5))["event"] == "subscribed"
                 a.stop()  # graceful (SIGTERM in a container): its sessions end with it
                 ended = json.loads(operator.recv(timeout=10))
-                assert ended["event"] == "session_ended" and ended["lost"] is True and "replica-f shut down" in ended["message"]
+                assert (
+                    ended["event"] == "session_ended"
+                    and ended["lost"] is True
+                    and "replica-f shut down" in ended["message"]
+                )
         finally:
             a.stop()
-        r = client_b.get(f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"})
+        r = client_b.get(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['operator_token']}"}
+        )
         assert r.status_code == 410 and "replica-f shut down; open a new session" in r.json()["detail"]

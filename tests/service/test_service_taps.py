@@ -18,7 +18,7 @@ from drivers.blocks import ChannelBlock, SampleBlock, TapBlock, encode_binary, e
 from drivers.robot import RobotClient
 from drivers.simulated import SimulatedSource
 from drivers.source import paced
-from models.predictor import Predictor
+from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
 from models.tactile.taps import tap_features
@@ -31,19 +31,28 @@ from texture_library.recording import Channel, Recording
 @pytest.fixture(scope="module")
 def taps_model(tmp_path_factory):
     """ridge-tactile on MFCC + taps, trained on a small synthetic world (its textures carry tap transients)."""
-    from models.datasets.build import build
-    from models.train import train_and_export
+    from models.offline.datasets.build import build
+    from models.offline.train import train_and_export
 
     root = tmp_path_factory.mktemp("taps-model")
     dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
-    return train_and_export(dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx",
-                            tactile_config=TactileConfig(extra_groups=("taps",)))
+    return train_and_export(
+        dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx", tactile_config=TactileConfig(extra_groups=("taps",))
+    )
 
 
 @pytest.fixture(scope="module")
 def taps_server(kit, taps_model, library_dir):
-    settings = Settings(model_path=taps_model, library_dir=library_dir, instance_id="test-taps", session_idle_s=600,
-                        session_first_block_s=600, session_queue_windows=64, api_keys=kit.API_KEY, session_burst=10_000)
+    settings = Settings(
+        model_path=taps_model,
+        library_dir=library_dir,
+        instance_id="test-taps",
+        session_idle_s=600,
+        session_first_block_s=600,
+        session_queue_windows=64,
+        api_keys=kit.API_KEY,
+        session_burst=10_000,
+    )
     with kit.running(settings) as srv:
         yield srv
 
@@ -65,9 +74,11 @@ class ItemList:
 
 def _simulated_items(library_dir, entry: str, seconds: float, seed: int = 5) -> list:
     async def collect():
-        src = SimulatedSource(Library.load(library_dir).model(entry), taps=True, realtime=False, duration_s=seconds,
-                              seed=seed)
+        src = SimulatedSource(
+            Library.load(library_dir).model(entry), taps=True, realtime=False, duration_s=seconds, seed=seed
+        )
         return [item async for item in src]
+
     return asyncio.run(collect())
 
 
@@ -75,8 +86,12 @@ def _offline(items, cfg: TactileConfig, predictor: Predictor) -> np.ndarray:
     """What training computes from the same float32 samples and taps: recording_features with tap_features."""
     taps = next(i for i in items if isinstance(i, TapBlock))
     blocks = [i for i in items if isinstance(i, SampleBlock)]
-    chan = {k: Channel(np.concatenate([b.channels[k].data for b in blocks]).astype(np.float64), blocks[0].channels[k].rate_hz)
-            for k in ("accel", "force", "speed")}
+    chan = {
+        k: Channel(
+            np.concatenate([b.channels[k].data for b in blocks]).astype(np.float64), blocks[0].channels[k].rate_hz
+        )
+        for k in ("accel", "force", "speed")
+    }
     features = tap_features(taps.speeds, taps.accel.data.astype(np.float64), taps.accel.rate_hz)
     rows, _ = recording_features(Recording(chan["accel"], chan["force"], chan["speed"]), cfg, taps=features)
     return predictor.predict(rows)
@@ -99,8 +114,14 @@ def test_the_robot_taps_and_the_service_serves_tap_features(kit, taps_server, ta
         session = kit.create_session(client)
         with connect(kit.socket_url(taps_server, session, "events")) as sub:
             assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
-            robot = RobotClient(taps_server.url, ItemList(items), session_id=session["session_id"],
-                                robot_token=session["robot_token"], transport="ws", binary=True)
+            robot = RobotClient(
+                taps_server.url,
+                ItemList(items),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+                transport="ws",
+                binary=True,
+            )
             stats = asyncio.run(robot.run())
             assert stats.acked == len(items) and stats.rejected == 0
             windows, _ = _windows(sub, 6)
@@ -112,14 +133,21 @@ def test_the_robot_taps_and_the_service_serves_tap_features(kit, taps_server, ta
     assert np.allclose(served, offline[:6], atol=0.011)  # events carry 2 decimals
     # the taps matter: other tap features give other ratings
     other = tap_features(items[0].speeds, 0.2 * items[0].accel.data.astype(np.float64))
-    assert not np.allclose(predictor.predict(recording_features(
-        _recording(items), predictor.tactile_config, taps=other)[0])[:6], offline[:6], atol=0.5)
+    assert not np.allclose(
+        predictor.predict(recording_features(_recording(items), predictor.tactile_config, taps=other)[0])[:6],
+        offline[:6],
+        atol=0.5,
+    )
 
 
 def _recording(items) -> Recording:
     blocks = [i for i in items if isinstance(i, SampleBlock)]
-    chan = {k: Channel(np.concatenate([b.channels[k].data for b in blocks]).astype(np.float64), blocks[0].channels[k].rate_hz)
-            for k in ("accel", "force", "speed")}
+    chan = {
+        k: Channel(
+            np.concatenate([b.channels[k].data for b in blocks]).astype(np.float64), blocks[0].channels[k].rate_hz
+        )
+        for k in ("accel", "force", "speed")
+    }
     return Recording(chan["accel"], chan["force"], chan["speed"])
 
 
@@ -164,17 +192,20 @@ def _tap_doc(**taps) -> dict:
     return {"seq": 0, "t0": 0.0, "kind": "taps", "taps": {**base, **taps}}
 
 
-@pytest.mark.parametrize(("doc", "detail"), [
-    (_tap_doc(speeds=[20.0]), "1 speed(s) for 2 tap(s)"),
-    (_tap_doc(data=[[0.0] * 5, [0.0] * 5]), "each tap holds 16 to"),
-    (_tap_doc(units="N"), "units must be one of"),
-    (_tap_doc(rate_hz=5.0), "sample rate"),
-    (_tap_doc(speeds=[20.0, -1.0]), "finite and ≥ 0"),
-    (_tap_doc(data=[[0.0] * 50] * 33, speeds=[1.0] * 33), "1 to 32 taps"),
-    (_tap_doc(data=[[0.0] * 501] * 2), "each tap holds 16 to 500 samples"),
-    ({"seq": 0, "t0": 0.0, "kind": "taps", "channels": {}}, 'a taps block carries "taps"'),
-    ({"seq": 0, "t0": 0.0, "kind": "tap"}, "kind must be one of"),
-])
+@pytest.mark.parametrize(
+    ("doc", "detail"),
+    [
+        (_tap_doc(speeds=[20.0]), "1 speed(s) for 2 tap(s)"),
+        (_tap_doc(data=[[0.0] * 5, [0.0] * 5]), "each tap holds 16 to"),
+        (_tap_doc(units="N"), "units must be one of"),
+        (_tap_doc(rate_hz=5.0), "sample rate"),
+        (_tap_doc(speeds=[20.0, -1.0]), "finite and ≥ 0"),
+        (_tap_doc(data=[[0.0] * 50] * 33, speeds=[1.0] * 33), "1 to 32 taps"),
+        (_tap_doc(data=[[0.0] * 501] * 2), "each tap holds 16 to 500 samples"),
+        ({"seq": 0, "t0": 0.0, "kind": "taps", "channels": {}}, 'a taps block carries "taps"'),
+        ({"seq": 0, "t0": 0.0, "kind": "tap"}, "kind must be one of"),
+    ],
+)
 def test_bad_tap_blocks_get_422_naming_the_problem(kit, taps_server, doc, detail):
     with httpx.Client(base_url=taps_server.url, timeout=10) as client:
         session = kit.create_session(client)
@@ -235,7 +266,9 @@ def test_a_new_surface_starts_without_the_last_ones_taps(kit, taps_server, libra
 
 def test_tap_blocks_round_trip_both_encodings():
     rng = np.random.default_rng(0)
-    block = TapBlock(3.5, np.array([12.0, 30.5, 44.0]), ChannelBlock(rng.normal(size=(3, 100)).astype(np.float32), 1000.0, "g"), 9)
+    block = TapBlock(
+        3.5, np.array([12.0, 30.5, 44.0]), ChannelBlock(rng.normal(size=(3, 100)).astype(np.float32), 1000.0, "g"), 9
+    )
     from drivers.blocks import decode_binary, decode_json
 
     for back in (decode_binary(encode_binary(block)), decode_json(json.loads(json.dumps(encode_json(block))))):

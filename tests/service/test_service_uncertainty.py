@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from models.intervals import EmaUncertainty, calibrations_from_card
-from models.ood import OODDetector
-from models.predictor import Predictor
+from models.inference.intervals import EmaUncertainty, calibrations_from_card
+from models.inference.ood import OODDetector
+from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
 from service.events import WindowEvent
 from service.uncertainty import RECENT_FLAGGED, ServedModel, SessionUncertainty
@@ -38,11 +38,15 @@ def _windows(kit, server, client, blocks, n: int) -> list[dict]:
 def _f32(rec: Recording) -> Recording:
     def f(c: Channel) -> Channel:
         return Channel(c.data.astype(np.float32).astype(np.float64), c.rate_hz)
+
     return Recording(f(rec.accel), f(rec.force), f(rec.speed))
 
 
 def _bounds(w: dict) -> tuple[np.ndarray, np.ndarray]:
-    return (np.array([w["interval"][a]["lo"] for a in ATTRIBUTES]), np.array([w["interval"][a]["hi"] for a in ATTRIBUTES]))
+    return (
+        np.array([w["interval"][a]["lo"] for a in ATTRIBUTES]),
+        np.array([w["interval"][a]["hi"] for a in ATTRIBUTES]),
+    )
 
 
 def test_the_card_carries_what_the_service_needs(tactile_model):
@@ -52,7 +56,9 @@ def test_the_card_carries_what_the_service_needs(tactile_model):
 
 
 @pytest.mark.parametrize("force_factor", [1.0, 4.0])
-def test_intervals_and_flags_equal_the_card_replayed_offline(kit, server, client, library_dir, tactile_model, force_factor):
+def test_intervals_and_flags_equal_the_card_replayed_offline(
+    kit, server, client, library_dir, tactile_model, force_factor
+):
     """Clean stroking and a tool pressed 4× harder than in training: every event's interval and flag equal
     the card's detector + EMA state + calibration replayed on the same samples."""
     rec = kit.stroke_recording(library_dir, "synth_001", 4.2)
@@ -101,7 +107,14 @@ def test_the_flag_outlives_a_flagged_window_while_it_weighs_in_the_ema():
     state = SessionUncertainty(0.5, 0.9)
     flags = [False, True, False, False, False, False]
     got = [state.update(model, ratings, f, ["tactile_outlier"] if f else [], 1.0) for f in flags]
-    assert [a.out_of_distribution for a in got] == [False, True, True, True, False, False]  # weight .5, .25, .125, .0625
+    assert [a.out_of_distribution for a in got] == [
+        False,
+        True,
+        True,
+        True,
+        False,
+        False,
+    ]  # weight .5, .25, .125, .0625
     assert got[2].ood_reasons == (RECENT_FLAGGED, "tactile_outlier")
     widths = [float(np.max(a.interval.hi - a.interval.lo)) for a in got]  # type: ignore[union-attr]
     assert widths[1] > widths[0] and widths[4] == pytest.approx(widths[0])
@@ -134,7 +147,7 @@ def test_the_openapi_schema_shows_interval_and_flag(server):
 
 
 def _tiny_calibration():
-    from models.intervals import IntervalCalibration
+    from models.inference.intervals import IntervalCalibration
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(-60, 60, size=(40, 4))

@@ -10,14 +10,14 @@ import pytest
 
 from drivers.blocks import ChannelBlock, SampleBlock
 from models.tactile.config import TactileConfig
+from models.tactile.stream import StreamContract
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, issue_credentials
 from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
 from service.metrics import ServiceMetrics
+from service.session import canonical_channels
 from service.settings import Settings, env_name, settings_table
 from service.smoothing import SD_UNIFORM, ExponentialSmoother, Steadiness
-from models.tactile.stream import StreamContract
-from service.session import canonical_channels
 
 
 # ---- auth ------------------------------------------------------------------------------------------
@@ -28,8 +28,12 @@ def test_tokens_open_only_their_role_and_session():
     assert authorize(creds, robot, ROBOT_ONLY, "s") is Role.ROBOT
     assert authorize(creds, operator, OPERATOR_ONLY, "s") is Role.OPERATOR
     assert authorize(creds, operator, EITHER, "s") is Role.OPERATOR
-    for token, allowed, status in ((None, ROBOT_ONLY, 401), (other_operator, OPERATOR_ONLY, 401),
-                                   (operator, ROBOT_ONLY, 403), (robot, OPERATOR_ONLY, 403)):
+    for token, allowed, status in (
+        (None, ROBOT_ONLY, 401),
+        (other_operator, OPERATOR_ONLY, 401),
+        (operator, ROBOT_ONLY, 403),
+        (robot, OPERATOR_ONLY, 403),
+    ):
         with pytest.raises(ServiceError) as err:
             authorize(creds, token, allowed, "s")
         assert err.value.status == status
@@ -102,10 +106,13 @@ def test_admission_converts_units_to_canonical():
     assert np.allclose(admitted.channels["accel"].data, 9.80665)
 
 
-@pytest.mark.parametrize("second, message", [
-    (_block(0.02, rate=2000.0), "rate changed"),
-    (_block(0.02, force_cols=3), "column count changed"),
-])
+@pytest.mark.parametrize(
+    "second, message",
+    [
+        (_block(0.02, rate=2000.0), "rate changed"),
+        (_block(0.02, force_cols=3), "column count changed"),
+    ],
+)
 def test_admission_refuses_contradictions_and_keeps_state(second, message):
     adm = _Admission()
     adm.admit(_block(0.0))

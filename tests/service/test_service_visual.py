@@ -8,20 +8,25 @@ import httpx
 import numpy as np
 from websockets.sync.client import connect
 
-from models.predictor import Predictor
+from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
 from models.visual.config import VisualConfig
 from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
-from texture_library.attributes import ATTRIBUTES
 from service.settings import Settings
+from texture_library.attributes import ATTRIBUTES
 from texture_library.recording import Channel, Recording
 
 
 def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, library_dir):
-    settings = Settings(model_path=visual_model.model, library_dir=library_dir, backbone_path=visual_model.backbone,
-                        instance_id="visual", api_keys=kit.API_KEY)
+    settings = Settings(
+        model_path=visual_model.model,
+        library_dir=library_dir,
+        backbone_path=visual_model.backbone,
+        instance_id="visual",
+        api_keys=kit.API_KEY,
+    )
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     rec = kit.stroke_recording(library_dir, "synth_003", 1.6)
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -38,8 +43,11 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
             status = kit.session_status(client, session)
             assert status["state"] == "waiting_for_frame" and status["counters"]["windows"] == 0
             assert status["windows_ready"] == 3
-            r = client.post(f"/sessions/{session['session_id']}/frames", content=image,
-                            headers={**robot, "Content-Type": "image/png"})
+            r = client.post(
+                f"/sessions/{session['session_id']}/frames",
+                content=image,
+                headers={**robot, "Content-Type": "image/png"},
+            )
             assert r.status_code == 202 and r.json()["used"] is True
             events = []
             while sum(e["type"] == "window" for e in events) < 3:
@@ -51,7 +59,9 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
 
     predictor = Predictor(visual_model.model)
     f32 = lambda c: Channel(c.data.astype(np.float32).astype(np.float64), c.rate_hz)  # noqa: E731 - the wire's float32
-    features, _ = recording_features(Recording(f32(rec.accel), f32(rec.force), f32(rec.speed)), predictor.tactile_config)
+    features, _ = recording_features(
+        Recording(f32(rec.accel), f32(rec.force), f32(rec.speed)), predictor.tactile_config
+    )
     backbone = OnnxBackbone(visual_model.backbone)
     vector = visual_features(load_image(image), VisualConfig(), backbone)
     vector = vector[visual_slice(vector.shape[0], predictor.card.visual["visual_part"])]
@@ -61,7 +71,9 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
 
 
 def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual_model, library_dir):
-    settings = Settings(model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone", api_keys=kit.API_KEY)
+    settings = Settings(
+        model_path=visual_model.model, library_dir=library_dir, instance_id="no-backbone", api_keys=kit.API_KEY
+    )
     with kit.running(settings, wait_ready=False) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         r = kit.wait_for(lambda: (r := client.get("/ready")).json()["model"] and r)
         assert r.status_code == 503 and r.json()["ready"] is False
@@ -72,15 +84,24 @@ def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual
 
 
 def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
-    return Settings(model_path=visual_model.model, tactile_model_path=visual_model.tactile, library_dir=library_dir,
-                    backbone_path=visual_model.backbone, api_keys=kit.API_KEY, session_queue_windows=64, **extra)
+    return Settings(
+        model_path=visual_model.model,
+        tactile_model_path=visual_model.tactile,
+        library_dir=library_dir,
+        backbone_path=visual_model.backbone,
+        api_keys=kit.API_KEY,
+        session_queue_windows=64,
+        **extra,
+    )
 
 
 def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visual_model, library_dir):
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_003", 3.1))  # 6 windows
-    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="fallback")) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30) as client:
+    with (
+        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="fallback")) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
         assert client.get("/ready").json()["tactile_model"] == "ridge-tactile"
         session = kit.create_session(client)
         robot = {"Authorization": f"Bearer {session['robot_token']}"}
@@ -89,8 +110,14 @@ def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visu
             for block in blocks[:80]:  # 1.6 s: 3 windows, no frame yet
                 assert kit.post_block(client, session, block).status_code == 202
             before = [json.loads(sub.recv(timeout=30)) for _ in range(3)]
-            assert [(e["type"], e["inputs"], e["model"]) for e in before] == [("window", "tactile", "ridge-tactile")] * 3
-            r = client.post(f"/sessions/{session['session_id']}/frames", content=image, headers={**robot, "Content-Type": "image/png"})
+            assert [(e["type"], e["inputs"], e["model"]) for e in before] == [
+                ("window", "tactile", "ridge-tactile")
+            ] * 3
+            r = client.post(
+                f"/sessions/{session['session_id']}/frames",
+                content=image,
+                headers={**robot, "Content-Type": "image/png"},
+            )
             assert r.status_code == 202 and r.json()["outcome"] == "embedding"
             events = []
             while not any(e.get("event") == "visual_updated" for e in events):
@@ -109,8 +136,10 @@ def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visu
 def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     other = (library_dir / "images" / "synth_001.png").read_bytes()
-    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="scene")) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30) as client:
+    with (
+        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="scene")) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
         session = kit.create_session(client)
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         url = f"/sessions/{session['session_id']}/frames"
@@ -119,8 +148,9 @@ def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
         outcomes = [client.post(url, content=image, headers=headers).json()["outcome"] for _ in range(5)]
         assert outcomes == ["unchanged"] * 5  # a camera at 1–10 fps on one surface: one embedding
         assert client.post(url, content=other, headers=headers).json()["outcome"] == "embedding"
-        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["frames_embedded"] == 2 and s,
-                              timeout_s=60)
+        status = kit.wait_for(
+            lambda: (s := kit.session_status(client, session))["counters"]["frames_embedded"] == 2 and s, timeout_s=60
+        )
         assert status["counters"]["frames_unchanged"] == 5 and status["counters"]["frames_received"] == 7
 
 
@@ -128,8 +158,10 @@ def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_mode
     import threading
 
     image = (library_dir / "images" / "synth_003.png").read_bytes()
-    with kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue=1)) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30) as client:
+    with (
+        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue=1)) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
         state = srv.app.state.service
         release = threading.Event()
         stall = state.frame_pool.submit(release.wait, 60)  # the frame decoder is busy
@@ -137,8 +169,11 @@ def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_mode
 
         def post(session) -> httpx.Response:
             with httpx.Client(base_url=srv.url, timeout=30) as c:
-                return c.post(f"/sessions/{session['session_id']}/frames", content=image,
-                              headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"})
+                return c.post(
+                    f"/sessions/{session['session_id']}/frames",
+                    content=image,
+                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
+                )
 
         answers: list[httpx.Response] = []
         waiting = threading.Thread(target=lambda: answers.append(post(first)))

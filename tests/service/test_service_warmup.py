@@ -27,8 +27,12 @@ class _CountingBackbone:
 
 
 def test_warm_up_runs_every_model_and_the_backbone_on_a_whole_frame(kit, visual_model, library_dir):
-    settings = Settings(model_path=visual_model.model, tactile_model_path=visual_model.tactile, library_dir=library_dir,
-                        backbone_path=visual_model.backbone)
+    settings = Settings(
+        model_path=visual_model.model,
+        tactile_model_path=visual_model.tactile,
+        library_dir=library_dir,
+        backbone_path=visual_model.backbone,
+    )
     runtime = load_runtime(settings)
     spy = _CountingBackbone(runtime.backbone)
     runtime = dataclasses.replace(runtime, backbone=spy)

@@ -70,8 +70,15 @@ def make_model():
 @pytest.fixture
 def params() -> PhysicalParams:
     """A middle-of-the-road texture: every true rating is 0 (the documented neutral points)."""
-    return PhysicalParams(roughness_um=15.0, grain_mm=1.0, bump_height_mm=0.5, bump_period_mm=8.0,
-                          mu=0.6, stiffness_n_per_mm=1.0, albedo=0.5)
+    return PhysicalParams(
+        roughness_um=15.0,
+        grain_mm=1.0,
+        bump_height_mm=0.5,
+        bump_period_mm=8.0,
+        mu=0.6,
+        stiffness_n_per_mm=1.0,
+        albedo=0.5,
+    )
 
 
 @pytest.fixture

@@ -27,8 +27,26 @@ def test_list_prints_every_entry(lib_dir, capsys):
 @pytest.mark.parametrize("suffix", [".npy", ".csv", ".wav"])
 def test_render_writes_the_requested_length(lib_dir, tmp_path, suffix, capsys):
     out = tmp_path / f"a{suffix}"
-    assert hapticlink(["library", "render", "synth_001", "--library", str(lib_dir), "--speed", "120", "--force", "2",
-                       "--seconds", "0.5", "--out", str(out)]) == 0
+    assert (
+        hapticlink(
+            [
+                "library",
+                "render",
+                "synth_001",
+                "--library",
+                str(lib_dir),
+                "--speed",
+                "120",
+                "--force",
+                "2",
+                "--seconds",
+                "0.5",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     if suffix == ".npy":
         data = np.load(out)
     elif suffix == ".csv":
@@ -49,6 +67,22 @@ def test_render_mentions_clamping_and_refuses_bad_arguments(lib_dir, tmp_path, c
     assert hapticlink(args + ["--speed", "100", "--force", "1", "--out", str(tmp_path / "a.mp3")]) == 2
     assert "--out must end in .wav, .csv or .npy" in capsys.readouterr().err
     assert hapticlink(args + ["--speed", "-1", "--force", "1", "--out", str(tmp_path / "a.npy")]) == 2
-    assert hapticlink(["library", "render", "nope", "--library", str(lib_dir), "--speed", "1", "--force", "1",
-                       "--out", str(tmp_path / "a.npy")]) == 2
+    assert (
+        hapticlink(
+            [
+                "library",
+                "render",
+                "nope",
+                "--library",
+                str(lib_dir),
+                "--speed",
+                "1",
+                "--force",
+                "1",
+                "--out",
+                str(tmp_path / "a.npy"),
+            ]
+        )
+        == 2
+    )
     assert "no entry 'nope'" in capsys.readouterr().err

@@ -48,8 +48,10 @@ def model_xml(drop: str | None = None, replace: tuple[str, str] | None = None) -
 
 
 def taps_xml(n_taps: int = 3, length: int = 100) -> str:
-    taps = "".join(f"<tap><tapSpeed>{10.0 * (k + 1)}</tapSpeed><tapAccel>{values(np.arange(length) * (k + 1))}</tapAccel></tap>"
-                   for k in range(n_taps))
+    taps = "".join(
+        f"<tap><tapSpeed>{10.0 * (k + 1)}</tapSpeed><tapAccel>{values(np.arange(length) * (k + 1))}</tapAccel></tap>"
+        for k in range(n_taps)
+    )
     return f'<?xml version="1.0"?><tapSet><numTap>{n_taps}</numTap>{taps}</tapSet>'
 
 
@@ -99,12 +101,22 @@ def test_missing_element_is_named(tmp_path, tag):
         ("<ARlsf><value>0.3</value>", "<ARlsf><value>abc</value>", r"<ARlsf> holds a value that is not a number"),
         ("<ARlsf><value>0.3</value><value>1.2</value><value>2.0</value></ARlsf>", "", r"missing <ARlsf>"),
         ("<MAlsf><value>0.8</value><value>2.2</value></MAlsf>", "", r"missing <MAlsf>"),
-        ("<value>1</value><value>2</value><value>3</value></tri>", "<value>1</value><value>2</value></tri>", r"<tri> must hold 3"),
-        ("<value>1</value><value>2</value><value>3</value></tri>", "<value>1.5</value><value>2</value><value>3</value></tri>",
-         r"<tri> holds a vertex index that is not an integer"),
-        ("<value>1</value><value>2</value><value>3</value></tri>", "<value>1</value><value>2</value><value>7</value></tri>",
-         r"triangle indices must lie in \[0, 3\]"),
-        ("<speedList type=\"array\"><value>0.0</value>", "<speedList type=\"array\">", r"3 grid points"),
+        (
+            "<value>1</value><value>2</value><value>3</value></tri>",
+            "<value>1</value><value>2</value></tri>",
+            r"<tri> must hold 3",
+        ),
+        (
+            "<value>1</value><value>2</value><value>3</value></tri>",
+            "<value>1.5</value><value>2</value><value>3</value></tri>",
+            r"<tri> holds a vertex index that is not an integer",
+        ),
+        (
+            "<value>1</value><value>2</value><value>3</value></tri>",
+            "<value>1</value><value>2</value><value>7</value></tri>",
+            r"triangle indices must lie in \[0, 3\]",
+        ),
+        ('<speedList type="array"><value>0.0</value>', '<speedList type="array">', r"3 grid points"),
         ("<ARlsf><value>0.3</value>", "<ARlsf>", r"ARlsf orders differ between grid points: \[2, 3\]"),
     ],
 )
@@ -150,8 +162,15 @@ def test_texnet_poles_map_to_bipolar_attributes(attribute, rating, expected):
     assert to_bipolar(attribute, rating) == expected
 
 
-@pytest.mark.parametrize("attribute, rating, message", [("warmness", 50, "unknown TexNet attribute"), ("roughness", 101, r"\[0, 100\]"),
-                                                        ("hardness", -1, r"\[0, 100\]"), ("hardness", float("nan"), r"\[0, 100\]")])
+@pytest.mark.parametrize(
+    "attribute, rating, message",
+    [
+        ("warmness", 50, "unknown TexNet attribute"),
+        ("roughness", 101, r"\[0, 100\]"),
+        ("hardness", -1, r"\[0, 100\]"),
+        ("hardness", float("nan"), r"\[0, 100\]"),
+    ],
+)
 def test_texnet_rejects_bad_ratings(attribute, rating, message):
     with pytest.raises(ValueError, match=message):
         to_bipolar(attribute, rating)
@@ -159,8 +178,10 @@ def test_texnet_rejects_bad_ratings(attribute, rating, message):
 
 def test_read_texnet_ratings_drops_warmness_and_keeps_presentations(tmp_path):
     path = tmp_path / "ratings.csv"
-    path.write_text("texture,rater,presentation,attribute,rating\n"
-                    "wood,r1,1,roughness,20\nwood,r1,1,warmness,90\nwood,r1,2,roughness,40\nwood,r2,1,hardness,75\n")
+    path.write_text(
+        "texture,rater,presentation,attribute,rating\n"
+        "wood,r1,1,roughness,20\nwood,r1,1,warmness,90\nwood,r1,2,roughness,40\nwood,r2,1,hardness,75\n"
+    )
     assert read_texnet_ratings(path) == {
         "wood": {"rough_smooth": [("r1", 1, 60.0), ("r1", 2, 20.0)], "hard_soft": [("r2", 1, -50.0)]}
     }

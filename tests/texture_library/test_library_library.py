@@ -24,7 +24,9 @@ def entry(entry_id: str = "a", ratings=(0.0, 10.0, -20.0, 30.0), **kw) -> Librar
 def library(tmp_path, make_model) -> Library:
     root = tmp_path / "lib"
     entries = [
-        add_entry(root, "a", make_model(name="a"), ratings=np.array([-50.0, 0.0, 0.0, 0.0]), spread=np.full(4, 5.0), **FIELDS),
+        add_entry(
+            root, "a", make_model(name="a"), ratings=np.array([-50.0, 0.0, 0.0, 0.0]), spread=np.full(4, 5.0), **FIELDS
+        ),
         add_entry(root, "b", make_model(name="b", with_taps=True), ratings=np.array([50.0, 0.0, 0.0, 0.0]), **FIELDS),
     ]
     lib = Library(root, "test", entries)

@@ -121,7 +121,12 @@ def test_poles_to_poly_places_conjugate_poles():
 
 @pytest.mark.parametrize(
     "freqs, radii, message",
-    [([0.0], [0.5], "frequencies"), ([500.0], [0.5], "frequencies"), ([100.0], [1.0], "radii"), ([100.0, 200.0], [0.5], "equal length")],
+    [
+        ([0.0], [0.5], "frequencies"),
+        ([500.0], [0.5], "frequencies"),
+        ([100.0], [1.0], "radii"),
+        ([100.0, 200.0], [0.5], "equal length"),
+    ],
 )
 def test_poles_to_poly_rejects_bad_poles(freqs, radii, message):
     with pytest.raises(ValueError, match=message):

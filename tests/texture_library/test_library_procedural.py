@@ -135,8 +135,10 @@ def _centroid_hz(x: np.ndarray) -> float:
 
 def test_stiffer_textures_ring_at_higher_frequency(params):
     """The contact resonance rises with stiffness, and so does the spectral centroid."""
-    soft, hard = (_render(dataclasses.replace(params, stiffness_n_per_mm=k, roughness_um=40.0, bump_height_mm=0.1))
-                  for k in (0.1, 30.0))
+    soft, hard = (
+        _render(dataclasses.replace(params, stiffness_n_per_mm=k, roughness_um=40.0, bump_height_mm=0.1))
+        for k in (0.1, 30.0)
+    )
     assert _centroid_hz(hard) > _centroid_hz(soft) + 50.0
 
 

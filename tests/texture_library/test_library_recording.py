@@ -13,8 +13,14 @@ from texture_library.recording import Recording, load_recording, make_channel, r
 
 @pytest.mark.parametrize(
     "kind, units, factor",
-    [("accel", "g", 9.80665), ("accel", "m/s^2", 1.0), ("speed", "m/s", 1000.0), ("speed", "mm/s", 1.0),
-     ("position", "m", 1000.0), ("force", "N", 1.0)],
+    [
+        ("accel", "g", 9.80665),
+        ("accel", "m/s^2", 1.0),
+        ("speed", "m/s", 1000.0),
+        ("speed", "mm/s", 1.0),
+        ("position", "m", 1000.0),
+        ("force", "N", 1.0),
+    ],
 )
 def test_units_are_converted_to_canonical(kind, units, factor):
     data = np.arange(12.0).reshape(4, 3) if kind == "accel" else np.arange(4.0)
@@ -33,7 +39,13 @@ def test_units_default_to_canonical_and_columns_of_one_are_squeezed():
 @pytest.mark.parametrize(
     "kind, data, rate, units, message",
     [
-        ("pressure", np.zeros(5), 100, None, r"unknown channel 'pressure'; expected one of \['accel', 'force', 'speed', 'position'\]"),
+        (
+            "pressure",
+            np.zeros(5),
+            100,
+            None,
+            r"unknown channel 'pressure'; expected one of \['accel', 'force', 'speed', 'position'\]",
+        ),
         ("accel", np.zeros((5, 3)), 100, "ft/s^2", r"accel: units must be one of \['m/s\^2', 'g'\], got 'ft/s\^2'"),
         ("speed", np.zeros(5), 100, "km/h", r"speed: units must be one of \['mm/s', 'm/s'\]"),
         ("force", np.zeros(5), "100", None, r"force: sample rate must be a finite number, got '100'"),
@@ -76,8 +88,11 @@ def test_a_recording_needs_a_motion_channel():
 
 @pytest.mark.parametrize("motion", ["speed", "position"])
 def test_save_load_round_trip_keeps_channels_rates_and_values(tmp_path, motion):
-    channel = make_channel("speed", np.linspace(0.0, 100.0, 250), 125.0) if motion == "speed" else \
-        make_channel("position", np.linspace(0.0, 0.1, 500).repeat(2).reshape(-1, 2), 250.0, "m")
+    channel = (
+        make_channel("speed", np.linspace(0.0, 100.0, 250), 125.0)
+        if motion == "speed"
+        else make_channel("position", np.linspace(0.0, 0.1, 500).repeat(2).reshape(-1, 2), 250.0, "m")
+    )
     rec = _recording(**{motion: channel})
     loaded = load_recording(save_recording(tmp_path / "r.npz", rec))
     assert set(loaded.channels()) == {"accel", "force", motion}
@@ -108,9 +123,15 @@ def _write(path, header, **arrays):
     return path
 
 
-GOOD = {"format": "hapticlink-recording", "version": 1,
-        "channels": {"accel": {"rate_hz": 1000.0, "units": "m/s^2"}, "force": {"rate_hz": 1000.0, "units": "N"},
-                     "speed": {"rate_hz": 1000.0, "units": "mm/s"}}}
+GOOD = {
+    "format": "hapticlink-recording",
+    "version": 1,
+    "channels": {
+        "accel": {"rate_hz": 1000.0, "units": "m/s^2"},
+        "force": {"rate_hz": 1000.0, "units": "N"},
+        "speed": {"rate_hz": 1000.0, "units": "mm/s"},
+    },
+}
 ARRAYS = {"accel": np.zeros((600, 3)), "force": np.ones(600), "speed": np.ones(600)}
 
 
@@ -122,14 +143,36 @@ ARRAYS = {"accel": np.zeros((600, 3)), "force": np.ones(600), "speed": np.ones(6
         ("{not json", ARRAYS, "header is not valid JSON"),
         ("[1, 2]", ARRAYS, "header must be a JSON object"),
         ({**GOOD, "channels": ["accel"]}, ARRAYS, "header 'channels' must map each channel"),
-        ({**GOOD, "channels": {**GOOD["channels"], "temperature": {"rate_hz": 10}}}, ARRAYS, "unknown channel 'temperature'"),
-        (GOOD, {k: v for k, v in ARRAYS.items() if k != "force"}, "header lists channel 'force' but the array is missing"),
-        ({**GOOD, "channels": {k: v for k, v in GOOD["channels"].items() if k != "accel"}}, ARRAYS, "missing channel 'accel'"),
-        ({**GOOD, "channels": {k: v for k, v in GOOD["channels"].items() if k != "speed"}}, ARRAYS,
-         "recording needs a speed or a position channel"),
-        ({**GOOD, "channels": {**GOOD["channels"], "speed": {"rate_hz": 0}}}, ARRAYS, r"speed: sample rate must lie in"),
-        ({**GOOD, "channels": {**GOOD["channels"], "accel": {"rate_hz": 1000.0, "units": "g"}}}, {**ARRAYS, "accel": np.zeros((600, 2))},
-         r"accel: shape must be \(n, 3\), got \(600, 2\)"),
+        (
+            {**GOOD, "channels": {**GOOD["channels"], "temperature": {"rate_hz": 10}}},
+            ARRAYS,
+            "unknown channel 'temperature'",
+        ),
+        (
+            GOOD,
+            {k: v for k, v in ARRAYS.items() if k != "force"},
+            "header lists channel 'force' but the array is missing",
+        ),
+        (
+            {**GOOD, "channels": {k: v for k, v in GOOD["channels"].items() if k != "accel"}},
+            ARRAYS,
+            "missing channel 'accel'",
+        ),
+        (
+            {**GOOD, "channels": {k: v for k, v in GOOD["channels"].items() if k != "speed"}},
+            ARRAYS,
+            "recording needs a speed or a position channel",
+        ),
+        (
+            {**GOOD, "channels": {**GOOD["channels"], "speed": {"rate_hz": 0}}},
+            ARRAYS,
+            r"speed: sample rate must lie in",
+        ),
+        (
+            {**GOOD, "channels": {**GOOD["channels"], "accel": {"rate_hz": 1000.0, "units": "g"}}},
+            {**ARRAYS, "accel": np.zeros((600, 2))},
+            r"accel: shape must be \(n, 3\), got \(600, 2\)",
+        ),
         (GOOD, {**ARRAYS, "force": np.full(600, np.nan)}, r"force: 600 sample\(s\) are NaN or Inf"),
     ],
 )
@@ -152,8 +195,14 @@ def test_load_recording_of_a_missing_or_foreign_file(tmp_path):
 
 
 def test_units_in_the_file_are_converted_on_load(tmp_path):
-    header = {**GOOD, "channels": {**GOOD["channels"], "accel": {"rate_hz": 1000.0, "units": "g"},
-                                   "speed": {"rate_hz": 1000.0, "units": "m/s"}}}
+    header = {
+        **GOOD,
+        "channels": {
+            **GOOD["channels"],
+            "accel": {"rate_hz": 1000.0, "units": "g"},
+            "speed": {"rate_hz": 1000.0, "units": "m/s"},
+        },
+    }
     rec = load_recording(_write(tmp_path / "r.npz", header, **{**ARRAYS, "accel": np.ones((600, 3))}))
     np.testing.assert_allclose(rec.accel.data, 9.80665)
     np.testing.assert_allclose(rec.speed.data, 1000.0)

@@ -39,8 +39,10 @@ def test_acceleration_matches_the_second_derivative_of_height_along_any_path():
     np.testing.assert_allclose(prof.normal_accel(x, v, rate)[5:-5], numeric[5:-5], atol=0.02 * np.abs(numeric).max())
 
 
-@pytest.mark.parametrize(("h", "p", "match"), [(-0.1, 5.0, "bump_height_mm"), (0.5, 0.0, "bump_period_mm"),
-                                               (float("nan"), 5.0, "bump_height_mm")])
+@pytest.mark.parametrize(
+    ("h", "p", "match"),
+    [(-0.1, 5.0, "bump_height_mm"), (0.5, 0.0, "bump_period_mm"), (float("nan"), 5.0, "bump_height_mm")],
+)
 def test_bad_profiles(h, p, match):
     with pytest.raises(ValueError, match=match):
         SurfaceProfile(h, p)
@@ -80,8 +82,14 @@ def test_a_model_without_profile_strokes_exactly_as_before(model):
 def test_bumps_ride_on_the_normal_axis_and_the_normal_force(model):
     prof = SurfaceProfile(1.0, 10.0)
     traj = _steady()
-    s = stroke(dataclasses.replace(model, surface=prof), traj, np.random.default_rng(1), rotation=np.eye(3),
-               noise_std=0.0, force_noise_std=0.0)
+    s = stroke(
+        dataclasses.replace(model, surface=prof),
+        traj,
+        np.random.default_rng(1),
+        rotation=np.eye(3),
+        noise_std=0.0,
+        force_noise_std=0.0,
+    )
     flat = stroke(model, traj, np.random.default_rng(1), rotation=np.eye(3), noise_std=0.0, force_noise_std=0.0)
     bump_accel = s.accel[:, 2] - flat.accel[:, 2]
     f, pxx = welch(bump_accel, fs=1000.0, nperseg=4000)
@@ -107,7 +115,9 @@ def test_world_vibration_leaves_the_band_below_20_hz_to_the_bumps(params):
 
 def test_synthetic_world_bumps_reach_the_sensors_at_any_speed(params):
     """The bump train of a synthetic texture shows up in the recorded normal force against position."""
-    bumpy = vibration_model(dataclasses.replace(params, bump_height_mm=1.2, bump_period_mm=12.0), "b", np.random.default_rng(0))
+    bumpy = vibration_model(
+        dataclasses.replace(params, bump_height_mm=1.2, bump_period_mm=12.0), "b", np.random.default_rng(0)
+    )
     rng = np.random.default_rng(2)
     traj = freehand(20.0, rng, **model_ranges(bumpy.max_speed, bumpy.max_force))
     s = stroke(bumpy, traj, rng)

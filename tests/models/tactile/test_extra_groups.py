@@ -34,7 +34,10 @@ def test_groups_are_kept_in_canonical_order_and_hash_as_one():
     assert a.extra_groups == b.extra_groups == ("friction", "taps")
     assert a.hash() == b.hash() != TactileConfig().hash()
     assert TactileConfig(**json.loads(json.dumps(a.to_dict()))) == a
-    assert TactileConfig(extra_groups=("spatial",), spatial_bands=8).hash() != TactileConfig(extra_groups=("spatial",)).hash()
+    assert (
+        TactileConfig(extra_groups=("spatial",), spatial_bands=8).hash()
+        != TactileConfig(extra_groups=("spatial",)).hash()
+    )
 
 
 @pytest.mark.parametrize(
@@ -61,7 +64,10 @@ def test_layout_names_and_slices():
     assert list(slices) == ["base", "friction", "spatial", "taps"]
     assert names[slices["friction"]] == ["friction_ratio", "friction_ratio_std"]
     assert names[slices["taps"]] == list(TAP_NAMES)
-    assert names[slices["spatial"]][0] == "spatial_accel_32-22.6mm" and names[slices["spatial"]][-1] == "spatial_force_rms_n"
+    assert (
+        names[slices["spatial"]][0] == "spatial_accel_32-22.6mm"
+        and names[slices["spatial"]][-1] == "spatial_force_rms_n"
+    )
     assert slices["taps"].stop == ALL.n_features and (ALL.accel_columns, ALL.force_columns) == (6, 2)
 
 
@@ -92,11 +98,16 @@ def test_derived_columns_and_unchanged_base_columns(make_recording):
     np.testing.assert_array_equal(batch.accel[:, :, :3], ref.accel)
     np.testing.assert_array_equal(batch.force[:, :, 0], ref.force)
     # the friction and spatial columns are exactly the pure functions on the derived columns
-    np.testing.assert_allclose(full[:, ALL.group_slices()["friction"]],
-                               friction_features(batch.force[:, :, 0], batch.force[:, :, 1]), rtol=1e-6)
-    np.testing.assert_allclose(full[:, ALL.group_slices()["spatial"]],
-                               spatial_features(batch.accel[:, :, 3:], batch.force[:, :, 0], batch.speed, 1000.0),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        full[:, ALL.group_slices()["friction"]],
+        friction_features(batch.force[:, :, 0], batch.force[:, :, 1]),
+        rtol=1e-6,
+    )
+    np.testing.assert_allclose(
+        full[:, ALL.group_slices()["spatial"]],
+        spatial_features(batch.accel[:, :, 3:], batch.force[:, :, 0], batch.speed, 1000.0),
+        rtol=1e-5,
+    )
 
 
 def test_tangential_magnitude_and_slow_accel_streams(make_recording):
@@ -128,7 +139,10 @@ def test_friction_needs_three_column_force(make_recording):
     cursor = contract.start()
     with pytest.raises(ValueError, match="friction features need 3-column force"):
         contract.admit(cursor, rec.channels(), 0.0)
-    assert contract.admit(cursor, {**rec.channels(), "force": Channel(np.zeros((1200, 3)), 1000.0)}, 0.0).windows_added == 2
+    assert (
+        contract.admit(cursor, {**rec.channels(), "force": Channel(np.zeros((1200, 3)), 1000.0)}, 0.0).windows_added
+        == 2
+    )
     # without the friction group 1-column force is fine, with spatial or taps alike
     assert recording_features(rec, TactileConfig(extra_groups=("spatial",)))[0].shape == (2, 526 + 22)
 

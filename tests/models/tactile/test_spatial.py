@@ -21,8 +21,9 @@ EDGES = band_edges_per_mm(1.0, 32.0, N_BANDS)
 CENTRES_MM = 1.0 / np.sqrt(EDGES[:-1] * EDGES[1:])  # the period at the geometric centre of each band
 
 
-def stroke_over(profile: SurfaceProfile, speed: np.ndarray, rotation: np.ndarray | None = None,
-                force_per_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def stroke_over(
+    profile: SurfaceProfile, speed: np.ndarray, rotation: np.ndarray | None = None, force_per_mm: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Accel (1, L, 3) m/s² and normal force (1, L) N of a tip riding `profile` at `speed` (L,) mm/s."""
     x = np.cumsum(speed) / RATE
     a = profile.normal_accel(x, speed, RATE)

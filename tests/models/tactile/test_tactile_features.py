@@ -8,12 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import recording_features, window_features
 from models.tactile.mfcc import mfcc
 from models.tactile.preprocess import TactilePreprocessor
+from texture_library.recording import Channel
 
 REPO = Path(__file__).resolve().parents[3]
 

@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from texture_library.recording import Channel
 from models.tactile.config import TactileConfig
 from models.tactile.preprocess import TactilePreprocessor
+from texture_library.recording import Channel
 
 
 def chunks_of(channel: Channel, sizes: list[int]):

@@ -49,16 +49,21 @@ def test_windows_are_counted_by_stream_time_and_segments_split_on_gaps():
     assert adv.cursor.origin_t0 == 10.0
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"accel": (20, 2000.0, 3)}, "rate changed"),
-    ({"force": (20, 1000.0, 3)}, "column count changed"),
-    ({"accel": (20, 1000.0, 2)}, "shape must be"),
-    ({"torque": (20, 1000.0, 1)}, "unknown channel"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"accel": (20, 2000.0, 3)}, "rate changed"),
+        ({"force": (20, 1000.0, 3)}, "column count changed"),
+        ({"accel": (20, 1000.0, 2)}, "shape must be"),
+        ({"torque": (20, 1000.0, 1)}, "unknown channel"),
+    ],
+)
 def test_contradictions_are_refused_and_the_cursor_kept(change, message):
     contract = StreamContract(TactileConfig(), max_lag_s=5)
     rng = np.random.default_rng(2)
-    first = contract.advance(contract.start(), _channels({"accel": (20, 1000.0, 3), "force": (20, 1000.0, 1)}, rng), t0=0.0)
+    first = contract.advance(
+        contract.start(), _channels({"accel": (20, 1000.0, 3), "force": (20, 1000.0, 1)}, rng), t0=0.0
+    )
     with pytest.raises(ValueError, match=message):
         contract.advance(first.cursor, _channels(change, rng), t0=0.02)
     assert first.cursor.samples == {"accel": 20, "force": 20}
@@ -79,12 +84,15 @@ def test_block_time_and_windows_per_block_are_bounded():
 
 
 # ---- the claim: whatever admission accepts, the preprocessor takes, and it emits exactly the windows counted
-block_kinds = st.fixed_dictionaries({}, optional={
-    "accel": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.just(3)),
-    "force": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.sampled_from((1, 3))),
-    "speed": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.just(1)),
-    "position": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.sampled_from((1, 2))),
-}).filter(bool)
+block_kinds = st.fixed_dictionaries(
+    {},
+    optional={
+        "accel": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.just(3)),
+        "force": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.sampled_from((1, 3))),
+        "speed": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.just(1)),
+        "position": st.tuples(st.integers(0, 80), st.sampled_from(RATES), st.sampled_from((1, 2))),
+    },
+).filter(bool)
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -104,8 +112,13 @@ def test_admitted_blocks_never_fail_in_the_preprocessor(blocks, seed):
         cursor, t0 = adv.cursor, adv.cursor.next_t0
         pending.append(adv.channels)
         if len(pending) == 3 or rng.random() < 0.5:  # the service pushes what accumulated, in bulk
-            merged = {k: Channel(np.concatenate([p[k].data for p in pending if k in p]), next(p[k].rate_hz for p in pending if k in p))
-                      for k in {k for p in pending for k in p}}
+            merged = {
+                k: Channel(
+                    np.concatenate([p[k].data for p in pending if k in p]),
+                    next(p[k].rate_hz for p in pending if k in p),
+                )
+                for k in {k for p in pending for k in p}
+            }
             pre.push(**merged)  # must never raise
             pending = []
             assert pre.n_ready + emitted == contract.windows(cursor)

@@ -11,8 +11,16 @@ RATE = 1000.0
 HATT_TAPS = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "hatt-texnet" / "taps"
 
 
-def damped_taps(speeds: np.ndarray, gain: float, freq_hz: float, tau_s: float, onset: int = 5, n: int = 100,
-                noise: float = 0.0, seed: int = 0) -> np.ndarray:
+def damped_taps(
+    speeds: np.ndarray,
+    gain: float,
+    freq_hz: float,
+    tau_s: float,
+    onset: int = 5,
+    n: int = 100,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """gain·speed·e^(−t/τ)·sin(2πft) from `onset` on: (k, n) m/s²."""
     t = (np.arange(n) - onset) / RATE
     shape = np.where(t >= 0, np.exp(-t / tau_s) * np.sin(2 * np.pi * freq_hz * t), 0.0)

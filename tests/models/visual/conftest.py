@@ -1,4 +1,4 @@
-"""Shared fixtures: synthetic texture images and backbones built once per session."""
+"""Synthetic texture images for the visual feature tests."""
 
 from __future__ import annotations
 
@@ -17,46 +17,6 @@ def synthetic_texture(height: int = 300, width: int = 260, seed: int = 0) -> np.
     return np.clip(grating + noise, 0.0, 1.0).astype(np.float32)
 
 
-@pytest.fixture(scope="package", autouse=True)
-def single_torch_thread():
-    """One torch thread while these tests run, restored after them.
-
-    The backbone tests run tiny batches, where OpenMP's barrier spinning on a
-    shared 2-core runner costs more than a second thread gains (measured: 60 s
-    against 24 s for this package under load). Results do not depend on it.
-    """
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture
 def texture() -> np.ndarray:
     return synthetic_texture()
-
-
-@pytest.fixture(scope="session")
-def efficientnet_backbone():
-    from models.visual.backbone import efficientnet_lite0_backbone
-
-    return efficientnet_lite0_backbone()
-
-
-@pytest.fixture(scope="session")
-def resnet_random_backbone():
-    from models.visual.backbone import resnet50_backbone
-
-    return resnet50_backbone(None, seed=0)
-
-
-@pytest.fixture(scope="session")
-def resnet_checkpoint(tmp_path_factory, resnet_random_backbone):
-    """A torchvision-layout ResNet-50 checkpoint file (random weights, seed 0)."""
-    import torch
-
-    path = tmp_path_factory.mktemp("weights") / "resnet50-test.pth"
-    torch.save(resnet_random_backbone.encoder.trunk.net.state_dict(), path)
-    return path

@@ -7,10 +7,11 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
+from models.offline.backbones.onnx_export import export_backbone_onnx
 from models.visual.cache import FeatureCache
 from models.visual.config import VisualConfig
 from models.visual.embedding import visual_features
-from models.visual.onnx_backbone import OnnxBackbone, export_backbone_onnx
+from models.visual.onnx_backbone import OnnxBackbone
 
 from .conftest import synthetic_texture
 

@@ -38,19 +38,22 @@ def test_running_pool_equals_pooling_the_latest_frames():
     pool = ViewPool(max_views=4)
     for i, f in enumerate(frames):
         pool.add(f)
-        np.testing.assert_allclose(pool.value(), pool_views(frames[max(0, i - 3):i + 1]), rtol=1e-6)
+        np.testing.assert_allclose(pool.value(), pool_views(frames[max(0, i - 3) : i + 1]), rtol=1e-6)
     assert len(pool) == 4
     pool.reset()
     with pytest.raises(ValueError, match="no view has been added"):
         pool.value()
 
 
-@pytest.mark.parametrize("bad, message", [
-    (np.zeros(5, np.float32), r"must be \(k, D\)"),
-    (np.zeros((0, 5), np.float32), "at least one view"),
-    (np.zeros((2, 3), np.int64), "must be float"),
-    (np.array([[1.0, np.nan]], np.float32), "NaN or Inf"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (np.zeros(5, np.float32), r"must be \(k, D\)"),
+        (np.zeros((0, 5), np.float32), "at least one view"),
+        (np.zeros((2, 3), np.int64), "must be float"),
+        (np.array([[1.0, np.nan]], np.float32), "NaN or Inf"),
+    ],
+)
 def test_bad_input_is_refused_with_the_reason(bad, message):
     with pytest.raises(ValueError, match=message):
         pool_views(bad)

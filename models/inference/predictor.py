@@ -1,0 +1,89 @@
+"""Run an exported perceptual model with onnxruntime (serving path: numpy + onnxruntime, no torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from models.inference.modelfile import INPUT_TACTILE, INPUT_VISUAL, ModelCard
+from models.tactile.config import TactileConfig
+
+
+class Predictor:
+    """ratings = predictor.predict(tactile (N, F) float32, visual (N, D) float32 | None) → (N, 4) bipolar.
+
+    expected_tactile_hash: refuse a model trained on other tactile features than the pipeline computes.
+    """
+
+    def __init__(self, path: str | Path, *, threads: int = 1, expected_tactile_hash: str | None = None):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ValueError(f"model file not found: {self.path}")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"{self.path}: not a loadable ONNX model ({exc})") from None
+        self.card = ModelCard.from_metadata(self.session.get_modelmeta().custom_metadata_map, str(self.path))
+        self.tactile_config = TactileConfig(**self.card.tactile_config)
+        if self.tactile_config.hash() != self.card.tactile_hash:
+            raise ValueError(
+                f"{self.path}: tactile config hash {self.card.tactile_hash} does not match its config "
+                f"({self.tactile_config.hash()}); the feature code changed since export"
+            )
+        if expected_tactile_hash is not None and expected_tactile_hash != self.card.tactile_hash:
+            raise ValueError(
+                f"{self.path}: model expects tactile features {self.card.tactile_hash}, "
+                f"the pipeline computes {expected_tactile_hash}; re-export the model or change the feature settings"
+            )
+        self.inputs = {i.name: i for i in self.session.get_inputs()}
+        self.n_tactile = self._width(INPUT_TACTILE)
+        self.n_visual = self._width(INPUT_VISUAL)
+        if self.n_tactile is not None and self.n_tactile != self.tactile_config.n_features:
+            raise ValueError(
+                f"{self.path}: tactile input has {self.n_tactile} features, its config says {self.tactile_config.n_features}"
+            )
+
+    def _width(self, name: str) -> int | None:
+        if name not in self.inputs:
+            return None
+        return int(self.inputs[name].shape[1])
+
+    @property
+    def needs_visual(self) -> bool:
+        return self.n_visual is not None
+
+    @property
+    def needs_tactile(self) -> bool:
+        return self.n_tactile is not None
+
+    def predict(self, tactile: np.ndarray | None, visual: np.ndarray | None = None) -> np.ndarray:
+        feeds = {}
+        n = None
+        for name, arr, width in ((INPUT_TACTILE, tactile, self.n_tactile), (INPUT_VISUAL, visual, self.n_visual)):
+            if width is None:
+                continue
+            if arr is None:
+                raise ValueError(f"model {self.card.model} needs a {name} input")
+            arr = np.asarray(arr, np.float32)
+            if arr.ndim == 1:
+                arr = arr[None, :]
+            if arr.ndim != 2 or arr.shape[1] != width:
+                raise ValueError(f"{name} must be (N, {width}), got {arr.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name} contains NaN or Inf")
+            if n is not None and arr.shape[0] != n:
+                raise ValueError(f"tactile and visual batch sizes differ: {n} vs {arr.shape[0]}")
+            n = arr.shape[0]
+            feeds[name] = arr
+        return self.session.run(None, feeds)[0]
+
+    def warm_up(self) -> None:
+        """One inference so the first real window does not pay for lazy initialisation."""
+        tactile = np.zeros((1, self.n_tactile), np.float32) if self.needs_tactile else None
+        visual = np.zeros((1, self.n_visual), np.float32) if self.needs_visual else None
+        self.predict(tactile, visual)

@@ -1,0 +1,327 @@
+"""Subcommands of the offline wing: dataset, features, evaluate, train, predict, report, tradeoffs, demo."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    ds = sub.add_parser("dataset", help="build and check datasets")
+    dsub = ds.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+
+    b = dsub.add_parser("build", help="build a dataset directory from a source")
+    b.add_argument("--source", required=True, choices=["hatt-texnet", "synthetic", "recordings"])
+    b.add_argument("--out", required=True, help="dataset directory to write")
+    b.add_argument("--path", help="source folder (hatt-texnet, recordings)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--duration", type=float, help="seconds per rendered recording (hatt-texnet 60, synthetic 10)")
+    b.add_argument("--recordings", type=int, default=1, help="recordings per texture (rendered sources)")
+    b.add_argument("--n-textures", type=int, default=24, help="synthetic: number of textures")
+    b.add_argument("--withheld", type=int, default=0, help="synthetic: build the last N textures without ratings")
+    b.add_argument("--limit", type=int, help="hatt-texnet: only the first N textures (quick trials)")
+    b.add_argument(
+        "--rating-scale", default="bipolar", choices=["bipolar", "0-100"], help="recordings: scale of ratings.csv"
+    )
+    b.add_argument("--no-features", action="store_true", help="skip computing the feature caches")
+    b.add_argument("--workers", type=int, help="worker processes (default: all cores)")
+    b.set_defaults(func=_dataset_build)
+
+    c = dsub.add_parser("check", help="validate a dataset directory; exit 1 on any problem")
+    c.add_argument("dir")
+    c.add_argument("--quick", action="store_true", help="structure only: skip decoding recordings and images")
+    c.set_defaults(func=_dataset_check)
+    register_models(sub)
+    register_report(sub)
+    from models.offline.tradeoffs.cli import register as register_tradeoffs
+
+    register_tradeoffs(sub)
+    register_demo(sub)
+
+
+def _dataset_build(args: argparse.Namespace) -> int:
+    import time
+
+    from models.offline.datasets.build import build
+
+    options: dict = {}
+    if args.source in ("hatt-texnet", "synthetic"):
+        options.update(seed=args.seed, recordings=args.recordings)
+        if args.duration is not None:
+            options["duration_s"] = args.duration
+    if args.source == "hatt-texnet":
+        options.update(limit=args.limit, workers=args.workers)
+    if args.source == "synthetic":
+        options.update(n_textures=args.n_textures, withheld=args.withheld)
+    if args.source == "recordings":
+        options["rating_scale"] = args.rating_scale
+    t0 = time.perf_counter()
+    out = build(args.source, args.out, path=args.path, **options)
+    print(f"built {args.source} dataset in {out} ({time.perf_counter() - t0:.1f} s)")
+    if not args.no_features:
+        from models.offline.featurize import featurize_dataset
+
+        t1 = time.perf_counter()
+        summary = featurize_dataset(out, workers=args.workers)
+        print(f"features cached in {time.perf_counter() - t1:.1f} s: {summary}")
+    return 0
+
+
+def _dataset_check(args: argparse.Namespace) -> int:
+    from models.offline.datasets.check import check_dataset
+
+    problems = check_dataset(args.dir, deep=not args.quick)
+    for p in problems:
+        print(p, file=sys.stderr)
+    if problems:
+        print(f"{args.dir}: {len(problems)} problem(s)", file=sys.stderr)
+        return 1
+    print(f"{args.dir}: ok")
+    return 0
+
+
+def register_models(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("evaluate", help="leave-one-texture-out evaluation of one model → results.json + figures")
+    e.add_argument("--dataset", required=True)
+    e.add_argument(
+        "--model",
+        required=True,
+        help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both",
+    )
+    e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
+    e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    e.add_argument("--workers", type=int, help="parallel folds (default: one per core)")
+    e.add_argument(
+        "--backend",
+        default="process",
+        choices=["process", "serial", "ray"],
+        help="where the (seed, fold) jobs run: worker processes (default), in this process, or Ray tasks",
+    )
+    e.add_argument("--ray-address", help="Ray cluster to run on (default: $RAY_ADDRESS, else a local Ray instance)")
+    e.add_argument(
+        "--test-views",
+        type=int,
+        help="the held-out texture shows only its first K image views (a service that pooled K frames); "
+        "training is unchanged. K must divide the stored views (8)",
+    )
+    _feature_args(e)
+    _net_args(e)
+    e.add_argument("--no-figures", action="store_true")
+    e.add_argument(
+        "--latency-only",
+        action="store_true",
+        help="only (re)measure the per-window latency into an existing OUT/results.json",
+    )
+    e.set_defaults(func=_evaluate)
+
+    t = sub.add_parser("train", help="train on every rated texture and export ONNX")
+    t.add_argument("--dataset", required=True)
+    t.add_argument("--model", required=True)
+    t.add_argument("--out", required=True, help="model file to write (.onnx)")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--metrics", help="results.json of this model's LOOCV, recorded in the model file")
+    t.add_argument(
+        "--calibration-folds",
+        type=int,
+        default=10,
+        help="K-fold CV that calibrates the card's prediction intervals and OOD detector (0: none)",
+    )
+    t.add_argument(
+        "--interval-scale",
+        default="none",
+        choices=["none", "distance"],
+        help="intervals of constant width, or scaled by feature-space distance (reports/tradeoffs)",
+    )
+    _feature_args(t)
+    _net_args(t)
+    t.set_defaults(func=_train)
+
+    p = sub.add_parser("predict", help="predict every texture of a dataset with an exported model → CSV")
+    p.add_argument("--model", required=True, help="model file (.onnx)")
+    p.add_argument("--dataset", required=True)
+    p.add_argument(
+        "--out", required=True, help="CSV: texture, rough_smooth, flat_bumpy, sticky_slippery, hard_soft (bipolar)"
+    )
+    p.add_argument(
+        "--textures", default="all", choices=["all", "yes", "withheld", "no"], help="which textures by rated status"
+    )
+    p.set_defaults(func=_predict)
+
+
+def _feature_args(parser: argparse.ArgumentParser) -> None:
+    from models.tactile.config import EXTRA_GROUPS
+
+    parser.add_argument("--tactile-features", default="mfcc", choices=["mfcc", "dwt", "dft"])
+    parser.add_argument(
+        "--extra-groups",
+        nargs="*",
+        default=[],
+        choices=list(EXTRA_GROUPS),
+        metavar="GROUP",
+        help=f"tactile feature groups added to the feature set: any of {', '.join(EXTRA_GROUPS)} "
+        "(friction needs 3-column force; taps needs tap transients per texture)",
+    )
+    parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+    parser.add_argument(
+        "--views",
+        type=int,
+        help="image views pooled per texture (ridge-*, *-pooled, selected; default: ridge 1, pooled models all stored)",
+    )
+
+
+def _tactile_config(args: argparse.Namespace):
+    from models.tactile.config import TactileConfig
+
+    return TactileConfig(feature_set=args.tactile_features, extra_groups=tuple(args.extra_groups))
+
+
+def _net_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--max-epochs", type=int, help="networks: cap on epochs (default 200)")
+    parser.add_argument(
+        "--windows-per-texture", type=int, help="networks: tactile windows drawn per texture each epoch (default 16)"
+    )
+
+
+def _options(args: argparse.Namespace) -> dict:
+    """Estimator options given on the command line (networks only; the rest keep their defaults)."""
+    names = ("max_epochs", "windows_per_texture", "views")
+    return {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from models.offline.evaluation.data import load_texture_data
+    from models.offline.evaluation.evaluate import evaluate
+    from models.offline.evaluation.registry import EstimatorSpec
+
+    spec = EstimatorSpec(args.model, _options(args))
+    modality = spec.build().modality
+    data = load_texture_data(
+        args.dataset,
+        tactile_config=_tactile_config(args),
+        visual=modality in ("visual", "both"),
+        visual_part=args.visual_part,
+        workers=args.workers,
+    )
+    if args.latency_only:
+        import json
+        from pathlib import Path
+
+        from models.offline.evaluation.evaluate import window_latency
+
+        path = Path(args.out) / "results.json"
+        if not path.is_file():
+            raise ValueError(f"--latency-only needs an existing {path}")
+        res = json.loads(path.read_text())
+        if res["model"] != args.model:
+            raise ValueError(f"{path} holds results of {res['model']!r}, not {args.model!r}")
+        res["latency_us"] = window_latency(data, spec)
+        path.write_text(json.dumps(res, indent=1))
+        print(
+            f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})"
+        )
+        return 0
+    res = evaluate(
+        data,
+        spec,
+        args.out,
+        seeds=tuple(args.seeds),
+        workers=args.workers,
+        backend=args.backend,
+        ray_address=args.ray_address,
+        test_views=args.test_views,
+    )
+    if not args.no_figures:
+        from models.offline.report.figures import results_figures
+
+        results_figures(res, data.textures, data.targets, Path(args.out))
+    mae, sd = res["mae"], res["mae_std"]
+    print(f"{args.model} on {res['dataset']} ({res['n_textures']} textures, seeds {res['seeds']}), MAE 0–100:")
+    for k in mae:
+        print(f"  {k:16s} {mae[k]:6.2f} ± {sd[k]:.2f}")
+    print(f"results in {args.out}/results.json ({res['wall_s']:.0f} s)")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from models.offline.train import train_and_export
+
+    path = train_and_export(
+        args.dataset,
+        args.model,
+        args.out,
+        seed=args.seed,
+        tactile_config=_tactile_config(args),
+        visual_part=args.visual_part,
+        metrics=args.metrics,
+        options=_options(args),
+        calibration_folds=args.calibration_folds,
+        interval_scale=args.interval_scale,
+    )
+    print(f"wrote {path}")
+    return 0
+
+
+def _predict(args: argparse.Namespace) -> int:
+    from models.offline.train import predict_dataset, write_predictions
+
+    textures, preds = predict_dataset(args.model, args.dataset, rated=None if args.textures == "all" else args.textures)
+    write_predictions(args.out, textures, preds)
+    print(f"wrote {len(textures)} predictions to {args.out}")
+    return 0
+
+
+def register_report(sub: argparse._SubParsersAction) -> None:
+    r = sub.add_parser(
+        "report", help="one markdown page of every evaluation of a dataset (reports/<dataset>/README.md)"
+    )
+    r.add_argument(
+        "--dataset", required=True, help="the dataset the results were computed on (for the human noise ceiling)"
+    )
+    r.add_argument(
+        "--reports", required=True, help="folder holding <model>/results.json (and ablation/<run>/results.json)"
+    )
+    r.add_argument("--regenerate", default="", help="the command that regenerates the page, quoted on it")
+    r.add_argument(
+        "--readme",
+        default=None,
+        help="also rewrite the results table of this file (e.g. README.md) between its table markers",
+    )
+    r.set_defaults(func=_report)
+
+
+def _report(args: argparse.Namespace) -> int:
+    from models.offline.report.markdown import build_report
+
+    print(f"wrote {build_report(args.dataset, args.reports, regenerate=args.regenerate, readme=args.readme)}")
+    if args.readme:
+        print(f"wrote the results table of {args.readme}")
+    return 0
+
+
+def register_demo(sub: argparse._SubParsersAction) -> None:
+    d = sub.add_parser(
+        "demo",
+        help="the whole loop on this machine: service + simulated robot + console",
+        description="Builds a synthetic world, trains and exports a model, starts the service and a simulated "
+        "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
+    )
+    d.add_argument("--assets", type=Path, default=Path("artifacts/demo"), help="where demo assets are built and cached")
+    d.add_argument("--host", default="127.0.0.1")
+    d.add_argument("--port", type=int, default=8000)
+    d.add_argument(
+        "--per-texture", type=float, default=20.0, metavar="S", help="seconds the robot strokes each texture"
+    )
+    d.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
+    d.set_defaults(func=_demo)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    import logging
+
+    from models.offline.demo_assets import prepared
+    from service.demo import demo
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    assets = prepared(args.assets)
+    return demo(assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

@@ -1,0 +1,26 @@
+"""Build a dataset directory from a source: `hapticlink dataset build --source NAME --out DIR`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def build(source: str, out: str | Path, path: str | Path | None = None, **options) -> Path:
+    """Dispatch to the source's builder. Options are source-specific (see each builder)."""
+    if source == "hatt-texnet":
+        from models.offline.datasets.hatt import build_hatt
+
+        if path is None:
+            raise ValueError("--source hatt-texnet needs --path (e.g. ../shared/data/hatt-texnet)")
+        return build_hatt(path, out, **options)
+    if source == "synthetic":
+        from models.offline.datasets.synthetic import build_synthetic
+
+        return build_synthetic(out, **options)
+    if source == "recordings":
+        from models.offline.datasets.recordings import build_recordings
+
+        if path is None:
+            raise ValueError("--source recordings needs --path to the folder of recordings")
+        return build_recordings(path, out, **options)
+    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, synthetic or recordings")

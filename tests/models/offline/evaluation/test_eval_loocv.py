@@ -1,0 +1,115 @@
+import numpy as np
+import pytest
+
+from models.offline.evaluation.estimators import MeanEstimator
+from models.offline.evaluation.loocv import loocv, loocv_seeds, run_fold
+from models.offline.evaluation.metrics import error_table
+from models.offline.evaluation.registry import EstimatorSpec, build_estimator
+
+
+def mae(run, data):
+    return error_table(run.predictions, data.targets)["mae"]["mean"]
+
+
+@pytest.mark.parametrize("name", ["ridge-both", "ridge-tactile", "ridge-visual", "knn-both", "svr-visual"])
+def test_models_learn_the_linear_world_far_better_than_the_mean(linear_world, name):
+    mean = mae(loocv(linear_world, EstimatorSpec("mean"), backend="serial", progress=False), linear_world)
+    model = mae(loocv(linear_world, EstimatorSpec(name), backend="serial", progress=False), linear_world)
+    assert model < 0.5 * mean, (name, model, mean)
+
+
+def test_no_leakage_shuffled_labels_stay_at_predict_the_mean_level(linear_world):
+    mean = mae(loocv(linear_world, EstimatorSpec("mean"), backend="serial", progress=False), linear_world)
+    real = mae(loocv(linear_world, EstimatorSpec("ridge-both"), backend="serial", progress=False), linear_world)
+    shuffled = [
+        mae(
+            loocv(linear_world, EstimatorSpec("shuffled-ridge-both"), seed=s, backend="serial", progress=False),
+            linear_world,
+        )
+        for s in range(3)
+    ]
+    assert real < 0.3 * mean
+    assert np.mean(shuffled) > 0.8 * mean, (shuffled, mean)
+
+
+class PeekingEstimator(MeanEstimator):
+    """Tries to read the held-out ratings at predict time."""
+
+    def predict(self, data):
+        assert data.targets is None, "the held-out texture's ratings reached predict"
+        return super().predict(data)
+
+
+def test_held_out_ratings_never_reach_predict(linear_world, monkeypatch):
+    monkeypatch.setattr(EstimatorSpec, "build", lambda self: PeekingEstimator())
+    pred, _, _, _ = run_fold(linear_world, EstimatorSpec("mean"), 3, 0)
+    others = np.delete(linear_world.targets, 3, axis=0).mean(axis=0)
+    np.testing.assert_allclose(pred, others, rtol=1e-6)
+
+
+def test_process_backend_equals_serial(linear_world):
+    a = loocv(linear_world, EstimatorSpec("ridge-both"), backend="serial", progress=False)
+    b = loocv(linear_world, EstimatorSpec("ridge-both"), backend="process", workers=2, progress=False)
+    np.testing.assert_allclose(a.predictions, b.predictions, rtol=1e-6)
+
+
+def test_bad_arguments(linear_world):
+    with pytest.raises(ValueError, match="unknown model"):
+        build_estimator("no-such-model")
+    with pytest.raises(ValueError, match="'ridge-both' does not take max_epochs"):
+        build_estimator("ridge-both", max_epochs=3)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        loocv(linear_world, EstimatorSpec("mean"), backend="threads")
+    with pytest.raises(ValueError, match="at least 3 rated textures"):
+        loocv(linear_world.take([0, 1]), EstimatorSpec("mean"))
+
+
+def test_seeds_run_as_one_batch_equal_runs_one_seed_at_a_time(linear_world):
+    spec = EstimatorSpec("shuffled-ridge-both")  # its training labels depend on the seed
+    runs = loocv_seeds(linear_world, spec, (0, 1), backend="process", workers=2, progress=False)
+    assert [r.seed for r in runs] == [0, 1]
+    for run in runs:
+        alone = loocv(linear_world, spec, seed=run.seed, backend="serial", progress=False)
+        np.testing.assert_allclose(run.predictions, alone.predictions, rtol=1e-6)
+    assert not np.allclose(runs[0].predictions, runs[1].predictions)
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install ray)")
+    from models.offline.evaluation.loocv import ray_init
+
+    if ray.is_initialized():
+        ray.shutdown()
+    try:
+        ray_init(None, num_cpus=2)
+    except ValueError as exc:
+        pytest.skip(f"a local Ray instance cannot start here: {exc}")
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_backend_gives_the_serial_answer(linear_world, local_ray, monkeypatch):
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    spec = EstimatorSpec("shuffled-ridge-both")
+    small = linear_world.take(range(12))
+    runs = loocv_seeds(small, spec, (0, 1), backend="ray", workers=2, progress=False)
+    for run in runs:
+        alone = loocv(small, spec, seed=run.seed, backend="serial", progress=False)
+        np.testing.assert_allclose(run.predictions, alone.predictions, rtol=1e-6)
+        assert len(run.fold_seconds) == len(small)
+
+
+def test_a_held_out_texture_can_be_shown_through_fewer_views(linear_world):
+    from models.offline.evaluation.loocv import seen_through
+
+    two = seen_through(linear_world.take([0, 1]), 1)
+    np.testing.assert_array_equal(two.visual[:, 2], linear_world.visual[:2, 0])  # view 0 fills every slot
+    spec = EstimatorSpec("krr-pooled")
+    full = loocv(linear_world, spec, backend="serial", progress=False)
+    one = loocv(linear_world, spec, backend="serial", progress=False, test_views=1)
+    same = loocv(linear_world, spec, backend="serial", progress=False, test_views=3)
+    np.testing.assert_allclose(same.predictions, full.predictions)  # all 3 stored views: no change
+    assert not np.allclose(one.predictions, full.predictions)
+    with pytest.raises(ValueError, match="must divide the 3 stored views"):
+        loocv(linear_world, spec, backend="serial", progress=False, test_views=2)

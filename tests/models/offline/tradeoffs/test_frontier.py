@@ -1,0 +1,81 @@
+"""The frontier's pieces: the sweep, interleaved timing, the pick rule and its nested check."""
+
+import numpy as np
+import pytest
+
+from models.offline.tradeoffs.frontier import Patching, nested_rule_predictions, pick, sweep, time_frames
+from models.visual.config import VisualConfig
+
+
+class FakeEmbedder:
+    """Cost proportional to the number of patches, as a backbone's is."""
+
+    name, dim, fingerprint = "fake", 3, "0" * 16
+
+    def __init__(self):
+        self.patches = 0
+
+    def embed(self, patches):
+        self.patches += len(patches)
+        return np.stack([patches.mean(axis=(1, 2))] * 3, axis=1).astype(np.float32)
+
+
+def test_sweep_covers_grids_and_sizes_and_adds_the_whole_frame():
+    configs = sweep((7, 3, 1), (None, 448))
+    assert Patching(7, None) in configs and Patching(3, 448) in configs and Patching(1, 224) in configs
+    assert len(configs) == 7
+    assert Patching(2, 448).visual_config() == VisualConfig(grid=2, resize=448, backbone="efficientnet_lite0")
+    assert Patching(7, None).visual_config().hash() == VisualConfig().hash()  # today's default, today's hash
+
+
+def test_timing_interleaves_every_configuration_and_reports_each_step():
+    emb = FakeEmbedder()
+    img = np.random.default_rng(0).random((600, 600)).astype(np.float32)
+    configs = [Patching(3, None), Patching(1, 224)]
+    rows = time_frames(img, configs, {("fake", 1): emb}, repeats=2)
+    assert len(rows) == 2 and all(r["repeats"] == 2 for r in rows)
+    assert emb.patches == 2 * (9 + 1) + 4  # two repeats of both, plus the warm-up's 2×2
+    for r in rows:
+        assert r["prep_ms"] >= 0 and r["embed_ms"] > 0 and r["glcm_ms"] > 0
+    with pytest.raises(ValueError):
+        time_frames(img, configs, {("fake", 1): emb}, repeats=0)
+
+
+def test_pick_takes_the_cheapest_within_the_margin():
+    mae = {"big": 5.0, "mid": 5.25, "small": 5.4, "tiny": 6.0}
+    cost = {"big": 500.0, "mid": 100.0, "small": 40.0, "tiny": 5.0}
+    assert pick(mae, cost) == "mid"
+    assert pick(mae, cost, margin=0.5) == "small"
+
+
+def test_nested_rule_uses_training_textures_only(linear_world_pair):
+    datas, preds = linear_world_pair
+    cost = {"good": 100.0, "noisy": 1.0}
+    nested, picked = nested_rule_predictions(datas, preds, cost, "ridge-both", {}, folds=3)
+    assert nested.shape == preds["good"].shape and len(picked) == len(preds["good"])
+    # the noisy configuration is far worse inside every fold: the rule keeps the good one
+    assert set(picked) == {"good"}
+    np.testing.assert_allclose(nested, preds["good"])
+
+
+@pytest.fixture(scope="module")
+def linear_world_pair():
+    from dataclasses import replace
+
+    from models.offline.evaluation.loocv import loocv
+    from models.offline.evaluation.registry import EstimatorSpec
+
+    from .conftest import make_linear_world
+
+    good = make_linear_world(n_textures=20)
+    rng = np.random.default_rng(5)
+    noisy = replace(
+        good,
+        visual=rng.normal(size=good.visual.shape).astype(np.float32),
+        tactile=[rng.normal(size=w.shape).astype(np.float32) for w in good.tactile],
+    )
+    datas = {"good": good, "noisy": noisy}
+    preds = {
+        k: loocv(d, EstimatorSpec("ridge-both"), backend="serial", progress=False).predictions for k, d in datas.items()
+    }
+    return datas, preds
