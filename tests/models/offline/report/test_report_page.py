@@ -10,6 +10,7 @@ from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
 from models.offline.evaluation.evaluate import evaluate
 from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.report.figures import results_figures
 from models.offline.report.markdown import _ablation_label, build_report
 from models.offline.report.speed_accuracy import pareto_front
 
@@ -29,9 +30,9 @@ def reports(tmp_path_factory):
     dataset = build("synthetic", root / "ds", n_textures=8, duration_s=3, image_size=256)
     data = load_texture_data(dataset, visual=False)
     for name in ("mean", "ridge-tactile", "knn-tactile"):
-        evaluate(
-            data, EstimatorSpec(name), root / "reports" / name, seeds=(0,), workers=1, backend="serial", progress=False
-        )
+        out = root / "reports" / name
+        res = evaluate(data, EstimatorSpec(name), out, seeds=(0,), workers=1, backend="serial", progress=False)
+        results_figures(res, data.textures, data.targets, out)  # as `hapticlink evaluate` does
     return dataset, root / "reports"
 
 
@@ -42,7 +43,7 @@ def test_ablation_label_names_the_features_of_every_modality_a_model_reads():
     assert _ablation_label(both) == "visual backbone + tactile dft"
 
 
-def test_evaluate_writes_results_and_figures(reports):
+def test_evaluate_writes_results_and_results_figures_draws_them(reports):
     _, folder = reports
     res = json.loads((folder / "ridge-tactile" / "results.json").read_text())
     assert set(res["mae"]) == {"rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft", "mean"}
