@@ -1,5 +1,5 @@
 """Leave-one-texture-out cross-validation. Every (seed, fold) pair is an independent job, run serially,
-in a local process pool (default) or as Ray tasks on a local Ray instance or a cluster.
+in local worker processes (default; models.offline.jobs) or as Ray tasks on a local Ray instance or a cluster.
 
 Ray: `backend="ray"` connects to the cluster at `ray_address` (or the RAY_ADDRESS environment
 variable) and starts a local instance when neither is set. On a cluster the models/ and
@@ -11,18 +11,18 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from tqdm import tqdm
 
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.jobs import capped_threads, cpu_count, run_jobs
 from texture_library.attributes import RATING_MAX, RATING_MIN
 
 BACKENDS = ("process", "serial", "ray")
-_DATA: TextureData | None = None  # set once per worker process by _init_worker
 
 
 @dataclass(frozen=True)
@@ -35,30 +35,6 @@ class LoocvRun:
     n_params: int
     wall_s: float
     seed: int
-
-
-def _init_worker(data: TextureData, threads: int) -> None:
-    global _DATA
-    _DATA = data
-    set_threads(threads)
-
-
-def set_threads(threads: int) -> None:
-    """Cap BLAS/OpenMP and torch threads in this process. The environment variable alone is too late once
-    numpy is loaded; small matrices on a busy machine run up to 100× slower with oversubscribed BLAS."""
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(threads)
-    except ImportError:
-        pass
-    try:
-        import torch
-
-        torch.set_num_threads(threads)
-    except ImportError:
-        pass
 
 
 def seen_through(data: TextureData, views: int) -> TextureData:
@@ -91,15 +67,15 @@ def run_fold(
     return pred, time.perf_counter() - t0, est.fit_info(), est.n_params()
 
 
-def _fold_in_worker(args: tuple[EstimatorSpec, int, int, int | None]):
-    return run_fold(_DATA, *args)
+def _fold_job(data: TextureData, job: tuple[EstimatorSpec, int, int, int | None]):
+    return run_fold(data, *job)
 
 
 def _fold_in_ray_task(
     data: TextureData, spec: EstimatorSpec, held_out: int, seed: int, test_views: int | None, threads: int
 ):
-    set_threads(threads)
-    return run_fold(data, spec, held_out, seed, test_views)
+    with capped_threads(threads):
+        return run_fold(data, spec, held_out, seed, test_views)
 
 
 def loocv(
@@ -151,24 +127,19 @@ def loocv_seeds(
         seen_through(data.take([0]), test_views)  # refuse a bad value before any job starts
     n = len(data)
     jobs = [(spec, i, s, test_views) for s in seeds for i in range(n)]
-    workers = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    workers = max(1, min(workers or cpu_count(), len(jobs)))
+    threads = max(1, cpu_count() // workers)  # the serial backend too: it shares the machine alike
+    desc = f"LOOCV {spec.name} seeds {list(seeds)}"
     t0 = time.perf_counter()
-    bar = tqdm(total=len(jobs), desc=f"LOOCV {spec.name} seeds {list(seeds)}", unit="fold", disable=not progress)
-    results: list = [None] * len(jobs)
     if backend == "ray":
-        results = _ray_folds(data, jobs, bar, workers, ray_address)
-    elif backend == "serial" or workers == 1:
-        set_threads(threads)
-        for i, job in enumerate(jobs):
-            results[i] = run_fold(data, *job)
-            bar.update()
+        with tqdm(total=len(jobs), desc=desc, unit="fold", disable=not progress) as bar:
+            results = _ray_folds(data, jobs, bar, workers, ray_address)
     else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(data, threads)) as pool:
-            for i, res in enumerate(pool.map(_fold_in_worker, jobs)):
-                results[i] = res
-                bar.update()
-    bar.close()
+        in_processes = 1 if backend == "serial" else workers
+        folds = run_jobs(
+            partial(_fold_job, data), jobs, in_processes, desc, unit="fold", threads=threads, progress=progress
+        )
+        results = list(folds)
     wall = time.perf_counter() - t0
     runs = []
     for k, s in enumerate(seeds):

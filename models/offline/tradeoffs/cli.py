@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import functools
+from collections.abc import Callable
 from pathlib import Path
 
 from models.offline.tradeoffs import DEFAULT_REPORT, DEFAULT_WORK
@@ -85,6 +87,19 @@ DEFAULT_RUNS = (
 )  # the full grid: hours on 2 cores
 
 
+def _one_blas_thread(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """The command with BLAS/OpenMP capped at one thread: the studies run many small fits on a shared machine."""
+
+    @functools.wraps(command)
+    def capped(args: argparse.Namespace) -> int:
+        from models.offline.jobs import capped_threads
+
+        with capped_threads(1):
+            return command(args)
+
+    return capped
+
+
 def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool, bool]]:
     """ "model:seeds[:cal+aug+sub]" → (model, seeds, calibration on the first seed, augmentation on the first
     seed, LOOCV on the held-out subset only)."""
@@ -106,10 +121,8 @@ def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool, bool]
     return out
 
 
+@_one_blas_thread
 def _robustness(args: argparse.Namespace) -> int:
-    from models.offline.tradeoffs.common import one_blas_thread
-
-    one_blas_thread()
     from models.offline.tradeoffs.common import write_json
     from models.offline.tradeoffs.robustness import held_out_subset, run_model, study_inputs, summarise
 
@@ -159,10 +172,8 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
+@_one_blas_thread
 def _faults(args: argparse.Namespace) -> int:
-    from models.offline.tradeoffs.common import one_blas_thread
-
-    one_blas_thread()
     from models.offline.evaluation.data import load_texture_data
     from models.offline.tradeoffs.faulted import faulted_inputs
 
@@ -188,10 +199,8 @@ def _options(args: argparse.Namespace) -> dict:
     return {k: getattr(args, k) for k in ("max_epochs", "windows_per_texture") if getattr(args, k, None) is not None}
 
 
+@_one_blas_thread
 def _frontier(args: argparse.Namespace) -> int:
-    from models.offline.tradeoffs.common import one_blas_thread
-
-    one_blas_thread()
     from models.offline.tradeoffs.common import write_json
     from models.offline.tradeoffs.frontier import run_frontier
 
@@ -218,7 +227,8 @@ def _frontier(args: argparse.Namespace) -> int:
     rec = result["recommendation"]
     if rec:
         print(
-            f"recommended: {rec['config']} — MAE {rec['mae']:.2f} [{rec['mae_ci']['lo']:.2f}, {rec['mae_ci']['hi']:.2f}], "
+            f"recommended: {rec['config']} — MAE {rec['mae']:.2f} "
+            f"[{rec['mae_ci']['lo']:.2f}, {rec['mae_ci']['hi']:.2f}], "
             f"{rec['frame_ms_1thread']:.0f} ms per frame (1 thread); best {rec['best_config']} {rec['best_mae']:.2f}; "
             f"target {'met' if rec['target_met'] else 'NOT met'} on this run's milliseconds "
             f"(the report also judges it on the quiet-equivalent cost)"

@@ -1,4 +1,4 @@
-"""What the studies share: the reference data, image views per model, strict JSON, one BLAS thread."""
+"""What the studies share: the reference data, image views per model, strict JSON."""
 
 from __future__ import annotations
 
@@ -47,14 +47,6 @@ def with_visual(
 def tactile_data(root: str | Path, workers: int | None = 1) -> TextureData:
     """The rated textures with their tactile windows (all of them) and mean ratings, no visual features."""
     return load_texture_data(root, visual=False, workers=workers)
-
-
-def one_blas_thread() -> None:
-    """Pin BLAS/OpenMP pools to one thread in this process. On a shared 2-core machine a second BLAS
-    thread spinning against other jobs made a 78×2062 SVD 27× slower (1.15 s against 0.04 s)."""
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(limits=1)
 
 
 def load_state() -> dict:

@@ -10,13 +10,14 @@ intervals). For every left-out material group, one detector flags that group's t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from models.inference.ood import OODDetector
 from models.offline import calibrate
 from models.offline.evaluation.data import TextureData
+from models.offline.jobs import run_jobs
 from models.offline.tradeoffs.faulted import CLEAN, FaultedInputs
 from models.offline.tradeoffs.folds import calibration_keys, key_excludes
 
@@ -48,46 +49,34 @@ def _check(det: OODDetector, tactile: np.ndarray, visual: np.ndarray | None, fra
     return Check(r.flags, r.reasons, r.distance)
 
 
-_STATE: dict = {}
+@dataclass(frozen=True)
+class _Inputs:
+    """What every detector job reads."""
+
+    data: TextureData
+    inputs: FaultedInputs
+    with_visual: bool
 
 
-def _init(data: TextureData, inputs: FaultedInputs, with_visual: bool) -> None:
-    from models.offline.tradeoffs.common import one_blas_thread
-
-    one_blas_thread()
-    _STATE.update(data=data, inputs=inputs, with_visual=with_visual)
+def _map(fn, items: list, inputs: _Inputs, workers: int, desc: str, unit: str) -> list:
+    """fn(inputs, item) over items, in this process or in `workers` processes, one BLAS thread each."""
+    return list(run_jobs(partial(fn, inputs), items, workers, desc, unit=unit, threads=1, progress=True))
 
 
-def _map(
-    fn, items: list, data: TextureData, inputs: FaultedInputs, with_visual: bool, workers: int, desc: str, unit: str
-):
-    """fn over items, in this process or in `workers` forked processes (data and inputs inherited, not pickled)."""
-    if workers <= 1:
-        _init(data, inputs, with_visual)
-        return [fn(x) for x in tqdm(items, desc=desc, unit=unit)]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(
-        workers, mp_context=multiprocessing.get_context("fork"), initializer=_init, initargs=(data, inputs, with_visual)
-    ) as pool:
-        return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, unit=unit))
-
-
-def _clean_inputs(j: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    inputs = _STATE["inputs"]
+def _clean_inputs(study: _Inputs, j: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    inputs = study.inputs
     return (
         inputs.tactile[CLEAN][j],
-        inputs.visual_of(CLEAN)[j] if _STATE["with_visual"] else None,
+        inputs.visual_of(CLEAN)[j] if study.with_visual else None,
         inputs.frames_of(CLEAN)[j] if inputs.frames is not None else None,
     )
 
 
-def _fold(i: int) -> dict[str, Check]:
-    data, inputs, with_visual = _STATE["data"], _STATE["inputs"], _STATE["with_visual"]
+def _fold(study: _Inputs, i: int) -> dict[str, Check]:
+    data, inputs, with_visual = study.data, study.inputs, study.with_visual
     n = len(data)
     det = fit_detector(data, inputs, np.array([j for j in range(n) if j != i]))
-    _, v_clean, f_clean = _clean_inputs(i)
+    _, v_clean, f_clean = _clean_inputs(study, i)
     out = {key: _check(det, per_texture[i], v_clean, f_clean) for key, per_texture in inputs.tactile.items()}
     if with_visual:
         for key in inputs.visual_keys[1:]:
@@ -104,7 +93,8 @@ def fold_checks(
 ) -> dict[str, list[Check]]:
     """{variant: [Check of held-out texture i for every fold i]} — touch variants with the clean frame,
     camera variants with the clean touch segment, "no_frame@1" without a frame."""
-    per_fold = _map(_fold, list(range(len(data))), data, inputs, with_visual, workers, "OOD detector per fold", "fold")
+    study = _Inputs(data, inputs, with_visual)
+    per_fold = _map(_fold, list(range(len(data))), study, workers, "OOD detector per fold", "fold")
     out: dict[str, list[Check]] = {}
     for checks in per_fold:
         for key, c in checks.items():
@@ -112,24 +102,23 @@ def fold_checks(
     return out
 
 
-def _calibration(task: tuple[np.ndarray, tuple[int, ...]]) -> dict[int, np.ndarray]:
+def _calibration(study: _Inputs, task: tuple[np.ndarray, tuple[int, ...]]) -> dict[int, np.ndarray]:
     part, key = task
     held = key_excludes(part, key)
-    det = fit_detector(_STATE["data"], _STATE["inputs"], np.flatnonzero(~held))
-    return {int(j): _check(det, *_clean_inputs(j)).distance for j in np.flatnonzero(held)}
+    det = fit_detector(study.data, study.inputs, np.flatnonzero(~held))
+    return {int(j): _check(det, *_clean_inputs(study, j)).distance for j in np.flatnonzero(held)}
 
 
 def calibration_distances(
     data: TextureData, inputs: FaultedInputs, part: np.ndarray, *, with_visual: bool, workers: int = 1
 ) -> dict[tuple[int, ...], dict[int, np.ndarray]]:
-    """{key: {j: (n_j,) distance of texture j's clean segment windows}} for each calibration model's held-out textures."""
+    """{key: {j: (n_j,) distance of texture j's clean segment windows}} for each calibration model's
+    held-out textures."""
     keys = calibration_keys(int(part.max()) + 1)
     results = _map(
         _calibration,
         [(part, k) for k in keys],
-        data,
-        inputs,
-        with_visual,
+        _Inputs(data, inputs, with_visual),
         workers,
         "OOD detector per calibration model",
         "model",
@@ -137,18 +126,23 @@ def calibration_distances(
     return dict(zip(keys, results))
 
 
-def _shift(g: str) -> dict[int, Check]:
-    groups = np.asarray(_STATE["data"].groups)
+def _shift(study: _Inputs, g: str) -> dict[int, Check]:
+    groups = np.asarray(study.data.groups)
     held = groups == g
-    det = fit_detector(_STATE["data"], _STATE["inputs"], np.flatnonzero(~held))
-    return {int(i): _check(det, *_clean_inputs(i)) for i in np.flatnonzero(held)}
+    det = fit_detector(study.data, study.inputs, np.flatnonzero(~held))
+    return {int(i): _check(det, *_clean_inputs(study, i)) for i in np.flatnonzero(held)}
 
 
 def shift_checks(data: TextureData, inputs: FaultedInputs, *, with_visual: bool, workers: int = 1) -> dict[int, Check]:
     """{texture i: Check of its clean segment by the detector fitted without i's material group}."""
     out: dict[int, Check] = {}
     for checks in _map(
-        _shift, sorted(set(data.groups)), data, inputs, with_visual, workers, "OOD detector per left-out group", "group"
+        _shift,
+        sorted(set(data.groups)),
+        _Inputs(data, inputs, with_visual),
+        workers,
+        "OOD detector per left-out group",
+        "group",
     ):
         out.update(checks)
     return out

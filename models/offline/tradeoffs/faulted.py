@@ -68,10 +68,8 @@ def _segment_features(rec, config: TactileConfig) -> np.ndarray:
 
 
 def _tactile_job(job: dict) -> dict[str, np.ndarray]:
-    from models.offline.tradeoffs.common import one_blas_thread
     from texture_library.vibration import VibrationModel
 
-    one_blas_thread()
     ds = Dataset(job["root"])
     texture, cfg = job["texture"], TactileConfig(**job["config"])
     rec = ds.recordings(texture)[0]
@@ -104,13 +102,11 @@ def _tactile_job(job: dict) -> dict[str, np.ndarray]:
 def _visual_job(job: dict) -> tuple[np.ndarray, np.ndarray]:
     from models.inference.ood import frame_statistics
     from models.offline.featurize import backbone_onnx, cache_root
-    from models.offline.tradeoffs.common import one_blas_thread
     from models.visual.cache import FeatureCache
     from models.visual.embedding import visual_features
     from models.visual.image import load_image
     from models.visual.onnx_backbone import OnnxBackbone
 
-    one_blas_thread()
     cfg = VisualConfig(**job["config"])
     backbone = OnnxBackbone(backbone_onnx(cfg), intra_op_threads=1, expected_config_hash=cfg.hash())
     cache = FeatureCache(cache_root() / "visual")
@@ -166,7 +162,7 @@ def faulted_inputs(
     if cached is None:
         jobs = [{"root": str(ds.root), "texture": t, "config": tcfg.to_dict(), "seed": seed} for t in textures]
         arrays = {}
-        for t, res in zip(textures, run_jobs(_tactile_job, jobs, workers, "faulted touch inputs")):
+        for t, res in zip(textures, run_jobs(_tactile_job, jobs, workers, "faulted touch inputs", threads=1)):
             for k in tkeys:
                 arrays[f"{t}|{k}"] = res[k]
         _save(tpath, textures, arrays)
@@ -185,7 +181,7 @@ def faulted_inputs(
                 {"image": str(ds.image_paths(t)[0]), "texture": t, "config": vcfg.model_dump(mode="json"), "seed": seed}
                 for t in textures
             ]
-            results = list(run_jobs(_visual_job, jobs, workers, "faulted camera inputs"))
+            results = list(run_jobs(_visual_job, jobs, workers, "faulted camera inputs", threads=1))
             cached = {"X": np.stack([r[0] for r in results]), "frames": np.stack([r[1] for r in results])}
             _save(vpath, textures, cached)
         vis, frames = cached["X"], cached["frames"]

@@ -17,17 +17,16 @@ Faults reach held-out textures only; every fit sees training textures only.
 
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from models.offline.calibrate import Prediction, predict
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.jobs import run_jobs
 from models.offline.tradeoffs.faulted import AUG_BLUR_SIGMA_PX, AUG_NOISE_SNR_DB, CLEAN, FaultedInputs, variant
 from models.offline.tradeoffs.folds import calibration_keys, inner_folds, key_excludes
 
@@ -102,44 +101,41 @@ def _is_window_model(est) -> bool:
 
 
 # ---- tasks ------------------------------------------------------------------------------------------
-_STATE: dict = {}
+@dataclass(frozen=True)
+class _Study:
+    """What every task of one run reads: the data, its faulted inputs, the model and the calibration partition."""
+
+    data: TextureData
+    inputs: FaultedInputs
+    spec: EstimatorSpec
+    part: np.ndarray
 
 
-def _init(data: TextureData, inputs: FaultedInputs, spec: EstimatorSpec, part: np.ndarray, threads: int) -> None:
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(limits=threads)
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    try:
-        import torch
-
-        torch.set_num_threads(threads)
-    except ImportError:
-        pass
-    _STATE.update(data=data, inputs=inputs, spec=spec, part=part)
-
-
-def _fit(train_idx: np.ndarray, seed: int, augmented: bool = False):
-    data, spec = _STATE["data"], _STATE["spec"]
-    train = data.take(train_idx)
-    est = spec.build()
+def _fit(study: _Study, train_idx: np.ndarray, seed: int, augmented: bool = False):
+    train = study.data.take(train_idx)
+    est = study.spec.build()
     if augmented:
-        train = augment(train, _STATE["inputs"], train_idx)
+        train = augment(train, study.inputs, train_idx)
         train = expand_for_window_models(train) if _is_window_model(est) else expand_for_texture_models(train)
     return est.fit(train, seed)
 
 
-def _clean(est, i: int) -> Prediction | None:
-    data, inputs = _STATE["data"], _STATE["inputs"]
+def _clean(study: _Study, est, i: int) -> Prediction | None:
+    data, inputs = study.data, study.inputs
     v = data.visual[i, 0] if data.visual is not None else None
     return predict(est, data, inputs.tactile[CLEAN][i], v, texture_tactile=data.tactile[i])
 
 
-def _variants(est, i: int, train_idx: np.ndarray, only: tuple[str, ...] | None = None) -> dict[str, Prediction | None]:
-    data, inputs = _STATE["data"], _STATE["inputs"]
-    out: dict[str, Prediction | None] = {CLEAN: _clean(est, i)}
+def _variants(
+    study: _Study, est, i: int, train_idx: np.ndarray, only: tuple[str, ...] | None = None
+) -> dict[str, Prediction | None]:
+    data, inputs = study.data, study.inputs
+    out: dict[str, Prediction | None] = {CLEAN: _clean(study, est, i)}
     v_clean = data.visual[i, 0] if data.visual is not None else None
-    wanted = lambda key: only is None or key.split("@")[0] in only
+
+    def wanted(key: str) -> bool:
+        return only is None or key.split("@")[0] in only
+
     for key, per_texture in inputs.tactile.items():
         if key != CLEAN and not key.startswith("aug_") and wanted(key):
             out[key] = predict(est, data, per_texture[i], v_clean)
@@ -153,32 +149,32 @@ def _variants(est, i: int, train_idx: np.ndarray, only: tuple[str, ...] | None =
     return out
 
 
-def _task(task: tuple) -> tuple[tuple, object, float]:
+def _task(study: _Study, task: tuple) -> tuple[tuple, object, float]:
     kind, arg, seed = task
     t0 = time.perf_counter()
-    data, part = _STATE["data"], _STATE["part"]
+    data, part = study.data, study.part
     n = len(data)
     if kind == "loocv":
         train = np.array([j for j in range(n) if j != arg])
-        result = _variants(_fit(train, seed), arg, train)
+        result = _variants(study, _fit(study, train, seed), arg, train)
     elif kind == "aug":
         train = np.array([j for j in range(n) if j != arg])
-        result = _variants(_fit(train, seed, augmented=True), arg, train, only=AUGMENTED_FAULTS)
+        result = _variants(study, _fit(study, train, seed, augmented=True), arg, train, only=AUGMENTED_FAULTS)
     elif kind == "calib":
         held = key_excludes(part, arg)
-        est = _fit(np.flatnonzero(~held), seed)
-        result = {int(j): _clean(est, j) for j in np.flatnonzero(held)}
+        est = _fit(study, np.flatnonzero(~held), seed)
+        result = {int(j): _clean(study, est, j) for j in np.flatnonzero(held)}
     elif kind == "shift":
         groups = np.asarray(data.groups)
-        est = _fit(np.flatnonzero(groups != arg), seed)
-        result = {int(j): _clean(est, j) for j in np.flatnonzero(groups == arg)}
+        est = _fit(study, np.flatnonzero(groups != arg), seed)
+        result = {int(j): _clean(study, est, j) for j in np.flatnonzero(groups == arg)}
     elif kind == "shift_inner":
         group, fold = arg
         groups = np.asarray(data.groups)
         train_all = np.flatnonzero(groups != group)
         held = inner_folds(train_all, SHIFT_INNER_FOLDS, seed=0)[fold]
-        est = _fit(np.setdiff1d(train_all, held), seed)
-        result = {int(j): _clean(est, j) for j in held}
+        est = _fit(study, np.setdiff1d(train_all, held), seed)
+        result = {int(j): _clean(study, est, j) for j in held}
     else:
         raise ValueError(f"unknown task {kind!r}")
     return task, result, time.perf_counter() - t0
@@ -221,20 +217,12 @@ def run_study(
         if calibration:
             tasks += [("shift_inner", (g, k), seed) for g in groups for k in range(SHIFT_INNER_FOLDS)]
     run = StudyRun(model, seed, options or {}, list(data.textures), held_out=None if held_out is None else folds)
-    threads = max(1, (os.cpu_count() or 1) // max(workers, 1))
-    bar = tqdm(total=len(tasks), desc=f"{model} seed {seed}", unit="fit")
-    if workers <= 1:
-        _init(data, inputs, spec, part, threads)
-        results = (_task(t) for t in tasks)
-        _collect(run, results, bar)
-    else:
-        with ProcessPoolExecutor(workers, initializer=_init, initargs=(data, inputs, spec, part, threads)) as pool:
-            _collect(run, pool.map(_task, tasks), bar)
-    bar.close()
+    task = partial(_task, _Study(data, inputs, spec, part))
+    _collect(run, run_jobs(task, tasks, max(workers, 1), f"{model} seed {seed}", unit="fit", progress=True))
     return run
 
 
-def _collect(run: StudyRun, results, bar) -> None:
+def _collect(run: StudyRun, results) -> None:
     for (kind, arg, _), result, seconds in results:
         run.seconds[kind] = run.seconds.get(kind, 0.0) + seconds
         if kind in ("loocv", "aug"):
@@ -247,4 +235,3 @@ def _collect(run: StudyRun, results, bar) -> None:
             run.shift.update(result)
         else:
             run.shift_inner.setdefault(arg[0], {}).update(result)
-        bar.update()
