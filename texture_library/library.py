@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from texture_library.atomic_file import write_text
 from texture_library.attributes import ATTRIBUTES, check_ratings
 from texture_library.vibration import VibrationModel
 
@@ -141,9 +142,7 @@ class Library:
     def save(self) -> Path:
         self.root.mkdir(parents=True, exist_ok=True)
         doc = {"format": FORMAT, "version": VERSION, "name": self.name, "entries": [e.to_json() for e in self.entries]}
-        tmp = self.root / "library.json.tmp"
-        tmp.write_text(json.dumps(doc, indent=1))
-        tmp.replace(self.root / "library.json")
+        write_text(self.root / "library.json", json.dumps(doc, indent=1))
         return self.root
 
     @classmethod

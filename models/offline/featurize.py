@@ -22,6 +22,7 @@ from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
 from models.tactile.taps import tap_features
 from models.visual.config import VisualConfig
+from texture_library.atomic_file import atomic_path
 
 if TYPE_CHECKING:
     from models.visual.embedding import PatchEmbedder
@@ -126,18 +127,16 @@ def tactile_table(root: str | Path, config: TactileConfig | None = None, *, work
         textures,
         cfg,
     )
-    ds.features_dir.mkdir(exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
-    np.savez(
-        tmp,
-        X=table.X,
-        texture=table.texture,
-        recording=table.recording,
-        t_start=table.t_start,
-        textures=np.array(textures),
-        config=np.array(json.dumps(cfg.to_dict())),
-    )
-    tmp.replace(cache)
+    with atomic_path(cache) as tmp:
+        np.savez(
+            tmp,
+            X=table.X,
+            texture=table.texture,
+            recording=table.recording,
+            t_start=table.t_start,
+            textures=np.array(textures),
+            config=np.array(json.dumps(cfg.to_dict())),
+        )
     return table
 
 
@@ -153,9 +152,8 @@ def backbone_onnx(config: VisualConfig) -> Path:
     backbone = resolve_backbone(config)
     path = cache_root() / "backbones" / f"{backbone.name}-{backbone.fingerprint[:12]}-{config.hash()}.onnx"
     if not path.is_file():
-        tmp = path.with_suffix(".tmp.onnx")
-        export_backbone_onnx(backbone, tmp, config_hash=config.hash())
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            export_backbone_onnx(backbone, tmp, config_hash=config.hash())
     return path
 
 
@@ -197,10 +195,8 @@ def visual_table(
         images, cfg, backbone, n_views=n_views, seed=seed, cache=FeatureCache(cache_root() / "visual"), progress=True
     )
     table = VisualTable(feats.values, textures, feats.backbone, feats.backbone_dim, cfg.hash())
-    ds.features_dir.mkdir(exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, X=table.X, textures=np.array(textures))
-    tmp.replace(cache)
+    with atomic_path(cache) as tmp:
+        np.savez(tmp, X=table.X, textures=np.array(textures))
     return table
 
 

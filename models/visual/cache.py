@@ -9,17 +9,16 @@ deleted at any time.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 import re
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from texture_library.atomic_file import atomic_path
 
 DEFAULT_CACHE_DIR = Path("cache") / "visual"
 _KEY_FORMAT = "hapticlink-visual-cache-v1"
@@ -90,15 +89,6 @@ class FeatureCache:
     def put(self, key: str, values: np.ndarray) -> Path:
         """Store `values` under `key` atomically (temp file in the same directory, then rename)."""
         path = self.path_for(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{key[:16]}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                np.save(handle, np.asarray(values), allow_pickle=False)
-            # os.replace is atomic on one filesystem: readers see the old file or the whole new one.
-            os.replace(tmp_name, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp_name)
-            raise
+        with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+            np.save(handle, np.asarray(values), allow_pickle=False)
         return path

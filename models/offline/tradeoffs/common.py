@@ -14,6 +14,7 @@ from models.offline.evaluation.registry import CLASSICAL, POOLED_BASES, POOLED_M
 from models.offline.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice
+from texture_library.atomic_file import write_text
 
 POOLING_MODELS = (*POOLED_BASES, *POOLED_MEANS, "selected")  # classical models that pool a texture's views
 
@@ -55,11 +56,7 @@ def load_state() -> dict:
 
 
 def write_json(path: Path, payload: dict) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(payload, indent=1, default=_plain, allow_nan=False) + "\n")  # strict JSON
-    tmp.replace(path)
-    return path
+    return write_text(path, json.dumps(payload, indent=1, default=_plain, allow_nan=False) + "\n")  # strict JSON
 
 
 def _plain(value):

@@ -28,6 +28,7 @@ from models.offline.jobs import run_jobs
 from models.tactile.config import TactileConfig
 from models.tactile.features import recording_features
 from models.visual.config import VisualConfig
+from texture_library.atomic_file import atomic_path
 
 SEGMENT_START_S = 2.0
 SETTLE_S = 0.5
@@ -198,6 +199,5 @@ def _load(path: Path, textures: list[str]) -> dict | None:
 
 
 def _save(path: Path, textures: list[str], arrays: dict) -> None:
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, __textures__=np.array(textures), **arrays)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, __textures__=np.array(textures), **arrays)

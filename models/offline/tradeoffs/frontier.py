@@ -40,6 +40,7 @@ from models.offline.featurize import backbone_onnx, cache_root
 from models.offline.report.speed_accuracy import pareto_front
 from models.offline.tradeoffs.common import load_state, tactile_data, views_for, with_visual, write_json
 from models.visual.config import VisualConfig
+from texture_library.atomic_file import atomic_path
 from texture_library.attributes import RATING_MAX, RATING_MIN
 
 GRIDS = (7, 5, 3, 2, 1)
@@ -99,9 +100,8 @@ def _random_resnet_onnx() -> Path:
     backbone = resnet50_backbone(None, seed=0)
     path = cache_root() / "backbones" / f"resnet50-random-seed0-{backbone.fingerprint[:12]}.onnx"
     if not path.is_file():
-        tmp = path.with_suffix(".tmp.onnx")
-        export_backbone_onnx(backbone, tmp, config_hash=VisualConfig().hash())
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            export_backbone_onnx(backbone, tmp, config_hash=VisualConfig().hash())
     return path
 
 

@@ -25,6 +25,7 @@ from models.offline.tradeoffs.faulted import CLEAN, FaultedInputs, faulted_input
 from models.offline.tradeoffs.folds import CALIBRATION_GROUPS, partition
 from models.offline.tradeoffs.study import AUGMENTED_FAULTS, StudyRun, run_study
 from models.visual.config import VisualConfig
+from texture_library.atomic_file import write_bytes
 
 
 def _finite(x: float) -> float | None:
@@ -40,11 +41,7 @@ def _pickle(path: Path, make):
         with open(path, "rb") as fh:
             return pickle.load(fh)
     value = make()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as fh:
-        pickle.dump(value, fh, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(path)
+    write_bytes(path, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
     return value
 
 
