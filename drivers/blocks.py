@@ -4,7 +4,8 @@ A block carries one span of time for every channel it holds; each channel has
 its own sample rate, so the spans agree in seconds, not in sample counts.
 
 Wire formats (robot → service), both carrying the same fields:
-- JSON: {"seq": int, "t0": float s, ["kind": "samples",] "channels": {"accel": {"rate_hz": f, "units": "m/s^2", "data": [[x, y, z], …]}, …}}
+- JSON: {"seq": int, "t0": float s, ["kind": "samples",]
+         "channels": {"accel": {"rate_hz": f, "units": "m/s^2", "data": [[x, y, z], …]}, …}}
 - binary (Content-Type application/x-hapticlink-block, WebSocket binary messages):
     b"HLB1" | uint32 LE header length | header JSON (as above, "shape" instead of "data") |
     the channels' float32 little-endian samples, concatenated in header order
@@ -31,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE, check_channel
+from texture_library.channels import UNIT_SCALE, check_channel, check_rate
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
@@ -158,15 +159,7 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
         raise ValueError(f"taps: {v.shape[0]} speed(s) for {k} tap(s); give one speed per tap")
     if units not in UNIT_SCALE["accel"]:
         raise ValueError(f"taps: units must be one of {list(UNIT_SCALE['accel'])}, got {units!r}")
-    if (
-        isinstance(rate_hz, bool)
-        or not isinstance(rate_hz, (int, float))
-        or not math.isfinite(rate_hz)
-        or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ
-    ):
-        raise ValueError(
-            f"taps: sample rate must be a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz!r}"
-        )
+    rate_hz = check_rate(rate_hz, "taps")
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"taps: samples must be numbers, got dtype {arr.dtype}")
     arr = arr.astype(np.float32, copy=False)

@@ -23,7 +23,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from drivers.blocks import MAX_BLOCK_SAMPLES, ChannelBlock, Frame, SampleBlock, TapBlock, validate_channel
-from texture_library.channels import CHANNEL_COLUMNS, MAX_RATE_HZ, MIN_RATE_HZ, UNIT_SCALE, check_channel
+from texture_library.channels import CHANNEL_COLUMNS, UNIT_SCALE, check_channel, check_rate
 
 log = logging.getLogger(__name__)
 
@@ -257,13 +257,7 @@ Layout = tuple[tuple[str, int, str], ...]
 
 def device_rate(rate: object, where: str) -> float:
     """A device's declared sample rate, checked against texture_library.channels' limits; ValueError says `where`."""
-    if (
-        isinstance(rate, bool)
-        or not isinstance(rate, (int, float))
-        or not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ)
-    ):
-        raise ValueError(f"{where}: rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
-    return float(rate)
+    return check_rate(rate, where)
 
 
 def layout_channel(

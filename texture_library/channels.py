@@ -1,7 +1,8 @@
 """Sensor channels a stroke produces: kinds, units, shapes, sample-rate limits, validation.
 
-Shared by the dataset format (models), the wire format (drivers) and the service,
-so every entry point accepts and refuses exactly the same things.
+The one validator of sensor samples and sample rates (as librosa has util.valid_audio): shared by the
+dataset format and the streaming preprocessor (models), the wire format and the sources (drivers) and
+the service, so every entry point accepts and refuses exactly the same things.
 Canonical units: acceleration m/s², force N, speed mm/s, position mm.
 """
 
@@ -26,11 +27,33 @@ MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
 
 
+def check_rate(rate_hz: object, name: str) -> float:
+    """A sample rate in Hz: a real number (not a bool, not a string) within [MIN_RATE_HZ, MAX_RATE_HZ], as float.
+
+    ValueError names `name` (the channel, the device, the argument) and the problem."""
+    if (
+        isinstance(rate_hz, bool)
+        or not isinstance(rate_hz, (int, float, np.integer, np.floating))
+        or not math.isfinite(rate_hz)
+    ):
+        raise ValueError(f"{name}: sample rate must be a finite number, got {rate_hz!r}")
+    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"{name}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g}")
+    return float(rate_hz)
+
+
 def check_channel(
-    kind: str, data: object, rate_hz: object, units: object | None = None, dtype=np.float64, copy: bool = True
+    kind: str,
+    data: object,
+    rate_hz: object,
+    units: object | None = None,
+    dtype: type[np.floating] = np.float64,
+    copy: bool = True,
+    allow_empty: bool = False,
 ) -> tuple[np.ndarray, float, str]:
     """Validate one channel: (samples as `dtype`, (n,) or (n, k), in their own units; rate; units).
-    copy=False returns `data` itself when it already has `dtype` (e.g. a read-only view of a wire message).
+    copy=False returns `data` itself when it already has `dtype` (e.g. a read-only view of a wire message);
+    allow_empty accepts n = 0 (a streaming block may be empty, a recording may not).
 
     ValueError names the channel and the problem: unknown kind or units, rate not a number or out of
     [MIN_RATE_HZ, MAX_RATE_HZ], non-numeric samples, wrong shape, no samples, NaN/Inf.
@@ -40,14 +63,7 @@ def check_channel(
     units = CANONICAL_UNITS[kind] if units is None else units
     if units not in UNIT_SCALE[kind]:
         raise ValueError(f"{kind}: units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
-    if (
-        isinstance(rate_hz, bool)
-        or not isinstance(rate_hz, (int, float, np.integer, np.floating))
-        or not math.isfinite(rate_hz)
-    ):
-        raise ValueError(f"{kind}: sample rate must be a finite number, got {rate_hz!r}")
-    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise ValueError(f"{kind}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g}")
+    rate = check_rate(rate_hz, kind)
     arr = np.asarray(data)
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"{kind}: samples must be numbers, got dtype {arr.dtype}")
@@ -57,9 +73,9 @@ def check_channel(
     if cols not in CHANNEL_COLUMNS[kind]:
         allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in CHANNEL_COLUMNS[kind])
         raise ValueError(f"{kind}: shape must be {allowed}, got {arr.shape}")
-    if arr.shape[0] == 0:
+    if arr.shape[0] == 0 and not allow_empty:
         raise ValueError(f"{kind}: no samples")
     arr = arr.astype(dtype, copy=copy)
     if not np.isfinite(arr).all():
         raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
-    return arr, float(rate_hz), str(units)
+    return arr, rate, str(units)

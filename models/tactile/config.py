@@ -48,7 +48,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
-from texture_library.channels import MAX_RATE_HZ, MIN_RATE_HZ
+from texture_library.channels import check_rate
 
 #: bump when the feature definitions change for the same configuration values
 FEATURE_CODE_VERSION = 1
@@ -152,8 +152,7 @@ class TactileConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> TactileConfig:
         nyq = self.rate_hz / 2
-        if not (math.isfinite(self.rate_hz) and MIN_RATE_HZ <= self.rate_hz <= MAX_RATE_HZ):
-            raise ValueError(f"rate_hz must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {self.rate_hz}")
+        check_rate(self.rate_hz, "rate_hz")
         for name in ("accel_highpass_hz", "lowpass_hz"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 0 < v < nyq):

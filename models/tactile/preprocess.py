@@ -36,10 +36,11 @@ import numpy as np
 
 from models.tactile.config import TactileConfig
 from models.tactile.filters import StatefulSOS, design_highpass, design_lowpass
-from models.tactile.resample import Resampler, check_rate
-from models.tactile.stream import INPUT_COLUMNS, StreamContract
+from models.tactile.resample import Resampler
 from models.tactile.stream import STREAMS as STREAM_SPECS
+from models.tactile.stream import StreamContract
 from models.tactile.windows import sliding_windows
+from texture_library.channels import check_channel
 from texture_library.recording import Channel
 
 STREAMS = tuple(spec.name for spec in STREAM_SPECS)  # ("accel", "speed", "force")
@@ -73,22 +74,11 @@ class WindowBatch:
 
 
 def channel_array(name: str, channel: object) -> tuple[np.ndarray, float]:
-    """Validate a pushed channel → (data float64 (n,) or (n, k), rate Hz); ValueError naming ``name``."""
+    """Validate a pushed channel → (data float64 (n,) or (n, k), n ≥ 0, rate Hz) by texture_library.channels'
+    one validator (canonical units, an empty block allowed); ValueError naming ``name``."""
     if not isinstance(channel, Channel):
         raise ValueError(f"{name} must be a texture_library.recording.Channel, got {type(channel).__name__}")
-    rate = check_rate(channel.rate_hz, f"{name}.rate_hz")
-    data = np.asarray(channel.data)
-    if data.dtype.kind not in "iuf":
-        raise ValueError(f"{name}: samples must be real numbers, got dtype {data.dtype}")
-    data = data.astype(np.float64, copy=False)
-    if data.ndim == 2 and data.shape[1] == 1:
-        data = data[:, 0]
-    cols = 1 if data.ndim == 1 else (data.shape[1] if data.ndim == 2 else -1)
-    if cols not in INPUT_COLUMNS[name]:
-        allowed = " or ".join("(n,)" if c == 1 else f"(n, {c})" for c in INPUT_COLUMNS[name])
-        raise ValueError(f"{name}: shape must be {allowed}, got {data.shape}")
-    if not np.all(np.isfinite(data)):
-        raise ValueError(f"{name}: {int(np.count_nonzero(~np.isfinite(data)))} sample(s) are NaN or Inf")
+    data, rate, _ = check_channel(name, channel.data, channel.rate_hz, copy=False, allow_empty=True)
     return data, rate
 
 

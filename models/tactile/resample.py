@@ -16,23 +16,12 @@ import math
 
 import numpy as np
 
-from models.tactile.config import MAX_RATE_HZ, MIN_RATE_HZ
 from models.tactile.filters import StatefulSOS, design_lowpass
+from texture_library.channels import check_rate
 
 #: anti-alias cut-off as a fraction of the output rate, and its order
 ANTIALIAS_FRACTION = 0.45
 ANTIALIAS_ORDER = 8
-
-
-def check_rate(rate_hz: object, name: str) -> float:
-    """A finite rate within [MIN_RATE_HZ, MAX_RATE_HZ] as float, else ValueError naming ``name``."""
-    try:
-        rate = float(rate_hz)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of Hz, got {rate_hz!r}") from None
-    if not math.isfinite(rate) or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
-        raise ValueError(f"{name} must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz!r}")
-    return rate
 
 
 def resampled_count(n_in: int, rate_in: float, rate_out: float) -> int:

@@ -129,12 +129,12 @@ def test_speed_beats_position_and_position_then_speed_fails(make_recording):
         ({"force": Channel(np.zeros((10, 2)), 1000.0)}, r"force: shape must be \(n,\) or \(n, 3\)"),
         ({"speed": Channel(np.array([1.0, np.nan]), 1000.0)}, "speed: 1 sample"),
         ({"position": Channel(np.array([1.0, np.inf]), 1000.0)}, "position: 1 sample"),
-        ({"accel": Channel(np.zeros((10, 3)), 0.0)}, "accel.rate_hz"),
-        ({"accel": Channel(np.zeros((10, 3)), -1000.0)}, "accel.rate_hz"),
-        ({"accel": Channel(np.zeros((10, 3)), 1e12)}, "accel.rate_hz"),
-        ({"accel": Channel(np.zeros((10, 3)), float("nan"))}, "accel.rate_hz"),
+        ({"accel": Channel(np.zeros((10, 3)), 0.0)}, r"accel: sample rate must lie in \[10, 100000\] Hz, got 0"),
+        ({"accel": Channel(np.zeros((10, 3)), -1000.0)}, r"accel: sample rate must lie in .* got -1000"),
+        ({"accel": Channel(np.zeros((10, 3)), 1e12)}, r"accel: sample rate must lie in \[10, 100000\] Hz, got 1e\+12"),
+        ({"accel": Channel(np.zeros((10, 3)), float("nan"))}, "accel: sample rate must be a finite number, got nan"),
         ({"accel": np.zeros((10, 3))}, "accel must be a texture_library.recording.Channel"),
-        ({"force": Channel(np.array(["a", "b"]), 1000.0)}, "force: samples must be real"),
+        ({"force": Channel(np.array(["a", "b"]), 1000.0)}, "force: samples must be numbers"),
     ],
 )
 def test_bad_blocks(kwargs, message):
