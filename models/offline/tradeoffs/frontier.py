@@ -1,4 +1,4 @@
-"""§1 — accuracy against what the serving path spends, over visual configurations.
+"""Accuracy against what the serving path spends, over visual configurations (the speed–accuracy frontier).
 
 Per frame the service embeds the camera image: resize (optional), grid² patches through the
 backbone (onnxruntime), their mean, and the GLCM. Per window it computes the tactile features
@@ -235,7 +235,200 @@ def pick(mae: dict[str, float], cost: dict[str, float], margin: float = TARGET_M
     return min(ok, key=lambda k: (cost[k], mae[k]))
 
 
-# ---- the study --------------------------------------------------------------------------------------
+# ---- the study: timing, sweep, frontier, recommendation ----------------------------------------------
+@dataclass(frozen=True)
+class Sweep:
+    """The LOOCV accuracy of every EfficientNet configuration: rows (label, patching, glcm, model_us),
+    data (the textures with that configuration's visual features) and seed-averaged predictions (T, 4)."""
+
+    rows: list[dict]
+    data: dict[str, TextureData]
+    predictions: dict[str, np.ndarray]
+
+
+def frontier_timing(
+    root: str | Path,
+    texture: str,
+    image: np.ndarray,
+    patchings: list[Patching],
+    paths: dict[str, Path],
+    threads: tuple[int, ...],
+    repeats: int,
+    timing_cache: Path | None = None,
+    retime: bool = False,
+) -> dict:
+    """The interleaved frame timing of every (backbone, threads, patching) and the tactile window cost:
+    {"key", "rows", "tactile_us", "load"}. timing_cache: a folder keeping each timing run (the long part on a
+    busy machine) by its configurations, reused when they match, unless `retime`."""
+    timing_key = {
+        "patchings": [p.label for p in patchings],
+        "backbones": {b: p.name for b, p in paths.items()},
+        "threads": list(threads),
+        "repeats": repeats,
+        "texture": texture,
+    }
+    cache_file = None
+    if timing_cache is not None:
+        digest = hashlib.sha256(json.dumps(timing_key, sort_keys=True).encode()).hexdigest()[:12]
+        cache_file = Path(timing_cache) / f"frontier-timing-{digest}.json"
+    cached = None if retime or cache_file is None else _read_timing(cache_file, timing_key)
+    if cached is None:
+        cached = {
+            "key": timing_key,
+            "rows": time_frames(image, patchings, onnx_sessions(paths, threads), repeats),
+            "tactile_us": time_tactile_window(root, texture),
+            "load": load_state(),
+        }
+        if cache_file is not None:
+            write_json(cache_file, cached)
+    return cached
+
+
+def sweep_accuracy(
+    data0: TextureData,
+    root: str | Path,
+    patchings: list[Patching],
+    paths: dict[str, Path],
+    *,
+    model: str,
+    options: dict,
+    seeds: tuple[int, ...],
+    workers: int | None,
+    backend: str,
+    embed_threads: int,
+    glcm: tuple[bool, ...],
+) -> Sweep:
+    """LOOCV of `model` on every EfficientNet configuration (patching × with/without GLCM); nothing when
+    EfficientNet is not among the backbones (ResNet-50 has random weights here: timing only)."""
+    from models.visual.onnx_backbone import OnnxBackbone
+
+    n_views = views_for(model)
+    result = Sweep([], {}, {})
+    if "efficientnet_lite0" not in paths:
+        return result
+    embedder = OnnxBackbone(paths["efficientnet_lite0"], intra_op_threads=embed_threads)
+    for p in tqdm(patchings, desc=f"LOOCV {model} per configuration", unit="config"):
+        for with_glcm in glcm:
+            label = config_label("efficientnet_lite0", p, with_glcm)
+            part = "both" if with_glcm else "backbone"
+            d = with_visual(data0, root, p.visual_config(), n_views=n_views, part=part, backbone=embedder)
+            result.predictions[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
+            result.data[label] = d
+            result.rows.append(
+                {
+                    "label": label,
+                    "backbone": "efficientnet_lite0",
+                    "grid": p.grid,
+                    "resize": p.resize,
+                    "glcm": with_glcm,
+                    "model_us": model_us,
+                }
+            )
+    return result
+
+
+def frontier_rows(
+    timing: list[dict],
+    tactile_us: float,
+    sweep: Sweep,
+    targets: np.ndarray,
+    glcm: tuple[bool, ...],
+    threads: tuple[int, ...],
+) -> list[dict]:
+    """One row per timed configuration (with and without GLCM): its frame cost, its accuracy where the sweep
+    scored it (MAE, bootstrap interval, paired difference to the best) and whether it is on the Pareto front
+    of its thread count."""
+    errors = {k: per_texture_error(v, targets) for k, v in sweep.predictions.items()}
+    best_label = min(errors, key=lambda k: errors[k].mean()) if errors else None
+    frontier = []
+    for t in timing:
+        for with_glcm in glcm:
+            label = config_label(t["backbone"], Patching(t["grid"], t["resize"]), with_glcm)
+            acc = next((r for r in sweep.rows if r["label"] == label), None)
+            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if with_glcm else 0.0)
+            row = {
+                "config": f"{label} · {t['threads']} thread{'s' if t['threads'] > 1 else ''}",
+                "label": label,
+                "backbone": t["backbone"],
+                "weights": BACKBONE_NOTES[t["backbone"]],
+                "grid": t["grid"],
+                "resize": t["resize"],
+                "glcm": with_glcm,
+                "threads": t["threads"],
+                "frame_ms": frame_ms,
+                "prep_ms": t["prep_ms"],
+                "embed_ms": t["embed_ms"],
+                "glcm_ms": t["glcm_ms"] if with_glcm else 0.0,
+                "mae": None,
+                "window_us": None,
+                "pareto": False,
+            }
+            if acc is not None and best_label is not None:
+                e = errors[label]
+                row.update(
+                    mae=float(e.mean()),
+                    mae_ci=bootstrap_mean(e),
+                    window_us=tactile_us + acc["model_us"],
+                    model_us=acc["model_us"],
+                    vs_best=bootstrap_mean(e - errors[best_label]),
+                )
+            frontier.append(row)
+    for t in threads:
+        scored = [r for r in frontier if r["threads"] == t and r["mae"] is not None]
+        if scored:
+            mask = pareto_front(np.array([r["frame_ms"] for r in scored]), np.array([r["mae"] for r in scored]))
+            for r, m in zip(scored, mask):
+                r["pareto"] = bool(m)
+    return frontier
+
+
+def recommendation(
+    frontier: list[dict],
+    sweep: Sweep,
+    targets: np.ndarray,
+    *,
+    model: str,
+    options: dict,
+    nested_folds: int,
+    seed: int,
+) -> dict | None:
+    """The rule's pick among the scored 1-thread rows (None when none is scored), and, with nested_folds,
+    the MAE of the rule itself run inside every outer fold."""
+    one = {r["label"]: r for r in frontier if r["threads"] == 1 and r["mae"] is not None}
+    if not one:
+        return None
+    choice = pick({k: r["mae"] for k, r in one.items()}, {k: r["frame_ms"] for k, r in one.items()})
+    best = min(r["mae"] for r in one.values())
+    chosen = one[choice]
+    out = {
+        "config": choice,
+        "visual_config": Patching(chosen["grid"], chosen["resize"])
+        .visual_config()
+        .model_dump(mode="json", exclude={"backbone", "resnet50_weights"}),
+        "glcm": chosen["glcm"],
+        "mae": chosen["mae"],
+        "mae_ci": chosen["mae_ci"],
+        "frame_ms_1thread": chosen["frame_ms"],
+        "best_config": min(one, key=lambda k: one[k]["mae"]),
+        "best_mae": best,
+        # as measured in this run (under load the milliseconds are inflated; the report also judges the
+        # target on a quiet-equivalent scale, see models.offline.tradeoffs.report.quiet_scale)
+        "target_met": bool(chosen["frame_ms"] <= TARGET_FRAME_MS and chosen["mae"] <= best + TARGET_MAE_MARGIN),
+        "rule": f"cheapest 1-thread EfficientNet configuration with MAE ≤ best + {TARGET_MAE_MARGIN}",
+    }
+    if nested_folds:
+        cost = {k: r["frame_ms"] for k, r in one.items()}
+        nested, picked = nested_rule_predictions(
+            {k: sweep.data[k] for k in one}, sweep.predictions, cost, model, options, nested_folds, seed
+        )
+        out["nested"] = {
+            "folds": nested_folds,
+            "mae": bootstrap_mean(per_texture_error(nested, targets)),
+            "picked": {k: picked.count(k) for k in sorted(set(picked))},
+        }
+    return out
+
+
 def run_frontier(
     root: str | Path,
     *,
@@ -255,154 +448,48 @@ def run_frontier(
     retime: bool = False,
     glcm: tuple[bool, ...] = (True, False),
 ) -> dict:
-    """The whole §1 study → a JSON-able dict (no per-texture values).
-
-    timing_cache: a folder keeping each interleaved timing run (the long part on a busy machine) by its
-    configurations, reused when they match, unless `retime`."""
+    """The whole accuracy-against-cost study → a JSON-able dict (no per-texture values): timing, the
+    accuracy sweep, the frontier and the recommendation (see frontier_timing for timing_cache and retime)."""
     from models.visual.image import load_image
-    from models.visual.onnx_backbone import OnnxBackbone
 
     options = options or {}
     patchings = sweep(grids, resizes)
     paths = backbone_paths(backbones)
     started = load_state()
     data0 = tactile_data(root, workers=workers)
-    image = load_image(_first_image(root, data0.textures[0]))
-    timing_key = {
-        "patchings": [p.label for p in patchings],
-        "backbones": {b: p.name for b, p in paths.items()},
-        "threads": list(threads),
-        "repeats": repeats,
-        "texture": data0.textures[0],
-    }
-    cache_file = None
-    if timing_cache is not None:
-        digest = hashlib.sha256(json.dumps(timing_key, sort_keys=True).encode()).hexdigest()[:12]
-        cache_file = Path(timing_cache) / f"frontier-timing-{digest}.json"
-    cached = None if retime or cache_file is None else _read_timing(cache_file, timing_key)
-    if cached is None:
-        cached = {
-            "key": timing_key,
-            "rows": time_frames(image, patchings, onnx_sessions(paths, threads), repeats),
-            "tactile_us": time_tactile_window(root, data0.textures[0]),
-            "load": load_state(),
-        }
-        if cache_file is not None:
-            write_json(cache_file, cached)
-    timing, tactile_us = cached["rows"], cached["tactile_us"]
-
-    n_views = views_for(model)
-    rows, datas, preds = [], {}, {}
-    if "efficientnet_lite0" in paths:
-        embedder = OnnxBackbone(paths["efficientnet_lite0"], intra_op_threads=embed_threads)
-        for p in tqdm(patchings, desc=f"LOOCV {model} per configuration", unit="config"):
-            for with_glcm in glcm:
-                label = config_label("efficientnet_lite0", p, with_glcm)
-                d = with_visual(
-                    data0,
-                    root,
-                    p.visual_config(),
-                    n_views=n_views,
-                    part="both" if with_glcm else "backbone",
-                    backbone=embedder,
-                )
-                preds[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
-                datas[label] = d
-                rows.append(
-                    {
-                        "label": label,
-                        "backbone": "efficientnet_lite0",
-                        "grid": p.grid,
-                        "resize": p.resize,
-                        "glcm": with_glcm,
-                        "model_us": model_us,
-                    }
-                )
-    errors = {k: per_texture_error(v, data0.targets) for k, v in preds.items()}
-    best_label = min(errors, key=lambda k: errors[k].mean()) if errors else None
-    frontier = []
-    for t in timing:
-        for with_glcm in glcm:
-            label = config_label(t["backbone"], Patching(t["grid"], t["resize"]), with_glcm)
-            acc = next((r for r in rows if r["label"] == label), None)
-            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if with_glcm else 0.0)
-            row = {
-                "config": f"{label} · {t['threads']} thread{'s' if t['threads'] > 1 else ''}",
-                "label": label,
-                "backbone": t["backbone"],
-                "weights": BACKBONE_NOTES[t["backbone"]],
-                "grid": t["grid"],
-                "resize": t["resize"],
-                "glcm": with_glcm,
-                "threads": t["threads"],
-                "frame_ms": frame_ms,
-                "prep_ms": t["prep_ms"],
-                "embed_ms": t["embed_ms"],
-                "glcm_ms": t["glcm_ms"] if with_glcm else 0.0,
-                "mae": None,
-                "window_us": None,
-                "pareto": False,
-            }
-            if acc is not None:
-                e = errors[label]
-                row.update(
-                    mae=float(e.mean()),
-                    mae_ci=bootstrap_mean(e),
-                    window_us=tactile_us + acc["model_us"],
-                    model_us=acc["model_us"],
-                    vs_best=bootstrap_mean(e - errors[best_label]),
-                )
-            frontier.append(row)
-    for t in threads:
-        scored = [r for r in frontier if r["threads"] == t and r["mae"] is not None]
-        if scored:
-            mask = pareto_front(np.array([r["frame_ms"] for r in scored]), np.array([r["mae"] for r in scored]))
-            for r, m in zip(scored, mask):
-                r["pareto"] = bool(m)
-    one = {r["label"]: r for r in frontier if r["threads"] == 1 and r["mae"] is not None}
-    recommendation = None
-    if one:
-        choice = pick({k: r["mae"] for k, r in one.items()}, {k: r["frame_ms"] for k, r in one.items()})
-        best = min(r["mae"] for r in one.values())
-        chosen = one[choice]
-        recommendation = {
-            "config": choice,
-            "visual_config": Patching(chosen["grid"], chosen["resize"])
-            .visual_config()
-            .model_dump(mode="json", exclude={"backbone", "resnet50_weights"}),
-            "glcm": chosen["glcm"],
-            "mae": chosen["mae"],
-            "mae_ci": chosen["mae_ci"],
-            "frame_ms_1thread": chosen["frame_ms"],
-            "best_config": min(one, key=lambda k: one[k]["mae"]),
-            "best_mae": best,
-            # as measured in this run (under load the milliseconds are inflated; the report also judges the
-            # target on a quiet-equivalent scale, see models.offline.tradeoffs.report.quiet_scale)
-            "target_met": bool(chosen["frame_ms"] <= TARGET_FRAME_MS and chosen["mae"] <= best + TARGET_MAE_MARGIN),
-            "rule": f"cheapest 1-thread EfficientNet configuration with MAE ≤ best + {TARGET_MAE_MARGIN}",
-        }
-        if nested_folds:
-            cost = {k: r["frame_ms"] for k, r in one.items()}
-            nested, picked = nested_rule_predictions(
-                {k: datas[k] for k in one}, preds, cost, model, options, nested_folds, seeds[0]
-            )
-            recommendation["nested"] = {
-                "folds": nested_folds,
-                "mae": bootstrap_mean(per_texture_error(nested, data0.targets)),
-                "picked": {k: picked.count(k) for k in sorted(set(picked))},
-            }
+    texture = data0.textures[0]
+    image = load_image(_first_image(root, texture))
+    timed = frontier_timing(root, texture, image, patchings, paths, threads, repeats, timing_cache, retime)
+    tactile_us = timed["tactile_us"]
+    scored = sweep_accuracy(
+        data0,
+        root,
+        patchings,
+        paths,
+        model=model,
+        options=options,
+        seeds=seeds,
+        workers=workers,
+        backend=backend,
+        embed_threads=embed_threads,
+        glcm=glcm,
+    )
+    frontier = frontier_rows(timed["rows"], tactile_us, scored, data0.targets, glcm, threads)
+    recommended = recommendation(
+        frontier, scored, data0.targets, model=model, options=options, nested_folds=nested_folds, seed=seeds[0]
+    )
     return {
         "model": model,
         "options": options,
         "seeds": list(seeds),
-        "views_per_image": n_views,
+        "views_per_image": views_for(model),
         "n_textures": len(data0),
         "tactile_window_us": tactile_us,
         "timing_repeats": repeats,
-        "timing_image": {"texture": data0.textures[0], "shape": list(image.shape)},
+        "timing_image": {"texture": texture, "shape": list(image.shape)},
         "frontier": frontier,
-        "recommendation": recommendation,
-        "load_before": cached.get("load", started),
+        "recommendation": recommended,
+        "load_before": timed.get("load", started),
         "load_after": load_state(),
         "note": "timed under load on a shared 2-core machine; ratios within this run hold, absolute times do not",
     }

@@ -79,3 +79,37 @@ def linear_world_pair():
         k: loocv(d, EstimatorSpec("ridge-both"), backend="serial", progress=False).predictions for k, d in datas.items()
     }
     return datas, preds
+
+
+def test_frontier_rows_join_timing_and_accuracy_and_the_rule_picks_among_them():
+    from models.offline.tradeoffs.frontier import Sweep, config_label, frontier_rows, recommendation
+
+    targets = np.zeros((6, 4))
+    big, small = Patching(3, None), Patching(1, 224)
+    preds = {
+        config_label("efficientnet_lite0", big, False): np.full((6, 4), 10.0),  # MAE 5 on the 0–100 scale
+        config_label("efficientnet_lite0", small, False): np.full((6, 4), 10.4),  # MAE 5.2: within the margin
+    }
+    rows = [
+        {"label": label, "grid": p.grid, "resize": p.resize, "glcm": False, "model_us": 10.0}
+        for label, p in zip(preds, (big, small))
+    ]
+    timing = [
+        {"backbone": "efficientnet_lite0", "threads": 1, "grid": p.grid, "resize": p.resize, **ms}
+        for p, ms in (
+            (big, {"prep_ms": 1.0, "embed_ms": 90.0, "glcm_ms": 9.0}),
+            (small, {"prep_ms": 1.0, "embed_ms": 9.0, "glcm_ms": 1.0}),
+        )
+    ]
+    scored = Sweep(rows, {}, preds)
+    frontier = frontier_rows(timing, 100.0, scored, targets, glcm=(False,), threads=(1,))
+    by_label = {r["label"]: r for r in frontier}
+    assert len(frontier) == 2
+    assert by_label[config_label("efficientnet_lite0", big, False)]["frame_ms"] == 91.0  # no GLCM: prep + embed
+    assert by_label[config_label("efficientnet_lite0", small, False)]["mae"] == pytest.approx(5.2)
+    assert by_label[config_label("efficientnet_lite0", small, False)]["window_us"] == 110.0
+    assert all(r["pareto"] for r in frontier)  # one is cheaper, the other more accurate
+    rec = recommendation(frontier, scored, targets, model="ridge-both", options={}, nested_folds=0, seed=0)
+    assert rec is not None and rec["config"] == config_label("efficientnet_lite0", small, False)
+    assert rec["best_mae"] == pytest.approx(5.0) and "nested" not in rec
+    assert recommendation([], scored, targets, model="ridge-both", options={}, nested_folds=0, seed=0) is None
