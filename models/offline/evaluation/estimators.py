@@ -33,6 +33,12 @@ class Estimator(ABC):
     @abstractmethod
     def predict(self, data: TextureData) -> np.ndarray: ...
 
+    def predict_windows(self, data: TextureData) -> list[np.ndarray]:
+        """Per texture, (n_i, 4) bipolar answers to its n_i tactile windows, before the output clip: what the
+        exported graph answers window by window (composites such as `selected` and the mean of kernel models
+        combine their members' windows). A model that answers once per texture has none."""
+        raise NotImplementedError(f"{self.name} answers once per texture; it has no per-window answers")
+
     def n_params(self) -> int:
         return 0
 

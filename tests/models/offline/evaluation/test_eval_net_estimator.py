@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from models.inference.modelfile import ModelCard
-from models.inference.predictor import Predictor
 from models.offline.evaluation.registry import build_estimator
 
 pytest.importorskip("torch")
@@ -23,10 +22,12 @@ def test_net_fits_predicts_and_exports_the_same_numbers(linear_world, tmp_path):
 
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     windows = est.predict_windows(test)
+    assert [w.shape for w in windows] == [(len(t), 4) for t in test.tactile]  # one answer per window
     for i in range(len(test)):
         feed = {"tactile": test.tactile[i], "visual": np.repeat(test.visual[i, :1], len(test.tactile[i]), axis=0)}
         np.testing.assert_allclose(sess.run(None, feed)[0], np.clip(windows[i], -100, 100), atol=1e-2)
-    assert Predictor is not None
+    stored = sess.get_modelmeta().custom_metadata_map
+    assert stored == {**meta, "inputs": "tactile,visual", "modality": "both"}  # the card, with what the graph reads
 
 
 def test_net_needs_rated_textures(linear_world):
