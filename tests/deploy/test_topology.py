@@ -52,14 +52,25 @@ def assets(tmp_path_factory) -> Path:
     return synthetic_assets(tmp_path_factory.mktemp("deploy-assets"))
 
 
-@pytest.fixture(scope="module")
-def topology(assets):
+def running_topology(assets: Path):
     topo = Topology(assets)
     try:
         topo.start()
         yield topo
     finally:
         topo.stop()
+
+
+@pytest.fixture(scope="module")
+def topology(assets):
+    """One topology the tests that leave it whole share."""
+    yield from running_topology(assets)
+
+
+@pytest.fixture
+def own_topology(assets):
+    """A topology for one test alone (one that kills a replica), so no test depends on running before it."""
+    yield from running_topology(assets)
 
 
 def library_of(topology: Topology) -> Path:
@@ -272,7 +283,8 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
     async with httpx.AsyncClient(timeout=10) as http:
         for robot, operator in zip(robots, operators):
             await until(
-                lambda: all_windows_delivered(http, topology, robot, operator), f"the windows of {robot.session_id}"
+                lambda robot=robot, operator=operator: all_windows_delivered(http, topology, robot, operator),
+                f"the windows of {robot.session_id}",
             )
         accepted_by = dict.fromkeys(instances, 0)
         for robot, st, owner, operator in zip(robots, stats, owners, operators):
@@ -376,9 +388,9 @@ async def _rate_per_client(topology: Topology) -> None:
 # ---- a replica dies ----------------------------------------------------------------------------------------
 @pytest.mark.slow
 @needs_programs
-def test_killing_a_replica_leaves_the_others_sessions_alone_and_its_robots_start_over(topology):
-    """Runs last in this module: it kills one replica of the shared topology."""
-    asyncio.run(_kill_a_replica(topology))
+def test_killing_a_replica_leaves_the_others_sessions_alone_and_its_robots_start_over(own_topology):
+    """On a topology of its own: it kills one of the replicas."""
+    asyncio.run(_kill_a_replica(own_topology))
 
 
 async def _kill_a_replica(topology: Topology) -> None:
@@ -417,7 +429,7 @@ async def _kill_a_replica(topology: Topology) -> None:
         assert error is not None, f"robot {k}'s run ended without an error: {runs[k].result()}"
         assert "open a new session" in str(error) and victim in str(error), repr(error)
         # its operator on the survivor was told, and nginx answers for the session with the same reason
-        await until(lambda: across[k].final is not None, f"session_ended for the operator of robot {k}")
+        await until(lambda k=k: across[k].final is not None, f"session_ended for the operator of robot {k}")
         assert victim in across[k].final["message"]
     async with httpx.AsyncClient(timeout=10) as http:
         for k in lost:
@@ -433,7 +445,7 @@ async def _kill_a_replica(topology: Topology) -> None:
         kept_stats = await asyncio.gather(*(runs[k] for k in kept))
         for k, st in zip(kept, kept_stats):
             assert st.acked == st.read and st.reconnects == st.lost == st.unsent == st.rejected == 0, st
-            await until(lambda: all_windows_delivered(http, topology, robots[k], pinned[k]), f"robot {k}'s windows")
+            await until(lambda k=k: all_windows_delivered(http, topology, robots[k], pinned[k]), f"robot {k}'s windows")
             status = (
                 await status_on(http, topology.url, robots[k].session.session_id, robots[k].session.operator_token)
             ).json()
@@ -462,7 +474,9 @@ async def _kill_a_replica(topology: Topology) -> None:
         stats = await asyncio.gather(*(r.run(duration_s=2.5) for r in again))
         for robot, st, op in zip(again, stats, watchers):
             assert st.acked == st.read > 0 and st.reconnects == st.lost == st.unsent == 0, st
-            await until(lambda: all_windows_delivered(http, topology, robot, op), "the new session's windows")
+            await until(
+                lambda robot=robot, op=op: all_windows_delivered(http, topology, robot, op), "the new session's windows"
+            )
             assert len(op.windows) >= 3
     for op in pinned + across + watchers:
         await op.stop()
