@@ -19,7 +19,7 @@ def _values(node: ET.Element | None, what: str, path: Path) -> np.ndarray:
     if node is None:
         raise ValueError(f"{path}: missing <{what}>")
     try:
-        return np.array([float(v.text) for v in node.findall("value")], dtype=float)
+        return np.array([float(v.text or "") for v in node.findall("value")], dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{path}: <{what}> holds a value that is not a number") from None
 
@@ -98,5 +98,7 @@ def read_model(path: str | Path, taps_path: str | Path | None = None, name: str 
         max_force=_scalar(root, "maxForce", path),
         taps=read_taps(taps_path) if taps_path is not None else None,
         rate_hz=rate,
-        provenance=f"HaTT model '{material}' (Culbertson, Lopez Delgado, Kuchenbecker 2014); non-profit research use only",
+        provenance=(
+            f"HaTT model '{material}' (Culbertson, Lopez Delgado, Kuchenbecker 2014); non-profit research use only"
+        ),
     )

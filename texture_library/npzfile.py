@@ -15,7 +15,7 @@ import numpy as np
 def save_npz(path: str | Path, fmt: str, version: int, header: dict, arrays: dict[str, np.ndarray]) -> Path:
     path = Path(path)
     doc = {"format": fmt, "version": version, **header}
-    np.savez_compressed(path, header=np.array(json.dumps(doc)), **arrays)
+    np.savez_compressed(path, allow_pickle=False, header=np.array(json.dumps(doc)), **arrays)
     return path
 
 

@@ -71,12 +71,15 @@ class Recording:
         if not (0 <= start_s < stop_s):
             raise ValueError(f"crop needs 0 ≤ start < stop, got {start_s}, {stop_s}")
 
-        def cut(c: Channel | None) -> Channel | None:
-            if c is None:
-                return None
+        def cut(c: Channel) -> Channel:
             return Channel(c.data[int(round(start_s * c.rate_hz)) : int(round(stop_s * c.rate_hz))], c.rate_hz)
 
-        return Recording(cut(self.accel), cut(self.force), cut(self.speed), cut(self.position))
+        return Recording(
+            cut(self.accel),
+            cut(self.force),
+            None if self.speed is None else cut(self.speed),
+            None if self.position is None else cut(self.position),
+        )
 
 
 def recording_from_stroke(accel: np.ndarray, force: np.ndarray, speed: np.ndarray, rate_hz: float) -> Recording:

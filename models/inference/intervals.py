@@ -105,8 +105,9 @@ class EmaUncertainty:
         """One window's flag and distance → (is the smoothed estimate flagged, smoothed distance)."""
         if not (math.isfinite(distance) and distance > 0):
             raise ValueError(f"distance must be finite and > 0, got {distance}")
-        first = self._distance is None
-        self._distance = distance if first else self.alpha * distance + (1 - self.alpha) * self._distance
+        before = self._distance
+        first = before is None
+        self._distance = distance if before is None else self.alpha * distance + (1 - self.alpha) * before
         self._flag = float(flagged) if first else self.alpha * float(flagged) + (1 - self.alpha) * self._flag
         return self._flag > OOD_EMA_THRESHOLD, self._distance
 
@@ -272,7 +273,7 @@ class IntervalCalibration:
         }
 
     @classmethod
-    def from_dict(cls, obj: dict) -> IntervalCalibration:
+    def from_dict(cls, obj: object) -> IntervalCalibration:
         if not isinstance(obj, dict) or obj.get("format") != FORMAT:
             raise ValueError(
                 f"not an interval calibration (format {obj.get('format') if isinstance(obj, dict) else obj!r})"

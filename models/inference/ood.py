@@ -130,13 +130,14 @@ class Subspace:
     @classmethod
     def from_dict(cls, obj: dict, what: str) -> Subspace:
         try:
-            return cls(
-                *(
-                    jsonarrays.decode(obj[k], f"{what}.{k}").astype(float)
-                    for k in ("mean", "std", "components", "variances")
-                ),
-                *(float(obj[k]) for k in ("t2_limit", "q_limit", "t2_typical", "q_typical")),
+            mean, std, components, variances = (
+                jsonarrays.decode(obj[k], f"{what}.{k}").astype(float)
+                for k in ("mean", "std", "components", "variances")
             )
+            t2_limit, q_limit, t2_typical, q_typical = (
+                float(obj[k]) for k in ("t2_limit", "q_limit", "t2_typical", "q_typical")
+            )
+            return cls(mean, std, components, variances, t2_limit, q_limit, t2_typical, q_typical)
         except KeyError as exc:
             raise ValueError(f"{what} lacks {exc}") from None
 
@@ -328,8 +329,8 @@ class OODDetector:
             distance = 0.5 * (distance + f.visual_distance)
         stats = X[:, -len(STAT_NAMES) :]
         outside = (stats < self.stat_lo) | (stats > self.stat_hi)
-        speed_bad = outside[:, :3].any(axis=1)
-        force_bad = outside[:, 3:].any(axis=1)
+        speed_bad = np.asarray(outside[:, :3].any(axis=1))
+        force_bad = np.asarray(outside[:, 3:].any(axis=1))
         reasons = []
         for i in range(n):
             r = common + [
@@ -387,7 +388,7 @@ class OODDetector:
         }
 
     @classmethod
-    def from_dict(cls, obj: dict) -> OODDetector:
+    def from_dict(cls, obj: object) -> OODDetector:
         if not isinstance(obj, dict) or obj.get("format") != FORMAT:
             raise ValueError("not an OOD detector (format field missing or different)")
         if obj.get("version") != VERSION:

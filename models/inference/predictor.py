@@ -45,7 +45,8 @@ class Predictor:
         self.n_visual = self._width(INPUT_VISUAL)
         if self.n_tactile is not None and self.n_tactile != self.tactile_config.n_features:
             raise ValueError(
-                f"{self.path}: tactile input has {self.n_tactile} features, its config says {self.tactile_config.n_features}"
+                f"{self.path}: tactile input has {self.n_tactile} features, "
+                f"its config says {self.tactile_config.n_features}"
             )
 
     def _width(self, name: str) -> int | None:
@@ -84,6 +85,6 @@ class Predictor:
 
     def warm_up(self) -> None:
         """One inference so the first real window does not pay for lazy initialisation."""
-        tactile = np.zeros((1, self.n_tactile), np.float32) if self.needs_tactile else None
-        visual = np.zeros((1, self.n_visual), np.float32) if self.needs_visual else None
+        tactile = None if self.n_tactile is None else np.zeros((1, self.n_tactile), np.float32)
+        visual = None if self.n_visual is None else np.zeros((1, self.n_visual), np.float32)
         self.predict(tactile, visual)

@@ -107,7 +107,7 @@ def window_features(
             n_bands=config.spatial_bands,
             min_speed=config.spatial_min_speed,
         )
-    if "taps" in groups:
+    if taps is not None:  # exactly when the configuration has the taps group (checked above)
         out[:, groups["taps"]] = _check("taps", taps, (n, len(TAP_NAMES)))
     return out
 

@@ -26,6 +26,7 @@ The power spectrum does not depend on where the frame sits inside the n_fft buff
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 import scipy.fft
@@ -58,10 +59,10 @@ def _matrices(
     mel = librosa.filters.mel(sr=rate_hz, n_fft=n_fft, n_mels=n_mels, fmin=fmin, fmax=fmax).astype(np.float64)
     dct = scipy.fft.dct(np.eye(n_mels), type=2, norm="ortho", axis=0)[:n_mfcc]  # (n_mfcc, n_mels)
     mel2 = np.concatenate([mel.T, mel.T], axis=0)
-    out = tuple(np.ascontiguousarray(m, dtype=np.float32) for m in (dft, mel2, dct.T))
-    for m in out:
+    dft32, mel32, dct32 = (np.ascontiguousarray(m, dtype=np.float32) for m in (dft, mel2, dct.T))
+    for m in (dft32, mel32, dct32):
         m.setflags(write=False)
-    return out
+    return dft32, mel32, dct32
 
 
 @lru_cache(maxsize=16)
@@ -124,7 +125,7 @@ def librosa_mfcc(window: np.ndarray, config: TactileConfig) -> np.ndarray:
     total = (c.n_frames - 1) * c.frame_hop + c.n_fft
     padded = np.zeros(total + max(0, len(window) + lpad - total))
     padded[lpad : lpad + len(window)] = window
-    kwargs = dict(
+    kwargs: dict[str, Any] = dict(
         sr=c.rate_hz,
         n_fft=c.n_fft,
         win_length=c.frame_length,

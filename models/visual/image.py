@@ -41,6 +41,7 @@ def load_image(source: ImageSource, *, min_size: int = 224) -> np.ndarray:
 def _open(source: str | Path | bytes | bytearray | Image.Image) -> Image.Image:
     if isinstance(source, Image.Image):
         return source
+    stream: io.BytesIO | Path
     if isinstance(source, (bytes, bytearray)):
         stream, label = io.BytesIO(bytes(source)), f"{len(source)} bytes"
     elif isinstance(source, (str, Path)):
