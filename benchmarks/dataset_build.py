@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from models.offline.datasets.check import check_dataset
-from models.offline.datasets.hatt import build_hatt
+from models.offline.datasets.hatt_texnet import build_hatt
 from models.offline.featurize import tactile_table, visual_table
 
 OUT = Path("reports/bench/dataset_build.json")

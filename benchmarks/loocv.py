@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.evaluation.data import TextureData
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import loocv_seeds, ray_init
-from models.offline.evaluation.registry import EstimatorSpec
 
 DEFAULT_OUT = Path("reports/bench/loocv.json")
 

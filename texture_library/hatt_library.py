@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from texture_library.attributes import ATTRIBUTES, check_ratings
-from texture_library.hatt import read_model
+from texture_library.hatt_xml import read_model
 from texture_library.library import Library, add_entry
 from texture_library.texnet import read_texnet_ratings
 

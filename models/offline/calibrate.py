@@ -17,7 +17,7 @@ import numpy as np
 from models.inference.intervals import IntervalCalibration, ema
 from models.inference.ood import OODDetector
 from models.offline.evaluation.data import TextureData
-from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from texture_library.attributes import RATING_MAX, RATING_MIN
 
 CALIBRATION_WINDOWS = 20  # contiguous windows per texture (10 s of stroking): the window and EMA targets

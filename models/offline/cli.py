@@ -87,7 +87,9 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     e.add_argument(
         "--model",
         required=True,
-        help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both",
+        help=(
+            "e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both"
+        ),
     )
     e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
     e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -191,8 +193,8 @@ def _options(args: argparse.Namespace) -> dict:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from models.offline.evaluation.data import load_texture_data
+    from models.offline.evaluation.estimator_registry import EstimatorSpec
     from models.offline.evaluation.evaluate import evaluate
-    from models.offline.evaluation.registry import EstimatorSpec
 
     spec = EstimatorSpec(args.model, _options(args))
     modality = spec.build().modality
@@ -218,7 +220,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         res["latency_us"] = window_latency(data, spec)
         path.write_text(json.dumps(res, indent=1))
         print(
-            f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})"
+            f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs "
+            f"({res['latency_us']['runtime']})"
         )
         return 0
     res = evaluate(
@@ -232,7 +235,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         test_views=args.test_views,
     )
     if not args.no_figures:
-        from models.offline.report.figures import results_figures
+        from models.offline.report.evaluation_figures import results_figures
 
         results_figures(res, data.textures, data.targets, Path(args.out))
     mae, sd = res["mae"], res["mae_std"]

@@ -12,7 +12,7 @@ import numpy as np
 from models.inference.modelfile import ModelCard
 from models.inference.predictor import Predictor
 from models.offline.evaluation.data import TextureData, load_texture_data
-from models.offline.evaluation.registry import build_estimator
+from models.offline.evaluation.estimator_registry import build_estimator
 from models.tactile.config import TactileConfig
 from models.visual.embedding import VisualPart
 from models.visual.pooling import POOLING, pool_views
@@ -83,7 +83,7 @@ def train_and_export(
         )
     elif calibration_folds:
         from models.offline.calibrate import cv_uncertainty, photo_statistics
-        from models.offline.evaluation.registry import EstimatorSpec
+        from models.offline.evaluation.estimator_registry import EstimatorSpec
 
         frames = photo_statistics(dataset, data.textures) if needs_visual else None
         cals, detector = cv_uncertainty(

@@ -8,7 +8,7 @@ from pathlib import Path
 def build(source: str, out: str | Path, path: str | Path | None = None, **options) -> Path:
     """Dispatch to the source's builder. Options are source-specific (see each builder)."""
     if source == "hatt-texnet":
-        from models.offline.datasets.hatt import build_hatt
+        from models.offline.datasets.hatt_texnet import build_hatt
 
         if path is None:
             raise ValueError("--source hatt-texnet needs --path (e.g. ../shared/data/hatt-texnet)")

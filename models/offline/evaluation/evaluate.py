@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.evaluation.data import TextureData
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import LoocvRun, loocv_seeds
 from models.offline.evaluation.metrics import error_table, group_errors
-from models.offline.evaluation.registry import EstimatorSpec
 from texture_library.attributes import ATTRIBUTES
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from models.offline.evaluation.data import TextureData
-from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.jobs import capped_threads, cpu_count, run_jobs
 from texture_library.attributes import RATING_MAX, RATING_MIN
 

@@ -45,7 +45,7 @@ class NetEstimator(Estimator):
         val_windows_per_texture: int | None = 24,
         threads: int | None = None,
     ):
-        from models.offline.nets.registry import SPECS
+        from models.offline.nets.presets import SPECS
 
         if name not in SPECS:
             raise ValueError(f"unknown network {name!r}")
@@ -89,7 +89,7 @@ class NetEstimator(Estimator):
         )
 
     def fit(self, data: TextureData, seed: int) -> NetEstimator:
-        from models.offline.nets.registry import build
+        from models.offline.nets.presets import build
         from models.offline.nets.training import TrainConfig, train_net
 
         y = require_targets(data).astype(np.float32)

@@ -436,7 +436,8 @@ def _selection_section(res: dict) -> list[str]:
         "## What the folds selected",
         "",
         f"Per attribute, how often each candidate was picked by the inner cross-validation of the {total} outer "
-        "folds (all seeds). The served model applies the same rule to all rated textures (its card says what it picked).",
+        "folds (all seeds). The served model applies the same rule to all rated textures "
+        "(its card says what it picked).",
         "",
         "| candidate | " + " | ".join(SHORT[a] for a in ATTRIBUTES) + " |",
         "|---|" + "---:|" * len(ATTRIBUTES),
@@ -451,7 +452,7 @@ def _views_section(views: list[dict], folder: Path, main: list[dict] = ()) -> li
     held-out texture is shown through when the model was fit on more (`--test-views`). Where views/ has no
     run of a model at some k and the main table's run of that model pooled k views, that run (all its
     seeds) stands in: the same computation, not run twice; its cell is marked *."""
-    from models.offline.report.figures import views_curve
+    from models.offline.report.evaluation_figures import views_curve
 
     def key(r: dict) -> str:
         return r["model"] if r.get("test_views") is None else f"{r['model']}, fit on {r['views']}, shown k"
@@ -542,6 +543,7 @@ def _speed_section(main: list[dict], folder: Path, mean_pred: dict | None, ceili
     ]
     for r, f in sorted(zip(rows, front), key=lambda x: x[0]["latency_us"]):
         lines.append(
-            f"| {r['model']} | {r['mae']:.2f} | {r['latency_us']:.0f} | {r['runtime']} | {r['n_params'] or '—'} | {'●' if f else ''} |"
+            f"| {r['model']} | {r['mae']:.2f} | {r['latency_us']:.0f} | {r['runtime']} | {r['n_params'] or '—'} "
+            f"| {'●' if f else ''} |"
         )
     return lines + [""]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.evaluation.data import TextureData, load_texture_data
-from models.offline.evaluation.registry import CLASSICAL, POOLED_BASES, POOLED_MEANS
+from models.offline.evaluation.estimator_registry import CLASSICAL, POOLED_BASES, POOLED_MEANS
 from models.offline.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart, visual_slice

@@ -33,9 +33,9 @@ from tqdm.auto import tqdm
 
 from models.offline.evaluation.bootstrap import bootstrap_mean, per_texture_error
 from models.offline.evaluation.data import TextureData
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.evaluate import window_latency
 from models.offline.evaluation.loocv import loocv
-from models.offline.evaluation.registry import EstimatorSpec
 from models.offline.featurize import backbone_onnx, cache_root
 from models.offline.report.speed_accuracy import pareto_front
 from models.offline.tradeoffs.common import load_state, tactile_data, views_for, with_visual, write_json

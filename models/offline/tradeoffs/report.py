@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.faults.catalog import FAULTS
-from models.offline.tradeoffs import figures
+from models.offline.tradeoffs import charts
 from models.offline.tradeoffs.common import write_json
 from models.offline.tradeoffs.frontier import TARGET_FRAME_MS, TARGET_MAE_MARGIN
 
@@ -102,7 +102,7 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
     scale = quiet_scale(fr)
     # the target is a quiet-machine cost: on this run's (loaded) axis it sits at target ÷ the quiet factor
     target_ms = TARGET_FRAME_MS if scale is None else TARGET_FRAME_MS / scale["factor"]
-    png = figures.frontier_chart(
+    png = charts.frontier_chart(
         fr["frontier"],
         folder / f"frontier-{model}.png",
         title=f"speed against accuracy of the serving path ({model}, LOOCV)",
@@ -120,7 +120,8 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
         "",
         f"LOOCV over {fr['n_textures']} textures, seeds {fr['seeds']}, {fr['views_per_image']} image view(s) per "
         f"texture; per-window cost = tactile features ({fr['tactile_window_us']:.0f} µs) + the model in onnxruntime. "
-        f"Frame costs: median of {fr['timing_repeats']} interleaved runs on the photo of `{fr['timing_image']['texture']}` "
+        f"Frame costs: median of {fr['timing_repeats']} interleaved runs on the photo of "
+        f"`{fr['timing_image']['texture']}` "
         f"({fr['timing_image']['shape'][1]}×{fr['timing_image']['shape'][0]}); {fr['note']} "
         f"(load average {fr['load_before']['loadavg_1_5_15']} before, {fr['load_after']['loadavg_1_5_15']} after).",
         "",
@@ -206,8 +207,9 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
         f"implementation. Touch faults act on a 10.5 s segment of the recording (up to 20 windows of 0.5 s); speed "
         f"and force faults re-render the stroke from the texture's HaTT vibration model along the scaled trajectory. "
         f"Camera faults act on the photo (the default visual configuration, 7×7 patches). At test time every "
-        f"model sees **one frame** (the photo, or its faulted version) — models that pool several views (`selected`, "
-        f"`*-pooled`) were trained on 8 views and pool that one frame, so their clean MAE here is that of a service with "
+        f"model sees **one frame** (the photo, or its faulted version) — models that pool several views "
+        f"(`selected`, `*-pooled`) were trained on 8 views and pool that one frame, so their clean MAE here is "
+        f"that of a service with "
         f"one frame per scene, not the 8-view LOOCV of `reports/hatt-texnet/`. MAE of the "
         f"seed-averaged texture-level prediction; dashed line: predict-the-mean, {ref:.2f} — the breaking level.",
         "",
@@ -235,7 +237,7 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
         ]
     sub_refs = {c["reference_mean_mae"] for c in rb["clean"].values() if c.get("subset")}
     for family in ("touch", "camera"):
-        png = figures.robustness_chart(
+        png = charts.robustness_chart(
             rb["robustness"],
             family,
             ref,
@@ -271,7 +273,9 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
         "(fold) errors: std, inter-quartile range, worst; how much one texture's error moves between seeds; "
         "leave-one-material-group-out MAE:",
         "",
-        "| model | held-out textures | LOOCV MAE [95 % CI] | predict-the-mean on them | seeds | MAE per seed | seed std | fold std | fold IQR | worst fold | texture std over seeds | group-out MAE [95 % CI] (all textures) |",
+        "| model | held-out textures | LOOCV MAE [95 % CI] | predict-the-mean on them | seeds | MAE per seed "
+        "| seed std | fold std | fold IQR | worst fold | texture std over seeds "
+        "| group-out MAE [95 % CI] (all textures) |",
         "|---|---:|---|---:|---|---|---:|---:|---|---:|---:|---|",
     ]
     for m, c in rb["clean"].items():
@@ -301,7 +305,7 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
                 f"{_fmt(e['seed_std'])} | {'`' + e['command'] + '`' if e['command'] else '—'} |"
             )
     if rb["augmentation"]:
-        png = figures.augmentation_chart(rb["augmentation"], ref, folder / "augmentation.png")
+        png = charts.augmentation_chart(rb["augmentation"], ref, folder / "augmentation.png")
         lines += [
             "",
             "**Training-time augmentation** — the same folds trained with the training textures' noisy "
@@ -348,7 +352,7 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
     lines = []
     for model, rec in rb["recommended_intervals"].items():
         rows = [r for r in rb["coverage"] if r["model"] == model]
-        png = figures.coverage_chart(rows, model, rec["scale"], folder / f"coverage-{model}.png")
+        png = charts.coverage_chart(rows, model, rec["scale"], folder / f"coverage-{model}.png")
         lines += [
             f"### `{model}` — recommended: target **{rec['target']}**, scale **{rec['scale']}** "
             f"(clean within ±5 points: {'yes' if rec['clean_ok'] else 'no'}; fault conditions meeting the target: "
@@ -358,7 +362,8 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
             "",
             "Clean LOOCV coverage per attribute (every calibration from textures other than the held-out one):",
             "",
-            "| target | scale | nominal | rough–smooth | flat–bumpy | sticky–slippery | hard–soft | mean | width (0–100) | flagged |",
+            "| target | scale | nominal | rough–smooth | flat–bumpy | sticky–slippery | hard–soft | mean "
+            "| width (0–100) | flagged |",
             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in sorted(
@@ -401,7 +406,7 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
         lines.append("")
     nrows = rb.get("coverage_after_n_windows") or []
     if nrows:
-        png = figures.windows_chart(nrows, folder / "coverage-vs-windows.png")
+        png = charts.windows_chart(nrows, folder / "coverage-vs-windows.png")
         lines += [
             "**After n windows of one texture** (clean; intervals on the mean of n consecutive windows, "
             "calibrated the same way): coverage holds while the band narrows as the estimate averages out:",
@@ -527,7 +532,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
     if adaptive:
         lines += [
             f"From `adaptive.json` (the service benchmark): compute ratio {adaptive['compute_ratio']:.2f}× "
-            f"(always-full ÷ adaptive CPU), MAE full {adaptive['mae_full']:.2f}, adaptive {adaptive['mae_adaptive']:.2f}, "
+            f"(always-full ÷ adaptive CPU), MAE full {adaptive['mae_full']:.2f}, "
+            f"adaptive {adaptive['mae_adaptive']:.2f}, "
             f"texture choice agreement {adaptive['choice_agreement']:.1%}.",
             "",
         ]

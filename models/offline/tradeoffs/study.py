@@ -25,7 +25,7 @@ import numpy as np
 
 from models.offline.calibrate import Prediction, predict
 from models.offline.evaluation.data import TextureData
-from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.jobs import run_jobs
 from models.offline.tradeoffs.faulted import AUG_BLUR_SIGMA_PX, AUG_NOISE_SNR_DB, CLEAN, FaultedInputs, variant
 from models.offline.tradeoffs.folds import calibration_keys, inner_folds, key_excludes

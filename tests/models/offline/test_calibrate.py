@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.calibrate import predict
-from models.offline.evaluation.registry import EstimatorSpec
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 
 _spec = importlib.util.spec_from_file_location("eval_conftest", Path(__file__).parent / "evaluation" / "conftest.py")
 _eval = importlib.util.module_from_spec(_spec)

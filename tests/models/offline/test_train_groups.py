@@ -7,7 +7,7 @@ from models.inference.modelfile import read_card
 from models.inference.predictor import Predictor
 from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
-from models.offline.evaluation.registry import build_estimator
+from models.offline.evaluation.estimator_registry import build_estimator
 from models.offline.train import train_and_export
 from models.tactile.config import TactileConfig
 from service.cli import main as cli

@@ -10,7 +10,7 @@ from models.inference.modelfile import read_card
 from models.inference.predictor import Predictor
 from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
-from models.offline.evaluation.registry import build_estimator
+from models.offline.evaluation.estimator_registry import build_estimator
 from models.offline.train import predict_dataset, train_and_export
 from models.tactile.config import TactileConfig
 from service.cli import main as cli
@@ -139,7 +139,7 @@ def stand_in_images(monkeypatch):
 
 
 def test_train_selected_applies_the_rule_to_every_rated_texture_and_records_it(dataset, tmp_path, stand_in_images):
-    from models.offline.evaluation.registry import build_estimator as build
+    from models.offline.evaluation.estimator_registry import build_estimator as build
 
     path = train_and_export(dataset, "selected", tmp_path / "selected.onnx", seed=1, options={"folds": 3, "repeats": 1})
     card = read_card(path)

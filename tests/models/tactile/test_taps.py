@@ -83,7 +83,7 @@ def test_bad_taps(speeds, accel, match):
 def test_hatt_taps_give_finite_features_that_separate_metal_from_foam():
     if not HATT_TAPS.is_dir():
         pytest.skip(f"HaTT taps not found at {HATT_TAPS} (needs ../shared)")
-    from texture_library.hatt import read_taps
+    from texture_library.hatt_xml import read_taps
 
     feats = {}
     for name in ("aluminum", "brick_1", "styrofoam", "epdm_foam", "blanket", "bubble_envelope"):

@@ -7,8 +7,8 @@ import onnxruntime as ort
 import pytest
 
 from models.offline.evaluation.data import TextureData
+from models.offline.evaluation.estimator_registry import build_estimator
 from models.offline.evaluation.kernel import KernelRidgeEstimator, KernelSVREstimator, MeanOfEstimator
-from models.offline.evaluation.registry import build_estimator
 from models.visual.pooling import pool_views
 
 

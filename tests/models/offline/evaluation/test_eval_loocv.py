@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
+from models.offline.evaluation.estimator_registry import EstimatorSpec, build_estimator
 from models.offline.evaluation.estimators import MeanEstimator
 from models.offline.evaluation.loocv import loocv, loocv_seeds, run_fold
 from models.offline.evaluation.metrics import error_table
-from models.offline.evaluation.registry import EstimatorSpec, build_estimator
 
 
 def mae(run, data):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from models.inference.modelfile import ModelCard
-from models.offline.evaluation.registry import build_estimator
+from models.offline.evaluation.estimator_registry import build_estimator
 
 pytest.importorskip("torch")
 

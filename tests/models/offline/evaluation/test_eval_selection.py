@@ -4,10 +4,10 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
+from models.offline.evaluation.estimator_registry import EstimatorSpec, build_estimator
 from models.offline.evaluation.estimators import Estimator, MeanEstimator, RidgeEstimator
 from models.offline.evaluation.kernel import KernelRidgeEstimator
 from models.offline.evaluation.loocv import run_fold
-from models.offline.evaluation.registry import EstimatorSpec, build_estimator
 from models.offline.evaluation.selection import SelectedEstimator
 from models.visual.pooling import pool_views
 

@@ -12,9 +12,9 @@ import pytest
 
 from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import loocv
 from models.offline.evaluation.metrics import error_table
-from models.offline.evaluation.registry import EstimatorSpec
 
 THRESHOLD = 0.7
 

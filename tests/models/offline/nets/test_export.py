@@ -13,7 +13,7 @@ import torch
 
 from models.inference.modelfile import read_metadata as load_metadata
 from models.inference.standardize import Standardizer
-from models.offline.nets import registry
+from models.offline.nets import presets
 from models.offline.nets.export import export_onnx, raw_model
 
 F_DIM, V_DIM = 526, 64
@@ -37,7 +37,7 @@ def session(path: Path) -> ort.InferenceSession:
 
 def check_parity(name: str, visual_dim: int, tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
-    model = registry.build(name, visual_dim, F_DIM, seed=0)
+    model = presets.build(name, visual_dim, F_DIM, seed=0)
     s = stats(rng, visual_dim)
     path = export_onnx(model, tmp_path / f"{name}.onnx", **s, metadata={"model": name})
     sess = session(path)
@@ -71,7 +71,7 @@ def check_parity(name: str, visual_dim: int, tmp_path: Path) -> None:
         np.testing.assert_allclose(got, expected, atol=1e-3, rtol=0)
 
 
-@pytest.mark.parametrize("name", [n for n in registry.NAMES if n != "vtnet"])
+@pytest.mark.parametrize("name", [n for n in presets.NAMES if n != "vtnet"])
 def test_parity_every_preset(name: str, tmp_path: Path) -> None:
     check_parity(name, V_DIM, tmp_path)
 
@@ -86,7 +86,7 @@ def test_ratings_are_clipped_to_the_bipolar_range(tmp_path: Path) -> None:
     s = stats(rng)
     s["target_mean"] = np.array([500.0, -500.0, 0.0, 0.0])
     s["target_std"] = np.array([1.0, 1.0, 1e4, 1e4])
-    model = registry.build("ann", V_DIM, F_DIM, seed=0)
+    model = presets.build("ann", V_DIM, F_DIM, seed=0)
     path = export_onnx(model, tmp_path / "m.onnx", **s, metadata={})
     y = session(path).run(
         None,
@@ -102,14 +102,14 @@ def test_ratings_are_clipped_to_the_bipolar_range(tmp_path: Path) -> None:
 def test_decoder_is_not_in_the_graph(tmp_path: Path) -> None:
     import onnx
 
-    model = registry.build("vtnet-visual", V_DIM, F_DIM, seed=0)
+    model = presets.build("vtnet-visual", V_DIM, F_DIM, seed=0)
     path = export_onnx(model, tmp_path / "m.onnx", **stats(np.random.default_rng(0)), metadata={})
     convs = [n for n in onnx.load(str(path)).graph.node if n.op_type == "Conv"]
     assert len(convs) == len(model.visual.encoder)  # type: ignore[union-attr]
 
 
 def test_metadata_roundtrip_and_checks(tmp_path: Path) -> None:
-    model = registry.build("vtnet-tactile", V_DIM, F_DIM, seed=0)
+    model = presets.build("vtnet-tactile", V_DIM, F_DIM, seed=0)
     s = stats(np.random.default_rng(0))
     meta = {"feature_config_hash": "abc123", "attributes": "rough_smooth,flat_bumpy,sticky_slippery,hard_soft"}
     path = export_onnx(model, tmp_path / "m.onnx", **s, metadata=meta)
@@ -121,7 +121,7 @@ def test_metadata_roundtrip_and_checks(tmp_path: Path) -> None:
 
 
 def test_bad_statistics_raise() -> None:
-    model = registry.build("ann", V_DIM, F_DIM, seed=0)
+    model = presets.build("ann", V_DIM, F_DIM, seed=0)
     s = stats(np.random.default_rng(0))
     with pytest.raises(ValueError, match=r"tactile_std must be > 0"):
         raw_model(model, **{**s, "tactile_std": np.zeros(F_DIM)})
@@ -132,7 +132,7 @@ def test_bad_statistics_raise() -> None:
 
 
 def test_export_keeps_the_training_mode(tmp_path: Path) -> None:
-    model = registry.build("ann", V_DIM, F_DIM, seed=0)
+    model = presets.build("ann", V_DIM, F_DIM, seed=0)
     model.train()
     export_onnx(model, tmp_path / "m.onnx", **stats(np.random.default_rng(0)), metadata={})
     assert model.training
@@ -140,7 +140,7 @@ def test_export_keeps_the_training_mode(tmp_path: Path) -> None:
 
 def test_reading_metadata_needs_no_torch(tmp_path: Path) -> None:
     path = export_onnx(
-        registry.build("ann", V_DIM, F_DIM, seed=0),
+        presets.build("ann", V_DIM, F_DIM, seed=0),
         tmp_path / "m.onnx",
         **stats(np.random.default_rng(0)),
         metadata={"k": "v"},

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from torch import nn
 
-from models.offline.nets import registry
+from models.offline.nets import presets
 from models.offline.nets.export import export_onnx
 from models.offline.nets.latency import onnx_latency, param_count
 
@@ -25,7 +25,7 @@ def test_onnx_latency_reports_percentiles(name: str, tmp_path: Path) -> None:
     f, d = 526, 64
     ones = {"tactile_mean": np.zeros(f), "tactile_std": np.ones(f), "visual_mean": np.zeros(d),
             "visual_std": np.ones(d), "target_mean": np.zeros(4), "target_std": np.ones(4)}  # fmt: skip
-    path = export_onnx(registry.build(name, d, f, seed=0), tmp_path / "m.onnx", **ones, metadata={})
+    path = export_onnx(presets.build(name, d, f, seed=0), tmp_path / "m.onnx", **ones, metadata={})
     result = onnx_latency(path, n=10, threads=1)
     assert set(result) == {"p50_us", "p90_us", "mean_us"}
     assert 0 < result["p50_us"] <= result["p90_us"]

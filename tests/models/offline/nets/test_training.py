@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from models.offline.nets import registry
+from models.offline.nets import presets
 from models.offline.nets.training import TrainArrays, TrainConfig, predict_windows, rmse, train_net
 
 
@@ -103,7 +103,7 @@ def test_training_learns_and_is_deterministic() -> None:
     cfg = TrainConfig(max_epochs=15, batch=16, patience=50, seed=3)
     runs = []
     for _ in range(2):
-        model = registry.build("vtnet-tiny", 64, 526, seed=1)
+        model = presets.build("vtnet-tiny", 64, 526, seed=1)
         runs.append((train_net(model, data, val, cfg), model))
     (r1, m1), (r2, m2) = runs
     assert r1.history == r2.history
@@ -111,7 +111,7 @@ def test_training_learns_and_is_deterministic() -> None:
         assert torch.equal(a, b), name
     assert r1.history["val"][-1] < 0.6 * r1.history["val"][0]
     other = train_net(
-        registry.build("vtnet-tiny", 64, 526, seed=1), data, val, TrainConfig(max_epochs=3, batch=16, seed=4)
+        presets.build("vtnet-tiny", 64, 526, seed=1), data, val, TrainConfig(max_epochs=3, batch=16, seed=4)
     )
     assert other.history["train"] != r1.history["train"][:3]
 
@@ -119,7 +119,7 @@ def test_training_learns_and_is_deterministic() -> None:
 def test_early_stopping_restores_the_best_epoch() -> None:
     data = toy_data(1)
     val = toy_data(2)  # different signatures: validation gets worse while training fits
-    model = registry.build("vtnet-tiny", 64, 526, seed=0)
+    model = presets.build("vtnet-tiny", 64, 526, seed=0)
     cfg = TrainConfig(max_epochs=60, batch=16, patience=3, lr=3e-3)
     result = train_net(model, data, val, cfg)
     vals = result.history["val"]
@@ -133,7 +133,7 @@ def test_early_stopping_restores_the_best_epoch() -> None:
 
 
 def test_without_validation_runs_all_epochs() -> None:
-    result = train_net(registry.build("ann", 64, 526, seed=0), toy_data(0), None, TrainConfig(max_epochs=4, batch=32))
+    result = train_net(presets.build("ann", 64, 526, seed=0), toy_data(0), None, TrainConfig(max_epochs=4, batch=32))
     assert len(result.history["train"]) == 4 and result.history["val"] == []
     assert result.best_epoch == 3 and math.isnan(result.val_loss)
     assert result.seconds > 0
@@ -141,18 +141,18 @@ def test_without_validation_runs_all_epochs() -> None:
 
 def test_convlstm_model_trains() -> None:
     data = toy_data(0, n_textures=3, windows_per=4)
-    result = train_net(registry.build("vtnet-compact", 64, 526, seed=0), data, None, TrainConfig(max_epochs=2, batch=6))
+    result = train_net(presets.build("vtnet-compact", 64, 526, seed=0), data, None, TrainConfig(max_epochs=2, batch=6))
     assert all(np.isfinite(result.history["train"]))
 
 
 def test_num_threads_is_restored() -> None:
     before = torch.get_num_threads()
-    train_net(registry.build("ann", 64, 526, seed=0), toy_data(0), None, TrainConfig(max_epochs=1, num_threads=1))
+    train_net(presets.build("ann", 64, 526, seed=0), toy_data(0), None, TrainConfig(max_epochs=1, num_threads=1))
     assert torch.get_num_threads() == before
 
 
 def test_predict_windows_batches_and_restores_mode() -> None:
-    model = registry.build("vtnet-tiny", 64, 526, seed=0)
+    model = presets.build("vtnet-tiny", 64, 526, seed=0)
     model.train()
     data = toy_data(0)
     visual = data.visual_views[data.window_texture, 1]

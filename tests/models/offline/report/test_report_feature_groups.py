@@ -1,5 +1,5 @@
-"""The report's feature-group section: runs with and without extra groups, intervals (models.offline.evaluation.bootstrap),
-ratings read from the dataset (results.json carry none)."""
+"""The report's feature-group section: runs with and without extra groups, intervals
+(models.offline.evaluation.bootstrap), ratings read from the dataset (results.json carry none)."""
 
 import json
 
@@ -8,8 +8,8 @@ import pytest
 
 from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.evaluate import evaluate
-from models.offline.evaluation.registry import EstimatorSpec
 from models.offline.report.feature_groups import group_label, group_rows
 from models.offline.report.markdown import build_report
 from models.tactile.config import TactileConfig

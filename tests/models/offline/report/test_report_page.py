@@ -8,9 +8,9 @@ import pytest
 
 from models.offline.datasets.build import build
 from models.offline.evaluation.data import load_texture_data
+from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.evaluate import evaluate
-from models.offline.evaluation.registry import EstimatorSpec
-from models.offline.report.figures import results_figures
+from models.offline.report.evaluation_figures import results_figures
 from models.offline.report.markdown import _ablation_label, build_report
 from models.offline.report.speed_accuracy import pareto_front
 

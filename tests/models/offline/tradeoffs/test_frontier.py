@@ -62,8 +62,8 @@ def test_nested_rule_uses_training_textures_only(linear_world_pair):
 def linear_world_pair():
     from dataclasses import replace
 
+    from models.offline.evaluation.estimator_registry import EstimatorSpec
     from models.offline.evaluation.loocv import loocv
-    from models.offline.evaluation.registry import EstimatorSpec
 
     from .conftest import make_linear_world
 

@@ -30,8 +30,8 @@ def summary(world):
 
 
 def test_loocv_clean_prediction_is_the_ordinary_loocv(world, summary):
+    from models.offline.evaluation.estimator_registry import EstimatorSpec
     from models.offline.evaluation.loocv import loocv
-    from models.offline.evaluation.registry import EstimatorSpec
 
     data, runs, _ = summary
     ordinary = loocv(data, EstimatorSpec("ridge-both"), backend="serial", progress=False).predictions

@@ -8,7 +8,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from texture_library.hatt import read_model, read_taps
+from texture_library.hatt_xml import read_model, read_taps
 from texture_library.lsf import lsf_to_poly
 from texture_library.synthesis import render
 from texture_library.texnet import read_texnet_ratings, to_bipolar

@@ -9,7 +9,7 @@ import pytest
 
 from models.offline.datasets.check import check_dataset
 from models.offline.datasets.format import Dataset
-from models.offline.datasets.hatt import build_hatt
+from models.offline.datasets.hatt_texnet import build_hatt
 
 PICK = ["abs_plastic", "blanket", "wood"]  # rated, withheld, rated (with attention-check repeats)
 

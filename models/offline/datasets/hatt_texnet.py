@@ -16,7 +16,7 @@ from pathlib import Path
 from models.offline.datasets.format import DatasetWriter, RatingRow, TextureInfo, TextureMeta, save_recording
 from models.offline.datasets.simulate import simulated_recording, texture_rng
 from models.offline.jobs import run_jobs
-from texture_library.hatt import read_model
+from texture_library.hatt_xml import read_model
 from texture_library.texnet import read_texnet_ratings
 
 LICENCE = (
@@ -73,7 +73,9 @@ def build_hatt(
         name="hatt-texnet",
         source="hatt-texnet",
         licence=LICENCE,
-        provenance=f"built from {src}; tactile streams rendered from HaTT vibration models along seeded freehand trajectories",
+        provenance=(
+            f"built from {src}; tactile streams rendered from HaTT vibration models along seeded freehand trajectories"
+        ),
         build={"seed": seed, "duration_s": duration_s, "recordings": recordings, "crop_s": CROP_S, "src": str(src)},
     )
     jobs = [

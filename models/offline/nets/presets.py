@@ -2,8 +2,8 @@
 
 | name               | modality | tactile layout | what |
 |--------------------|----------|----------------|------|
-| `vtnet`            | both     | MFCC 40×13+6   | the paper's sizes (HV-Net 256…32 filters, six ConvLSTMs 128/256 filters) |
-| `vtnet-compact`    | both     | MFCC           | HV-Net width ¼, three ConvLSTMs of 16/32/16 filters over frames averaged by 4, same head |
+| `vtnet`            | both     | MFCC 40×13+6   | the paper's sizes (HV-Net 256…32 filters, 6 ConvLSTMs 128/256) |
+| `vtnet-compact`    | both     | MFCC           | HV-Net width ¼, 3 ConvLSTMs (16/32/16) on frames averaged by 4 |
 | `vtnet-tiny`       | both     | any length     | MLP tactile branch, HV-Net width 1/16 with a small head |
 | `vtnet-tactile`    | tactile  | MFCC           | the compact HT-Net alone |
 | `vtnet-visual`     | visual   | any length     | the compact HV-Net alone |

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 from models.offline.evaluation.estimators import (
     Estimator,
@@ -28,10 +29,10 @@ CLASSICAL = {
         **kw,
     ),
     "svr-tactile-windows": lambda **kw: WindowSVREstimator(**kw),
-    **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"svr-{m}": (lambda m: lambda **kw: SVREstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"svr-{m}-views": (lambda m: lambda **kw: SVREstimator(m, views="all", **kw))(m) for m in ("visual", "both")},
+    **{f"ridge-{m}": partial(RidgeEstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"knn-{m}": partial(KNNEstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}": partial(SVREstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}-views": partial(SVREstimator, m, views="all") for m in ("visual", "both")},
 }
 
 
@@ -83,7 +84,7 @@ class EstimatorSpec:
 
 
 def names() -> list[str]:
-    from models.offline.nets.registry import NAMES as NET_NAMES
+    from models.offline.nets.presets import NAMES as NET_NAMES
 
     return sorted(CLASSICAL) + list(NET_NAMES) + [n + ENSEMBLE_SUFFIX for n in NET_NAMES]
 
@@ -97,7 +98,7 @@ def build_estimator(name: str, **options) -> Estimator:
             return CLASSICAL[name](**options)
         except TypeError as exc:  # e.g. --max-epochs given to ridge
             raise ValueError(f"model {name!r} does not take {', '.join(sorted(options))}: {exc}") from None
-    from models.offline.nets.registry import NAMES as NET_NAMES
+    from models.offline.nets.presets import NAMES as NET_NAMES
 
     try:
         if name in NET_NAMES:
