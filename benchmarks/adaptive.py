@@ -29,8 +29,9 @@ scale (÷ 2), averaged over attributes and windows (the texture at the window's 
 texture-level bootstrap (2000 resamples of the streamed textures, seed 0) gives 95 % intervals.
 Choice agreement: the fraction of windows whose chosen library model equals always-full's.
 
-Writes `--out` in issue 7 §6's shape ({"compute_ratio", "mae_full", "mae_adaptive",
-"choice_agreement"} for the Settings' default policy) plus every variant, the targets and the run.
+Writes `--out` in the shape of the "adaptive" entry of reports/tradeoffs/results.json ({"compute_ratio",
+"mae_full", "mae_adaptive", "choice_agreement"} for the Settings' default policy) plus every variant, the targets
+and the run.
 Timings taken on a shared machine are marked as such by the caller; ratios come from one run.
 """
 
@@ -406,11 +407,13 @@ def _print(result: dict) -> None:
     for name, v in result["variants"].items():
         print(
             f"{name:<18} {v['compute_ratio']:>12.1f}× {v['mae_full']:>9.2f} {v['mae_adaptive']:>13.2f} "
-            f"{100 * v['choice_agreement']:>11.1f}% {v['windows_full_model']:>8}/{v['windows']:<10} {v['embeddings']:>11}"
+            f"{100 * v['choice_agreement']:>11.1f}% {v['windows_full_model']:>8}/{v['windows']:<10} "
+            f"{v['embeddings']:>11}"
         )
     print(
         f"targets: ≥ {TARGETS['compute_ratio']:g}× less compute, ≤ +{TARGETS['mae_increase']} MAE, "
-        f"≥ {100 * TARGETS['choice_agreement']:g} % the same choice; headline {result['headline']}: {result['meets_targets']}"
+        f"≥ {100 * TARGETS['choice_agreement']:g} % the same choice; "
+        f"headline {result['headline']}: {result['meets_targets']}"
     )
 
 

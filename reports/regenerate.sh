@@ -102,5 +102,5 @@ hl evaluate --dataset $P --model svr-both --extra-groups --out reports/physics-h
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
 hl report --dataset $P --reports reports/physics-hatt-texnet --regenerate "bash reports/regenerate.sh"
 
-# ---- speed–accuracy frontier, robustness, calibrated intervals (issue 7) -------------------------
+# ---- speed–accuracy frontier, robustness, calibrated intervals --------------------------------
 bash reports/tradeoffs/regenerate.sh

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerates reports/tradeoffs/ (issue 7: §1 frontier, §2 robustness, §3 intervals, §6 report).
+# Regenerates reports/tradeoffs/ (the frontier, robustness, intervals, the report).
 # Run from the repository root after `make test` created .venv (HAPTICLINK=… overrides the command).
 # Long on 2 shared cores (hours): faulted inputs, detector tables and every (model, seed) run are
 # cached under artifacts/tradeoffs/ (git-ignored), so a rerun only redoes what is missing; delete
@@ -10,9 +10,9 @@ cd "$(dirname "$0")/../.."
 hl() { ${HAPTICLINK:-.venv/bin/hapticlink} "$@"; }
 H=${DATASET:-data/hatt-texnet}
 
-# §1: every visual configuration timed interleaved, LOOCV MAE with the reference model (ridge-both)
+# The frontier: every visual configuration timed interleaved, LOOCV MAE with the reference model (ridge-both)
 hl tradeoffs frontier --dataset $H --model ridge-both
-# §2/§3: faulted inputs of every texture, then fits per (model, seed): curves, breaking points,
+# Robustness and intervals: faulted inputs of every texture, then fits per (model, seed): curves, breaking points,
 # spread, material-group shift, augmentation, interval coverage
 hl tradeoffs faults --dataset $H
 # The grid the committed page ran (cut to fit 2 shared cores; the CLI default is the full grid):
@@ -20,5 +20,5 @@ hl tradeoffs faults --dataset $H
 # ones; interval calibration for ridge-both and knn-both; augmentation for ridge-both.
 RUNS=${RUNS:-"mean:0 ridge-both:0:cal+aug knn-both:0:cal svr-both:0:sub ann:0,1:sub selected:0:sub"}
 hl tradeoffs robustness --dataset $H --workers 2 --subset 20 --runs $RUNS
-# §6: the page, its charts and results.json (merges reports/tradeoffs/adaptive.json when present)
+# The report: the page, its charts and results.json (merges reports/tradeoffs/adaptive.json when present)
 hl tradeoffs report --reports reports/tradeoffs

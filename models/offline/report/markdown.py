@@ -42,7 +42,7 @@ README_ROWS = {
     "krr-pooled": "kernel ridge (RBF), 8 views pooled, touch weighed per attribute",
     "ksvr-pooled": "kernel SVR (RBF), 8 views pooled, touch weighed per attribute",
     "ridge-pooled": "ridge (linear kernel), 8 views pooled, touch weighed per attribute",
-    "ann-ensemble": "mean of 3 ANN seeds (served before issue 9)",
+    "ann-ensemble": "mean of 3 ANN seeds (served before `selected`)",
     "stack-both": "ridge + kNN + SVR, stacked",
     "ann": "ANN baseline (paper), 3 seeds",
     "svr-visual": "SVR, image features",

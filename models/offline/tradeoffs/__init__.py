@@ -1,4 +1,4 @@
-"""Issue 7's offline studies: the speed–accuracy frontier of the serving path (frontier), stability
+"""The offline trade-off studies: the speed–accuracy frontier of the serving path (frontier), stability
 where methods fail (robustness), calibrated intervals and out-of-distribution flags (coverage),
 and the report that gathers them (report). Run by `hapticlink tradeoffs …`."""
 

@@ -1,4 +1,4 @@
-"""§2 from study runs: robustness curves, breaking points, and the spread over seeds and folds.
+"""Stability from study runs: robustness curves, breaking points, and the spread over seeds and folds.
 
 MAE is the texture-level LOOCV MAE (0–100 scale) over the textures a variant leaves at least one
 window for; a model's curve averages its seeds' predictions (the spread over seeds is reported

@@ -1,4 +1,4 @@
-"""`hapticlink tradeoffs …`: the studies of issue 7 and their report."""
+"""`hapticlink tradeoffs …`: the trade-off studies (frontier, robustness, intervals) and their report."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--no-visual", action="store_true", help="touch faults only")
     a.set_defaults(func=_faults)
 
-    r = tsub.add_parser("robustness", help="fault curves, breaking points, spread, shift, interval coverage (§2, §3)")
+    r = tsub.add_parser("robustness", help="fault curves, breaking points, spread, shift, interval coverage")
     r.add_argument("--dataset", required=True)
     r.add_argument(
         "--runs",

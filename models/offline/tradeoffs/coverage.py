@@ -1,4 +1,4 @@
-"""§3 from study runs: do the intervals cover what they claim, clean, under every fault, under shift?
+"""Intervals from study runs: do the intervals cover what they claim, clean, under every fault, under shift?
 
 For held-out texture i the calibration is built from other textures only — the calibration
 models of models.offline.tradeoffs.folds, which never saw i (nor the texture they predict) — exactly as

@@ -1,7 +1,7 @@
 """The training sets of the studies and the inputs each one predicts — one definition for fits and detectors.
 
 * loocv i          train on every texture but i; predict texture i (clean and every variant)
-* calibration key  the nested calibration of §3 without 79 × K refits: the textures are split
+* calibration key  the intervals' nested calibration without 79 × K refits: the textures are split
                    into K groups G_1…G_K once; model (a, b) trains without G_a ∪ G_b, model (a,)
                    without G_a. For held-out texture i ∈ G_a, the calibration residual of texture
                    j comes from model (a, b(j)) (or (a,) when j ∈ G_a): a model that saw neither

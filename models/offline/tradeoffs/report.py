@@ -1,8 +1,8 @@
-"""reports/tradeoffs/: README.md with charts and tables, and results.json in issue 7's shape.
+"""reports/tradeoffs/: README.md with charts and tables, and results.json (a summary of every study).
 
 Inputs (in the report folder): frontier-<model>.json (`hapticlink tradeoffs frontier`),
 robustness.json (`hapticlink tradeoffs robustness`) and, when the service benchmark has written
-it, adaptive.json (§4). Every number on the page comes from those files; none is typed in.
+it, adaptive.json (adaptive serving). Every number on the page comes from those files; none is typed in.
 """
 
 from __future__ import annotations
@@ -503,7 +503,7 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
     if adaptive is not None and any(k not in adaptive for k in ADAPTIVE_KEYS):
         raise ValueError(f"{ad_path} must hold {', '.join(ADAPTIVE_KEYS)}")
     lines = [
-        "# Speed, stability and calibrated uncertainty (issue 7)",
+        "# Speed, stability and calibrated uncertainty",
         "",
         f"Regenerate everything on this page: `{REGENERATE}` (the long steps cache their work under "
         "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on a shared 2-core machine: "
@@ -539,7 +539,7 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
         ]
     else:
         lines += [
-            "*Pending*: produced by the service benchmark after the service restructure (issue 8); this page "
+            "*Pending*: produced by the service benchmark after the service restructure; this page "
             "merges `reports/tradeoffs/adaptive.json` when it exists.",
             "",
         ]
@@ -586,7 +586,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
             }
             for r in rb["coverage"]
         ],
-        "adaptive": adaptive or {**dict.fromkeys(ADAPTIVE_KEYS), "pending": "written by the service benchmark (§4)"},
+        "adaptive": adaptive
+        or {**dict.fromkeys(ADAPTIVE_KEYS), "pending": "written by the service benchmark (benchmarks/adaptive.py)"},
         "breaking_points": None if not rb else rb["breaking_points"],
         "stability": None
         if not rb

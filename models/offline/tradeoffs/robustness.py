@@ -1,4 +1,4 @@
-"""The §2/§3 pipeline: faulted inputs → detector tables → per (model, seed) study runs → summaries.
+"""The robustness and intervals pipeline: faulted inputs → detector tables → per (model, seed) study runs → summaries.
 
 Everything per texture stays in the work folder (git-ignored); the summaries written under
 reports/tradeoffs/ hold aggregates only (no per-texture ratings).

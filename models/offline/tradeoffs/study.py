@@ -1,4 +1,4 @@
-"""One model, one seed: every fit of §2 and §3, each used for every input it has to predict.
+"""One model, one seed: every fit of the robustness and interval studies, each used for every input it has to predict.
 
 Tasks (each fits once on its training textures, then predicts):
   loocv i         held-out texture i: clean (all its windows, as LOOCV scores it) and every

@@ -1,4 +1,4 @@
-"""The §2/§3 machinery end to end on a small linear world: fits, faulted predictions, curves,
+"""The robustness and interval machinery end to end on a small linear world: fits, faulted predictions, curves,
 breaking points, augmentation, intervals and their coverage."""
 
 import numpy as np
