@@ -36,30 +36,22 @@ def export_backbone_onnx(
     example = torch.rand(2, backbone.input_size, backbone.input_size, generator=torch.Generator().manual_seed(0))
     encoder = backbone.encoder.eval()
     with _quiet_exporter():
-        if dynamo:
-            torch.onnx.export(
-                encoder,
-                (example,),
-                str(out),
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                opset_version=opset,
-                dynamo=True,
-                dynamic_shapes={INPUT_NAME: {0: torch.export.Dim("batch")}},
-                external_data=False,  # one self-contained file to ship
-                verbose=False,
-            )
-        else:
-            torch.onnx.export(
-                encoder,
-                (example,),
-                str(out),
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                opset_version=opset,
-                dynamo=False,
-                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
-            )
+        batch: dict = (
+            # external_data=False: one self-contained file to ship
+            {"dynamic_shapes": {INPUT_NAME: {0: torch.export.Dim("batch")}}, "external_data": False, "verbose": False}
+            if dynamo
+            else {"dynamic_axes": {INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}}}
+        )
+        torch.onnx.export(
+            encoder,
+            (example,),
+            str(out),
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            opset_version=opset,
+            dynamo=dynamo,
+            **batch,
+        )
     model = onnx.load(str(out))
     meta = backbone_metadata(backbone.name, backbone.dim, backbone.fingerprint, config_hash, backbone.input_size)
     existing = {p.key: p for p in model.metadata_props}

@@ -144,11 +144,7 @@ def _check_texture(dataset: Dataset, tid: str, deep: bool) -> list[str]:
         problems.append(f"texture {tid!r}: no recordings listed in meta.json")
     if not meta.images:
         problems.append(f"texture {tid!r}: no images listed in meta.json")
-    for name in meta.recordings:
-        path = dataset.resolve(tid, name)
-        if not path.is_file():
-            problems.append(f"texture {tid!r}: recording file missing: {path}")
-            continue
+    for path in _present(dataset, tid, meta.recordings, "recording", problems):
         if deep:
             try:
                 rec = load_recording(path)
@@ -159,11 +155,7 @@ def _check_texture(dataset: Dataset, tid: str, deep: bool) -> list[str]:
                 problems.append(
                     f"texture {tid!r}: {path} is too short ({rec.duration_s:.3f} s < one {MIN_RECORDING_S} s window)"
                 )
-    for name in meta.images:
-        path = dataset.resolve(tid, name)
-        if not path.is_file():
-            problems.append(f"texture {tid!r}: image file missing: {path}")
-            continue
+    for path in _present(dataset, tid, meta.images, "image", problems):
         if deep:
             problems += _check_image(tid, path)
     if meta.vibration_model is not None:
@@ -173,6 +165,13 @@ def _check_texture(dataset: Dataset, tid: str, deep: bool) -> list[str]:
         except (ValueError, KeyError, OSError) as exc:
             problems.append(f"texture {tid!r}: vibration model {path}: {exc}")
     return problems
+
+
+def _present(dataset: Dataset, tid: str, names: list[str], what: str, problems: list[str]) -> list[Path]:
+    """The files `names` of texture `tid` that exist; a problem ("<what> file missing") for each that does not."""
+    paths = [dataset.resolve(tid, name) for name in names]
+    problems += [f"texture {tid!r}: {what} file missing: {p}" for p in paths if not p.is_file()]
+    return [p for p in paths if p.is_file()]
 
 
 def _check_image(tid: str, path: Path) -> list[str]:

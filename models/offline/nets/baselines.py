@@ -73,14 +73,27 @@ class ANN(nn.Module):
         return {"ratings": self.out(self.head(z)), "reconstruction": None}
 
 
-class Vision1DCNN(nn.Module):
-    """1-D CNN over the visual vector as a 1-channel sequence.
-
-    Conv ('same', ReLU) + max-pool ``pool`` per stage, flatten → FC ``fc`` (ReLU) → FC 4.
-    forward(tactile (ignored), visual: (B, visual_dim)) → {"ratings": (B, 4), "reconstruction": None}.
+class _VisualCNN(nn.Module):
+    """A CNN over the visual vector alone: conv stages (a subclass's ``_conv_stages``), flatten → FC ``fc``
+    (ReLU) → FC 4. forward(tactile (ignored), visual: (B, visual_dim)) → {"ratings": (B, 4), "reconstruction": None}.
     """
 
     modality = "visual"
+
+    def _head(self, flat: int, fc: int) -> None:
+        self.fc = nn.Linear(flat, fc)
+        self.out = nn.Linear(fc, N_RATINGS)
+
+    def _conv_stages(self, visual: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
+        z = self._conv_stages(visual)
+        return {"ratings": gather_rows(self.out(F.relu(self.fc(z.flatten(1)))), visual_index), "reconstruction": None}
+
+
+class Vision1DCNN(_VisualCNN):
+    """1-D CNN over the visual vector as a 1-channel sequence: conv ('same', ReLU) + max-pool ``pool`` per stage."""
 
     def __init__(
         self,
@@ -100,15 +113,14 @@ class Vision1DCNN(nn.Module):
         chans = (1, *channels)
         self.convs = nn.ModuleList(KerasConv1d(chans[n], chans[n + 1], kernel) for n in range(len(channels)))
         self.pool = pool
-        self.fc = nn.Linear(chans[-1] * length, fc)
-        self.out = nn.Linear(fc, N_RATINGS)
+        self._head(chans[-1] * length, fc)
         self.visual_dim = visual_dim
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
+    def _conv_stages(self, visual: torch.Tensor) -> torch.Tensor:
         z = visual.unsqueeze(1)
         for conv in self.convs:
             z = F.max_pool1d(F.relu(conv(z)), self.pool)
-        return {"ratings": gather_rows(self.out(F.relu(self.fc(z.flatten(1)))), visual_index), "reconstruction": None}
+        return z
 
 
 def near_square_shape(n: int, max_aspect: float = 2.0) -> tuple[int, int]:
@@ -127,14 +139,9 @@ def near_square_shape(n: int, max_aspect: float = 2.0) -> tuple[int, int]:
     return -(-n // cols), cols
 
 
-class HapticCNN(nn.Module):
-    """2-D CNN on the visual feature vector laid out as a near-square map (see module docstring).
-
-    Conv 3×3 ('same', ReLU) + max-pool 2 per stage, flatten → FC ``fc`` (ReLU) → FC 4.
-    forward(tactile (ignored), visual: (B, visual_dim)) → {"ratings": (B, 4), "reconstruction": None}.
-    """
-
-    modality = "visual"
+class HapticCNN(_VisualCNN):
+    """2-D CNN on the visual feature vector laid out as a near-square map (see module docstring):
+    conv 3×3 ('same', ReLU) + max-pool 2 per stage."""
 
     def __init__(
         self,
@@ -152,19 +159,17 @@ class HapticCNN(nn.Module):
             raise ValueError(f"HapticCNN: a {rows}×{cols} map is too small for {len(channels)} pools of 2")
         chans = (1, *channels)
         self.convs = nn.ModuleList(nn.Conv2d(chans[n], chans[n + 1], 3, padding=1) for n in range(len(channels)))
-        flat = chans[-1] * (rows // 2 ** len(channels)) * (cols // 2 ** len(channels))
-        self.fc = nn.Linear(flat, fc)
-        self.out = nn.Linear(fc, N_RATINGS)
+        self._head(chans[-1] * (rows // 2 ** len(channels)) * (cols // 2 ** len(channels)), fc)
         self.visual_dim = visual_dim
 
-    def forward(self, tactile: torch.Tensor, visual: torch.Tensor, visual_index: torch.Tensor | None = None) -> Output:
+    def _conv_stages(self, visual: torch.Tensor) -> torch.Tensor:
         rows, cols = self.map_shape
         pad = rows * cols - self.visual_dim
         z = F.pad(visual, (0, pad)) if pad else visual
         z = z.reshape(-1, 1, rows, cols)
         for conv in self.convs:
             z = F.max_pool2d(F.relu(conv(z)), 2)
-        return {"ratings": gather_rows(self.out(F.relu(self.fc(z.flatten(1)))), visual_index), "reconstruction": None}
+        return z
 
 
 class TactileCNNLSTM(nn.Module):

@@ -31,7 +31,7 @@ from models.offline.evaluation.bootstrap import (
 from models.tactile.config import EXTRA_GROUPS
 from texture_library.attributes import ATTRIBUTES
 
-KEYS = (*ATTRIBUTES, "mean")
+KEYS = (*ATTRIBUTES, "mean")  # the columns of every results table of the report
 SHORT = {
     "rough_smooth": "rough–smooth",
     "flat_bumpy": "flat–bumpy",

@@ -17,18 +17,10 @@ from models.offline.datasets.format import Dataset
 from models.offline.evaluation.bootstrap import bootstrap_errors, paired_difference, texture_errors
 from models.offline.evaluation.metrics import split_half_ceiling
 from models.offline.report.feature_groups import FOLDER as GROUPS_FOLDER
-from models.offline.report.feature_groups import feature_group_section
+from models.offline.report.feature_groups import KEYS, SHORT, feature_group_section
 from models.offline.report.speed_accuracy import pareto_front, speed_accuracy_chart
 from texture_library.attributes import ATTRIBUTES
 
-KEYS = (*ATTRIBUTES, "mean")
-SHORT = {
-    "rough_smooth": "rough–smooth",
-    "flat_bumpy": "flat–bumpy",
-    "sticky_slippery": "sticky–slippery",
-    "hard_soft": "hard–soft",
-    "mean": "mean",
-}
 TARGET_MEAN_MAE = 4.5
 TARGET_RATIO = 0.4
 TARGET_HARD_SOFT = 4.5
