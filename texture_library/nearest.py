@@ -31,7 +31,8 @@ class PerceptualIndex:
         self.ratings = np.asarray(ratings, float)
         if self.ratings.shape != (len(self.ids), len(ATTRIBUTES)) or not self.ids:
             raise ValueError(
-                f"ratings must be ({len(self.ids)}, {len(ATTRIBUTES)}) for {len(self.ids)} ids, got {self.ratings.shape}"
+                f"ratings must be ({len(self.ids)}, {len(ATTRIBUTES)}) for {len(self.ids)} ids, "
+                f"got {self.ratings.shape}"
             )
         w = np.ones(len(ATTRIBUTES)) if weights is None else np.asarray(weights, float)
         if w.shape != (len(ATTRIBUTES),) or np.any(w < 0) or not np.any(w > 0) or not np.all(np.isfinite(w)):

@@ -31,7 +31,8 @@ def to_bipolar(attribute: str, rating: float) -> tuple[str, float]:
 
 
 def read_texnet_ratings(path) -> dict[str, dict[str, list[tuple[str, int, float]]]]:
-    """ratings.csv (texture, rater, presentation, attribute, rating) → {texture: {attr: [(rater, presentation, bipolar)]}}."""
+    """ratings.csv (texture, rater, presentation, attribute, rating)
+    → {texture: {attr: [(rater, presentation, bipolar)]}}."""
     import csv
 
     out: dict[str, dict[str, list[tuple[str, int, float]]]] = {}

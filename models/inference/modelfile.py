@@ -71,7 +71,8 @@ class ModelCard:
             raise ValueError(f"{source}: not a hapticlink model (metadata format {meta.get('hapticlink.format')!r})")
         if meta.get("hapticlink.version") != str(VERSION):
             raise ValueError(
-                f"{source}: unsupported model version {meta.get('hapticlink.version')!r} (this hapticlink reads {VERSION})"
+                f"{source}: unsupported model version {meta.get('hapticlink.version')!r} "
+                f"(this hapticlink reads {VERSION})"
             )
         if json.loads(meta.get("attributes", "[]")) != list(ATTRIBUTES):
             raise ValueError(f"{source}: attributes {meta.get('attributes')} differ from {list(ATTRIBUTES)}")

@@ -42,13 +42,15 @@ def _steady_zi(sos_bytes: bytes, n_sections: int) -> np.ndarray:
 
 
 def design_highpass(cutoff_hz: float, rate_hz: float, order: int) -> np.ndarray:
-    """Butterworth high-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per set of arguments)."""
+    """Butterworth high-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per
+    set of arguments)."""
     _check_design(cutoff_hz, rate_hz, order)
     return _butter(int(order), float(cutoff_hz), "highpass", float(rate_hz)).copy()
 
 
 def design_lowpass(cutoff_hz: float, rate_hz: float, order: int) -> np.ndarray:
-    """Butterworth low-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per set of arguments)."""
+    """Butterworth low-pass, −3 dB at ``cutoff_hz``. Returns sos: (ceil(order/2), 6) float (designed once per
+    set of arguments)."""
     _check_design(cutoff_hz, rate_hz, order)
     return _butter(int(order), float(cutoff_hz), "lowpass", float(rate_hz)).copy()
 

@@ -89,7 +89,10 @@ class OnnxBackbone:
             )
 
     def __repr__(self) -> str:
-        return f"OnnxBackbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, path={str(self.path)!r})"
+        return (
+            f"OnnxBackbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, "
+            f"path={str(self.path)!r})"
+        )
 
     def embed(self, patches: np.ndarray) -> np.ndarray:
         """(n, 224, 224) float in [0, 1] → (n, dim) float32, in batches of `batch_size`."""

@@ -6,7 +6,8 @@
     SRC/recordings/<texture>/<rec>.npz   hapticlink recording (see format.save_recording), or
     SRC/recordings/<texture>/<rec>.h5    HDF5: datasets accel, force, speed|position, each with attrs rate_hz, units, or
     SRC/recordings/<texture>/<rec>/      CSV folder: accel.csv (t,x,y,z), force.csv (t,fz | t,fx,fy,fz),
-                                         speed.csv (t,speed) or position.csv (t,x[,y]); optional channels.json {kind: {units}}
+                                         speed.csv (t,speed) or position.csv (t,x[,y]);
+                                         optional channels.json {kind: {units}}
 Ratings are bipolar (−100…100) unless rating_scale="0-100" (0 = first pole, 100 = second pole).
 """
 

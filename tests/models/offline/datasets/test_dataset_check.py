@@ -179,7 +179,8 @@ def set_cell(root: Path, line: int, column: str, value: str) -> None:
         (
             "attribute",
             "warmness",
-            "unknown attribute 'warmness'; expected one of ['rough_smooth', 'flat_bumpy', 'sticky_slippery', 'hard_soft']",
+            "unknown attribute 'warmness'; expected one of "
+            "['rough_smooth', 'flat_bumpy', 'sticky_slippery', 'hard_soft']",
         ),
         ("rating", "150", "rating 150 out of range [-100, 100]"),
         ("rating", "-100.5", "rating -100.5 out of range [-100, 100]"),

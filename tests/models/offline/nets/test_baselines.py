@@ -10,19 +10,19 @@ from models.offline.nets.baselines import ANN, HapticCNN, TactileCNNLSTM, Vision
 
 def test_ann_layer_sizes() -> None:
     net = ANN(1536, 526)
-    assert [(l.in_features, l.out_features) for l in net.tactile.layers] == [
+    assert [(layer.in_features, layer.out_features) for layer in net.tactile.layers] == [
         (526, 128),
         (128, 256),
         (256, 256),
         (256, 128),
     ]
-    assert [(l.in_features, l.out_features) for l in net.visual.layers] == [
+    assert [(layer.in_features, layer.out_features) for layer in net.visual.layers] == [
         (1536, 128),
         (128, 256),
         (256, 256),
         (256, 128),
     ]
-    assert [(l.in_features, l.out_features) for l in net.head.layers] == [(256, 64), (64, 64)]
+    assert [(layer.in_features, layer.out_features) for layer in net.head.layers] == [(256, 64), (64, 64)]
     assert (net.out.in_features, net.out.out_features) == (64, 4)
 
 
