@@ -27,6 +27,20 @@ MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
 
 
+def check_array(name: str, x: object, shape: tuple[int | None, ...], dtype: type[np.number] = np.float64) -> np.ndarray:
+    """`x` as a `dtype` array (no copy when it already is one) of `shape` (None: any length on that axis),
+    real numbers, none NaN or Inf; ValueError naming `name` and the problem otherwise."""
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    if arr.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, arr.shape, strict=True)):
+        want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has {int(np.count_nonzero(~np.isfinite(arr)))} NaN or Inf value(s)")
+    return arr.astype(dtype, copy=False)
+
+
 def check_rate(rate_hz: object, name: str) -> float:
     """A sample rate in Hz: a real number (not a bool, not a string) within [MIN_RATE_HZ, MAX_RATE_HZ], as float.
 

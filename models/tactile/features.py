@@ -36,22 +36,11 @@ from models.tactile.mfcc import mfcc
 from models.tactile.preprocess import TactilePreprocessor
 from models.tactile.spatial import spatial_features
 from models.tactile.taps import TAP_NAMES
+from texture_library.channels import check_array
 from texture_library.recording import Recording
 
 #: windows per block inside window_features (keeps temporaries in cache; results equal up to float32 rounding)
 CHUNK = 64
-
-
-def _check(name: str, x: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
-    x = np.asarray(x)
-    if x.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be real numbers, got dtype {x.dtype}")
-    if x.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, x.shape, strict=True)):
-        want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"{name} has {int(np.count_nonzero(~np.isfinite(x)))} NaN or Inf value(s)")
-    return x.astype(np.float64, copy=False)
 
 
 def speed_force_stats(speed: np.ndarray, force: np.ndarray) -> np.ndarray:
@@ -69,10 +58,10 @@ def window_features(
     window with the taps group, else None; L = config.window_length → (n, config.n_features) float32.
     The preprocessor's windows (models.tactile.preprocess) have exactly these shapes for `config`."""
     L = config.window_length
-    accel = _check("accel", accel, (None, L, config.accel_columns))
+    accel = check_array("accel", accel, (None, L, config.accel_columns))
     n = accel.shape[0]
-    speed = _check("speed", speed, (n, L))
-    force = _check("force", force, (n, L) if config.force_columns == 1 else (n, L, config.force_columns))
+    speed = check_array("speed", speed, (n, L))
+    force = check_array("force", force, (n, L) if config.force_columns == 1 else (n, L, config.force_columns))
     if ("taps" in config.extra_groups) != (taps is not None):
         raise ValueError(
             "this configuration has the taps group: pass taps (n, 3) from tap_features"
@@ -108,7 +97,7 @@ def window_features(
             min_speed=config.spatial_min_speed,
         )
     if taps is not None:  # exactly when the configuration has the taps group (checked above)
-        out[:, groups["taps"]] = _check("taps", taps, (n, len(TAP_NAMES)))
+        out[:, groups["taps"]] = check_array("taps", taps, (n, len(TAP_NAMES)))
     return out
 
 

@@ -34,6 +34,7 @@ import scipy.signal
 
 from models.tactile.config import TactileConfig
 from models.tactile.windows import sliding_windows
+from texture_library.channels import check_array
 
 #: power_to_db floor and reference, as librosa.feature.mfcc uses them
 AMIN = 1e-10
@@ -84,20 +85,9 @@ def mfcc_matrices(config: TactileConfig) -> tuple[np.ndarray, np.ndarray, np.nda
     return _matrices(c.rate_hz, c.frame_length, c.n_fft, c.n_mels, c.n_mfcc, c.fmin, c.fmax)
 
 
-def _check_windows(windows: np.ndarray, config: TactileConfig) -> np.ndarray:
-    windows = np.asarray(windows)
-    if windows.dtype.kind not in "iuf":
-        raise ValueError(f"windows must be real numbers, got dtype {windows.dtype}")
-    if windows.ndim != 2 or windows.shape[1] != config.window_length:
-        raise ValueError(f"windows must have shape (n, {config.window_length}), got {windows.shape}")
-    if not np.all(np.isfinite(windows)):
-        raise ValueError(f"windows has {int(np.count_nonzero(~np.isfinite(windows)))} NaN or Inf value(s)")
-    return windows
-
-
 def mfcc(windows: np.ndarray, config: TactileConfig) -> np.ndarray:
     """MFCC per window. windows: (n, window_length) float (DFT321 accel, m/s²) → (n, n_frames, n_mfcc) float32."""
-    windows = _check_windows(windows, config).astype(np.float32, copy=False)
+    windows = check_array("windows", windows, (None, config.window_length), dtype=np.float32)
     dft, mel2, dct = mfcc_matrices(config)
     frames = windows[:, _frame_index(config.window_length, config.frame_length, config.frame_hop)]  # (n, F, L)
     spec = frames @ dft  # (n, F, 2B): re | im of the zero-padded rfft
@@ -119,7 +109,7 @@ def librosa_mfcc(window: np.ndarray, config: TactileConfig) -> np.ndarray:
     """
     import librosa
 
-    window = _check_windows(np.asarray(window)[None], config)[0].astype(np.float64)
+    window = check_array("windows", np.asarray(window)[None], (None, config.window_length))[0]
     c = config
     lpad = (c.n_fft - c.frame_length) // 2
     total = (c.n_frames - 1) * c.frame_hop + c.n_fft

@@ -1,0 +1,47 @@
+"""The one validator of samples, arrays and sample rates (texture_library.channels)."""
+
+import numpy as np
+import pytest
+
+from texture_library.channels import check_array, check_channel, check_rate
+
+
+@pytest.mark.parametrize(
+    ("rate", "message"),
+    [
+        ("100", r"accel: sample rate must be a finite number, got '100'"),
+        (True, r"accel: sample rate must be a finite number, got True"),
+        (float("inf"), r"accel: sample rate must be a finite number, got inf"),
+        (5, r"accel: sample rate must lie in \[10, 100000\] Hz, got 5"),
+    ],
+)
+def test_a_bad_rate_is_named(rate, message):
+    with pytest.raises(ValueError, match=message):
+        check_rate(rate, "accel")
+
+
+def test_a_good_rate_comes_back_as_float():
+    assert check_rate(np.int64(1000), "accel") == 1000.0 and isinstance(check_rate(10, "x"), float)
+
+
+def test_arrays_are_checked_for_numbers_shape_and_finiteness():
+    x = np.zeros((3, 5), np.float32)
+    assert check_array("w", x, (None, 5), dtype=np.float32) is x  # no copy when nothing changes
+    assert check_array("w", np.zeros((3, 5), int), (3, 5)).dtype == np.float64
+    with pytest.raises(ValueError, match=r"w must have shape \(n, 4\), got \(3, 5\)"):
+        check_array("w", x, (None, 4))
+    with pytest.raises(ValueError, match=r"w must have shape \(n, 5\), got \(5,\)"):
+        check_array("w", x[0], (None, 5))
+    with pytest.raises(ValueError, match="w must be real numbers, got dtype <U1"):
+        check_array("w", np.array([["a"]]), (None, 1))
+    bad = x.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"w has 1 NaN or Inf value\(s\)"):
+        check_array("w", bad, (None, 5))
+
+
+def test_a_streaming_block_may_be_empty_a_recording_may_not():
+    empty = np.zeros((0, 3))
+    assert check_channel("accel", empty, 1000.0, allow_empty=True)[0].shape == (0, 3)
+    with pytest.raises(ValueError, match="accel: no samples"):
+        check_channel("accel", empty, 1000.0)
