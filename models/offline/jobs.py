@@ -35,8 +35,11 @@ def capped_threads(threads: int) -> Iterator[None]:
         raise ValueError(f"threads must be at least 1, got {threads}")
     from threadpoolctl import threadpool_limits
 
-    torch = sys.modules.get("torch")  # a job that imports torch itself starts under OMP_NUM_THREADS (see run_jobs)
+    torch = sys.modules.get("torch")
     before = torch.get_num_threads() if torch is not None else None
+    # torch imported inside the block reads OMP_NUM_THREADS when it starts
+    env_before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = str(threads)
     with threadpool_limits(limits=threads):
         if torch is not None:
             torch.set_num_threads(threads)
@@ -45,6 +48,10 @@ def capped_threads(threads: int) -> Iterator[None]:
         finally:
             if torch is not None and before is not None:
                 torch.set_num_threads(before)
+            if env_before is None:
+                os.environ.pop("OMP_NUM_THREADS", None)
+            else:
+                os.environ["OMP_NUM_THREADS"] = env_before
 
 
 def _capped(fn: Callable[[J], R], threads: int, job: J) -> R:
@@ -80,8 +87,9 @@ def run_jobs(
         else:
             from joblib import Parallel, delayed, parallel_config
 
-            # inner_max_num_threads sets OMP_NUM_THREADS & co. in the workers, for libraries loaded after the cap;
-            # max_nbytes=None: the jobs get their own writable copies of the arrays, as in this process
+            # loky: fresh worker interpreters, reused by later calls (their start-up, seconds on a busy machine,
+            # is paid once per process); inner_max_num_threads caps libraries they load outside capped_threads.
+            # max_nbytes=None: each job gets its own writable arrays, as in this process.
             with parallel_config(backend="loky", inner_max_num_threads=threads):
                 results = Parallel(n_jobs=workers, return_as="generator", max_nbytes=None)(
                     delayed(_capped)(fn, threads, job) for job in jobs
