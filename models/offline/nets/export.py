@@ -20,7 +20,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 import numpy as np
 
@@ -90,22 +90,32 @@ def _wrap(model: nn.Module, modality: str, stats: dict[str, np.ndarray]) -> nn.M
     return {"both": Both, "tactile": TactileOnly, "visual": VisualOnly}[modality]()
 
 
+class Standardization(TypedDict):
+    """The training fold's standardization, given to `raw_model` and `export_onnx` as keywords:
+    tactile_mean/std (F,), visual_mean/std (D,), target_mean/std (4,); stds must be > 0."""
+
+    tactile_mean: Any
+    tactile_std: Any
+    visual_mean: Any
+    visual_std: Any
+    target_mean: Any
+    target_std: Any
+
+
 def raw_model(
     model: nn.Module,
     *,
-    tactile_mean: Any,
-    tactile_std: Any,
-    visual_mean: Any,
-    visual_std: Any,
-    target_mean: Any,
-    target_std: Any,
     tactile_dim: int | None = None,
     visual_dim: int | None = None,
+    **standardization: Unpack[Standardization],
 ) -> nn.Module:
     """The torch module that `export_onnx` exports: raw inputs (only those the model reads,
     in the order tactile, visual) → bipolar ratings (N, 4), clipped to ±100.
 
     Returned in eval mode, which also puts ``model`` (held inside it) in eval mode."""
+    tactile_mean, tactile_std = standardization["tactile_mean"], standardization["tactile_std"]
+    visual_mean, visual_std = standardization["visual_mean"], standardization["visual_std"]
+    target_mean, target_std = standardization["target_mean"], standardization["target_std"]
     modality = getattr(model, "modality", None)
     if modality not in INPUTS_BY_MODALITY:
         raise ValueError(f"model has no valid modality attribute (got {modality!r})")
@@ -143,18 +153,13 @@ def export_onnx(
     model: nn.Module,
     path: str | Path,
     *,
-    tactile_mean: Any,
-    tactile_std: Any,
-    visual_mean: Any,
-    visual_std: Any,
-    target_mean: Any,
-    target_std: Any,
     metadata: Mapping[str, str],
+    **standardization: Unpack[Standardization],
 ) -> Path:
     """Write ``model`` as ONNX (opset 17) taking raw features and returning bipolar ratings.
 
-    tactile_mean/std: (F,), visual_mean/std: (D,), target_mean/std: (4,) — the training
-    fold's standardization; stds must be > 0. ``metadata`` values must be strings; the
+    standardization: tactile_mean/std (F,), visual_mean/std (D,), target_mean/std (4,) — the training
+    fold's (`Standardization`); stds must be > 0. ``metadata`` values must be strings; the
     entries ``modality`` and ``inputs`` (comma-separated graph input names) are added
     (a caller's value for them must agree). Returns ``path``.
     """
@@ -163,16 +168,11 @@ def export_onnx(
         raise ValueError(f"model has no valid modality attribute (got {modality!r})")
     was_training = model.training
     try:
-        wrapped = raw_model(
-            model,
-            tactile_mean=tactile_mean,
-            tactile_std=tactile_std,
-            visual_mean=visual_mean,
-            visual_std=visual_std,
-            target_mean=target_mean,
-            target_std=target_std,
-        )
-        widths = {"tactile": np.size(tactile_mean), "visual": np.size(visual_mean)}
+        wrapped = raw_model(model, **standardization)
+        widths = {
+            "tactile": np.size(standardization["tactile_mean"]),
+            "visual": np.size(standardization["visual_mean"]),
+        }
         return export_raw(wrapped, modality, path, metadata, widths)
     finally:
         model.train(was_training)
