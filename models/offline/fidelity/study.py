@@ -40,7 +40,9 @@ class World:
 
     truth, predicted: (T, 4) bipolar; rating_d, spectral_d, weighted_d, mu_d: (T, T) pairwise metrics
     (0–100 scale, dB, dB, |Δμ|); perceptual_d: (T, T) bipolar distance from texture i's estimated ratings
-    to texture j's true ratings; whittle, lsd: (T, W, T) window w of texture i against model j, dB."""
+    to texture j's true ratings; whittle, lsd: (T, W, T) window w of texture i against model j, dB;
+    whittle_bare: the same as whittle against the bare model spectra, without the sensor's noise floor
+    (the physical rule as first written down, kept to show what the noise floor changed)."""
 
     name: str
     textures: list[str]
@@ -53,6 +55,7 @@ class World:
     perceptual_d: np.ndarray
     whittle: np.ndarray
     lsd: np.ndarray
+    whittle_bare: np.ndarray
 
     def metrics(self) -> dict[str, np.ndarray]:
         return {
@@ -64,7 +67,8 @@ class World:
 
 
 def load_world(dataset: str | Path, predictions: str | Path, windows: int = WINDOWS_PER_TEXTURE) -> World:
-    """The rated textures of `dataset` that `predictions` (a results.json of `hapticlink evaluate`) holds."""
+    """The rated textures of `dataset` that `predictions` (a results.json of `hapticlink evaluate`) holds;
+    `windows` per texture (fewer when a recording is shorter: the shortest sets the count for all)."""
     ds = Dataset(dataset)
     pred = json.loads(Path(predictions).read_text())["predictions"]
     means = ds.mean_ratings()
@@ -93,14 +97,20 @@ def load_world(dataset: str | Path, predictions: str | Path, windows: int = WIND
         weighted_d[i] = np.sqrt((diff2 * weights).sum(axis=-1) / weights.sum()).mean(axis=1)
     mu = np.array([m.mu for m in models])
     table = SpectralTable(textures, models)
+    bare = SpectralTable(textures, models, noise_psd=0.0)
     config = TactileConfig()
+    per_texture = [_windows(ds, t, config) for t in textures]
+    windows = min(windows, *(len(s) for _, s, _ in per_texture))  # the same count for every texture
     whittle = np.zeros((T, windows, T))
     lsd = np.zeros((T, windows, T))
-    for i, t in enumerate(textures):
-        accel, speed, force = _windows(ds, t, config, windows)
+    whittle_bare = np.zeros((T, windows, T))
+    for i, (accel, speed, force) in enumerate(per_texture):
+        keep = np.linspace(0, len(speed) - 1, windows).round().astype(int)
+        accel, speed, force = accel[keep], speed[keep], force[keep]
         for w in range(windows):
             whittle[i, w] = table.mismatch_db(accel[w], float(speed[w]), float(force[w]), "whittle")
             lsd[i, w] = table.mismatch_db(accel[w], float(speed[w]), float(force[w]), "lsd")
+            whittle_bare[i, w] = bare.mismatch_db(accel[w], float(speed[w]), float(force[w]), "whittle")
     return World(
         name=ds.name,
         textures=textures,
@@ -113,23 +123,22 @@ def load_world(dataset: str | Path, predictions: str | Path, windows: int = WIND
         perceptual_d=np.linalg.norm(predicted[:, None, :] - truth[None, :, :], axis=-1),
         whittle=whittle,
         lsd=lsd,
+        whittle_bare=whittle_bare,
     )
 
 
-def _windows(ds: Dataset, texture: str, config: TactileConfig, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """n windows of the texture's first recording, evenly spread over it, as the service's preprocessor
-    makes them: accel (n, L, k) m/s², mean speed (n,) mm/s, mean normal force (n,) N."""
+def _windows(ds: Dataset, texture: str, config: TactileConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The windows of the texture's first recording as the service's preprocessor makes them:
+    accel (n, L, k) m/s², mean speed (n,) mm/s, mean normal force (n,) N."""
     rec = ds.recordings(texture)[0]
     pre = TactilePreprocessor(config, max_buffer_s=None)
     pre.push(accel=rec.accel, force=rec.force, speed=rec.speed, position=rec.position)
     pre.flush()
     batch = pre.take()
-    if len(batch) < n:
-        raise ValueError(f"texture {texture!r}: its recording holds {len(batch)} windows, fewer than {n}")
-    pick = np.linspace(0, len(batch) - 1, n).round().astype(int)
-    force = batch.force[pick]
-    normal = force[..., 0] if force.ndim == 3 else force
-    return batch.accel[pick], batch.speed[pick].mean(axis=1), normal.mean(axis=1)
+    if len(batch) == 0:
+        raise ValueError(f"texture {texture!r}: its recording holds no complete window")
+    normal = batch.force[..., 0] if batch.force.ndim == 3 else batch.force
+    return batch.accel, batch.speed.mean(axis=1), normal.mean(axis=1)
 
 
 # ---- rules: per stroked texture i, its pick(s) from a library (a boolean mask over textures) ----------
@@ -173,7 +182,7 @@ def run_rules(world: World) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
     """Per rule, per metric, (T,) per-texture values; and the hybrid's per-fold weights."""
     T = len(world.textures)
     out: dict[str, dict[str, np.ndarray]] = {}
-    per_rule_picks: dict[str, list[np.ndarray]] = {r: [] for r in ("perceptual", "oracle-perceptual", "oracle-spectral", "physical", "physical-lsd", "hybrid")}
+    per_rule_picks: dict[str, list[np.ndarray]] = {r: [] for r in RULE_ORDER if r != "random"}
     fold_weights = []
     true_perceptual = np.linalg.norm(world.truth[:, None, :] - world.truth[None, :, :], axis=-1)
     for i in range(T):
@@ -184,6 +193,7 @@ def run_rules(world: World) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
         per_rule_picks["oracle-spectral"].append(np.array([_window_picks(world.spectral_d[i], library)]))
         per_rule_picks["physical"].append(_window_picks(world.whittle[i], library))
         per_rule_picks["physical-lsd"].append(_window_picks(world.lsd[i], library))
+        per_rule_picks["physical-no-noise-floor"].append(_window_picks(world.whittle_bare[i], library))
         weight, _ = tune_weight(world, library)  # the outer texture is neither stroked nor in the library here
         fold_weights.append(weight)
         per_rule_picks["hybrid"].append(_window_picks(hybrid_costs(world, i, weight), library))
@@ -195,7 +205,23 @@ def run_rules(world: World) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
     return out, {"fold_weights": fold_weights, "served_weight": served_weight, "served_grid": served_grid}
 
 
-RULE_ORDER = ("perceptual", "random", "oracle-perceptual", "oracle-spectral", "physical", "physical-lsd", "hybrid")
+RULE_ORDER = (
+    "perceptual",
+    "random",
+    "oracle-perceptual",
+    "oracle-spectral",
+    "physical",
+    "physical-lsd",
+    "hybrid",
+    "physical-no-noise-floor",
+)
+
+
+def self_rank(mismatch: np.ndarray) -> float:
+    """Median rank (1 = first) of a stroked texture's own model among all T by a window mismatch (T, W, T)."""
+    T = mismatch.shape[0]
+    own = mismatch[np.arange(T), :, np.arange(T)]  # (T, W)
+    return float(np.median((mismatch < own[:, :, None]).sum(axis=-1) + 1))
 
 
 def summarise(world: World, per_texture: dict[str, dict[str, np.ndarray]], seed: int = 0) -> list[dict]:
