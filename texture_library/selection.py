@@ -250,13 +250,18 @@ class Choice:
 
 
 class HysteresisChooser:
-    """Keeps the current choice until a challenger is cheaper by `margin` for `hold` windows in a row."""
+    """Keeps the current choice until a challenger is cheaper by `margin` for `hold` windows in a row.
 
-    def __init__(self, rule: SelectionRule, margin: float = 5.0, hold: int = 2):
-        if not (np.isfinite(margin) and margin >= 0) or hold < 1:
-            raise ValueError(f"margin must be finite and ≥ 0 and hold ≥ 1, got {margin}, {hold}")
-        self.rule, self.margin, self.hold = rule, float(margin), int(hold)
+    For its first `settle` windows the chooser follows the rule directly: the smoothed estimate is
+    still converging from one window, and holding its first guess would only delay the switch to the
+    settled choice (and count as a flip later)."""
+
+    def __init__(self, rule: SelectionRule, margin: float = 5.0, hold: int = 2, settle: int = 0):
+        if not (np.isfinite(margin) and margin >= 0) or hold < 1 or settle < 0:
+            raise ValueError(f"margin must be finite and ≥ 0, hold ≥ 1 and settle ≥ 0, got {margin}, {hold}, {settle}")
+        self.rule, self.margin, self.hold, self.settle = rule, float(margin), int(hold), int(settle)
         self.current: str | None = None
+        self.windows = 0
         self._challenger: str | None = None
         self._streak = 0
 
@@ -266,10 +271,13 @@ class HysteresisChooser:
             raise ValueError(f"costs must be {len(ids)} finite values, one per id, got shape {c.shape}")
         k = int(np.argmin(c))
         best = ids[k]
-        if self.current is None or self.current not in ids or best == self.current:
-            # first window, a library that lost the current entry, or the rule agrees: no hysteresis at work
+        self.windows += 1
+        settling = self.windows <= self.settle
+        if self.current is None or self.current not in ids or best == self.current or settling:
+            # first windows, a library that lost the current entry, or the rule agrees: no hysteresis at work
             self.current, self._challenger, self._streak = best, None, 0
-            return Choice(best, self.rule.name, self.rule.describe(c, k), False, self._switch_margin(ids, c))
+            reason = self.rule.describe(c, k) + (" — settling: no hysteresis yet" if settling else "")
+            return Choice(best, self.rule.name, reason, False, self._switch_margin(ids, c))
         gain = float(c[list(ids).index(self.current)] - c[k])
         if gain < self.margin:
             self._challenger, self._streak = None, 0
