@@ -124,10 +124,16 @@ class Settings(BaseSettings):
         "nearest to the estimated ratings, the library model the window's vibration fits best, or both",
     )
     selection_weight: float = Field(
-        4.0, ge=0, le=1000, description="hybrid: bipolar rating distance per dB of vibration mismatch (hapticlink fidelity tunes it)"
+        4.0,
+        ge=0,
+        le=1000,
+        description="hybrid: bipolar rating distance per dB of vibration mismatch (hapticlink fidelity tunes it)",
     )
     selection_sensor_noise: float = Field(
-        0.05, ge=0, le=10, description="the robots' accelerometer white noise, m/s² RMS per axis (the vibration fit's noise floor)"
+        0.05,
+        ge=0,
+        le=10,
+        description="the robots' accelerometer white noise, m/s² RMS per axis (the vibration fit's noise floor)",
     )
     hysteresis_margin: float = Field(
         12.0, ge=0, description="cost a challenger must gain to replace the choice, in the selection rule's units"

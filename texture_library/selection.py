@@ -164,7 +164,10 @@ class SpectralTable:
         j, b = _cell(self.forces, force)
         t = self.log_psd
         mixed = (
-            (1 - a) * (1 - b) * t[:, i, j] + a * (1 - b) * t[:, i + 1, j] + (1 - a) * b * t[:, i, j + 1] + a * b * t[:, i + 1, j + 1]
+            (1 - a) * (1 - b) * t[:, i, j]
+            + a * (1 - b) * t[:, i + 1, j]
+            + (1 - a) * b * t[:, i, j + 1]
+            + a * b * t[:, i + 1, j + 1]
         )
         return 10.0 ** mixed.astype(np.float64)
 

@@ -4,8 +4,9 @@ The curve approximates the Pacinian (P) channel's U-shaped detection threshold f
 vibration at the glabrous skin, Bolanowski, Gescheider, Verrillo & Checkosky, "Four channels mediate
 the mechanical aspects of touch", J. Acoust. Soc. Am. 84(5):1680–1694, 1988 (after Verrillo 1963):
 lowest near 250 Hz, about −20 dB re 1 µm of displacement, rising about 12 dB per octave on either
-side; below roughly 40 Hz the non-Pacinian channels take over and the threshold levels off (here a
-floor of +28 dB re 1 µm). It is an approximation for weighting, not a model of any one person.
+side. Below about 40 Hz the non-Pacinian channels set the threshold instead and the true curve
+flattens; this one keeps rising, so it weighs 20–40 Hz somewhat less than people would. It is an
+approximation for weighting over the 20–500 Hz band, not a model of any one person.
 """
 
 from __future__ import annotations
@@ -18,8 +19,6 @@ BEST_FREQUENCY_HZ = 250.0
 MIN_THRESHOLD_DB = -20.0
 #: rise of the Pacinian threshold per octave away from BEST_FREQUENCY_HZ, dB
 SLOPE_DB_PER_OCTAVE = 12.0
-#: the non-Pacinian channels' level, a ceiling on the threshold at low frequencies, dB re 1 µm
-NON_PACINIAN_DB = 28.0
 
 
 def detection_threshold_db(freqs_hz: np.ndarray) -> np.ndarray:
@@ -27,8 +26,7 @@ def detection_threshold_db(freqs_hz: np.ndarray) -> np.ndarray:
     f = np.asarray(freqs_hz, float)
     if f.ndim != 1 or f.size == 0 or not np.all(np.isfinite(f)) or np.any(f <= 0):
         raise ValueError(f"freqs_hz must be a non-empty 1-D array of frequencies > 0 Hz, got {freqs_hz!r}")
-    pacinian = MIN_THRESHOLD_DB + SLOPE_DB_PER_OCTAVE * np.abs(np.log2(f / BEST_FREQUENCY_HZ))
-    return np.minimum(pacinian, NON_PACINIAN_DB)
+    return MIN_THRESHOLD_DB + SLOPE_DB_PER_OCTAVE * np.abs(np.log2(f / BEST_FREQUENCY_HZ))
 
 
 def sensitivity_weights(freqs_hz: np.ndarray) -> np.ndarray:

@@ -37,7 +37,10 @@ def _fidelity(args: argparse.Namespace) -> int:
         print(f"--windows must be ≥ 1, got {args.windows}", file=sys.stderr)
         return 2
     parts = []
-    for dataset, predictions in ((args.dataset, args.predictions), (args.synthetic_dataset, args.synthetic_predictions)):
+    for dataset, predictions in (
+        (args.dataset, args.predictions),
+        (args.synthetic_dataset, args.synthetic_predictions),
+    ):
         if dataset is None:
             parts.append(None)
             continue
@@ -51,8 +54,10 @@ def _fidelity(args: argparse.Namespace) -> int:
         parts.append((world, per_texture, rows, info))
         print(f"{world.name}: {len(world.textures)} textures; hybrid weight for serving {info['served_weight']:g}")
         for r in rows:
-            print(f"  {r['rule']:<24} rating {r['rating_distance']:6.2f}  spectral {r['spectral_distance_db']:6.2f} dB"
-                  f"  weighted {r['weighted_spectral_distance_db']:6.2f} dB  |Δμ| {r['mu_difference']:.3f}")
+            print(
+                f"  {r['rule']:<24} rating {r['rating_distance']:6.2f}  spectral {r['spectral_distance_db']:6.2f} dB"
+                f"  weighted {r['weighted_spectral_distance_db']:6.2f} dB  |Δμ| {r['mu_difference']:.3f}"
+            )
     command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     out = write_report(Path(args.out), command, args.default_rule, parts[0], parts[1])
     print(f"wrote {out}/README.md and results.json")

@@ -172,8 +172,14 @@ def tune_weight(world: World, train: np.ndarray) -> tuple[float, list[dict]]:
             picks[k] = _window_picks(hybrid_costs(world, j, weight), library)
         s = _score_picks(world, inner, picks)
         rd, sd = float(s["rating_distance"].mean()), float(s["spectral_distance_db"].mean())
-        rows.append({"weight": weight, "rating_distance": rd, "spectral_distance_db": sd,
-                     "score": max(rd / RATING_TARGET, sd / SPECTRAL_TARGET_DB)})
+        rows.append(
+            {
+                "weight": weight,
+                "rating_distance": rd,
+                "spectral_distance_db": sd,
+                "score": max(rd / RATING_TARGET, sd / SPECTRAL_TARGET_DB),
+            }
+        )
     best = min(range(len(rows)), key=lambda k: (round(rows[k]["score"], 12), WEIGHTS[k]))
     return WEIGHTS[best], rows
 
@@ -198,7 +204,9 @@ def run_rules(world: World) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
         fold_weights.append(weight)
         per_rule_picks["hybrid"].append(_window_picks(hybrid_costs(world, i, weight), library))
     for rule, picks in per_rule_picks.items():
-        out[rule] = {name: np.array([m[i, p].mean() for i, p in enumerate(picks)]) for name, m in world.metrics().items()}
+        out[rule] = {
+            name: np.array([m[i, p].mean() for i, p in enumerate(picks)]) for name, m in world.metrics().items()
+        }
     off = ~np.eye(T, dtype=bool)
     out["random"] = {name: (m * off).sum(axis=1) / (T - 1) for name, m in world.metrics().items()}
     served_weight, served_grid = tune_weight(world, np.ones(T, bool))
