@@ -47,6 +47,14 @@ def test_white_noise_on_three_axes_has_three_times_two_sigma_squared_over_the_ra
     assert sensor_noise_psd(0.3) == pytest.approx(3 * 2 * 0.09 / 1000.0)
 
 
+def test_window_psd_equals_scipy_welch_summed_over_axes():
+    from scipy.signal import welch
+
+    accel = np.random.default_rng(1).standard_normal((500, 6))
+    _, ref = welch(accel[:, :3], fs=1000.0, window="hann", nperseg=128, noverlap=64, axis=0)
+    np.testing.assert_allclose(window_psd(accel), ref.sum(axis=1), rtol=1e-10)
+
+
 def test_window_psd_refuses_short_or_non_finite_windows():
     with pytest.raises(ValueError, match="L ≥ 128"):
         window_psd(np.zeros((100, 3)))
