@@ -16,6 +16,7 @@ challenger must be cheaper by `margin` (in the rule's units) for `hold` windows 
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,7 +34,7 @@ WELCH_SEGMENT = 128
 HIGHPASS_HZ = 20.0
 HIGHPASS_ORDER = 4
 #: per-axis white noise of the simulated robot's accelerometer, m/s² RMS (texture_library.stroke's default)
-SIMULATED_SENSOR_NOISE = float(stroke.__kwdefaults__["noise_std"])
+SIMULATED_SENSOR_NOISE = float(inspect.signature(stroke).parameters["noise_std"].default)
 _DB = 10.0 / np.log(10.0)
 _FLOOR = 1e-12  # (m/s²)²/Hz under a spectrum before a log or a ratio
 
@@ -203,7 +204,7 @@ class SpectralTable:
 
 def _cell(grid: np.ndarray, x: float) -> tuple[int, float]:
     x = float(np.clip(x, grid[0], grid[-1]))
-    i = int(min(np.searchsorted(grid, x, side="right") - 1, grid.size - 2))
+    i = min(int(np.searchsorted(grid, x, side="right")) - 1, grid.size - 2)
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
 
 

@@ -36,7 +36,7 @@ def _fidelity(args: argparse.Namespace) -> int:
     if args.windows < 1:
         print(f"--windows must be ≥ 1, got {args.windows}", file=sys.stderr)
         return 2
-    parts = []
+    parts: list = []
     for dataset, predictions in (
         (args.dataset, args.predictions),
         (args.synthetic_dataset, args.synthetic_predictions),

@@ -40,8 +40,18 @@ def pareto_chart(rows: list[dict], title: str, path: Path, default_rule: str) ->
     for r in rows:
         x, y = r["spectral_distance_db"], r["rating_distance"]
         (xl, xh), (yl, yh) = r["ci95"]["spectral_distance_db"], r["ci95"]["rating_distance"]
-        style = {"color": "C3", "marker": "*", "ms": 14} if r["rule"] == default_rule else {"marker": "o", "ms": 7}
-        ax.errorbar(x, y, xerr=[[x - xl], [xh - x]], yerr=[[y - yl], [yh - y]], capsize=3, ls="none", **style)
+        star = r["rule"] == default_rule
+        ax.errorbar(
+            x,
+            y,
+            xerr=[[x - xl], [xh - x]],
+            yerr=[[y - yl], [yh - y]],
+            capsize=3,
+            ls="none",
+            marker="*" if star else "o",
+            ms=14 if star else 7,
+            color="C3" if star else None,
+        )
         below = r["rule"] in ("physical-lsd", "physical-no-noise-floor")  # neighbours of physical / random
         ax.annotate(r["rule"], (x, y), textcoords="offset points", xytext=(6, -14 if below else 6), fontsize=9)
     ax.axvline(SPECTRAL_TARGET_DB, color="grey", ls="--", lw=1)

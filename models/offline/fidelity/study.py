@@ -169,7 +169,7 @@ def tune_weight(world: World, train: np.ndarray) -> tuple[float, list[dict]]:
         for k, j in enumerate(inner):
             library = train.copy()
             library[j] = False
-            picks[k] = _window_picks(hybrid_costs(world, j, weight), library)
+            picks[k] = _window_picks(hybrid_costs(world, int(j), weight), library)
         s = _score_picks(world, inner, picks)
         rd, sd = float(s["rating_distance"].mean()), float(s["spectral_distance_db"].mean())
         rows.append(
