@@ -7,6 +7,7 @@ benchmark runs one and two replicas; the deploy benchmark runs when nginx and re
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from benchmarks import features, hostile, service, uncertainty, visual
 
@@ -18,6 +19,13 @@ def main(argv: list[str]) -> int:
     visual.main([])
     print("\n== uncertainty per window: OOD check, interval ==", flush=True)
     uncertainty.main([])
+    print("\n== selection per window: the hybrid's vibration fit against the perceptual rule ==", flush=True)
+    if (Path("..") / "shared" / "data" / "hatt-texnet" / "models").is_dir():
+        from benchmarks import selection
+
+        selection.main([])
+    else:
+        print("(skipping benchmarks.selection: it reads HaTT's models from ../shared/data/hatt-texnet)", flush=True)
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)

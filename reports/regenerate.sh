@@ -102,5 +102,10 @@ hl evaluate --dataset $P --model svr-both --extra-groups --out reports/physics-h
 hl report --dataset $S --reports reports/synthetic --regenerate "bash reports/regenerate.sh"
 hl report --dataset $P --reports reports/physics-hatt-texnet --regenerate "bash reports/regenerate.sh"
 
+# ---- what the operator feels: selection rules leave-one-texture-out (reports/fidelity) ------------
+hl fidelity --dataset $H --predictions reports/hatt-texnet/selected/results.json \
+  --synthetic-dataset $S --synthetic-predictions reports/synthetic/ridge-both+friction+spatial+taps/results.json \
+  --out reports/fidelity
+
 # ---- speed–accuracy frontier, robustness, calibrated intervals --------------------------------
 bash reports/tradeoffs/regenerate.sh

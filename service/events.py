@@ -94,6 +94,19 @@ class Latency(BaseModel):
     total: float
 
 
+class SelectionOut(BaseModel):
+    """Why `chosen` is the entry to render."""
+
+    model_config = ConfigDict(extra="forbid")
+    rule: str = Field(description="the selection rule: perceptual, physical, physical-lsd or hybrid")
+    reason: str = Field(description="one short sentence: why this entry")
+    held_by_hysteresis: bool = Field(description="the rule's own pick this window is another entry; hysteresis holds")
+    switch_margin: float | None = Field(
+        description="how much cheaper, in the rule's units, the best other entry must get before the choice "
+        "switches; null when the library holds one entry"
+    )
+
+
 class WindowEvent(BaseModel):
     """One analysed window."""
 
@@ -123,6 +136,7 @@ class WindowEvent(BaseModel):
     steadiness: Steadiness
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
+    selection: SelectionOut | None = Field(None, description="why `chosen` was chosen (absent from older servers)")
     latency_ms: Latency
     model: str = Field(
         description="the model that produced raw_ratings (under the adaptive policy: the cheap model, or "
@@ -163,6 +177,18 @@ def _interval(a: Assessment) -> dict | None:
     }
 
 
+def _selection(w: WindowEstimate) -> dict | None:
+    c = w.selection
+    if c is None:
+        return None
+    return {
+        "rule": c.rule,
+        "reason": c.reason,
+        "held_by_hysteresis": c.held_by_hysteresis,
+        "switch_margin": None if c.switch_margin is None else round(c.switch_margin, 3),
+    }
+
+
 def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
     """The window event for `w` (the one place it is built), with its total latency measured to `published_ns`."""
     ms = 1e-6
@@ -181,6 +207,7 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         "steadiness": _ratings(w.steadiness, 3),
         "matches": [{"id": m.id, "distance": round(m.distance, 3)} for m in w.matches],
         "chosen": w.chosen,
+        "selection": _selection(w),
         "latency_ms": {
             "queue": round(max(0, w.started_ns - w.ingest_ns) * ms, 3),
             "features": round(w.features_ms, 3),

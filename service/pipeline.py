@@ -11,7 +11,9 @@
                 model first and the full one where it is not good enough) and each window's
                 out-of-distribution check by the detector of the model that estimated it (predict)
     lookup      RawRatings ─▶ WindowEstimate per window: EMA, steadiness, interval and flag,
-                nearest library entries, hysteresis                          (lookup)
+                nearest library entries, the selection rule's choice (the window's vibration
+                against the library's precomputed spectra where the rule reads it) and its
+                hysteresis                                                    (lookup)
     publish     WindowEstimate ─▶ window event ─▶ broker                     (service.session, event loop)
 
 `estimate_batch` runs window batch → lookup for many sessions in one pool call: window_features and
@@ -37,8 +39,9 @@ from models.tactile.stream import StreamContract
 from service.runtime import Runtime
 from service.smoothing import ExponentialSmoother, Steadiness
 from service.uncertainty import Assessment, ServedModel, SessionUncertainty
-from texture_library.nearest import HysteresisSelector, Match, decision_margin
+from texture_library.nearest import Match, decision_margin
 from texture_library.recording import Channel
+from texture_library.selection import Choice, HysteresisChooser
 
 #: what a window's estimate was computed from (the window event's "inputs")
 Inputs = Literal["tactile", "tactile+visual"]
@@ -155,6 +158,7 @@ class WindowEstimate:
     lookup_ms: float
     inputs: Inputs
     model: str
+    selection: Choice | None = None
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,7 @@ class SessionEstimator:
         top_k: int,
         hysteresis_margin: float,
         hysteresis_hold: int,
+        hysteresis_settle: int = 0,
     ) -> None:
         self.runtime = runtime
         self.contract = contract
@@ -189,7 +194,9 @@ class SessionEstimator:
         self.smoother = ExponentialSmoother(alpha)
         self.steadiness = Steadiness(steadiness_windows)
         self.uncertainty = SessionUncertainty(alpha, runtime.interval_level)
-        self.selector = HysteresisSelector(hysteresis_margin, hysteresis_hold)
+        self.selector = HysteresisChooser(runtime.selection, hysteresis_margin, hysteresis_hold, hysteresis_settle)
+        self.alpha = alpha
+        self.mismatch: np.ndarray | None = None  # EMA of the windows' vibration mismatch per entry, dB
         self.segment = -1
         self.taken = 0  # windows taken from the current segment
         self.next_index = 0  # session-wide window counter
@@ -206,7 +213,16 @@ class SessionEstimator:
             top_k=settings.top_k,
             hysteresis_margin=settings.hysteresis_margin,
             hysteresis_hold=settings.hysteresis_hold,
+            hysteresis_settle=settings.hysteresis_settle_windows,
         )
+
+    def smoothed_mismatch(self, mismatch: np.ndarray) -> np.ndarray:
+        """The window's vibration mismatch (M,) dB, smoothed by the same EMA as the ratings."""
+        if self.mismatch is None or self.mismatch.shape != mismatch.shape:
+            self.mismatch = mismatch
+        else:
+            self.mismatch = self.alpha * mismatch + (1.0 - self.alpha) * self.mismatch
+        return self.mismatch
 
     def restart(self) -> None:
         """Forget the current segment (after a failure left the preprocessor's state unknown)."""
@@ -363,7 +379,16 @@ def lookup(
         )
         distances = rt.index.distances(smoothed)  # once, for the matches and the choice
         matches = rt.index.query(smoothed, est.top_k, distances)
-        chosen = est.selector.update(rt.index, smoothed, distances)
+        mismatch = None
+        if rt.spectra is not None:
+            force = p.batch.force[i]
+            normal = force[:, 0] if force.ndim == 2 else force
+            mismatch = est.smoothed_mismatch(
+                rt.spectra.mismatch_db(
+                    p.batch.accel[i], float(p.batch.speed[i].mean()), float(normal.mean()), rt.selection.mismatch_kind
+                )
+            )
+        choice = est.selector.choose(rt.index.ids, rt.selection.costs(distances, mismatch))
         lookup_ms = (time.perf_counter_ns() - t0) / 1e6
         t_start = p.origin_t0 + float(p.batch.t_start_s[i])
         out.append(
@@ -376,7 +401,7 @@ def lookup(
                 steadiness=steadiness,
                 assessment=assessment,
                 matches=matches,
-                chosen=chosen,
+                chosen=choice.id,
                 completed_by=seq,
                 ingest_ns=arrived_ns,
                 started_ns=started_ns,
@@ -385,6 +410,7 @@ def lookup(
                 lookup_ms=lookup_ms,
                 model=models[i].name,
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
+                selection=choice,
             )
         )
         est.next_index += 1

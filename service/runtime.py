@@ -27,6 +27,7 @@ from service.settings import Settings
 from service.uncertainty import ServedModel
 from texture_library.library import Library
 from texture_library.nearest import PerceptualIndex
+from texture_library.selection import SelectionRule, SpectralTable, sensor_noise_psd
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,9 @@ class Runtime:
     interval_level: nominal coverage of the published intervals (and of those the adaptive policy reads);
     tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
     backbone / visual_columns: set when the model reads visual features and a backbone is configured;
-    problem: why the service cannot estimate (None when it can), shown by GET /ready.
+    problem: why the service cannot estimate (None when it can), shown by GET /ready;
+    selection: the rule that picks the entry to render; spectra: the library's vibration spectra on a
+    speed–force grid, precomputed at load for a rule that reads the window's vibration (else None).
     """
 
     main: ServedModel
@@ -63,6 +66,8 @@ class Runtime:
     problem: str | None
     load_s: float
     interval_level: float = 0.9
+    selection: SelectionRule = SelectionRule()
+    spectra: SpectralTable | None = None
 
     @property
     def predictor(self) -> Predictor:
@@ -181,6 +186,20 @@ def load_runtime(settings: Settings) -> Runtime:
     alpha = settings.smoothing_alpha
     library = Library.load(settings.library_dir)
     index = PerceptualIndex(library.ids, library.ratings, np.asarray(settings.nearest_weights))
+    selection = SelectionRule(settings.selection_rule, settings.selection_weight)
+    spectra = None
+    if selection.needs_spectrum:
+        spectra = SpectralTable(
+            library.ids,
+            [library.model(i) for i in library.ids],
+            highpass_hz=tactile_config.accel_highpass_hz,
+            noise_psd=sensor_noise_psd(settings.selection_sensor_noise, rate_hz=tactile_config.rate_hz),
+        )
+        if spectra.rate_hz != tactile_config.rate_hz:
+            raise ValueError(
+                f"selection rule {selection.name!r} compares windows at {tactile_config.rate_hz:g} Hz with library "
+                f"models at {spectra.rate_hz:g} Hz; use the perceptual rule or a library at the model's rate"
+            )
     visual_config = VisualConfig()
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
@@ -201,6 +220,8 @@ def load_runtime(settings: Settings) -> Runtime:
         problem,
         time.perf_counter() - started,
         settings.interval_level,
+        selection,
+        spectra,
     )
 
 

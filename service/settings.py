@@ -118,10 +118,30 @@ class Settings(BaseSettings):
         (1.0, 1.0, 1.0, 1.0),
         description="per-attribute weights of the perceptual distance (JSON list in the environment)",
     )
-    hysteresis_margin: float = Field(
-        5.0, ge=0, description="bipolar distance a challenger must gain to replace the choice"
+    selection_rule: Literal["perceptual", "physical", "physical-lsd", "hybrid"] = Field(
+        "hybrid",
+        description="how the entry to render is chosen (texture_library.selection; docs/models.md, fidelity): "
+        "nearest to the estimated ratings, the library model the window's vibration fits best, or both",
     )
-    hysteresis_hold: int = Field(2, ge=1, description="windows in a row a challenger must win")
+    selection_weight: float = Field(
+        4.0,
+        ge=0,
+        le=1000,
+        description="hybrid: bipolar rating distance per dB of vibration mismatch (hapticlink fidelity tunes it)",
+    )
+    selection_sensor_noise: float = Field(
+        0.05,
+        ge=0,
+        le=10,
+        description="the robots' accelerometer white noise, m/s² RMS per axis (the vibration fit's noise floor)",
+    )
+    hysteresis_margin: float = Field(
+        12.0, ge=0, description="cost a challenger must gain to replace the choice, in the selection rule's units"
+    )
+    hysteresis_hold: int = Field(4, ge=1, description="windows in a row a challenger must win")
+    hysteresis_settle_windows: int = Field(
+        6, ge=0, le=1000, description="a session's first windows, while its smoothed estimate settles: no hysteresis"
+    )
     # ---- bounds -----------------------------------------------------------------------------------
     session_queue_windows: int = Field(
         8, ge=1, description="complete windows a session may have waiting; beyond it ingest answers 429 / closes 4429"

@@ -1,4 +1,4 @@
-"""Subcommands of the offline wing: dataset, features, evaluate, train, predict, report, tradeoffs, demo."""
+"""Subcommands of the offline wing: dataset, features, evaluate, train, predict, report, tradeoffs, demo, fidelity."""
 
 from __future__ import annotations
 
@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     register_tradeoffs(sub)
     register_demo(sub)
+    from models.offline.fidelity.cli import register as register_fidelity
+
+    register_fidelity(sub)
 
 
 def _dataset_build(args: argparse.Namespace) -> int:

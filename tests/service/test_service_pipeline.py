@@ -15,11 +15,14 @@ from websockets.sync.client import connect
 from drivers.blocks import encode_binary, encode_json
 from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
+from models.tactile.preprocess import TactilePreprocessor
 from service.events import StatusEvent, WindowEvent
+from service.settings import Settings
 from texture_library.attributes import ATTRIBUTES
 from texture_library.library import Library
-from texture_library.nearest import HysteresisSelector, PerceptualIndex
+from texture_library.nearest import PerceptualIndex
 from texture_library.recording import Channel, Recording
+from texture_library.selection import HysteresisChooser, SelectionRule, SpectralTable
 
 
 def read_windows(sub, n: int, timeout_s: float = 20.0) -> tuple[list[dict], list[dict]]:
@@ -64,15 +67,30 @@ def test_events_equal_the_offline_features_and_model(kit, server, client, librar
     served = np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows])
     assert np.allclose(served, offline, atol=0.011)  # events carry 2 decimals
 
-    # smoothing and hysteresis replayed offline give the same ratings and choices
+    # smoothing, the selection rule (hybrid: ratings and the window's vibration) and hysteresis replayed
+    # offline from the same samples give the same ratings, choices and reasons
     lib = Library.load(library_dir)
     index = PerceptualIndex(lib.ids, lib.ratings)
-    selector = HysteresisSelector(5.0, 2)
-    state = None
-    for w, raw in zip(windows, served, strict=True):
+    settings = Settings()
+    rule = SelectionRule(settings.selection_rule, settings.selection_weight)
+    table = SpectralTable(lib.ids, [lib.model(i) for i in lib.ids])
+    chooser = HysteresisChooser(
+        rule, settings.hysteresis_margin, settings.hysteresis_hold, settings.hysteresis_settle_windows
+    )
+    pre = TactilePreprocessor(predictor.tactile_config, max_buffer_s=None)
+    f32 = float32_recording(rec)
+    pre.push(accel=f32.accel, force=f32.force, speed=f32.speed)
+    batch = pre.take()
+    state = mismatch = None
+    for i, (w, raw) in enumerate(zip(windows, served, strict=True)):
         state = raw if state is None else 0.5 * raw + 0.5 * state
         assert np.allclose([w["ratings"][a] for a in ATTRIBUTES], state, atol=0.02)
-        assert w["chosen"] == selector.update(index, state)
+        m = table.mismatch_db(batch.accel[i], float(batch.speed[i].mean()), float(batch.force[i].mean()))
+        mismatch = m if mismatch is None else 0.5 * m + 0.5 * mismatch
+        choice = chooser.choose(index.ids, rule.costs(index.distances(state), mismatch))
+        assert w["chosen"] == choice.id
+        assert w["selection"]["rule"] == "hybrid" and w["selection"]["reason"] == choice.reason
+        assert w["selection"]["held_by_hysteresis"] == choice.held_by_hysteresis
         assert [m["id"] for m in w["matches"]] == [m.id for m in index.query(state, 3)]
         assert all(v >= 0 for v in w["latency_ms"].values())
         assert w["latency_ms"]["total"] >= w["latency_ms"]["queue"]

@@ -1,0 +1,64 @@
+"""`hapticlink fidelity`: score the selection rules leave-one-texture-out and write reports/fidelity."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    f = sub.add_parser(
+        "fidelity",
+        help="what the operator feels: selection rules scored leave-one-texture-out → README, charts, results.json",
+    )
+    f.add_argument("--dataset", required=True, help="HaTT–TexNet dataset directory (hapticlink dataset build)")
+    f.add_argument("--predictions", required=True, help="results.json of the served model's leave-one-texture-out run")
+    f.add_argument("--synthetic-dataset", help="synthetic-world dataset directory (strokes with surface bumps)")
+    f.add_argument("--synthetic-predictions", help="results.json of a leave-one-texture-out run on it")
+    f.add_argument("--windows", type=int, default=24, help="windows per stroked texture for per-window rules")
+    f.add_argument("--default-rule", default="hybrid", help="the rule the service serves (marked in the report)")
+    f.add_argument("--out", default="reports/fidelity")
+    f.set_defaults(func=_fidelity)
+
+
+def _fidelity(args: argparse.Namespace) -> int:
+    from models.offline.fidelity.report import write_report
+    from models.offline.fidelity.study import RULE_ORDER, load_world, run_rules, summarise
+
+    if args.default_rule not in RULE_ORDER:
+        print(f"--default-rule must be one of {RULE_ORDER}, got {args.default_rule!r}", file=sys.stderr)
+        return 2
+    if (args.synthetic_dataset is None) != (args.synthetic_predictions is None):
+        print("--synthetic-dataset and --synthetic-predictions go together", file=sys.stderr)
+        return 2
+    if args.windows < 1:
+        print(f"--windows must be ≥ 1, got {args.windows}", file=sys.stderr)
+        return 2
+    parts: list = []
+    for dataset, predictions in (
+        (args.dataset, args.predictions),
+        (args.synthetic_dataset, args.synthetic_predictions),
+    ):
+        if dataset is None:
+            parts.append(None)
+            continue
+        try:
+            world = load_world(dataset, predictions, args.windows)
+        except (ValueError, OSError, KeyError) as exc:
+            print(f"fidelity: {exc}", file=sys.stderr)
+            return 1
+        per_texture, info = run_rules(world)
+        rows = summarise(world, per_texture)
+        parts.append((world, per_texture, rows, info))
+        print(f"{world.name}: {len(world.textures)} textures; hybrid weight for serving {info['served_weight']:g}")
+        for r in rows:
+            print(
+                f"  {r['rule']:<24} rating {r['rating_distance']:6.2f}  spectral {r['spectral_distance_db']:6.2f} dB"
+                f"  weighted {r['weighted_spectral_distance_db']:6.2f} dB  |Δμ| {r['mu_difference']:.3f}"
+            )
+    command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    out = write_report(Path(args.out), command, args.default_rule, parts[0], parts[1])
+    print(f"wrote {out}/README.md and results.json")
+    return 0

@@ -1,0 +1,165 @@
+"""Selection rules: the window's spectrum, the likelihood against precomputed library spectra, the hysteresis
+that keeps the rendered entry from flickering, and the vibrotactile weighting."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from texture_library.selection import (
+    HysteresisChooser,
+    SelectionRule,
+    SpectralTable,
+    lsd_mismatch_db,
+    sensor_noise_psd,
+    welch_frequencies,
+    whittle_mismatch_db,
+    window_psd,
+)
+from texture_library.spectrum import arma_psd
+from texture_library.synthesis import render
+from texture_library.vibrotactile import detection_threshold_db, sensitivity_weights
+
+from .conftest import square_model
+
+
+def shifted(model, hz: float, name: str):
+    """The square model with its first AR pole moved by `hz` (another texture, a known distance away)."""
+    from texture_library.lsf import poles_to_poly, poly_to_lsf
+
+    ar = [
+        poly_to_lsf(poles_to_poly(np.array([60.0 + s / 2 + hz, 300.0]), np.array([0.9, 0.8]), 1000.0))
+        for s in model.speeds
+    ]
+    return dataclasses.replace(model, name=name, ar_lsf=np.array(ar))
+
+
+# ---- the window's spectrum --------------------------------------------------------------------------
+def test_white_noise_on_three_axes_has_three_times_two_sigma_squared_over_the_rate():
+    rng = np.random.default_rng(0)
+    accel = 0.3 * rng.standard_normal((200_000, 3))
+    psd = window_psd(accel)
+    f = welch_frequencies()
+    inside = (f > 10) & (f < 490)
+    np.testing.assert_allclose(psd[inside].mean(), 3 * 2 * 0.09 / 1000.0, rtol=0.02)
+    assert sensor_noise_psd(0.3) == pytest.approx(3 * 2 * 0.09 / 1000.0)
+
+
+def test_window_psd_equals_scipy_welch_summed_over_axes():
+    from scipy.signal import welch
+
+    accel = np.random.default_rng(1).standard_normal((500, 6))
+    _, ref = welch(accel[:, :3], fs=1000.0, window="hann", nperseg=128, noverlap=64, axis=0)
+    np.testing.assert_allclose(window_psd(accel), ref.sum(axis=1), rtol=1e-10)
+
+
+def test_window_psd_refuses_short_or_non_finite_windows():
+    with pytest.raises(ValueError, match="L ≥ 128"):
+        window_psd(np.zeros((100, 3)))
+    bad = np.zeros((500, 3))
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        window_psd(bad)
+
+
+# ---- mismatch ---------------------------------------------------------------------------------------
+def test_mismatch_is_zero_for_a_perfect_fit_and_the_rms_db_for_a_level_offset():
+    s = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0]])
+    p = np.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(lsd_mismatch_db(p, s), [0.0, 10 * np.log10(2)], atol=1e-12)
+    w = whittle_mismatch_db(p, s)
+    assert w[0] == pytest.approx(0.0, abs=1e-9)
+    r = 0.5  # P/S for the second model: per bin r − ln r − 1
+    assert w[1] == pytest.approx(10 / np.log(10) * np.sqrt(2 * (r - np.log(r) - 1)))
+    with pytest.raises(ValueError, match="same bins"):
+        whittle_mismatch_db(p, s[:, :2])
+
+
+def test_the_table_reads_the_exact_spectra_at_grid_points_with_noise_and_high_pass():
+    m = square_model()
+    table = SpectralTable(["a"], [m], n_speeds=5, n_forces=5, noise_psd=1e-4, highpass_hz=20.0)
+    speed, force = table.speeds[2], table.forces[3]  # a grid point: no interpolation
+    exact = arma_psd(m, [speed], [force], table.freqs_hz)[0] + 1e-4
+    response = 1 / (1 + (20.0 / table.freqs_hz) ** 8)
+    np.testing.assert_allclose(table.at(speed, force)[0], exact * response, rtol=1e-5)
+    assert table.freqs_hz.min() >= 20.0 and table.freqs_hz.max() < 500.0
+    with pytest.raises(ValueError, match="finite"):
+        table.at(float("nan"), 1.0)
+
+
+def test_a_rendered_window_is_most_likely_under_its_own_model():
+    m = square_model()
+    library = [shifted(m, -40.0, "lower"), m, shifted(m, 40.0, "higher")]
+    table = SpectralTable(["lower", "own", "higher"], library, highpass_hz=None, noise_psd=0.0)
+    rng = np.random.default_rng(3)
+    wins = 0
+    for _ in range(20):
+        accel = render(m, np.full(500, 120.0), np.full(500, 1.5), rng)
+        for kind in ("whittle", "lsd"):
+            wins += int(np.argmin(table.mismatch_db(accel, 120.0, 1.5, kind)) == 1)
+    assert wins == 40
+
+
+# ---- rules ------------------------------------------------------------------------------------------
+def test_rules_combine_rating_distance_and_mismatch():
+    d, mm = np.array([1.0, 5.0]), np.array([10.0, 2.0])
+    np.testing.assert_allclose(SelectionRule("perceptual").costs(d, None), d)
+    np.testing.assert_allclose(SelectionRule("physical").costs(None, mm), mm)
+    np.testing.assert_allclose(SelectionRule("hybrid", 0.5).costs(d, mm), [6.0, 6.0])
+    assert not SelectionRule("hybrid", 0.0).needs_spectrum and SelectionRule("hybrid", 1.0).needs_spectrum
+    with pytest.raises(ValueError, match="one of"):
+        SelectionRule("loudest")
+    with pytest.raises(ValueError, match="≥ 0"):
+        SelectionRule("hybrid", -1.0)
+    with pytest.raises(ValueError, match="spectral mismatch"):
+        SelectionRule("hybrid", 1.0).costs(d, None)
+
+
+# ---- hysteresis -------------------------------------------------------------------------------------
+def test_hysteresis_holds_until_a_challenger_wins_by_the_margin_for_hold_windows():
+    ids = ["a", "b"]
+    ch = HysteresisChooser(SelectionRule("perceptual"), margin=3.0, hold=2)
+    first = ch.choose(ids, np.array([1.0, 5.0]))
+    assert first.id == "a" and not first.held_by_hysteresis and first.switch_margin == pytest.approx(7.0)
+    small = ch.choose(ids, np.array([4.0, 2.0]))  # b nearer by 2 < 3: held
+    assert small.id == "a" and small.held_by_hysteresis and small.switch_margin == pytest.approx(1.0)
+    assert "under the margin" in small.reason
+    once = ch.choose(ids, np.array([6.0, 2.0]))  # nearer by 4, first window of the streak
+    assert once.id == "a" and once.held_by_hysteresis and once.switch_margin == 0.0
+    twice = ch.choose(ids, np.array([6.0, 2.0]))
+    assert twice.id == "b" and not twice.held_by_hysteresis
+    assert twice.reason.startswith("nearest to the estimated ratings")
+
+
+def test_settling_windows_follow_the_rule_and_say_so():
+    ch = HysteresisChooser(SelectionRule("physical"), margin=100.0, hold=5, settle=2)
+    assert ch.choose(["a", "b"], np.array([1.0, 2.0])).id == "a"
+    c = ch.choose(["a", "b"], np.array([2.0, 1.0]))
+    assert c.id == "b" and not c.held_by_hysteresis and "settling" in c.reason
+    assert ch.choose(["a", "b"], np.array([2.0, 1.5])).id == "b"
+    held = ch.choose(["a", "b"], np.array([1.0, 2.0]))  # settled: the margin applies now
+    assert held.id == "b" and held.held_by_hysteresis
+
+
+def test_one_entry_has_no_switch_margin_and_bad_costs_are_refused():
+    ch = HysteresisChooser(SelectionRule("perceptual"))
+    assert ch.choose(["only"], np.array([3.0])).switch_margin is None
+    with pytest.raises(ValueError, match="one per id"):
+        ch.choose(["a", "b"], np.array([1.0, np.inf]))
+    with pytest.raises(ValueError, match="hold ≥ 1"):
+        HysteresisChooser(SelectionRule("perceptual"), margin=1.0, hold=0)
+
+
+# ---- the vibrotactile weighting ---------------------------------------------------------------------
+def test_the_threshold_is_lowest_near_250_hz_and_the_weights_sum_to_one():
+    f = np.array([20.0, 40.0, 125.0, 250.0, 500.0])
+    t = detection_threshold_db(f)
+    assert np.argmin(t) == 3 and t[3] == pytest.approx(-20.0)
+    assert t[2] == pytest.approx(-8.0) and t[4] == pytest.approx(-8.0)  # one octave either side: +12 dB
+    assert t[0] == pytest.approx(-20.0 + 12.0 * np.log2(250.0 / 20.0))
+    w = sensitivity_weights(f)
+    assert w.sum() == pytest.approx(1.0) and np.argmax(w) == 3
+    with pytest.raises(ValueError, match="> 0 Hz"):
+        detection_threshold_db(np.array([0.0, 10.0]))
