@@ -82,8 +82,9 @@ def run_jobs(
     try:
         if workers == 1:
             for job in jobs:
-                yield _capped(fn, threads, job)
-                bar.update()
+                result = _capped(fn, threads, job)
+                bar.update()  # before handing it on: a consumer may stop at the last one (zip)
+                yield result
         else:
             from joblib import Parallel, delayed, parallel_config
 
@@ -95,7 +96,7 @@ def run_jobs(
                     delayed(_capped)(fn, threads, job) for job in jobs
                 )
                 for result in results:
-                    yield result
                     bar.update()
+                    yield result
     finally:
         bar.close()
