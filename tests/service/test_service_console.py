@@ -1,18 +1,28 @@
 """The operator console in a real headless Chromium: it connects, and its bars (with their intervals), bubble,
-chosen texture, matches, latencies, out-of-distribution flag and last-minute plot follow the window events."""
+chosen texture, matches, latencies, out-of-distribution flag and last-minute plot follow the window events; it says
+why the chosen entry is chosen and fits a 1366×768 screen; and its touch pad renders the chosen entry's served model
+in an AudioWorklet (service/static/render-worklet.js) exactly as texture_library.synthesis.render does."""
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import re
 import shutil
 import threading
 import time
 
+import numpy as np
 import pytest
 from websockets.sync.client import connect
 
 from texture_library.attributes import ATTRIBUTES
+from texture_library.library import Library
+from texture_library.lsf import poles_to_poly, poly_to_lsf
+from texture_library.spectrum import arma_psd
+from texture_library.synthesis import render
+from texture_library.vibration import VibrationModel
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -32,6 +42,7 @@ FLAGS = (
     "--disable-sync",
     "--no-first-run",
     "--window-size=1280,900",
+    "--autoplay-policy=no-user-gesture-required",  # a live AudioContext starts without a click
 )
 
 
@@ -47,6 +58,7 @@ def browser(tmp_path):
     options.add_argument(f"--user-data-dir={tmp_path / 'chromium-profile'}")
     driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
     driver.set_page_load_timeout(30)
+    driver.set_script_timeout(120)
     try:
         yield driver
     finally:
@@ -122,8 +134,14 @@ def test_console_shows_live_ratings_texture_and_latency(kit, server, client, lib
     bubble = browser.find_element("id", "estimate-bubble")
     assert float(bubble.get_attribute("cx")) == pytest.approx(last["ratings"]["hard_soft"])
     assert float(bubble.get_attribute("cy")) == pytest.approx(-last["ratings"]["flat_bumpy"])
-    highlighted = browser.find_element("css selector", f"#library-dots circle[data-id='{last['chosen']}']")
-    assert highlighted.get_attribute("fill-opacity") == "1"
+    chosen_dot = browser.find_element("css selector", f"#library-dots circle[data-id='{last['chosen']}']")
+    assert chosen_dot.get_attribute("data-chosen") == "true"
+    marker = browser.find_element("id", "chosen-marker")  # the chosen entry's own symbol, on its library dot
+    assert marker.get_attribute("visibility") == "visible"
+    assert (
+        marker.get_attribute("transform")
+        == f"translate({chosen_dot.get_attribute('cx')} {chosen_dot.get_attribute('cy')})"
+    )
     browser.save_screenshot(str(tmp_path / "console.png"))
     assert (tmp_path / "console.png").stat().st_size > 10_000
 
@@ -174,3 +192,219 @@ def test_console_flags_out_of_distribution_input_and_widens_the_band(kit, server
 def test_console_without_a_token_says_how_to_open_it(server, browser):
     browser.get(f"{server.url}/console")
     assert "session=ID&token=OPERATOR_TOKEN" in _text(browser, "conn")
+
+
+# ---- the touch pad's renderer ------------------------------------------------------------------------------------
+OUTPUT_RATE = 48_000  # the offline context's rate: 48 output samples per 1 kHz sample
+BAND = (20.0, 500.0)
+
+
+def render_model_json(model: VibrationModel, entry_id: str) -> dict:
+    """The served rendering model (schema "hapticlink.render-model" v1) of `model`, built here from the library."""
+    body = {
+        "id": entry_id,
+        "name": model.name,
+        "rate_hz": float(model.rate_hz),
+        "speeds_mm_s": np.asarray(model.speeds, float).tolist(),
+        "forces_n": np.asarray(model.forces, float).tolist(),
+        "triangles": np.asarray(model.triangles).tolist(),
+        "ar_lsf": np.asarray(model.ar_lsf, float).tolist(),
+        "ma_lsf": np.asarray(model.ma_lsf, float).tolist(),
+        "variance": np.asarray(model.variance, float).tolist(),
+        "gain": np.asarray(model.gain, float).tolist(),
+        "mu": float(model.mu),
+        "max_speed_mm_s": float(model.max_speed),
+        "max_force_n": float(model.max_force),
+        "surface": None,
+        "taps": None,
+    }
+    version = hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+    return {"schema": "hapticlink.render-model", "schema_version": 1, "model_version": version, **body}
+
+
+def narrow_band_model(freq_hz: float, name: str) -> VibrationModel:
+    """A near-sinusoid everywhere on its grid (one pole pair at radius 0.995): a signal a hard switch clicks in."""
+    lsf = poly_to_lsf(poles_to_poly(np.array([freq_hz]), np.array([0.995]), 1000.0))
+    return VibrationModel(
+        name=name,
+        speeds=np.array([0.0, 200.0, 0.0, 200.0]),
+        forces=np.array([0.0, 0.0, 4.0, 4.0]),
+        triangles=np.array([[0, 1, 2], [1, 3, 2]]),
+        ar_lsf=np.tile(lsf, (4, 1)),
+        ma_lsf=np.zeros((4, 0)),
+        variance=np.full(4, 1e-3),
+        gain=np.ones(4),
+        mu=0.3,
+        max_speed=200.0,
+        max_force=4.0,
+    )
+
+
+@pytest.fixture
+def pad_page(server, browser):
+    """The console page as an operator loads it (no session needed to render offline)."""
+    browser.get(f"{server.url}/console")
+    _wait(browser, lambda d: d.execute_script("return typeof hapticlink === 'object'"))
+    return browser
+
+
+def _render_offline(driver, **options) -> tuple[np.ndarray, dict]:
+    """The page's own renderer in an OfflineAudioContext: (left channel in m/s², the page's report)."""
+    options.setdefault("sampleRate", OUTPUT_RATE)
+    options.setdefault("full_scale", 100.0)  # m/s² at ±1: far from clipping
+    result = driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "hapticlink.renderOffline(arguments[0]).then(done, (err) => done({failed: String(err)}));",
+        options,
+    )
+    assert "failed" not in result, result["failed"]
+    out = np.frombuffer(base64.b64decode(result["samples"]), np.float32).astype(float) * options["full_scale"]
+    assert np.abs(out).max() < options["full_scale"], "the renderer clipped"
+    return out, result
+
+
+def _at_source_instants(out: np.ndarray, latency_ms: float, n: int) -> np.ndarray:
+    """Back to 1 kHz: the output samples that fall on the 1 kHz stream's instants (every 48th, after the
+    interpolator's delay) — with a windowed-sinc kernel (1 at 0, 0 at other integers) they are the 1 kHz samples."""
+    step = OUTPUT_RATE // 1000
+    start = round(latency_ms) * step
+    back = out[start::step][:n]
+    assert back.size == n, f"rendered {back.size} of {n} samples"
+    return back
+
+
+@pytest.mark.parametrize(("speed", "force"), [(120.0, 1.5), (40.0, 4.2), (500.0, 0.2), (0.0, 2.0)])
+def test_pad_renderer_equals_the_python_renderer_sample_for_sample(pad_page, library_dir, speed, force):
+    """Fed the same excitation, the worklet gives texture_library.synthesis.render's output to float32 precision:
+    inside a triangle, and clamped beyond the grid's range (500 mm/s > 350, 0 mm/s where the variance is 0)."""
+    model = Library.load(library_dir).model("synth_003")
+    n = 1500
+    excitation = np.random.default_rng(5).standard_normal(n + 100)
+    out, report = _render_offline(
+        pad_page,
+        models=[{"model": render_model_json(model, "synth_003")}],
+        seconds=(n + 100) / 1000,
+        speed_mm_s=speed,
+        force_n=force,
+        excitation=excitation.tolist(),
+    )
+    assert report["latency_ms"] == 16 and report["errors"] == []
+    assert [s["id"] for s in report["switched"]] == ["synth_003"]
+    browser_1k = _at_source_instants(out, report["latency_ms"], n)
+    python = render(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
+    scale = max(np.abs(python).max(), 1e-9)
+    assert np.abs(browser_1k - python).max() <= 1e-5 * max(scale, 1.0), np.abs(browser_1k - python).max()
+    if speed > 0:
+        assert np.std(python) > 0.01  # a real signal, not two silences
+
+
+def _welch_db(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.signal import welch
+
+    freqs, psd = welch(x, fs=fs, nperseg=nperseg)
+    return freqs, 10 * np.log10(psd)
+
+
+def test_pad_spectrum_matches_the_python_renderer_within_1_db(pad_page, library_dir):
+    """The worklet's own seeded noise, 30 s at 120 mm/s and 1.5 N rendered at 48 kHz: brought back to 1 kHz, its
+    Welch spectrum is within 1 dB RMS over 20–500 Hz of the Python renderer's (same Welch) and of the exact ARMA
+    spectrum; the 48 kHz output itself is within 1 dB of the exact spectrum over 20–400 Hz (the interpolator's
+    pass band) and holds no images above 600 Hz."""
+    from scipy.signal import resample_poly
+
+    model = Library.load(library_dir).model("synth_003")
+    speed, force, seconds, seed = 120.0, 1.5, 30, 11
+    out, report = _render_offline(
+        pad_page,
+        models=[{"model": render_model_json(model, "synth_003")}],
+        seconds=seconds + 0.05,
+        speed_mm_s=speed,
+        force_n=force,
+        seed=seed,
+    )
+    n = seconds * 1000
+    browser_1k = _at_source_instants(out, report["latency_ms"], n)
+    python = render(model, np.full(n, speed), np.full(n, force), np.random.default_rng(seed))
+    freqs, browser_db = _welch_db(browser_1k, 1000.0, 512)
+    _, python_db = _welch_db(python, 1000.0, 512)
+    band = (freqs >= BAND[0]) & (freqs <= BAND[1])
+    vs_python = np.sqrt(np.mean((browser_db - python_db)[band] ** 2))
+    assert vs_python <= 1.0, f"browser vs Python renderer: {vs_python:.2f} dB RMS"
+    # the exact spectrum; the Nyquist bin is left out: Welch's one-sided estimate does not double it
+    inner = (freqs >= BAND[0]) & (freqs < BAND[1])
+    exact_db = 10 * np.log10(arma_psd(model, np.array([speed]), np.array([force]), freqs[inner])[0])
+    vs_exact = np.sqrt(np.mean((browser_db[inner] - exact_db) ** 2))
+    assert vs_exact <= 1.0, f"browser vs exact ARMA spectrum: {vs_exact:.2f} dB RMS"
+    # a standard decimator (scipy's polyphase filter) instead of the source instants: the same up to its roll-off
+    freqs_d, decimated_db = _welch_db(resample_poly(out, 1, OUTPUT_RATE // 1000), 1000.0, 512)
+    below = (freqs_d >= BAND[0]) & (freqs_d <= 450.0)
+    exact_d = 10 * np.log10(arma_psd(model, np.array([speed]), np.array([force]), freqs_d[below])[0])
+    assert np.sqrt(np.mean((decimated_db[below] - exact_d) ** 2)) <= 1.0
+    # the 48 kHz signal: the same density in the pass band, nothing left of the 1 kHz images
+    freqs_48, out_db = _welch_db(out, float(OUTPUT_RATE), 512 * 48)
+    passband = (freqs_48 >= BAND[0]) & (freqs_48 <= 400.0)
+    exact_48 = 10 * np.log10(arma_psd(model, np.array([speed]), np.array([force]), freqs_48[passband])[0])
+    assert np.sqrt(np.mean((out_db[passband] - exact_48) ** 2)) <= 1.0
+    power = 10 ** (out_db / 10)
+    images = power[(freqs_48 > 600.0)].sum() / power[(freqs_48 >= BAND[0]) & (freqs_48 <= BAND[1])].sum()
+    assert images < 1e-6, f"image power {10 * np.log10(images):.1f} dB"
+
+
+def _switch_steps(out: np.ndarray, at_s: float, latency_ms: float, crossfade_ms: float) -> tuple[float, float]:
+    """(largest |Δy| from 20 ms before to 20 ms after the crossfade, largest |Δy| of the 0.5 s of steady output on
+    either side): the switch clicks when the first exceeds the second."""
+    steps = np.abs(np.diff(out))
+    start = at_s + latency_ms / 1000
+    lo, hi = int((start - 0.02) * OUTPUT_RATE), int((start + crossfade_ms / 1000 + 0.02) * OUTPUT_RATE)
+    before = steps[lo - OUTPUT_RATE // 2 : lo]
+    after = steps[hi : hi + OUTPUT_RATE // 2]
+    return float(steps[lo:hi].max()), float(max(before.max(), after.max()))
+
+
+@pytest.mark.parametrize(
+    ("first", "second"), [("synth_003", "synth_005"), ("synth_005", "synth_000"), ("tone_30", "tone_80")]
+)
+def test_pad_switch_is_crossfaded_without_a_click(pad_page, library_dir, first, second):
+    """A model switch at 1 s: no output step around it larger than the signal's own sample-to-sample spread on
+    either side. Two near-sinusoids (30 and 80 Hz) show that the check can fail: switched hard, they click."""
+    lib = Library.load(library_dir)
+    models = {i: lib.model(i) for i in lib.ids} | {
+        "tone_30": narrow_band_model(30.0, "tone_30"),
+        "tone_80": narrow_band_model(80.0, "tone_80"),
+    }
+
+    def switch(crossfade_ms: float) -> tuple[float, float]:
+        out, report = _render_offline(
+            pad_page,
+            models=[
+                {"model": render_model_json(models[first], first)},
+                {"model": render_model_json(models[second], second), "at_s": 1.0, "crossfade_ms": crossfade_ms},
+            ],
+            seconds=2.0,
+            speed_mm_s=150.0,
+            force_n=2.0,
+            seed=3,
+        )
+        assert [(s["id"], s["sample"]) for s in report["switched"]] == [(first, 0), (second, 1000)]
+        assert np.std(out[: OUTPUT_RATE // 2]) > 1e-3 and np.std(out[-OUTPUT_RATE // 2 :]) > 1e-3
+        return _switch_steps(out, 1.0, report["latency_ms"], crossfade_ms)
+
+    around, own = switch(50.0)
+    assert around <= own, f"click: step {around:.4g} m/s² against the signal's own {own:.4g}"
+    if first.startswith("tone"):
+        hard_around, hard_own = switch(0.0)
+        assert hard_around > 2 * hard_own  # the counterfactual: without the crossfade the same check fails
+
+
+def test_pad_refuses_a_bad_model_and_plays_on(pad_page, library_dir):
+    """A served model that breaks its schema (an LSF outside (0, π)) is refused with the reason; the last good one
+    plays on."""
+    good = render_model_json(Library.load(library_dir).model("synth_003"), "synth_003")
+    bad = json.loads(json.dumps(good)) | {"id": "broken"}
+    bad["ar_lsf"][3][0] = 4.0
+    out, report = _render_offline(
+        pad_page, models=[{"model": good}, {"model": bad, "at_s": 0.3}], seconds=0.6, speed_mm_s=150.0, force_n=2.0
+    )
+    assert [s["id"] for s in report["switched"]] == ["synth_003"]
+    assert len(report["errors"]) == 1 and "ar_lsf[3] must increase strictly inside (0, π)" in report["errors"][0]
+    assert np.std(out[int(0.4 * OUTPUT_RATE) :]) > 0.05
