@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from fastapi import HTTPException, Request
 from websockets.sync.client import connect
 
 from texture_library.attributes import ATTRIBUTES
@@ -298,6 +299,32 @@ def test_pad_renderer_equals_the_python_renderer_sample_for_sample(pad_page, lib
         assert np.std(python) > 0.01  # a real signal, not two silences
 
 
+def test_pad_interpolates_to_44100_hz_with_the_documented_kernel(pad_page, library_dir):
+    """At 44.1 kHz (no whole number of output samples per 1 kHz sample) every output sample is the documented
+    interpolation Σ x[m]·h(t − m) of the Python renderer's 1 kHz stream, t = k·1000/44100 − 16, h a sinc under a
+    Kaiser window (β = 7) 16 samples wide on each side — computed here independently with numpy."""
+    model = Library.load(library_dir).model("synth_003")
+    rate, n, half, beta = 44_100, 600, 16, 7.0
+    excitation = np.random.default_rng(8).standard_normal(n + 100)
+    out, report = _render_offline(
+        pad_page,
+        models=[{"model": render_model_json(model, "synth_003")}],
+        seconds=(n + 50) / 1000,
+        sampleRate=rate,
+        speed_mm_s=200.0,
+        force_n=3.0,
+        excitation=excitation.tolist(),
+    )
+    x = render(model, np.full(n + 100, 200.0), np.full(n + 100, 3.0), excitation=excitation)
+    k = np.arange(int(0.05 * rate), int(n / 1000 * rate))  # past the start, where every tap has a source sample
+    t = k * 1000.0 / rate - half
+    taps = np.floor(t)[:, None] + np.arange(-half + 1, half + 1)[None, :]
+    d = t[:, None] - taps
+    kernel = np.sinc(d) * np.i0(beta * np.sqrt(np.clip(1 - (d / half) ** 2, 0, None))) / np.i0(beta)
+    expected = (x[taps.astype(int)] * kernel).sum(axis=1)
+    assert np.abs(out[k] - expected).max() <= 1e-4 * np.std(x), np.abs(out[k] - expected).max()
+
+
 def _welch_db(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
     from scipy.signal import welch
 
@@ -408,3 +435,208 @@ def test_pad_refuses_a_bad_model_and_plays_on(pad_page, library_dir):
     assert [s["id"] for s in report["switched"]] == ["synth_003"]
     assert len(report["errors"]) == 1 and "ar_lsf[3] must increase strictly inside (0, π)" in report["errors"][0]
     assert np.std(out[int(0.4 * OUTPUT_RATE) :]) > 0.05
+
+
+# ---- the live console: the pad plays the chosen entry; why it is chosen; a 1366×768 screen -------------------------
+BOX = "const r = arguments[0].getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom];"
+SERVED_MODEL_ROUTE = re.compile(r"/library/\{[^}]+\}/model")
+
+
+@pytest.fixture(scope="module")
+def model_server(kit, base_settings, library_dir):
+    """A server that serves rendering models: the service's GET /library/{id}/model where this branch has it,
+    else a test-only stand-in serving the same schema (render_model_json) behind an operator-style bearer token."""
+    srv = kit.ServerThread(base_settings)
+    if not any(SERVED_MODEL_ROUTE.fullmatch(getattr(route, "path", "")) for route in srv.app.routes):
+        lib = Library.load(library_dir)
+
+        async def served_model(entry_id: str, request: Request) -> dict:
+            if not request.headers.get("authorization", "").startswith("Bearer "):
+                raise HTTPException(401, "an operator token is required")
+            if entry_id not in lib.ids:
+                raise HTTPException(404, f"no library entry {entry_id!r}")
+            return render_model_json(lib.model(entry_id), entry_id)
+
+        srv.app.add_api_route("/library/{entry_id}/model", served_model, methods=["GET"])
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def _stream_until(kit, client, server, session, blocks, window_index: int) -> dict:
+    """Post `blocks` while a reference subscriber listens; the window event numbered `window_index`."""
+    with connect(kit.socket_url(server, session, "events")) as ref:
+        ref.recv(timeout=5)
+        sender = threading.Thread(target=lambda: [kit.post_block(client, session, b) for b in blocks])
+        sender.start()
+        last = None
+        while last is None or last["window_index"] < window_index:
+            event = json.loads(ref.recv(timeout=20))
+            if event["type"] == "window":
+                last = event
+        sender.join()
+    return last
+
+
+def _model_fetches(driver) -> list[str]:
+    """The URLs of the rendering models the page has fetched (Resource Timing)."""
+    return driver.execute_script(
+        "return performance.getEntriesByType('resource').map((e) => e.name).filter((u) => /\\/model$/.test(u))"
+    )
+
+
+def _stroke(driver, element, seconds: float = 1.2, step_px: int = 12, step_ms: int = 20) -> None:
+    """A mouse stroke back and forth across `element` (step_px every step_ms: 600 px/s ≈ 159 mm/s), button held."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    actions = ActionChains(driver, duration=step_ms)
+    actions.move_to_element_with_offset(element, -120, 0).click_and_hold()
+    x = -120
+    for i in range(int(seconds * 1000 / step_ms)):
+        dx = step_px if (i // 20) % 2 == 0 else -step_px
+        x += dx
+        actions.move_by_offset(dx, 0)
+    actions.release().perform()
+
+
+def test_console_pad_plays_the_chosen_texture(kit, model_server, library_dir, browser, tmp_path):
+    """The newcomer's path: the console shows the chosen entry, fetches its served model once, Start sound runs a
+    live AudioContext, and a mouse stroke on the pad makes the worklet play that entry at the stroke's speed."""
+    import httpx
+
+    with httpx.Client(base_url=model_server.url, timeout=10) as client:
+        session = kit.create_session(client, "console pad")
+        sid, operator = session["session_id"], session["operator_token"]
+        browser.set_window_size(1366, 768)
+        browser.get(f"{model_server.url}/console?session={sid}&token={operator}")
+        _wait(browser, lambda d: _text(d, "conn") == "live")
+        blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_005", 3.0))
+        last = _stream_until(kit, client, model_server, session, blocks, 5)
+        served = client.get(f"/library/{last['chosen']}/model", headers={"Authorization": f"Bearer {operator}"})
+        assert served.status_code == 200, served.text
+    _wait(browser, lambda d: _text(d, "window") == "5")
+    chosen = _text(browser, "chosen")
+    assert chosen == last["chosen"]
+    browser.find_element("id", "audio-toggle").click()
+    _wait(browser, lambda d: d.execute_script("return hapticlink.state().running"))
+    _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == chosen)
+    assert _text(browser, "playing") == f"{chosen} (model {served.json()['model_version']})"
+    assert _text(browser, "level") == "silent"  # nobody touches the pad: no vibration
+    # fetched once per chosen entry and version: the page's chosen entry (a switch may still be fetching its model)
+    fetches = _model_fetches(browser)
+    assert fetches.count(f"{model_server.url}/library/{chosen}/model") == 1, fetches
+
+    _stroke(browser, browser.find_element("id", "pad"))
+    stroke = browser.execute_script("return hapticlink.state().stroke")
+    assert stroke["model"] == chosen
+    assert 60 < stroke["topSpeed"] < 400, stroke  # 600 px/s at 0.2646 mm/px ≈ 159 mm/s, from discrete moves
+    assert stroke["peakRms"] > 1e-3, stroke  # the worklet played while the pad was stroked
+    assert "top speed" in _text(browser, "stroke-summary") and "dBFS" in _text(browser, "stroke-summary")
+    _wait(browser, lambda d: _text(d, "level") == "silent")  # released: the gate closes
+    browser.save_screenshot(str(tmp_path / "console-pad.png"))
+
+
+def _window_event(**changes) -> dict:
+    """A window event as the service sends it (docs/service.md), with `changes`."""
+    ratings = {"rough_smooth": -31.2, "flat_bumpy": 8.4, "sticky_slippery": 12.9, "hard_soft": -48.0}
+    event = {
+        "type": "window", "session_id": "s", "window_index": 12, "t_start_s": 6.0, "t_end_s": 6.5, "block_seq": 324,
+        "ratings": ratings, "raw_ratings": ratings,
+        "interval": {"level": 0.9, "target": "ema", **{a: {"lo": v - 10, "hi": v + 10} for a, v in ratings.items()}},
+        "out_of_distribution": False, "ood_reasons": [],
+        "steadiness": dict.fromkeys(ratings, 0.9),
+        "matches": [{"id": "synth_003", "distance": 14.2}, {"id": "synth_001", "distance": 15.0}],
+        "chosen": "synth_003",
+        "latency_ms": {"queue": 0.4, "features": 0.9, "model": 0.1, "lookup": 0.1, "total": 1.8},
+        "model": "ridge-tactile", "inputs": "tactile",
+    }  # fmt: skip
+    return event | changes
+
+
+def _show(driver, event: dict) -> None:
+    """Hand `event` to the page exactly as its WebSocket handler does, and wait for it to be drawn."""
+    driver.execute_script("onEvent(JSON.parse(arguments[0]))", json.dumps(event))
+    _wait(driver, lambda d: _text(d, "chosen") == event["chosen"] and _text(d, "window") == str(event["window_index"]))
+
+
+def test_console_says_when_hysteresis_holds_the_choice(server, browser):
+    """`selection` (rule, reason, held_by_hysteresis, switch_margin) is shown; without it, a chosen entry that is not
+    the nearest is still explained as hysteresis; an older server's plain events show the nearest entry's reason."""
+    browser.get(f"{server.url}/console")
+    _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
+    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
+            "switch_margin": 3.25}  # fmt: skip
+    _show(browser, _window_event(chosen="synth_001", selection=held))
+    text = _text(browser, "selection")
+    assert text.startswith("held by hysteresis: synth_003 must get 3.25 closer"), text
+    assert "rule perceptual: nearest to the smoothed ratings" in text
+    assert browser.find_element("id", "selection").get_attribute("data-held") == "true"
+
+    free = held | {"held_by_hysteresis": False, "switch_margin": 1.5, "reason": "the nearest entry"}
+    _show(browser, _window_event(window_index=13, selection=free))
+    assert (
+        _text(browser, "selection")
+        == "rule perceptual: the nearest entry (a challenger must get 1.50 closer to take over)"
+    )
+    assert browser.find_element("id", "selection").get_attribute("data-held") == "false"
+
+    _show(browser, _window_event(window_index=14, chosen="synth_001"))  # no `selection`: an older server
+    assert _text(browser, "selection").startswith("held by hysteresis: synth_003 is nearer")
+    _show(browser, _window_event(window_index=15, selection=None))
+    assert _text(browser, "selection") == "nearest entry to the smoothed ratings"
+
+
+def test_console_marks_the_estimate_and_the_chosen_entry(server, browser):
+    """The estimate and the chosen entry have their own symbols, the chosen one in none of the sticky→slippery
+    colours; the legend names both."""
+    browser.get(f"{server.url}/console")
+    _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
+    _show(browser, _window_event(chosen="synth_002"))
+    dot = browser.find_element("css selector", "#library-dots circle[data-id='synth_002']")
+    marker = browser.find_element("id", "chosen-marker")
+    assert marker.get_attribute("transform") == f"translate({dot.get_attribute('cx')} {dot.get_attribute('cy')})"
+    shape = browser.find_element("css selector", "#chosen-marker path")
+    ramp = {browser.execute_script("return colour(arguments[0])", v) for v in range(-100, 101, 5)}
+    assert shape.get_attribute("stroke") not in ramp | {"#4cc2ff", "#8b98a5"} and shape.get_attribute("fill") == "none"
+    assert _text(browser, "chosen-label") == "synth_002"
+    assert browser.find_element("id", "estimate").get_attribute("visibility") == "visible"
+    assert browser.find_element("id", "estimate-cross").get_attribute("transform") == "translate(-48 -8.4)"
+    legend = _text(browser, "space-legend")
+    assert "estimate (this session, smoothed)" in legend and "chosen entry (rendered)" in legend
+
+
+def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_dir, browser, tmp_path):
+    """At 1366×768 the chosen model (with why), the latency panel, the touch pad and the perceptual space are all in
+    the viewport without scrolling, and no label is cut."""
+    session = kit.create_session(client, "console layout")
+    browser.set_window_size(1366, 768)
+    browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
+    _wait(browser, lambda d: _text(d, "conn") == "live")
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 3.0))
+    last = _stream_until(kit, client, server, session, blocks, 4)
+    _wait(browser, lambda d: int(_text(d, "window")) >= last["window_index"])
+    # the longest explanation the page gives, so the layout is checked at its fullest
+    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
+            "switch_margin": 3.25}  # fmt: skip
+    browser.execute_script(
+        "onEvent(JSON.parse(arguments[0]))", json.dumps(last | {"window_index": 99, "selection": held})
+    )
+    _wait(browser, lambda d: _text(d, "window") == "99")
+    width, height = browser.execute_script("return [innerWidth, innerHeight]")
+    assert width <= 1366 and height <= 768
+    for element_id in ("chosen", "selection", "matches", "latency-panel", "lat-total", "pad", "audio-toggle", "space"):
+        box = browser.execute_script(BOX, browser.find_element("id", element_id))
+        assert box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height, (element_id, box, width, height)
+    assert browser.execute_script("return document.scrollingElement.scrollWidth") <= width  # no sideways scrolling
+    cut = browser.execute_script(
+        "return [...document.querySelectorAll('.pole, .plot-label, .conf, .legend span, header span, h2')]"
+        ".filter((e) => e.scrollWidth > e.clientWidth + 1 && getComputedStyle(e).display !== 'inline')"
+        ".map((e) => e.textContent)"
+    )
+    assert cut == []
+    poles = [e.text for e in browser.find_elements("css selector", ".pole")]
+    assert poles == ["rough", "smooth", "flat", "bumpy", "sticky", "slippery", "hard", "soft"]
+    browser.save_screenshot(str(tmp_path / "console-1366x768.png"))
+    assert (tmp_path / "console-1366x768.png").stat().st_size > 10_000
