@@ -449,8 +449,8 @@ SERVED_MODEL_ROUTE = re.compile(r"/library/\{[^}]+\}/model")
 
 @pytest.fixture(scope="module")
 def model_server(kit, base_settings, library_dir):
-    """A server that serves rendering models: the service's GET /library/{id}/model where this branch has it,
-    else a test-only stand-in serving the same schema (render_model_json) behind an operator-style bearer token."""
+    """A server that serves rendering models: the service's GET /library/{id}/model?session= where this branch has
+    it, else a test-only stand-in serving the same schema (render_model_json) behind a bearer token."""
     srv = kit.ServerThread(base_settings)
     if not any(SERVED_MODEL_ROUTE.fullmatch(getattr(route, "path", "")) for route in srv.app.routes):
         lib = Library.load(library_dir)
@@ -488,7 +488,7 @@ def _stream_until(kit, client, server, session, blocks, window_index: int) -> di
 def _model_fetches(driver) -> list[str]:
     """The URLs of the rendering models the page has fetched (Resource Timing)."""
     return driver.execute_script(
-        "return performance.getEntriesByType('resource').map((e) => e.name).filter((u) => /\\/model$/.test(u))"
+        "return performance.getEntriesByType('resource').map((e) => e.name).filter((u) => /\\/model(\\?|$)/.test(u))"
     )
 
 
@@ -519,7 +519,9 @@ def test_console_pad_plays_the_chosen_texture(kit, model_server, library_dir, br
         _wait(browser, lambda d: _text(d, "conn") == "live")
         blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_005", 3.0))
         last = _stream_until(kit, client, model_server, session, blocks, 5)
-        served = client.get(f"/library/{last['chosen']}/model", headers={"Authorization": f"Bearer {operator}"})
+        served = client.get(
+            f"/library/{last['chosen']}/model", params={"session": sid}, headers={"Authorization": f"Bearer {operator}"}
+        )
         assert served.status_code == 200, served.text
     _wait(browser, lambda d: _text(d, "window") == "5")
     chosen = _text(browser, "chosen")
@@ -531,7 +533,7 @@ def test_console_pad_plays_the_chosen_texture(kit, model_server, library_dir, br
     _wait(browser, lambda d: _text(d, "level") == "silent")  # the worklet runs, and nobody touches the pad
     # fetched once per chosen entry and version: the page's chosen entry (a switch may still be fetching its model)
     fetches = _model_fetches(browser)
-    assert fetches.count(f"{model_server.url}/library/{chosen}/model") == 1, fetches
+    assert fetches.count(f"{model_server.url}/library/{chosen}/model?session={sid}") == 1, fetches
 
     _stroke(browser, browser.find_element("id", "pad"))
     stroke = browser.execute_script("return hapticlink.state().stroke")
