@@ -201,7 +201,14 @@ BAND = (20.0, 500.0)
 
 
 def render_model_json(model: VibrationModel, entry_id: str) -> dict:
-    """The served rendering model (schema "hapticlink.render-model" v1) of `model`, built here from the library."""
+    """The served rendering model (schema "hapticlink.render-model" v1) of `model`: the service's own document
+    (texture_library.render_model) where this branch has it, else the same fields built here."""
+    try:
+        from texture_library.render_model import RenderModel
+    except ImportError:
+        pass
+    else:
+        return json.loads(RenderModel.from_vibration_model(entry_id, model).to_json_bytes())
     body = {
         "id": entry_id,
         "name": model.name,
