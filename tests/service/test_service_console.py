@@ -653,3 +653,48 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
     assert poles == ["rough", "smooth", "flat", "bumpy", "sticky", "slippery", "hard", "soft"]
     browser.save_screenshot(str(tmp_path / "console-1366x768.png"))
     assert (tmp_path / "console-1366x768.png").stat().st_size > 10_000
+
+
+def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys):
+    """`hapticlink demo` at a small size: the console URL it prints opens a page whose pad plays the entry the
+    demo's session has chosen, fetched from the demo's own service."""
+    import asyncio
+
+    from models.offline.demo_assets import prepare_assets
+    from service.app import create_app
+    from service.demo import run_demo
+    from service.settings import Settings
+
+    if not any(SERVED_MODEL_ROUTE.fullmatch(getattr(r, "path", "")) for r in create_app(Settings()).routes):
+        pytest.skip("this branch's service does not serve rendering models (GET /library/{id}/model)")
+    assets = prepare_assets(tmp_path / "demo", n_textures=5, n_probes=2)
+    capsys.readouterr()
+    demo = threading.Thread(
+        target=lambda: asyncio.run(
+            run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=20.0, duration_s=40.0)
+        ),
+        daemon=True,
+    )
+    demo.start()
+    printed = ""
+
+    def console_url() -> str | None:
+        nonlocal printed
+        printed += capsys.readouterr().out
+        found = re.search(r"http://\S+/console\?session=\S+&token=\S+", printed)
+        return found.group(0) if found else None
+
+    url = kit.wait_for(console_url, timeout_s=30)
+    browser.set_window_size(1366, 768)
+    browser.get(url)
+    _wait(browser, lambda d: _text(d, "conn") == "live")
+    _wait(browser, lambda d: _text(d, "chosen") not in ("", "—"))
+    browser.find_element("id", "audio-toggle").click()
+    _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == _text(d, "chosen"))
+    _stroke(browser, browser.find_element("id", "pad"))
+    stroke = browser.execute_script("return hapticlink.state().stroke")
+    assert stroke["peakRms"] > 1e-3 and stroke["topSpeed"] > 60, stroke
+    assert "Start sound" in _text(browser, "pad-hint") and "stroke this pad" in _text(browser, "pad-hint")
+    browser.save_screenshot(str(tmp_path / "demo-console.png"))
+    demo.join(timeout=60)
+    assert not demo.is_alive()
