@@ -454,12 +454,17 @@ BOX = "const r = arguments[0].getBoundingClientRect(); return [r.left, r.top, r.
 SERVED_MODEL_ROUTE = re.compile(r"/library/\{[^}]+\}/model")
 
 
+def _serves_models(app) -> bool:
+    """Whether the service app has GET /library/{id}/model (read from its OpenAPI document)."""
+    return any(SERVED_MODEL_ROUTE.fullmatch(path) for path in app.openapi()["paths"])
+
+
 @pytest.fixture(scope="module")
 def model_server(kit, base_settings, library_dir):
     """A server that serves rendering models: the service's GET /library/{id}/model?session= where this branch has
     it, else a test-only stand-in serving the same schema (render_model_json) behind a bearer token."""
     srv = kit.ServerThread(base_settings)
-    if not any(SERVED_MODEL_ROUTE.fullmatch(getattr(route, "path", "")) for route in srv.app.routes):
+    if not _serves_models(srv.app):
         lib = Library.load(library_dir)
 
         async def served_model(entry_id: str, request: Request) -> dict:
@@ -665,7 +670,7 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     from service.demo import run_demo
     from service.settings import Settings
 
-    if not any(SERVED_MODEL_ROUTE.fullmatch(getattr(r, "path", "")) for r in create_app(Settings()).routes):
+    if not _serves_models(create_app(Settings())):
         pytest.skip("this branch's service does not serve rendering models (GET /library/{id}/model)")
     assets = prepare_assets(tmp_path / "demo", n_textures=5, n_probes=2)
     capsys.readouterr()
