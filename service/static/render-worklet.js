@@ -137,39 +137,55 @@ function barycentric(model, speed, force) {
   return { idx: [tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]], w: [b0 / sum, b1 / sum, b2 / sum] };
 }
 
-// ∏ (1 − 2cos ωᵢ z⁻¹ + z⁻²) over the given cosines: k → 2k+1 coefficients
-function expand(cosines) {
-  const k = cosines.length;
-  let poly = new Float64Array(2 * k + 1);
+// poly ← poly · ∏ (1 − 2cos ωᵢ z⁻¹ + z⁻²) over lsf[first], lsf[first + 2], … in place (poly starts as [1]);
+// the sums run in texture_library/lsf.py's order, so both give the same doubles
+function expandInto(lsf, first, poly) {
+  poly.fill(0);
   poly[0] = 1.0;
-  for (let i = 0; i < k; i++) {
-    const length = 2 * i + 1, c = -2.0 * cosines[i];
-    const next = poly.slice();
-    for (let j = 0; j < length; j++) { next[j + 1] += c * poly[j]; next[j + 2] += poly[j]; }
-    poly = next;
+  let length = 1;
+  for (let i = first; i < lsf.length; i += 2) {
+    const c = -2.0 * Math.cos(lsf[i]);
+    for (let j = length + 1; j >= 0; j--) {
+      let v = poly[j];
+      if (j >= 1 && j - 1 < length) v += c * poly[j - 1];
+      if (j >= 2) v += poly[j - 2];
+      poly[j] = v;
+    }
+    length += 2;
   }
-  return poly;
+  return length;
+}
+
+/** Scratch arrays for lsfToPolyInto of order p. */
+function polyScratch(p) {
+  return { pPoly: new Float64Array(p + 3), qPoly: new Float64Array(p + 3), pFull: new Float64Array(p + 2), qFull: new Float64Array(p + 2) };
+}
+
+/** Monic polynomial a (p+1) from p line spectral frequencies (radians, strictly increasing in (0, π)), no allocation. */
+function lsfToPolyInto(lsf, a, scratch) {
+  const p = lsf.length;
+  a[0] = 1.0;
+  if (p === 0) return a;
+  const { pPoly, qPoly, pFull, qFull } = scratch;
+  const np = expandInto(lsf, 0, pPoly), nq = expandInto(lsf, 1, qPoly);
+  pFull.fill(0); qFull.fill(0);
+  if (p % 2 === 0) { // P gets the root at z = −1, Q the root at z = +1
+    for (let i = 0; i < np; i++) pFull[i] += pPoly[i];
+    for (let i = 0; i < np; i++) pFull[i + 1] += pPoly[i];
+    for (let i = 0; i < nq; i++) qFull[i] += qPoly[i];
+    for (let i = 0; i < nq; i++) qFull[i + 1] -= qPoly[i];
+  } else { // odd order: Q holds the roots ±1
+    for (let i = 0; i < np; i++) pFull[i] = pPoly[i];
+    for (let i = 0; i < nq; i++) qFull[i] += qPoly[i];
+    for (let i = 0; i < nq; i++) qFull[i + 2] -= qPoly[i];
+  }
+  for (let i = 0; i <= p; i++) a[i] = 0.5 * (pFull[i] + qFull[i]);
+  return a;
 }
 
 /** Monic polynomial (p+1) from p line spectral frequencies (radians, strictly increasing in (0, π)). */
 function lsfToPoly(lsf) {
-  const p = lsf.length;
-  const a = new Float64Array(p + 1);
-  a[0] = 1.0;
-  if (p === 0) return a;
-  const odd = [], even = [];
-  for (let i = 0; i < p; i++) (i % 2 === 0 ? odd : even).push(Math.cos(lsf[i]));
-  const pPoly = expand(odd), qPoly = expand(even);
-  const pFull = new Float64Array(p + 2), qFull = new Float64Array(p + 2);
-  if (p % 2 === 0) { // P gets the root at z = −1, Q the root at z = +1
-    for (let i = 0; i < pPoly.length; i++) { pFull[i] += pPoly[i]; pFull[i + 1] += pPoly[i]; }
-    for (let i = 0; i < qPoly.length; i++) { qFull[i] += qPoly[i]; qFull[i + 1] -= qPoly[i]; }
-  } else { // odd order: Q holds the roots ±1
-    for (let i = 0; i < pPoly.length; i++) pFull[i] = pPoly[i];
-    for (let i = 0; i < qPoly.length; i++) { qFull[i] += qPoly[i]; qFull[i + 2] -= qPoly[i]; }
-  }
-  for (let i = 0; i <= p; i++) a[i] = 0.5 * (pFull[i] + qFull[i]);
-  return a;
+  return lsfToPolyInto(lsf, new Float64Array(lsf.length + 1), polyScratch(lsf.length));
 }
 
 /** One stateful ARMA renderer of one model: step(speed mm/s, force N, unit normal) → acceleration m/s². */
@@ -180,8 +196,9 @@ class ArmaVoice {
     this.e = new Float64Array(model.q + 1); // scaled excitation e[n … n−q], newest first
     this.n = 0;
     this.lastSpeed = NaN; this.lastForce = NaN;
-    this.ar = null; this.bma = null; this.sd = 0;
+    this.ar = new Float64Array(model.p + 1); this.bma = new Float64Array(model.q + 1); this.sd = 0;
     this.arLsf = new Float64Array(model.p); this.maLsf = new Float64Array(model.q);
+    this.arScratch = polyScratch(model.p); this.maScratch = polyScratch(model.q);
   }
 
   parameters(speed, force) {
@@ -192,11 +209,10 @@ class ArmaVoice {
       }
       return out;
     };
-    this.ar = lsfToPoly(mix(m.arLsf, m.p, this.arLsf));
-    const ma = lsfToPoly(mix(m.maLsf, m.q, this.maLsf));
+    lsfToPolyInto(mix(m.arLsf, m.p, this.arLsf), this.ar, this.arScratch);
+    const ma = lsfToPolyInto(mix(m.maLsf, m.q, this.maLsf), this.bma, this.maScratch);
     const g = w[0] * m.gain[idx[0]] + w[1] * m.gain[idx[1]] + w[2] * m.gain[idx[2]];
     for (let j = 0; j < ma.length; j++) ma[j] *= g;
-    this.bma = ma;
     const v = w[0] * m.variance[idx[0]] + w[1] * m.variance[idx[1]] + w[2] * m.variance[idx[2]];
     this.sd = Math.sqrt(Math.max(v, 0));
     this.lastSpeed = speed; this.lastForce = force;

@@ -12,6 +12,7 @@ import re
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -304,6 +305,37 @@ def test_pad_renderer_equals_the_python_renderer_sample_for_sample(pad_page, lib
     assert np.abs(browser_1k - python).max() <= 1e-5 * max(scale, 1.0), np.abs(browser_1k - python).max()
     if speed > 0:
         assert np.std(python) > 0.01  # a real signal, not two silences
+
+
+HATT_MODELS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "hatt-texnet" / "models"
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("texture", ["abs_plastic", "aluminum_foil"])
+def test_pad_renderer_equals_the_python_renderer_on_hatt_models(pad_page, texture):
+    """The same on HaTT's own models (AR order 18 and MA order 16 on a 40-point grid), at points inside the grid,
+    between its rows, and beyond its range."""
+    from texture_library.hatt import read_model
+
+    path = HATT_MODELS / f"{texture}.xml"
+    if not path.is_file():
+        pytest.skip(f"HaTT models not found at {HATT_MODELS} (needs ../shared)")
+    model = read_model(path)
+    for speed, force in [(80.0, 1.2), (model.max_speed * 0.63, model.max_force * 0.41), (400.0, 9.0)]:
+        n = 1000
+        excitation = np.random.default_rng(2).standard_normal(n + 100)
+        out, report = _render_offline(
+            pad_page,
+            models=[{"model": render_model_json(model, texture)}],
+            seconds=(n + 100) / 1000,
+            speed_mm_s=speed,
+            force_n=force,
+            excitation=excitation.tolist(),
+        )
+        python = render(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
+        error = np.abs(_at_source_instants(out, report["latency_ms"], n) - python).max()
+        assert error <= 1e-5 * max(np.abs(python).max(), 1.0), (speed, force, error)
+        assert np.std(python) > 1e-3
 
 
 def test_pad_interpolates_to_44100_hz_with_the_documented_kernel(pad_page, library_dir):
