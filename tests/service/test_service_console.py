@@ -582,7 +582,7 @@ def test_console_pad_plays_the_chosen_texture(kit, model_server, library_dir, br
     _stroke(browser, browser.find_element("id", "pad"))
     stroke = browser.execute_script("return hapticlink.state().stroke")
     assert stroke["model"] == chosen
-    assert 60 < stroke["topSpeed"] < 400, stroke  # 600 px/s at 0.2646 mm/px ≈ 159 mm/s, from discrete moves
+    assert 20 < stroke["topSpeed"] < 400, stroke  # ≤ 600 px/s (≈ 159 mm/s at 0.2646 mm/px) in discrete moves
     assert stroke["peakRms"] > 1e-3, stroke  # the worklet played while the pad was stroked
     assert "top speed" in _text(browser, "stroke-summary") and "dBFS" in _text(browser, "stroke-summary")
     _wait(browser, lambda d: _text(d, "level") == "silent")  # released: the gate closes
@@ -730,8 +730,34 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == _text(d, "chosen"))
     _stroke(browser, browser.find_element("id", "pad"))
     stroke = browser.execute_script("return hapticlink.state().stroke")
-    assert stroke["peakRms"] > 1e-3 and stroke["topSpeed"] > 60, stroke
+    assert stroke["peakRms"] > 1e-3 and stroke["topSpeed"] > 20, stroke
     assert "Start sound" in _text(browser, "pad-hint") and "stroke this pad" in _text(browser, "pad-hint")
     browser.save_screenshot(str(tmp_path / "demo-console.png"))
     demo.join(timeout=60)
     assert not demo.is_alive()
+
+
+@pytest.mark.parametrize(("kind", "pressure", "force"), [("pen", 0.5, 2.0), ("pen", 0.8, 3.2), ("touch", 0.5, 1.0)])
+def test_pad_reads_speed_and_a_pens_pressure(server, browser, kind, pressure, force):
+    """A pen's pressure sets the force (× 4 N); a finger presses with the default 1 N; the speed follows the
+    stroke (12 px every 20 ms at most = 600 px/s ≈ 159 mm/s at 0.2646 mm per CSS px) and falls to 0 after it."""
+    from selenium.webdriver.common.actions import interaction
+    from selenium.webdriver.common.actions.action_builder import ActionBuilder
+    from selenium.webdriver.common.actions.pointer_input import PointerInput
+
+    browser.get(f"{server.url}/console")
+    pad = browser.find_element("id", "pad")
+    kinds = {"pen": interaction.POINTER_PEN, "touch": interaction.POINTER_TOUCH}
+    builder = ActionBuilder(browser, mouse=PointerInput(kinds[kind], kind), duration=20)
+    builder.pointer_action.move_to(pad, -150, 0).pointer_down(pressure=pressure)
+    for _ in range(25):
+        builder.pointer_action.move_by(12, 0, pressure=pressure)
+    builder.pointer_action.pointer_up()
+    builder.perform()
+    stroke = browser.execute_script("return hapticlink.state().stroke")
+    assert stroke["force"] == pytest.approx(force)
+    assert stroke["how"] == (f"pen, pressure {pressure:.2f}" if kind == "pen" else "touch: default force")
+    # the moves come at most as fast as asked (slower on a busy machine): at most ≈ 159 mm/s, and clearly moving
+    assert 20 < stroke["topSpeed"] < 200, stroke
+    assert f"force up to {force:.1f} N" in _text(browser, "stroke-summary")
+    _wait(browser, lambda d: _text(d, "pad-speed") == "0")  # the stroke has ended or stopped: speed decays to 0
