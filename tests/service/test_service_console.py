@@ -692,6 +692,7 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
     assert (tmp_path / "console-1366x768.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys):
     """`hapticlink demo` at a small size: the console URL it prints opens a page whose pad plays the entry the
     demo's session has chosen, fetched from the demo's own service."""
@@ -708,7 +709,7 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     capsys.readouterr()
     demo = threading.Thread(
         target=lambda: asyncio.run(
-            run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=20.0, duration_s=40.0)
+            run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=20.0, duration_s=30.0)
         ),
         daemon=True,
     )
