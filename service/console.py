@@ -1,4 +1,5 @@
-"""The operator console: one static page (vanilla JS, no build step) shipped inside the package."""
+"""The operator console: one static page (vanilla JS, no build step) and its texture renderer, shipped inside the
+package."""
 
 from __future__ import annotations
 
@@ -10,3 +11,9 @@ from importlib import resources
 def page() -> str:
     """static/console.html; it reads ?session=…&token=… and opens WS /sessions/{id}/events itself."""
     return resources.files("service").joinpath("static/console.html").read_text(encoding="utf-8")
+
+
+@lru_cache(maxsize=1)
+def render_worklet() -> str:
+    """static/render-worklet.js: the AudioWorklet that synthesises a served rendering model for the touch pad."""
+    return resources.files("service").joinpath("static/render-worklet.js").read_text(encoding="utf-8")

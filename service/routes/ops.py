@@ -77,3 +77,13 @@ async def metrics(state: State) -> Response:
 async def console_page() -> HTMLResponse:
     # The URL carries the operator token: never send it on as a Referer.
     return HTMLResponse(console.page(), headers={"Referrer-Policy": "no-referrer"})
+
+
+@router.get(
+    "/console/render-worklet.js",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/javascript": {}}}},
+    summary="The console's texture renderer (an AudioWorklet module; no credential: it holds no data)",
+)
+async def console_render_worklet() -> Response:
+    return Response(console.render_worklet(), media_type="text/javascript", headers={"Cache-Control": "no-cache"})
