@@ -20,7 +20,7 @@ from fastapi.responses import JSONResponse
 from service.errors import ServiceError
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
-from service.routes import events, ingest, ops, sessions
+from service.routes import events, ingest, library, ops, sessions
 from service.schemas import JsonBlock, JsonTapBlock
 from service.server import server_options
 from service.settings import Settings
@@ -81,7 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
-    for module in (sessions, ingest, events, ops):
+    for module in (sessions, ingest, events, library, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

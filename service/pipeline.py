@@ -155,6 +155,7 @@ class WindowEstimate:
     lookup_ms: float
     inputs: Inputs
     model: str
+    chosen_model_version: str | None = None
 
 
 @dataclass(frozen=True)
@@ -385,6 +386,7 @@ def lookup(
                 lookup_ms=lookup_ms,
                 model=models[i].name,
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
+                chosen_model_version=rt.render_models.version(chosen),
             )
         )
         est.next_index += 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from service.adaptive import ServingPolicy
+from service.render_models import RenderCatalog
 from service.settings import Settings
 from service.uncertainty import ServedModel
 from texture_library.library import Library
@@ -47,7 +48,8 @@ class Runtime:
     interval_level: nominal coverage of the published intervals (and of those the adaptive policy reads);
     tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
     backbone / visual_columns: set when the model reads visual features and a backbone is configured;
-    problem: why the service cannot estimate (None when it can), shown by GET /ready.
+    problem: why the service cannot estimate (None when it can), shown by GET /ready;
+    render_models: every library entry's rendering model as served (GET /library/{id}/model).
     """
 
     main: ServedModel
@@ -63,6 +65,7 @@ class Runtime:
     problem: str | None
     load_s: float
     interval_level: float = 0.9
+    render_models: RenderCatalog = field(default_factory=lambda: RenderCatalog({}))
 
     @property
     def predictor(self) -> Predictor:
@@ -201,6 +204,7 @@ def load_runtime(settings: Settings) -> Runtime:
         problem,
         time.perf_counter() - started,
         settings.interval_level,
+        RenderCatalog.from_library(library),
     )
 
 
