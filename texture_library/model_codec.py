@@ -18,7 +18,7 @@ what it decodes under the version window events name. Decoding gives a RenderMod
 
 Layout (little-endian): b"HLM1", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
 (1: surface present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source version,
-f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f32 bump height, f32 bump period],
+f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
 f16 speeds (m), f16 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
 AR codes (m × p, u16 first differences), MA codes (m × q, same).
 """
@@ -71,7 +71,7 @@ def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
         struct.pack("<dfff", model.rate_hz, model.mu, model.max_speed_mm_s, model.max_force_n),
     ]
     if model.surface is not None:
-        parts.append(struct.pack("<ff", model.surface.bump_height_mm, model.surface.bump_period_mm))
+        parts.append(struct.pack("<dd", model.surface.bump_height_mm, model.surface.bump_period_mm))
     for values in (model.speeds_mm_s, model.forces_n, np.sqrt(model.variance), model.gain):
         parts.append(np.asarray(values, "<f2").tobytes())
     parts.append(tri.astype("<u1" if m <= 255 else "<u2").tobytes())
@@ -113,7 +113,7 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
     rate, mu, max_speed, max_force = struct.unpack("<dfff", take(20))
     surface = None
     if flags & 1:
-        h, period = struct.unpack("<ff", take(8))
+        h, period = struct.unpack("<dd", take(16))
         surface = {"bump_height_mm": float(h), "bump_period_mm": float(period)}
     speeds, forces, std, gain = (np.frombuffer(take(2 * m), "<f2").astype(float) for _ in range(4))
     width = 1 if m <= 255 else 2
