@@ -50,7 +50,9 @@ robot or operator token.
   prediction `interval` at the configured level, `out_of_distribution` with its `ood_reasons`, and
   `steadiness`) and `{"type": "status", "event": …}` (`StatusEvent`: subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, robot_disconnected, error).
-  A slow connection gets the latest events; older ones are dropped.
+  A slow connection gets the latest events; older ones are dropped. `&view=render` gives a renderer the lean
+  feed instead: a JSON `{"type": "choice", "chosen", "chosen_model_version", "ratings"}` when the chosen entry
+  changes, 4 bytes of int8 ratings (binary) on other windows (drivers/render_feed.py).
 """
 
 
