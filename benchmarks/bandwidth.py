@@ -3,7 +3,7 @@
 `python -m benchmarks.bandwidth [--minutes 10] [--seconds-per-texture 60] [--hatt-source DIR]`
 
 A real service (child process; a ridge-tactile model trained on a small synthetic world, the synthetic library
-of 24 textures) and a scripted robot (the real RobotClient, as fast as the service acknowledges) stroking one
+of 24 textures) and a scripted robot (the real RobotClient, at 10 × real time) stroking one
 library texture after another, `--seconds-per-texture` each (a texture change every minute by default), for
 `--minutes` of stream time. Two subscribers record every message the service sends them: the lean render feed
 (`?view=render`) and the full event stream (the console's). Models are fetched on demand the way the operator
@@ -33,6 +33,8 @@ import httpx
 import numpy as np
 
 from drivers import render_feed
+from drivers.operator.client import OperatorClient
+from drivers.operator.devices import SimulatedStroke
 from drivers.protocol import bearer, ws_url
 from drivers.robot import RobotClient
 from drivers.source import blocks_from_arrays
@@ -51,6 +53,8 @@ CODEC_ANCHOR_BPS = 2300
 TARGET_BPS = 230
 #: IPv4 (20) + TCP with timestamps (32) per segment: what each message costs below the application
 TCP_IP_BYTES = 52
+#: how much faster than real time the scripted robot streams
+SPEED = 10.0
 
 
 def ws_frame_bytes(payload: int) -> int:
@@ -88,9 +92,13 @@ class ScriptedRobot:
         self.blocks = list(blocks_from_arrays(channels, 0.02))
 
     async def _iterate(self):
+        # Paced at SPEED × real time: fast enough for a 10-minute session in a minute, slow enough that the
+        # service and both subscribers keep up (a faster robot is refused 4429 and resends: its
+        # robot_disconnected events would be counted as feed traffic, and slow subscribers drop events).
+        start = time.monotonic()
         for b in self.blocks:
+            await asyncio.sleep(max(0.0, start + b.t0 / SPEED - time.monotonic()))
             yield b
-            await asyncio.sleep(0)
 
     def __aiter__(self):
         return self._iterate()
@@ -124,6 +132,15 @@ async def session_run(url: str, library: Library, textures: list[str], seconds: 
             asyncio.create_task(record(url, session, "render", lean, done)),
             asyncio.create_task(record(url, session, "full", full, done)),
         ]
+        # the operator's client itself, rendering a simulated stroke in real time: each switch's latency
+        operator = OperatorClient(
+            url,
+            session["session_id"],
+            session["operator_token"],
+            SimulatedStroke(3600.0, seed=1),
+            [],
+        )
+        rendering = asyncio.create_task(operator.run())
         await asyncio.sleep(0.5)
         robot = RobotClient(
             url,
@@ -140,6 +157,8 @@ async def session_run(url: str, library: Library, textures: list[str], seconds: 
                 seen, quiet_since = len(full), time.monotonic()
         await asyncio.sleep(1.0)
         done.set()
+        operator._done.set()
+        await asyncio.wait([rendering], timeout=10)
         await http.delete(f"/sessions/{session['session_id']}", headers=bearer(session["operator_token"]))
         await asyncio.wait(subs, timeout=10)
 
@@ -165,7 +184,8 @@ async def session_run(url: str, library: Library, textures: list[str], seconds: 
                 a.raise_for_status()
                 sizes[name] = http_answer_bytes(a)
             fetched[str(msg.version)] = sizes
-    return {"lean": lean, "full": full, "choices": choices, "fetched": fetched}
+    latencies = [sw.latency_ms for sw in operator.stats.switches if sw.latency_ms is not None]
+    return {"lean": lean, "full": full, "choices": choices, "fetched": fetched, "switch_latency_ms": latencies}
 
 
 def train_model(root: Path) -> Path:
@@ -270,6 +290,15 @@ def main(argv: list[str] | None = None) -> int:
         "model_mediated_bps": round(bps["b_models_on_demand"], 1),
         "raw_bps": RAW_BPS,
         "encoding": errors,
+        "switch_latency_ms": {
+            "what": "hapticlink operator's client on loopback: from the arrival of the window event that chose an "
+            "entry "
+            "to the end of the first 10 ms block rendered with it (model fetch included when not cached)",
+            "switches": len(got["switch_latency_ms"]),
+            "median": round(float(np.median(got["switch_latency_ms"])), 1) if got["switch_latency_ms"] else None,
+            "p95": round(float(np.percentile(got["switch_latency_ms"], 95)), 1) if got["switch_latency_ms"] else None,
+            "max": round(float(np.max(got["switch_latency_ms"])), 1) if got["switch_latency_ms"] else None,
+        },
         "load_average_1min_at_end": load,
         "notes": "bytes the service sends, per second of stream time: WebSocket payloads + frame headers, HTTP "
         "answers (status line, headers, body); b_with_tcp_ip_headers adds 52 bytes per message and two segments per "
@@ -277,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    print(json.dumps({k: doc[k] for k in ("session", "bps", "encoding")}, indent=1))
+    print(json.dumps({k: doc[k] for k in ("session", "bps", "encoding", "switch_latency_ms")}, indent=1))
     print(
         f"models on demand: {bps['b_models_on_demand']:.0f} bit/s (target ≤ {TARGET_BPS}); library shared: "
         f"{bps['a_library_shared']:.0f} bit/s; full event stream {bps['full_event_stream']:.0f} bit/s; "

@@ -51,8 +51,8 @@ robot or operator token.
   `steadiness`) and `{"type": "status", "event": …}` (`StatusEvent`: subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, robot_disconnected, error).
   A slow connection gets the latest events; older ones are dropped. `&view=render` gives a renderer the lean
-  feed instead: a JSON `{"type": "choice", "chosen", "chosen_model_version", "ratings"}` when the chosen entry
-  changes, 4 bytes of int8 ratings (binary) on other windows (drivers/render_feed.py).
+  feed instead (binary): a choice (entry id, model version, ratings) when the chosen entry changes, 4 bytes of
+  int8 ratings on other windows (drivers/render_feed.py).
 """
 
 

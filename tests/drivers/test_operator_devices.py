@@ -175,8 +175,11 @@ def test_the_render_feed_round_trip():
     assert view.render(json.dumps({"type": "status", "event": "frame_received", "message": ""})) is None
     ended = json.dumps({"type": "status", "event": "session_ended", "message": "bye"})
     assert view.render(ended) == ended
+    assert render_feed.parse(render_feed.choice_bytes("x", None, [1, 2, 3, 4])).version is None
     for bad, why in (
-        (b"abc", "4 bytes"),
+        (b"abc", "4 bytes of ratings or a choice"),
+        (b"C\x00\x00\x00\x00" + bytes(8), "a choice"),
+        (b"C\x00\x00\x00\x00" + bytes(8) + b"\xff", "not UTF-8"),
         ("{", "not JSON"),
         ('{"type": "x"}', "unknown message type"),
         ("[]", "object"),
