@@ -3,7 +3,7 @@
 `python -m benchmarks.bandwidth [--minutes 10] [--seconds-per-texture 60] [--hatt-source DIR]`
 
 A real service (child process; a ridge-tactile model trained on a small synthetic world, the synthetic library
-of 24 textures) and a scripted robot (the real RobotClient, at 10 × real time) stroking one
+of 24 textures) and a scripted robot (the real RobotClient, at 5 × real time) stroking one
 library texture after another, `--seconds-per-texture` each (a texture change every minute by default), for
 `--minutes` of stream time. Two subscribers record every message the service sends them: the lean render feed
 (`?view=render`) and the full event stream (the console's). Models are fetched on demand the way the operator
@@ -54,7 +54,7 @@ TARGET_BPS = 230
 #: IPv4 (20) + TCP with timestamps (32) per segment: what each message costs below the application
 TCP_IP_BYTES = 52
 #: how much faster than real time the scripted robot streams
-SPEED = 10.0
+SPEED = 5.0
 
 
 def ws_frame_bytes(payload: int) -> int:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: status events a renderer's view carries; the rest (frames, visual updates) are the console's business
-RENDER_STATUSES = frozenset({"subscribed", "session_ended", "robot_disconnected", "waiting_for_frame", "error"})
+RENDER_STATUSES = frozenset({"subscribed", "session_ended", "error"})
 RATINGS_BYTES = 4
 CHOICE_TAG = b"C"
 #: a choice: tag + ratings + version, then the id
@@ -109,12 +109,12 @@ def parse(message: str | bytes) -> FeedMessage:
         raise ValueError("render feed: a message must be a JSON object")
     kind = event.get("type")
     if kind == "window":
-        chosen, version = event.get("chosen"), event.get("chosen_model_version")
-        if not isinstance(chosen, str) or not (version is None or isinstance(version, str)):
+        name, named_version = event.get("chosen"), event.get("chosen_model_version")
+        if not isinstance(name, str) or not (named_version is None or isinstance(named_version, str)):
             raise ValueError("render feed: a window event needs a string `chosen` and `chosen_model_version`")
         raw = event.get("ratings")
         ratings = tuple(raw.values()) if isinstance(raw, dict) else tuple(raw or ())
-        return FeedMessage("choice", chosen, version, ratings, event.get("window_index"))
+        return FeedMessage("choice", name, named_version, ratings, event.get("window_index"))
     if kind == "status":
         return FeedMessage("status", event=event)
     raise ValueError(f"render feed: unknown message type {kind!r}")

@@ -21,8 +21,8 @@ from texture_library.surface import SurfaceProfile
 from texture_library.taps import TapSet
 from texture_library.vibration import RENDER_RATE_HZ, VibrationModel
 
-SCHEMA = "hapticlink.render-model"
-SCHEMA_VERSION = 1
+SCHEMA: Literal["hapticlink.render-model"] = "hapticlink.render-model"
+SCHEMA_VERSION: Literal[1] = 1
 #: the largest canonical JSON a served model may have, bytes: the library refuses a bigger model when it is
 #: loaded, and the service never serves one (HaTT's largest models are ≈ 30 kB without taps)
 MAX_RENDER_MODEL_BYTES = 512 * 1024

@@ -21,7 +21,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from urllib.parse import quote
 
@@ -134,7 +134,7 @@ class OperatorClient:
         url: str,
         session_id: str,
         token: str,
-        device: AsyncIterator[Motion] | object,
+        device: AsyncIterable[Motion],
         outputs: Sequence[object],
         *,
         view: str = "render",
@@ -238,7 +238,7 @@ class OperatorClient:
     # ---- the render loop ---------------------------------------------------------------------------
     async def render(self) -> None:
         """Render the device's blocks until it ends or the session is over."""
-        it = aiter(self.device)  # type: ignore[call-overload]
+        it: AsyncIterator[Motion] = aiter(self.device)
         nxt: asyncio.Future | None = None
         stalled = False
         stop = asyncio.ensure_future(self._done.wait())
