@@ -58,8 +58,18 @@ def lsf_to_poly(lsf: np.ndarray) -> np.ndarray:
     if p > 1 and np.any(np.diff(w, axis=-1) <= 0.0):
         # Unsorted input would silently pair the wrong roots with P and Q.
         raise ValueError("lsf must increase strictly along the last axis")
-    a = _poly_from_cos(np.cos(w.reshape(-1, p)))
-    return a.reshape(batch + (p + 1,))
+    return poly_from_checked_lsf(w)
+
+
+def poly_from_checked_lsf(lsf: np.ndarray) -> np.ndarray:
+    """`lsf_to_poly` without its checks, for LSFs already known to be valid: a barycentric blend of a
+    VibrationModel's rows (each validated when the model was made; a convex combination of increasing rows in
+    (0, π) is one too). The real-time renderer's per-block path. lsf: (..., p) float → (..., p + 1)."""
+    w = np.asarray(lsf, dtype=float)
+    batch, p = w.shape[:-1], w.shape[-1]
+    if p == 0:
+        return np.ones(batch + (1,))
+    return _poly_from_cos(np.cos(w.reshape(-1, p))).reshape(batch + (p + 1,))
 
 
 @numba.njit(cache=True)

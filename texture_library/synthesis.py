@@ -5,7 +5,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from texture_library.lsf import lsf_to_poly
+from texture_library.lsf import poly_from_checked_lsf
 from texture_library.vibration import VibrationModel
 
 
@@ -78,8 +78,9 @@ def interpolate(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> 
         return _mix(w, idx, arr)
 
     return {
-        "ar": lsf_to_poly(mix(model.ar_lsf)),
-        "ma": lsf_to_poly(mix(model.ma_lsf)),
+        # The model's rows were checked when it was made; their blends need no second check.
+        "ar": poly_from_checked_lsf(mix(model.ar_lsf)),
+        "ma": poly_from_checked_lsf(mix(model.ma_lsf)),
         "variance": np.maximum(mix(model.variance), 0.0),
         "gain": mix(model.gain),
     }
