@@ -231,3 +231,23 @@ def test_an_unknown_session_ends_the_operator_with_the_reason(server):
     operator = OperatorClient(server.url, "test-a.nope", "x", SimulatedStroke(5.0), [])
     stats = asyncio.run(operator.run(duration_s=5.0))
     assert stats.ended is not None and "HTTP 404" in stats.ended and stats.samples < 2000
+
+
+def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, client, library_dir, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    session = kit.create_session(client)
+    out = tmp_path / "cli.wav"
+    cmd = [sys.executable, "-m", "service.cli", "operator", "--url", server.url, "--session", session["session_id"],
+           "--token", session["operator_token"], "--device", "simulated:30", "--out", f"wav:{out}",
+           "--duration", "2"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    assert "rendered 2.0 s (2.0 s silent), 0 switch(es)" in done.stdout  # no robot: silence, said so
+    with wave.open(str(out)) as w:
+        assert w.getnframes() >= 1900
+    bad = subprocess.run([*cmd[:-2], "--out", "mp3:x"], capture_output=True, text=True, timeout=60, env=env)
+    assert bad.returncode != 0 and "output spec 'mp3:x'" in bad.stderr
