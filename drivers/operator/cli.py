@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import sys
 
 DEVICE_SPECS = ("simulated[:SECONDS]", "recorded:FILE", "serial:PORT[:BAUD]")
 OUTPUT_SPECS = ("wav:FILE", "sound[:DEVICE]", "serial:PORT[:BAUD]")
@@ -94,7 +95,11 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     device = device_from_spec(args.device, block_s=args.block_s, seed=args.seed, loop=args.loop)
-    outputs = [output_from_spec(spec, full_scale=args.full_scale) for spec in (args.out or ["sound"])]
+    try:
+        outputs = [output_from_spec(spec, full_scale=args.full_scale) for spec in (args.out or ["sound"])]
+    except (RuntimeError, OSError) as exc:  # no sound card or PortAudio, a serial port that does not open
+        print(f"hapticlink operator: {exc}", file=sys.stderr)
+        return 2
 
     def said(s: Switch) -> None:
         fetched = f", model fetched in {s.fetch_ms:.1f} ms" if s.fetch_ms else ", model cached"
