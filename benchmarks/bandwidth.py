@@ -157,7 +157,7 @@ async def session_run(url: str, library: Library, textures: list[str], seconds: 
                 seen, quiet_since = len(full), time.monotonic()
         await asyncio.sleep(1.0)
         done.set()
-        operator._done.set()
+        operator.stop()
         await asyncio.wait([rendering], timeout=10)
         await http.delete(f"/sessions/{session['session_id']}", headers=bearer(session["operator_token"]))
         await asyncio.wait(subs, timeout=10)

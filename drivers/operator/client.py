@@ -229,6 +229,10 @@ class OperatorClient:
         fetch_ms = (time.monotonic() - started) * 1e3 if fetched else 0.0
         self._pending = (model, Switch(msg.chosen, msg.version, received, fetch_ms))
 
+    def stop(self) -> None:
+        """End `run` at the next block (from the same event loop)."""
+        self._done.set()
+
     def _end(self, why: str) -> None:
         if self.stats.ended is None:
             self.stats.ended = why
