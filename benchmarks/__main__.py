@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from benchmarks import features, hostile, service, uncertainty, visual
+from benchmarks import bandwidth, features, hostile, renderer, service, uncertainty, visual
 
 
 def main(argv: list[str]) -> int:
@@ -26,6 +26,10 @@ def main(argv: list[str]) -> int:
         selection.main([])
     else:
         print("(skipping benchmarks.selection: it reads HaTT's models from ../shared/data/hatt-texnet)", flush=True)
+    print("\n== the real-time renderer: µs per second of output against lfilter ==", flush=True)
+    renderer.main([])
+    print("\n== the model-mediated link: bits per second to an operator's renderer ==", flush=True)
+    bandwidth.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)

@@ -1,4 +1,5 @@
-"""Subcommands of the drivers part: robot (stream a sensor source to the service)."""
+"""Subcommands of the drivers part: robot (stream a sensor source to the service) and operator (render the chosen
+textures on the operator's side: drivers/operator/cli.py)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,13 @@ SOURCE_SPECS = (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from drivers.operator.cli import add_parser as add_operator
+
+    _register_robot(sub)
+    add_operator(sub)
+
+
+def _register_robot(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "robot",
         help="stream a sensor source (simulated, replay, serial, usb, camera-dir) to the service",

@@ -20,7 +20,7 @@ from fastapi.responses import JSONResponse
 from service.errors import ServiceError
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
-from service.routes import events, ingest, ops, sessions
+from service.routes import events, ingest, library, ops, sessions
 from service.schemas import JsonBlock, JsonTapBlock
 from service.server import server_options
 from service.settings import Settings
@@ -50,7 +50,9 @@ robot or operator token.
   prediction `interval` at the configured level, `out_of_distribution` with its `ood_reasons`, and
   `steadiness`) and `{"type": "status", "event": …}` (`StatusEvent`: subscribed, session_created,
   session_ended, frame_received, visual_updated, waiting_for_frame, robot_disconnected, error).
-  A slow connection gets the latest events; older ones are dropped.
+  A slow connection gets the latest events; older ones are dropped. `&view=render` gives a renderer the lean
+  feed instead (binary): a choice (entry id, model version, ratings) when the chosen entry changes, 4 bytes of
+  int8 ratings on other windows (drivers/render_feed.py).
 """
 
 
@@ -81,7 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
-    for module in (sessions, ingest, events, ops):
+    for module in (sessions, ingest, events, library, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

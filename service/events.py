@@ -137,6 +137,11 @@ class WindowEvent(BaseModel):
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
     selection: SelectionOut | None = Field(None, description="why `chosen` was chosen (absent from older servers)")
+    chosen_model_version: str | None = Field(
+        None,
+        description="model_version of `chosen`'s rendering model (GET /library/{id}/model): a client fetches each "
+        "version once; absent from older servers",
+    )
     latency_ms: Latency
     model: str = Field(
         description="the model that produced raw_ratings (under the adaptive policy: the cheap model, or "
@@ -208,6 +213,7 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         "matches": [{"id": m.id, "distance": round(m.distance, 3)} for m in w.matches],
         "chosen": w.chosen,
         "selection": _selection(w),
+        "chosen_model_version": w.chosen_model_version,
         "latency_ms": {
             "queue": round(max(0, w.started_ns - w.ingest_ns) * ms, 3),
             "features": round(w.features_ms, 3),

@@ -159,6 +159,7 @@ class WindowEstimate:
     inputs: Inputs
     model: str
     selection: Choice | None = None
+    chosen_model_version: str | None = None
 
 
 @dataclass(frozen=True)
@@ -411,6 +412,7 @@ def lookup(
                 model=models[i].name,
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
                 selection=choice,
+                chosen_model_version=rt.render_models.version(chosen),
             )
         )
         est.next_index += 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ from models.visual.embedding import visual_features, visual_slice
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from service.adaptive import ServingPolicy
+from service.render_models import RenderCatalog
 from service.settings import Settings
 from service.uncertainty import ServedModel
 from texture_library.library import Library
@@ -51,6 +52,7 @@ class Runtime:
     problem: why the service cannot estimate (None when it can), shown by GET /ready;
     selection: the rule that picks the entry to render; spectra: the library's vibration spectra on a
     speed–force grid, precomputed at load for a rule that reads the window's vibration (else None).
+    render_models: every library entry's rendering model as served (GET /library/{id}/model).
     """
 
     main: ServedModel
@@ -68,6 +70,7 @@ class Runtime:
     interval_level: float = 0.9
     selection: SelectionRule = SelectionRule()
     spectra: SpectralTable | None = None
+    render_models: RenderCatalog = field(default_factory=lambda: RenderCatalog({}))
 
     @property
     def predictor(self) -> Predictor:
@@ -222,6 +225,7 @@ def load_runtime(settings: Settings) -> Runtime:
         settings.interval_level,
         selection,
         spectra,
+        RenderCatalog.from_library(library),
     )
 
 

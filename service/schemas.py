@@ -149,6 +149,9 @@ class LibraryEntryOut(BaseModel):
     ratings: dict[str, float] = Field(
         examples=[{"rough_smooth": -40.0, "flat_bumpy": 12.5, "sticky_slippery": 8.0, "hard_soft": -60.0}]
     )
+    model_version: str | None = Field(
+        None, description="the entry's rendering model version (GET /library/{id}/model, its ETag)"
+    )
 
 
 class LibraryOut(BaseModel):

@@ -160,11 +160,14 @@ class Library:
         return cls(root, doc.get("name", root.name), [LibraryEntry.from_json(e) for e in doc.get("entries", [])])
 
     def validate(self) -> list[str]:
-        """Problems with the rendering models (missing or unreadable files)."""
+        """Problems with the rendering models (missing or unreadable files, or too large to serve: see
+        texture_library.render_model.MAX_RENDER_MODEL_BYTES)."""
+        from texture_library.render_model import RenderModel  # noqa: PLC0415 - render_model imports pydantic
+
         problems = []
         for e in self.entries:
             try:
-                self.model(e.id)
+                RenderModel.from_vibration_model(e.id, self.model(e.id))
             except (ValueError, OSError, KeyError) as exc:
                 problems.append(f"entry {e.id!r}: {exc}")
         return problems

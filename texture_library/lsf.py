@@ -11,21 +11,30 @@ stays sorted) rather than coefficients.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 
+@numba.njit(cache=True)
 def _expand(cos_terms: np.ndarray) -> np.ndarray:
-    """∏ (1 − 2cos ωᵢ z⁻¹ + z⁻²) for each row: (n, k) → (n, 2k+1)."""
+    """∏ (1 − 2cos ωᵢ z⁻¹ + z⁻²) for each row: (n, k) → (n, 2k+1).
+
+    Compiled: the real-time renderer converts LSFs per sample. Each factor updates the coefficients in place
+    from the highest down, new[j] = (old[j] + c·old[j−1]) + old[j−2], in the order numpy's slices would."""
     n, k = cos_terms.shape
     poly = np.zeros((n, 2 * k + 1))
-    poly[:, 0] = 1.0
-    for i in range(k):
-        length = 2 * i + 1
-        c = -2.0 * cos_terms[:, i : i + 1]
-        nxt = poly[:, : length + 2].copy()
-        nxt[:, 1 : length + 1] += c * poly[:, :length]
-        nxt[:, 2 : length + 2] += poly[:, :length]
-        poly[:, : length + 2] = nxt
+    for r in range(n):
+        poly[r, 0] = 1.0
+        for i in range(k):
+            length = 2 * i + 1
+            c = -2.0 * cos_terms[r, i]
+            for j in range(length + 1, 0, -1):
+                v = poly[r, j]
+                if j <= length:
+                    v = v + c * poly[r, j - 1]
+                if j >= 2:
+                    v = v + poly[r, j - 2]
+                poly[r, j] = v
     return poly
 
 
@@ -49,26 +58,49 @@ def lsf_to_poly(lsf: np.ndarray) -> np.ndarray:
     if p > 1 and np.any(np.diff(w, axis=-1) <= 0.0):
         # Unsorted input would silently pair the wrong roots with P and Q.
         raise ValueError("lsf must increase strictly along the last axis")
-    flat = np.cos(w.reshape(-1, p))
-    p_poly = _expand(flat[:, 0::2])  # roots of P: ω₁, ω₃, …
-    q_poly = _expand(flat[:, 1::2])  # roots of Q: ω₂, ω₄, …
-    n = flat.shape[0]
-    if p % 2 == 0:
-        # P gets the root at z = −1, Q the root at z = +1.
-        p_full = np.zeros((n, p + 2))
-        p_full[:, :-1] += p_poly
-        p_full[:, 1:] += p_poly
-        q_full = np.zeros((n, p + 2))
-        q_full[:, :-1] += q_poly
-        q_full[:, 1:] -= q_poly
-    else:
-        # Odd order: P has (p+1)/2 pairs, Q has (p−1)/2 pairs and the roots ±1.
-        p_full = p_poly
-        q_full = np.zeros((n, p + 2))
-        q_full[:, :-2] += q_poly
-        q_full[:, 2:] -= q_poly
-    a = 0.5 * (p_full + q_full)[:, : p + 1]
-    return a.reshape(batch + (p + 1,))
+    return poly_from_checked_lsf(w)
+
+
+def poly_from_checked_lsf(lsf: np.ndarray) -> np.ndarray:
+    """`lsf_to_poly` without its checks, for LSFs already known to be valid: a barycentric blend of a
+    VibrationModel's rows (each validated when the model was made; a convex combination of increasing rows in
+    (0, π) is one too). The real-time renderer's per-block path. lsf: (..., p) float → (..., p + 1)."""
+    w = np.asarray(lsf, dtype=float)
+    batch, p = w.shape[:-1], w.shape[-1]
+    if p == 0:
+        return np.ones(batch + (1,))
+    return _poly_from_cos(np.cos(w.reshape(-1, p))).reshape(batch + (p + 1,))
+
+
+@numba.njit(cache=True)
+def _poly_from_cos(flat: np.ndarray) -> np.ndarray:
+    """(n, p) cos ωᵢ of sorted LSFs → (n, p + 1) monic coefficients: A = (P + Q) / 2.
+
+    The roots of P are ω₁, ω₃, …; of Q ω₂, ω₄, …. Even p: P also has the root z = −1 (P·(1 + z⁻¹)) and Q the root
+    z = +1 (Q·(1 − z⁻¹)); odd p: Q has both (Q·(1 − z⁻²)). Sums run in the order of the earlier numpy slices,
+    so the coefficients are the same to the bit."""
+    n, p = flat.shape
+    p_poly = _expand(flat[:, 0::2])
+    q_poly = _expand(flat[:, 1::2])
+    a = np.empty((n, p + 1))
+    for r in range(n):
+        for j in range(p + 1):
+            if p % 2 == 0:
+                pf = 0.0 + p_poly[r, j]
+                if j >= 1:
+                    pf = pf + p_poly[r, j - 1]
+                qf = 0.0 + q_poly[r, j]
+                if j >= 1:
+                    qf = qf - q_poly[r, j - 1]
+            else:
+                pf = p_poly[r, j]
+                qf = 0.0
+                if j <= p - 1:
+                    qf = qf + q_poly[r, j]
+                if j >= 2:
+                    qf = qf - q_poly[r, j - 2]
+            a[r, j] = 0.5 * (pf + qf)
+    return a
 
 
 def poly_to_lsf(a: np.ndarray) -> np.ndarray:

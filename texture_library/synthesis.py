@@ -5,10 +5,44 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from texture_library.lsf import lsf_to_poly
+from texture_library.lsf import poly_from_checked_lsf
 from texture_library.vibration import VibrationModel
 
-_CHUNK = 8192  # points per barycentric batch: bounds memory at (chunk × triangles × 3)
+
+@numba.njit(cache=True)
+def _least_outside(
+    s: np.ndarray,
+    f: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    x1: np.ndarray,
+    y1: np.ndarray,
+    x2: np.ndarray,
+    y2: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each point (s, f): the triangle whose smallest barycentric weight is largest (the enclosing one, else
+    the one it is least outside of; first on ties; degenerate triangles never win) and its weights, clipped ≥ 0
+    and renormalised. Compiled: the real-time renderer calls it on every block."""
+    n, t = s.shape[0], x0.shape[0]
+    best = np.zeros(n, np.int64)
+    w = np.empty((n, 3))
+    det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+    for i in range(n):
+        top = -np.inf
+        b0 = b1 = b2 = np.nan
+        for k in range(t):
+            if abs(det[k]) < 1e-15:
+                continue
+            l0 = ((y1[k] - y2[k]) * (s[i] - x2[k]) + (x2[k] - x1[k]) * (f[i] - y2[k])) / det[k]
+            l1 = ((y2[k] - y0[k]) * (s[i] - x2[k]) + (x0[k] - x2[k]) * (f[i] - y2[k])) / det[k]
+            l2 = 1.0 - l0 - l1
+            worst = min(min(l0, l1), l2)
+            if worst > top:
+                top, best[i], b0, b1, b2 = worst, k, l0, l1, l2
+        b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
+        total = b0 + b1 + b2
+        w[i, 0], w[i, 1], w[i, 2] = b0 / total, b1 / total, b2 / total
+    return best, w
 
 
 def barycentric(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -26,26 +60,10 @@ def barycentric(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> 
     gf = np.asarray(model.forces) / model.max_force
     s, f = s / model.max_speed, f / model.max_force
     tri = np.asarray(model.triangles)
-    x0, y0 = gs[tri[:, 0]], gf[tri[:, 0]]
-    x1, y1 = gs[tri[:, 1]], gf[tri[:, 1]]
-    x2, y2 = gs[tri[:, 2]], gf[tri[:, 2]]
-    det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
-    det = np.where(np.abs(det) < 1e-15, np.nan, det)  # degenerate triangles never win
-    idx = np.empty((s.size, 3), np.int64)
-    w = np.empty((s.size, 3))
-    for lo in range(0, s.size, _CHUNK):
-        ps, pf = s[lo : lo + _CHUNK, None], f[lo : lo + _CHUNK, None]
-        l0 = ((y1 - y2) * (ps - x2) + (x2 - x1) * (pf - y2)) / det
-        l1 = ((y2 - y0) * (ps - x2) + (x0 - x2) * (pf - y2)) / det
-        l2 = 1.0 - l0 - l1
-        worst = np.nan_to_num(np.minimum(np.minimum(l0, l1), l2), nan=-np.inf)
-        best = np.argmax(worst, axis=1)
-        rows = np.arange(best.size)
-        lam = np.stack([l0[rows, best], l1[rows, best], l2[rows, best]], axis=1)
-        lam = np.clip(lam, 0.0, None)
-        lam /= lam.sum(axis=1, keepdims=True)
-        idx[lo : lo + _CHUNK] = tri[best]
-        w[lo : lo + _CHUNK] = lam
+    best, w = _least_outside(
+        s, f, gs[tri[:, 0]], gf[tri[:, 0]], gs[tri[:, 1]], gf[tri[:, 1]], gs[tri[:, 2]], gf[tri[:, 2]]
+    )
+    idx = tri[best].astype(np.int64)
     return idx, w
 
 
@@ -55,31 +73,69 @@ def interpolate(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> 
 
     def mix(arr: np.ndarray) -> np.ndarray:
         arr = np.asarray(arr, float)
-        return np.einsum("nk,nk...->n...", w, arr[idx])
+        if arr.ndim == 1:  # einsum's own summation order, kept: results stay the same to the bit
+            return np.einsum("nk,nk->n", w, arr[idx])
+        return _mix(w, idx, arr)
 
     return {
-        "ar": lsf_to_poly(mix(model.ar_lsf)),
-        "ma": lsf_to_poly(mix(model.ma_lsf)),
+        # The model's rows were checked when it was made; their blends need no second check.
+        "ar": poly_from_checked_lsf(mix(model.ar_lsf)),
+        "ma": poly_from_checked_lsf(mix(model.ma_lsf)),
         "variance": np.maximum(mix(model.variance), 0.0),
         "gain": mix(model.gain),
     }
 
 
 @numba.njit(cache=True)
-def _arma_time_varying(ar: np.ndarray, ma: np.ndarray, excitation: np.ndarray) -> np.ndarray:
-    """y[n] = Σⱼ ma[n,j]·e[n−j] − Σᵢ₌₁ ar[n,i]·y[n−i]; ma already scaled by the gain."""
+def _mix(w: np.ndarray, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(n, d) barycentric blend Σₖ w[i,k]·values[idx[i,k]] of (m, d) grid values, summed k = 0, 1, 2 in order (as
+    numpy's einsum sums rows of LSFs). Compiled: the real-time renderer blends LSFs on every block."""
+    n, d = w.shape[0], values.shape[1]
+    out = np.empty((n, d))
+    for i in range(n):
+        for c in range(d):
+            out[i, c] = w[i, 0] * values[idx[i, 0], c] + w[i, 1] * values[idx[i, 1], c] + w[i, 2] * values[idx[i, 2], c]
+    return out
+
+
+@numba.njit(cache=True)
+def arma_filter(
+    ar: np.ndarray, ma: np.ndarray, excitation: np.ndarray, e_history: np.ndarray, y_history: np.ndarray
+) -> np.ndarray:
+    """Time-varying ARMA: y[n] = Σⱼ ma[n,j]·e[n−j] − Σᵢ₌₁ ar[n,i]·y[n−i], continuing from a history.
+
+    ar: (n, p+1) monic AR coefficients; ma: (n, q+1) MA coefficients already scaled by the gain; excitation:
+    (n,) e, already scaled by √variance. e_history: (q,) and y_history: (p,), the q excitations and p outputs
+    before this block, oldest first (zeros: a filter at rest). Returns y (n,). The streaming renderer
+    (texture_library.renderer) and `render` both run this one loop.
+    """
     n = excitation.shape[0]
     p = ar.shape[1] - 1
     q = ma.shape[1] - 1
-    y = np.zeros(n)
+    e = np.empty(q + n)
+    e[:q] = e_history[e_history.shape[0] - q :]
+    e[q:] = excitation
+    y = np.zeros(p + n)
+    y[:p] = y_history[y_history.shape[0] - p :]
     for t in range(n):
         acc = 0.0
-        for j in range(min(q, t) + 1):
-            acc += ma[t, j] * excitation[t - j]
-        for i in range(1, min(p, t) + 1):
-            acc -= ar[t, i] * y[t - i]
-        y[t] = acc
-    return y
+        for j in range(q + 1):
+            acc += ma[t, j] * e[q + t - j]
+        for i in range(1, p + 1):
+            acc -= ar[t, i] * y[p + t - i]
+        y[p + t] = acc
+    return y[p:]
+
+
+def check_trajectory(speed: np.ndarray, force: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(speed, force) as float arrays; ValueError unless both are 1-D, of equal length and finite."""
+    speed = np.asarray(speed, float)
+    force = np.asarray(force, float)
+    if speed.ndim != 1 or speed.shape != force.shape:
+        raise ValueError(f"speed and force must be 1-D of equal length, got {speed.shape} and {force.shape}")
+    if not (np.all(np.isfinite(speed)) and np.all(np.isfinite(force))):
+        raise ValueError("speed and force must be finite (no NaN/Inf)")
+    return speed, force
 
 
 def render(
@@ -97,14 +153,9 @@ def render(
     call), or the given `excitation` (n,) — scaled by √variance at each point either way.
     Returns acceleration (n,) in m/s² at the same rate.
     """
-    speed = np.asarray(speed, float)
-    force = np.asarray(force, float)
-    if speed.ndim != 1 or speed.shape != force.shape:
-        raise ValueError(f"speed and force must be 1-D of equal length, got {speed.shape} and {force.shape}")
+    speed, force = check_trajectory(speed, force)
     if speed.size == 0:
         return np.zeros(0)
-    if not (np.all(np.isfinite(speed)) and np.all(np.isfinite(force))):
-        raise ValueError("speed and force must be finite (no NaN/Inf)")
     if excitation is None:
         if rng is None:
             raise ValueError("render needs an rng or an explicit excitation")
@@ -114,4 +165,5 @@ def render(
         raise ValueError(f"excitation must have shape {speed.shape}, got {excitation.shape}")
     params = interpolate(model, speed, force)
     ma = params["ma"] * params["gain"][:, None]
-    return _arma_time_varying(params["ar"], ma, excitation * np.sqrt(params["variance"]))
+    at_rest = np.zeros(max(ma.shape[1], params["ar"].shape[1]))
+    return arma_filter(params["ar"], ma, excitation * np.sqrt(params["variance"]), at_rest, at_rest)

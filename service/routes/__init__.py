@@ -1,1 +1,1 @@
-"""The service's HTTP and WebSocket routes, one router per concern: sessions, ingest, events, ops."""
+"""The service's HTTP and WebSocket routes, one router per concern: sessions, ingest, events, library, ops."""

@@ -1,14 +1,19 @@
-"""The operators' event socket: `WS /sessions/{id}/events?token=<operator token>` (any replica, via the broker)."""
+"""The operators' event socket: `WS /sessions/{id}/events?token=<operator token>` (any replica, via the broker).
+
+`?view=render` gives a renderer the lean feed instead (drivers/render_feed.py: the chosen entry, its model
+version and the ratings; nothing else)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+from typing import Literal
 
 from fastapi import APIRouter, Query, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from drivers.protocol import SESSION_LOST, Close
+from drivers.render_feed import RenderView
 from service.auth import OPERATOR_ONLY
 from service.deps import Refused, socket_session
 from service.errors import ServiceError
@@ -19,7 +24,12 @@ router = APIRouter()
 
 
 @router.websocket("/sessions/{session_id}/events")
-async def events_socket(websocket: WebSocket, session_id: str, token: str | None = Query(None)) -> None:
+async def events_socket(
+    websocket: WebSocket,
+    session_id: str,
+    token: str | None = Query(None),
+    view: Literal["full", "render"] = Query("full"),
+) -> None:
     state: ServiceState = websocket.app.state.service
     try:
         await socket_session(websocket, session_id, token, OPERATOR_ONLY)
@@ -40,7 +50,8 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
         await websocket.send_text(
             encode(status_event(session_id, "subscribed", "receiving events", instance=state.settings.instance_id))
         )
-        forward = asyncio.create_task(_forward(websocket, subscription, state))
+        lean = RenderView() if view == "render" else None
+        forward = asyncio.create_task(_forward(websocket, subscription, state, lean))
         listen = asyncio.create_task(_until_disconnect(websocket))
         done, pending = await asyncio.wait({forward, listen}, return_when=asyncio.FIRST_COMPLETED)
         for task in pending:
@@ -58,8 +69,9 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
         await state.unsubscribe(subscription)
 
 
-async def _forward(websocket: WebSocket, subscription, state: ServiceState) -> None:
-    """Send events until the subscription ends (session ended); counts events dropped for this slow connection."""
+async def _forward(websocket: WebSocket, subscription, state: ServiceState, lean: RenderView | None) -> None:
+    """Send events (or, with `lean`, the render feed made of them) until the subscription ends (session ended);
+    counts events dropped for this slow connection."""
     reported = 0
     while True:
         text = await subscription.get()
@@ -68,7 +80,14 @@ async def _forward(websocket: WebSocket, subscription, state: ServiceState) -> N
             reported = subscription.dropped
         if text is None:
             return
-        await websocket.send_text(text)
+        if lean is None:
+            await websocket.send_text(text)
+            continue
+        message = lean.render(text)
+        if isinstance(message, bytes):
+            await websocket.send_bytes(message)
+        elif message is not None:
+            await websocket.send_text(message)
 
 
 async def _until_disconnect(websocket: WebSocket) -> None:

@@ -1,4 +1,4 @@
-"""What ops and operators read: library, liveness, readiness, metrics, the console page."""
+"""What ops and operators read: liveness, readiness, metrics, the console page."""
 
 from __future__ import annotations
 
@@ -6,28 +6,11 @@ from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 
 from service import console
-from service.deps import ReadyRuntime, State
+from service.deps import State
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
-from service.routes.common import errors
-from service.schemas import HealthOut, LibraryEntryOut, LibraryOut, ReadyOut
+from service.schemas import HealthOut, ReadyOut
 
 router = APIRouter(tags=["service"])
-
-
-@router.get(
-    "/library",
-    response_model=LibraryOut,
-    responses=errors(503),
-    summary="The texture library: ids, names, groups, ratings",
-)
-async def library(runtime: ReadyRuntime) -> LibraryOut:
-    lib = runtime.library
-    return LibraryOut(
-        name=lib.name,
-        entries=[
-            LibraryEntryOut(id=e.id, name=e.name, group=e.group, ratings=e.to_json()["ratings"]) for e in lib.entries
-        ],
-    )
 
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")

@@ -335,7 +335,7 @@ def test_settings_refuse_a_block_bound_the_queue_could_never_hold():
 
 
 def test_the_routers_serve_every_route():
-    # sessions, ingest, events and ops are separate routers; the app serves them all
+    # sessions, ingest, events, library and ops are separate routers; the app serves them all
     from service.app import route_paths
 
     paths = route_paths(create_app(Settings()))
@@ -350,5 +350,6 @@ def test_the_routers_serve_every_route():
         "/ready",
         "/metrics",
         "/library",
+        "/library/{entry_id}/model",
         "/console",
     } <= paths

@@ -168,3 +168,12 @@ def test_import_hatt_keeps_human_rated_textures_and_names_the_rest(hatt_dir, tmp
     np.testing.assert_array_equal(lib.entry("blanket").ratings, [10, 20, 30, 40])
     assert lib.entry("wood").ratings_source == "human" and lib.entry("wood").spread is not None
     assert Library.load(tmp_path / "hatt").model("wood").taps is not None
+
+
+def test_a_library_validates_its_models_against_the_served_size_bound(library, monkeypatch):
+    from texture_library import render_model
+
+    assert library.validate() == []
+    monkeypatch.setattr(render_model, "MAX_RENDER_MODEL_BYTES", 100)
+    problems = library.validate()
+    assert len(problems) == len(library.ids) and "at most 100 are served" in problems[0]

@@ -1,0 +1,126 @@
+"""The real-time renderer's cost: µs of CPU per second of output, against a floor measured in the same run.
+
+`python -m benchmarks.renderer [--hatt-source DIR] [--seconds 10] [--repeats 5]`
+
+For a synthetic-world texture (AR order 8, MA 2) and, when HaTT's models are at hand, a HaTT model (AR 18-20,
+MA 16-18), a seeded 10 s freehand stroke is rendered by `texture_library.renderer.StreamRenderer` in blocks of
+1, 10 and 20 ms (the operator client renders 10 ms blocks), one thread. The floor: `scipy.signal.lfilter` of
+the same length with the model fixed at one operating point (no interpolation, no per-sample coefficients: the
+least an ARMA renderer can cost in Python). Also `synthesis.render` of the whole stroke at once. The best of
+`repeats` runs of each, process CPU time. Writes reports/bench/renderer.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import lfilter
+
+from texture_library.procedural import make_world
+from texture_library.renderer import StreamRenderer
+from texture_library.synthesis import interpolate, render
+from texture_library.trajectory import freehand, model_ranges
+from texture_library.vibration import VibrationModel
+
+DEFAULT_HATT = Path("../shared/data/hatt-texnet")
+OUT = Path("reports/bench/renderer.json")
+BLOCKS_MS = (1, 10, 20)
+
+
+def cpu_us_per_s(run, seconds: float, repeats: int) -> float:
+    """Best of `repeats`: process CPU µs spent per second of output."""
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.process_time()
+        run()
+        best = min(best, time.process_time() - t)
+    return best / seconds * 1e6
+
+
+def measure(model: VibrationModel, seconds: float, repeats: int) -> dict:
+    rng = np.random.default_rng(0)
+    traj = freehand(seconds, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
+    speed, force = traj.speed, traj.force
+    n = speed.size
+    params = interpolate(model, np.array([100.0]), np.array([1.0]))
+    b, a = params["ma"][0] * params["gain"][0], params["ar"][0]
+    e = rng.standard_normal(n) * np.sqrt(params["variance"][0])
+    render(model, speed[:100], force[:100], excitation=np.zeros(100))  # compile the kernels before timing
+    floor = cpu_us_per_s(lambda: lfilter(b, a, e), seconds, repeats)
+    offline = cpu_us_per_s(lambda: render(model, speed, force, rng), seconds, repeats)
+    row = {
+        "model": model.name,
+        "ar_order": model.ar_order,
+        "ma_order": model.ma_order,
+        "grid_points": int(np.shape(model.speeds)[0]),
+        "floor_lfilter_us_per_s": round(floor, 1),
+        "offline_render_us_per_s": round(offline, 1),
+        "streaming": [],
+    }
+    for block_ms in BLOCKS_MS:
+        k = block_ms
+
+        def stream(k: int = k) -> None:
+            r = StreamRenderer(model, np.random.default_rng(1))
+            for lo in range(0, n, k):
+                r.process(speed[lo : lo + k], force[lo : lo + k])
+
+        us = cpu_us_per_s(stream, seconds, repeats)
+        row["streaming"].append(
+            {
+                "block_ms": block_ms,
+                "us_per_s": round(us, 1),
+                "realtime_factor": round(1e6 / us, 1),
+                "over_floor": round(us / floor, 1),
+            }
+        )
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--hatt-source", type=Path, default=DEFAULT_HATT, help="HaTT–TexNet folder (models/*.xml)")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args(argv)
+    models = [make_world(1, 0, image_size=64)[0].model]
+    hatt = sorted((args.hatt_source / "models").glob("*.xml")) if args.hatt_source else []
+    if hatt:
+        from texture_library.hatt import read_model
+
+        models.append(read_model(hatt[0]))
+    else:
+        print(f"(no HaTT models under {args.hatt_source}: synthetic texture only)", flush=True)
+    rows = [measure(m, args.seconds, args.repeats) for m in models]
+    print(
+        f"{'model':<16}{'p,q':>7}{'block':>7}{'µs/s':>10}{'× real time':>13}{'× floor':>9}   floor µs/s  offline µs/s"
+    )
+    for r in rows:
+        for s in r["streaming"]:
+            print(
+                f"{r['model'][:15]:<16}{r['ar_order']:>3},{r['ma_order']:<3}{s['block_ms']:>5}ms{s['us_per_s']:>10.0f}"
+                f"{s['realtime_factor']:>13.1f}{s['over_floor']:>9.1f}   {r['floor_lfilter_us_per_s']:>9.0f}"
+                f"  {r['offline_render_us_per_s']:>11.0f}"
+            )
+    load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"
+    doc = {
+        "command": "python -m benchmarks.renderer " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "what": "process CPU µs per second of 1 kHz output, best of repeats; floor: scipy.signal.lfilter of the "
+        "same length at one fixed operating point",
+        "load_average_1min_at_end": load,
+        "rows": rows,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.out} (1-min load average {load})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""`hapticlink operator`: render a session's chosen textures on the operator's side."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+
+DEVICE_SPECS = ("simulated[:SECONDS]", "recorded:FILE", "serial:PORT[:BAUD]")
+OUTPUT_SPECS = ("wav:FILE", "sound[:DEVICE]", "serial:PORT[:BAUD]")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "operator",
+        help="feel the remote surface: render a session's chosen textures to a sound card, WAV file or device",
+        description="Follow a session's render feed, fetch each chosen rendering model once, read the operator's "
+        "device (speed and force), render the texture's vibration and write it out. Prints each switch's latency.",
+    )
+    p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", required=True, metavar="ID", help="the session to follow")
+    p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
+    p.add_argument(
+        "--device", default="simulated", metavar="SPEC", help="one of: " + ", ".join(DEVICE_SPECS) + " (default)"
+    )
+    p.add_argument(
+        "--out", action="append", metavar="SPEC", help="one or more of: " + ", ".join(OUTPUT_SPECS) + " (repeatable)"
+    )
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the device's end)")
+    p.add_argument("--full-scale", type=float, default=40.0, metavar="M_S2", help="m/s² at full scale (default 40)")
+    p.add_argument("--crossfade-s", type=float, default=0.05, metavar="S", help="switch crossfade (default 0.05)")
+    p.add_argument("--block-s", type=float, default=0.01, metavar="S", help="rendering block (default 0.01 s)")
+    p.add_argument(
+        "--view", choices=("render", "full"), default="render", help="the lean render feed (default) or every event"
+    )
+    p.add_argument("--json-models", action="store_true", help="fetch models as JSON instead of the compact encoding")
+    p.add_argument("--loop", action="store_true", help="recorded: play the recording again and again")
+    p.add_argument("--seed", type=int, default=0, help="excitation and simulated-stroke seed")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.set_defaults(func=run)
+
+
+def device_from_spec(spec: str, *, block_s: float, seed: int, loop: bool):
+    """The operator device a SPEC names (DEVICE_SPECS); ValueError says what is wrong with it."""
+    from drivers.operator.devices import RecordedStroke, SerialDevice, SimulatedStroke
+
+    kind, _, rest = spec.partition(":")
+    if kind == "simulated":
+        seconds = float(rest) if rest else 3600.0
+        if not seconds > 0:
+            raise ValueError(f"device simulated: seconds must be > 0, got {rest!r}")
+        return SimulatedStroke(seconds, seed=seed, block_s=block_s)
+    if kind == "recorded" and rest:
+        return RecordedStroke(rest, block_s=block_s, loop=loop)
+    if kind == "serial" and rest:
+        port, baud = _port_baud(rest)
+        return SerialDevice(port, baud, block_s=block_s)
+    raise ValueError(f"device spec {spec!r} must be one of: {', '.join(DEVICE_SPECS)}")
+
+
+def output_from_spec(spec: str, *, full_scale: float):
+    """The output a SPEC names (OUTPUT_SPECS); ValueError/RuntimeError says what is wrong with it."""
+    from drivers.operator.outputs import SerialOutput, SoundOutput, WavOutput
+
+    kind, _, rest = spec.partition(":")
+    if kind == "wav" and rest:
+        return WavOutput(rest, full_scale)
+    if kind == "sound":
+        device: str | int | None = int(rest) if rest.isdigit() else (rest or None)
+        return SoundOutput(device, full_scale)
+    if kind == "serial" and rest:
+        return SerialOutput(*_port_baud(rest))
+    raise ValueError(f"output spec {spec!r} must be one of: {', '.join(OUTPUT_SPECS)}")
+
+
+def _port_baud(rest: str) -> tuple[str, int]:
+    head, _, tail = rest.rpartition(":")
+    if head and tail.isdigit():
+        if int(tail) <= 0:
+            raise ValueError(f"serial: baud rate must be positive, got {tail}")
+        return head, int(tail)
+    return rest, 921_600
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivers.operator.client import OperatorClient, Switch
+
+    if not logging.getLogger().handlers:
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.INFO,
+            format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        )
+        logging.getLogger("httpx").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    device = device_from_spec(args.device, block_s=args.block_s, seed=args.seed, loop=args.loop)
+    try:
+        outputs = [output_from_spec(spec, full_scale=args.full_scale) for spec in (args.out or ["sound"])]
+    except (RuntimeError, OSError) as exc:  # no sound card or PortAudio, a serial port that does not open
+        print(f"hapticlink operator: {exc}", file=sys.stderr)
+        return 2
+
+    def said(s: Switch) -> None:
+        fetched = f", model fetched in {s.fetch_ms:.1f} ms" if s.fetch_ms else ", model cached"
+        print(
+            f"now rendering {s.entry} ({s.version}): {s.latency_ms:.1f} ms after its window event{fetched}", flush=True
+        )
+
+    client = OperatorClient(
+        args.url,
+        args.session,
+        args.token,
+        device,
+        outputs,
+        view=args.view,
+        compact=not args.json_models,
+        crossfade_s=args.crossfade_s,
+        block_s=args.block_s,
+        seed=args.seed,
+        on_switch=said,
+    )
+    try:
+        stats = asyncio.run(client.run(args.duration))
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        for out in outputs:
+            out.close()
+    latencies = [s.latency_ms for s in stats.switches if s.latency_ms is not None]
+    print(
+        f"rendered {stats.samples / 1000:.1f} s ({stats.silent_samples / 1000:.1f} s silent), "
+        f"{len(stats.switches)} switch(es)"
+        + (f", latency median {sorted(latencies)[len(latencies) // 2]:.1f} ms" if latencies else "")
+        + f", {len(stats.model_errors)} model error(s), {stats.stalls} device stall(s)"
+        + (f"; {stats.ended}" if stats.ended else ""),
+        flush=True,
+    )
+    return 0

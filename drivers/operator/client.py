@@ -1,0 +1,328 @@
+"""The operator's client: the session's render feed in, the chosen texture's vibration out.
+
+Two tasks share one renderer:
+- the feed: `WS /sessions/{id}/events?view=render` (drivers/render_feed.py). A choice names an entry and its
+  model version; the model is fetched once per version (`GET /library/{id}/model`, compact encoding by
+  default) and handed to the render loop. The socket is reopened after a drop (backoff), and given up only
+  when the session is over (closed 1000, lost 4410, refused 401/403/404/410).
+- the render loop: each block of the operator's device (speed, force) is rendered by
+  `texture_library.renderer.StreamRenderer` with the latest good model (a switch is crossfaded) and written to
+  every output. Before the first model, and while the device is silent, it writes silence.
+
+Bad input never stops rendering: a model that fails its schema or its version, or cannot be fetched, is
+reported and the last good model plays on; a device that stops sending for `stall_s` is reported, silence is
+written in its place, and rendering resumes when it sends again. Each switch reports its latency: from the
+arrival of the window event that chose the entry to the end of the first block rendered with it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, field
+from urllib.parse import quote
+
+import httpx
+import numpy as np
+
+from drivers import render_feed
+from drivers.operator.devices import RATE_HZ, Motion
+from drivers.protocol import FATAL_CLOSES, bearer, ws_url
+from drivers.robot.backoff import Backoff
+from texture_library import model_codec
+from texture_library.render_model import parse_render_model
+from texture_library.renderer import CROSSFADE_S, StreamRenderer
+from texture_library.vibration import VibrationModel
+
+log = logging.getLogger("hapticlink.operator")
+
+#: HTTP statuses of the event socket's handshake after which retrying cannot help
+FATAL_HANDSHAKES = frozenset({401, 403, 404, 410})
+
+
+@dataclass
+class Switch:
+    """A model switch: the entry and version; when its window event arrived (monotonic s); how long the model
+    took to fetch (0 when cached) and how long until the first block with it was rendered, ms."""
+
+    entry: str
+    version: str | None
+    received: float
+    fetch_ms: float
+    latency_ms: float | None = None
+
+
+@dataclass
+class OperatorStats:
+    """What happened: switches, samples rendered, problems reported, reconnections, bytes received."""
+
+    switches: list[Switch] = field(default_factory=list)
+    samples: int = 0
+    silent_samples: int = 0
+    model_errors: list[str] = field(default_factory=list)
+    stalls: int = 0
+    connects: int = 0
+    feed_messages: int = 0
+    feed_bytes: int = 0
+    model_bytes: int = 0
+    ratings: tuple[int, ...] | None = None
+    ended: str | None = None
+
+
+class ModelCache:
+    """Rendering models fetched once per version. `get` → VibrationModel; ValueError naming the problem."""
+
+    def __init__(self, http: httpx.AsyncClient, session_id: str, token: str, compact: bool = True) -> None:
+        self.http, self.session_id, self.token, self.compact = http, session_id, token, compact
+        self.models: dict[str, VibrationModel] = {}
+        self.received_bytes = 0
+
+    async def get(self, entry: str, version: str | None) -> tuple[VibrationModel, bool]:
+        """(the model, True if it was fetched now)."""
+        if version is not None and version in self.models:
+            return self.models[version], False
+        headers = bearer(self.token)
+        if self.compact:
+            headers["Accept"] = model_codec.CONTENT_TYPE
+        try:
+            r = await self.http.get(
+                f"/library/{quote(entry, safe='')}/model", params={"session": self.session_id}, headers=headers
+            )
+        except httpx.HTTPError as exc:
+            raise ValueError(f"model {entry!r}: the request failed ({type(exc).__name__}: {exc})") from None
+        self.received_bytes += len(r.content) + sum(len(k) + len(v) + 4 for k, v in r.headers.items())
+        if r.status_code != 200:
+            raise ValueError(f"model {entry!r}: the service answered {r.status_code} ({_detail(r)})")
+        try:
+            if r.headers.get("content-type", "").startswith(model_codec.CONTENT_TYPE):
+                source, doc = model_codec.decode(r.content)
+            else:
+                doc = parse_render_model(r.content)
+                source = doc.model_version
+        except ValueError as exc:
+            raise ValueError(f"model {entry!r} ({version}) is unusable: {exc}") from None
+        if version is not None and source != version:
+            raise ValueError(f"model {entry!r}: the service sent version {source}, the window event named {version}")
+        if doc.id != entry:
+            raise ValueError(f"model {entry!r}: the service sent the model of {doc.id!r}")
+        model = doc.to_vibration_model()
+        self.models[source] = model
+        return model, True
+
+
+def _detail(r: httpx.Response) -> str:
+    try:
+        return str(r.json().get("detail", r.text[:200]))
+    except ValueError:
+        return r.text[:200]
+
+
+class OperatorClient:
+    """Renders a session's chosen textures from `device` to `outputs` (see the module docstring).
+
+    url: the service (http://host:port); session_id / token: the session and its operator (or robot) token;
+    view: "render" (the lean feed) or "full" (the console's events); compact: fetch the compact model encoding;
+    crossfade_s: switch crossfade; stall_s: a device silent this long is reported; seed: the excitation's seed;
+    on_switch: called with each Switch once rendered (the CLI prints it).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        session_id: str,
+        token: str,
+        device: AsyncIterable[Motion],
+        outputs: Sequence[object],
+        *,
+        view: str = "render",
+        compact: bool = True,
+        crossfade_s: float = CROSSFADE_S,
+        stall_s: float = 0.5,
+        block_s: float = 0.01,
+        seed: int = 0,
+        on_switch: Callable[[Switch], None] | None = None,
+    ) -> None:
+        if view not in ("render", "full"):
+            raise ValueError(f"view must be 'render' or 'full', got {view!r}")
+        if not stall_s > 0:
+            raise ValueError(f"stall_s must be > 0, got {stall_s}")
+        self.url, self.session_id, self.token = url.rstrip("/"), session_id, token
+        self.device, self.outputs = device, list(outputs)
+        self.view, self.compact, self.crossfade_s, self.stall_s = view, compact, crossfade_s, stall_s
+        self.block_n = max(1, int(round(block_s * RATE_HZ)))
+        self.rng = np.random.default_rng(seed)
+        self.on_switch = on_switch
+        self.stats = OperatorStats()
+        self.renderer: StreamRenderer | None = None
+        self.current: tuple[str, str | None] | None = None  # (entry, version) rendered or about to be
+        self._pending: tuple[VibrationModel, Switch] | None = None
+        self._done = asyncio.Event()
+
+    # ---- the feed --------------------------------------------------------------------------------
+    async def follow(self, http: httpx.AsyncClient) -> None:
+        """Receive the feed until the session is over, reconnecting after drops."""
+        from websockets.asyncio.client import connect  # noqa: PLC0415 - as drivers/robot/ws.py
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus  # noqa: PLC0415
+
+        cache = ModelCache(http, self.session_id, self.token, self.compact)
+        self._cache = cache
+        backoff = Backoff(0.1, 5.0)
+        url = ws_url(self.url, self.session_id, "events", self.token)
+        if self.view == "render":
+            url += "&view=render"
+        while not self._done.is_set():
+            try:
+                async with connect(url, open_timeout=10, max_size=1 << 20) as ws:
+                    self.stats.connects += 1
+                    if self.stats.connects > 1:
+                        log.warning("event feed reconnected (connection %d)", self.stats.connects)
+                    backoff.reset()
+                    async for message in ws:
+                        await self._on_message(message, time.monotonic(), cache)
+                    code = ws.close_code
+            except InvalidStatus as exc:
+                status = exc.response.status_code
+                if status in FATAL_HANDSHAKES:
+                    self._end(f"the service refused the event feed: HTTP {status}")
+                    return
+                log.warning("event feed refused (HTTP %d); retrying", status)
+                code = None
+            except ConnectionClosed as exc:
+                code = exc.rcvd.code if exc.rcvd is not None else None
+            except (TimeoutError, OSError, InvalidHandshake) as exc:
+                log.warning("event feed unreachable (%s); retrying", type(exc).__name__)
+                code = None
+            if code is not None and code in FATAL_CLOSES:
+                self._end(f"the event feed closed ({code}): the session is over")
+                return
+            if not self._done.is_set():
+                log.warning("event feed dropped (close code %s); reconnecting", code)
+                await asyncio.sleep(backoff.next())
+
+    async def _on_message(self, message: str | bytes, received: float, cache: ModelCache) -> None:
+        self.stats.feed_messages += 1
+        self.stats.feed_bytes += len(message) if isinstance(message, bytes) else len(message.encode())
+        try:
+            msg = render_feed.parse(message)
+        except ValueError as exc:
+            log.error("bad event from the service: %s; rendering goes on", exc)
+            return
+        if msg.ratings:
+            self.stats.ratings = tuple(int(round(r)) for r in msg.ratings)
+        if msg.kind == "status" and msg.event is not None and msg.event.get("event") == "session_ended":
+            self._end(f"session ended: {msg.event.get('message', '')}")
+        if msg.kind != "choice" or msg.chosen is None or (msg.chosen, msg.version) == self.current:
+            return
+        started = time.monotonic()
+        try:
+            model, fetched = await cache.get(msg.chosen, msg.version)
+        except ValueError as exc:
+            self.stats.model_errors.append(str(exc))
+            now = self.current[0] if self.current else "silence"
+            log.error("%s; rendering goes on with %s", exc, now)
+            return
+        self.stats.model_bytes = cache.received_bytes
+        self.current = (msg.chosen, msg.version)
+        fetch_ms = (time.monotonic() - started) * 1e3 if fetched else 0.0
+        self._pending = (model, Switch(msg.chosen, msg.version, received, fetch_ms))
+
+    def stop(self) -> None:
+        """End `run` at the next block (from the same event loop)."""
+        self._done.set()
+
+    def _end(self, why: str) -> None:
+        if self.stats.ended is None:
+            self.stats.ended = why
+            log.info("%s", why)
+        self._done.set()
+
+    # ---- the render loop ---------------------------------------------------------------------------
+    async def render(self) -> None:
+        """Render the device's blocks until it ends or the session is over."""
+        it: AsyncIterator[Motion] = aiter(self.device)
+        nxt: asyncio.Future | None = None
+        stalled = False
+        stop = asyncio.ensure_future(self._done.wait())
+        try:
+            while not self._done.is_set():
+                if nxt is None:
+                    nxt = asyncio.ensure_future(anext(it))
+                done, _ = await asyncio.wait({nxt, stop}, timeout=self.stall_s, return_when=asyncio.FIRST_COMPLETED)
+                if stop in done:
+                    return
+                if nxt not in done:  # the device is silent: say so once, keep the output fed with silence
+                    if not stalled:
+                        stalled = True
+                        self.stats.stalls += 1
+                        log.error("the device sent nothing for %.1f s; writing silence until it resumes", self.stall_s)
+                    self._emit(np.zeros(int(self.stall_s * RATE_HZ)), np.zeros(int(self.stall_s * RATE_HZ)), True)
+                    continue
+                try:
+                    motion = nxt.result()
+                except StopAsyncIteration:
+                    return
+                finally:
+                    nxt = None
+                if stalled:
+                    stalled = False
+                    log.warning("the device sends again; rendering resumes")
+                self._render_block(motion)
+        finally:
+            stop.cancel()
+            if nxt is not None:
+                nxt.cancel()
+
+    def _render_block(self, motion: Motion) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            model, switch = pending
+            if self.renderer is None:
+                self.renderer = StreamRenderer(model, self.rng, crossfade_s=self.crossfade_s)
+            else:
+                self.renderer.switch(model)
+        if self.renderer is None:
+            self._emit(np.zeros(motion.speed.size), np.zeros(motion.speed.size), True)
+            return
+        try:
+            out = self.renderer.process(motion.speed, motion.force)
+        except ValueError as exc:  # a glitch in the device's data: this block is silent, the next one renders
+            log.error("the device sent a bad block (%s); it is rendered as silence", exc)
+            self._emit(np.zeros(motion.speed.size), np.zeros(motion.speed.size), True)
+            return
+        self._emit(out.accel, out.friction, False)
+        if pending is not None:
+            switch = pending[1]
+            switch.latency_ms = (time.monotonic() - switch.received) * 1e3
+            self.stats.switches.append(switch)
+            if self.on_switch is not None:
+                self.on_switch(switch)
+
+    def _emit(self, accel: np.ndarray, friction: np.ndarray, silent: bool) -> None:
+        for out in self.outputs:
+            out.write(accel, friction)  # type: ignore[attr-defined]
+        self.stats.samples += accel.size
+        if silent:
+            self.stats.silent_samples += accel.size
+
+    # ---- both --------------------------------------------------------------------------------------
+    async def run(self, duration_s: float | None = None) -> OperatorStats:
+        """Follow the feed and render until the device ends, the session is over, or duration_s has passed."""
+        async with httpx.AsyncClient(base_url=self.url, timeout=10) as http:
+            feed = asyncio.create_task(self.follow(http))
+            try:
+                await asyncio.wait_for(self.render(), duration_s) if duration_s else await self.render()
+            except TimeoutError:
+                pass
+            finally:
+                self._done.set()
+                feed.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await feed
+                closer = getattr(self.device, "aclose", None)
+                if closer is not None:
+                    with contextlib.suppress(Exception):
+                        await closer()
+        return self.stats

@@ -1,0 +1,109 @@
+"""The texture library: the entries (ids, names, ratings) and each entry's rendering model."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Path, Query
+from fastapi.responses import Response
+
+from service.auth import EITHER
+from service.deps import ReadyRuntime, State, Token
+from service.errors import ServiceError
+from service.routes.common import errors
+from service.schemas import LibraryEntryOut, LibraryOut
+from texture_library.model_codec import CONTENT_TYPE as COMPACT_CONTENT_TYPE
+from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel
+
+router = APIRouter(tags=["library"])
+
+#: a served model never changes under its version, but the entry behind a URL may (another library after a
+#: restart): caches keep it and revalidate every use (If-None-Match → 304, no body)
+CACHE_CONTROL = "private, no-cache"
+
+
+@router.get(
+    "/library",
+    response_model=LibraryOut,
+    responses=errors(503),
+    summary="The texture library: ids, names, groups, ratings and each entry's model_version",
+)
+async def library(runtime: ReadyRuntime) -> LibraryOut:
+    lib = runtime.library
+    return LibraryOut(
+        name=lib.name,
+        entries=[
+            LibraryEntryOut(
+                id=e.id,
+                name=e.name,
+                group=e.group,
+                ratings=e.to_json()["ratings"],
+                model_version=runtime.render_models.version(e.id),
+            )
+            for e in lib.entries
+        ],
+    )
+
+
+@router.get(
+    "/library/{entry_id}/model",
+    response_model=RenderModel,
+    response_model_by_alias=True,
+    responses={
+        200: {
+            "description": f"the entry's rendering model (JSON, at most {MAX_RENDER_MODEL_BYTES} bytes), or with "
+            f"`Accept: {COMPACT_CONTENT_TYPE}` its compact LSF-quantised encoding (texture_library/model_codec.py)",
+            "headers": {
+                "ETag": {"schema": {"type": "string"}, "description": "strong: the model_version (quoted)"},
+                "Cache-Control": {"schema": {"type": "string"}},
+            },
+            "content": {COMPACT_CONTENT_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+        },
+        304: {"description": "If-None-Match names the current ETag: the cached copy is current"},
+        **errors(401, 403, 404, 410, 422, 503),
+    },
+    summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key)",
+)
+async def render_model(
+    state: State,
+    runtime: ReadyRuntime,
+    token: Token,
+    entry_id: Annotated[str, Path(max_length=128)],
+    session: Annotated[
+        str | None, Query(max_length=200, description="the session whose robot or operator token is sent")
+    ] = None,
+    accept: Annotated[str | None, Header()] = None,
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    await _authorize(state, token, session)
+    served = runtime.render_models.models.get(entry_id)
+    if served is None:
+        raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
+    compact = accept is not None and COMPACT_CONTENT_TYPE in accept
+    etag = f'"{served.version}.hlm1"' if compact else f'"{served.version}"'
+    headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL, "Vary": "Accept"}
+    if if_none_match is not None and _matches(if_none_match, etag):
+        return Response(status_code=304, headers=headers)
+    if compact:
+        return Response(served.compact_body, media_type=COMPACT_CONTENT_TYPE, headers=headers)
+    return Response(served.json_body, media_type="application/json", headers=headers)
+
+
+async def _authorize(state: State, token: str | None, session: str | None) -> None:
+    """A fleet API key, or a session's robot or operator token with ?session=; else 401/403/404/410."""
+    if session is None:
+        if state.api_keys.check(token):
+            return
+        raise ServiceError(
+            401,
+            "a credential is required: a session's robot or operator token ('Authorization: Bearer <token>' "
+            "with ?session=<session id>) or a fleet API key",
+            {"WWW-Authenticate": "Bearer"},
+        )
+    await state.authorized(session, token, EITHER)
+
+
+def _matches(if_none_match: str, etag: str) -> bool:
+    """If-None-Match uses the weak comparison (RFC 9110 §13.1.2): W/"x" matches "x"; * matches anything."""
+    tags = [t.strip() for t in if_none_match.split(",")]
+    return "*" in tags or any(t.removeprefix("W/") == etag for t in tags)
