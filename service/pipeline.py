@@ -412,7 +412,7 @@ def lookup(
                 model=models[i].name,
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
                 selection=choice,
-                chosen_model_version=rt.render_models.version(chosen),
+                chosen_model_version=rt.render_models.version(choice.id),
             )
         )
         est.next_index += 1
