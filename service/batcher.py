@@ -14,9 +14,9 @@ import contextlib
 import logging
 from concurrent.futures import Executor
 
+from service.live_session import Session
 from service.pipeline import SessionJob, SessionResult, estimate_batch
 from service.runtime import Runtime
-from service.session import Session
 
 log = logging.getLogger(__name__)
 

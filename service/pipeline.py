@@ -1,9 +1,9 @@
 """A block's way through the service, one typed step per stage:
 
-    ingest      wire bytes ─▶ SampleBlock | TapBlock                        (service.ingest, event loop)
-    admission   SampleBlock ─▶ AdmittedBlock (StreamContract.advance)       (service.session, event loop)
+    ingest      wire bytes ─▶ SampleBlock | TapBlock                        (service.intake, event loop)
+    admission   SampleBlock ─▶ AdmittedBlock (StreamContract.advance)       (service.live_session, event loop)
                 TapBlock ─▶ the session's tap features (models.tactile.taps.tap_features), carried by the
-                AdmittedBlocks of the surface they were tapped on           (service.session, event loop)
+                AdmittedBlocks of the surface they were tapped on           (service.live_session, event loop)
     window batch  AdmittedBlocks of a session ─▶ PreparedWindows             (prepare_windows, pool thread)
     features    every session's windows at once ─▶ FeatureRows               (featurize: window_features)
     model       FeatureRows ─▶ RawRatings (the main model where the session's visual embedding has
@@ -12,7 +12,7 @@
                 out-of-distribution check by the detector of the model that estimated it (predict)
     lookup      RawRatings ─▶ WindowEstimate per window: EMA, steadiness, interval and flag,
                 nearest library entries, hysteresis                          (lookup)
-    publish     WindowEstimate ─▶ window event ─▶ broker                     (service.session, event loop)
+    publish     WindowEstimate ─▶ window event ─▶ broker                     (service.live_session, event loop)
 
 `estimate_batch` runs window batch → lookup for many sessions in one pool call: window_features and
 onnxruntime cost far less per window in a batch, and a pool thread that holds the GIL for fewer,

@@ -70,7 +70,7 @@ class FrameAck(BaseModel):
 
 @dataclass
 class SessionCounters:
-    """A session's counts since it was opened (kept by service.session.Session, answered in its status)."""
+    """A session's counts since it was opened (kept by service.live_session.Session, answered in its status)."""
 
     blocks_accepted: int = 0
     blocks_duplicate: int = 0

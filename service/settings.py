@@ -170,6 +170,33 @@ class Settings(BaseSettings):
         gt=0,
         description="a request's headers and body must arrive within this, s (half-open requests are closed)",
     )
+    # ---- admission: what the process can serve ------------------------------------------------------
+    cpu_budget: float = Field(
+        0.85,
+        gt=0,
+        le=1,
+        description="share of one core the event-loop thread may use (smoothed over ~1 s) before the replica refuses "
+        "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); service/capacity.py",
+    )
+    session_lag_s: float = Field(
+        0.05,
+        gt=0,
+        description="event-loop lag (the queue delay every request and block waits, smoothed) above which new "
+        "sessions are refused (429 + Retry-After)",
+    )
+    shed_lag_s: float = Field(
+        0.1,
+        gt=0,
+        description="event-loop lag (smoothed) above which the blocks of the newest sessions are refused "
+        "(429 / close 4429) until the loop catches up; the oldest sessions keep streaming",
+    )
+    probe_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="also answer GET /health and /ready on this port from a thread of their own, which a busy "
+        "event loop cannot delay (None: off; 0: any free port)",
+    )
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(
         2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time"

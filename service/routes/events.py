@@ -26,10 +26,10 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
     except Refused:
         return
     await websocket.accept()
-    subscription = await state.subscribe(session_id)
+    subscription = await state.bus.subscribe(session_id)
     try:
         try:
-            await state.credentials(session_id)
+            await state.directory.credentials(session_id)
         except ServiceError as exc:  # it ended (or was lost) while this socket was set up: its final event has passed
             gone = exc.status in (404, SESSION_LOST)
             await websocket.close(
@@ -55,7 +55,7 @@ async def events_socket(websocket: WebSocket, session_id: str, token: str | None
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
-        await state.unsubscribe(subscription)
+        await state.bus.unsubscribe(subscription)
 
 
 async def _forward(websocket: WebSocket, subscription, state: ServiceState) -> None:

@@ -12,7 +12,6 @@ from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_L
 from service.auth import ROBOT_ONLY
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
-from service.ingest import count_rejected, receive_block
 from service.routes.common import errors, try_later
 from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, BlockAck, FrameAck
 from service.state import ServiceState
@@ -39,12 +38,12 @@ def media_type(request: Request) -> str:
 async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
     kind = media_type(request)
     if kind not in ("application/json", BINARY_CONTENT_TYPE):
-        count_rejected(state.metrics, session)
+        state.blocks.rejected(session)
         raise ServiceError(
             415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}"
         )
     payload = await request.body()
-    return receive_block(state.metrics, session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
+    return state.blocks.receive(session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
 
 
 @router.post(
@@ -64,10 +63,9 @@ async def post_block(request: Request, state: State, session: RobotSession, runt
 async def post_frame(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> FrameAck:
     kind = media_type(request)
     if kind not in FRAME_CONTENT_TYPES:
-        session.counters.frames_rejected += 1
-        state.metrics.frames.inc(outcome="rejected")
+        state.frames.rejected(session)
         raise ServiceError(415, f"frames are {' or '.join(FRAME_CONTENT_TYPES)}, got {kind or 'no Content-Type'}")
-    return await state.receive_frame(session, runtime, request)
+    return await state.frames.receive(session, runtime, await request.body())
 
 
 @router.websocket("/sessions/{session_id}/ingest")
@@ -96,7 +94,7 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
             if not binary:
                 payload = (message.get("text") or "").encode()
             try:
-                ack = receive_block(state.metrics, session, payload, binary, arrived)
+                ack = state.blocks.receive(session, payload, binary, arrived)
             except ServiceError as exc:
                 if exc.status == 429:
                     why = "saturated"
@@ -108,14 +106,14 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
     except WebSocketDisconnect:
         return
     finally:
-        await state.robot_disconnected(session, why)
+        await state.directory.robot_disconnected(session, why)
 
 
 async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:
     """How to close the ingest socket of a session no longer here: lost (4410 and the reason: this replica was
     silent too long and another one marked it lost) or ended (1000)."""
     try:
-        await state.credentials(session_id)
+        await state.directory.credentials(session_id)
     except ServiceError as exc:
         if exc.status == SESSION_LOST:
             return Close.LOST, exc.detail[:120]

@@ -22,7 +22,7 @@ from models.offline.faults import camera, touch
 from models.tactile.stream import StreamContract
 from models.visual.image import load_image
 from service.events import WindowEvent
-from service.session import canonical_channels
+from service.live_session import canonical_channels
 from service.settings import Settings
 from texture_library.attributes import ATTRIBUTES
 from texture_library.recording import Recording

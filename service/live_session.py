@@ -34,7 +34,6 @@ from typing import Literal
 import numpy as np
 
 from drivers.blocks import Block, SampleBlock, TapBlock
-from drivers.protocol import SESSION_LOST
 from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
@@ -299,7 +298,7 @@ class Session:
     def _observe(self, latency_ms: dict[str, float]) -> None:
         self._metrics.windows.inc()
         for stage, ms in latency_ms.items():
-            self._metrics.latency.observe(ms / 1e3, stage=stage)
+            self._metrics.latency.labels(stage=stage).observe(ms / 1e3)
 
     async def _status(self, event: str, message: str, **extra: object) -> None:
         await self._publish(self.id, status_event(self.id, event, message, **extra), False)  # type: ignore[arg-type]
@@ -400,12 +399,3 @@ class Session:
             "pending_blocks": len(self._pending),
             "counters": asdict(self.counters),
         }
-
-
-def session_not_found(session_id: str) -> ServiceError:
-    return ServiceError(404, f"no session {session_id!r}")
-
-
-def session_lost(session_id: str, reason: str) -> ServiceError:
-    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
-    return ServiceError(SESSION_LOST, f"session {session_id} is lost: {reason}; open a new session")
