@@ -82,7 +82,9 @@ class SessionJob:
 class PreparedWindows:
     """One session segment's windows after preprocessing. completed_by: (seq, arrived_ns) of the block that
     completed each window; preprocess_ns: what push + take cost; taps: (m, 3) tap features per window (those
-    its completing block carried) for a model with the taps group, else None."""
+    its completing block carried; zeros where it carried none) for a model with the taps group, else None;
+    untapped: (m,) bool, the windows whose block carried no tap features (estimated by runtime.untapped), or None
+    when every window has them."""
 
     estimator: SessionEstimator
     batch: WindowBatch
@@ -92,6 +94,7 @@ class PreparedWindows:
     preprocess_ns: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
     taps: np.ndarray | None = None
+    untapped: np.ndarray | None = None
 
     @property
     def inputs(self) -> Inputs:
@@ -135,7 +138,8 @@ class WindowEstimate:
 
     completed_by: seq of the block whose samples completed the window; ingest_ns: when that block
     arrived; started_ns: when its batch's computation began (perf_counter_ns); inputs: what the
-    estimate was computed from; model: which model produced it.
+    estimate was computed from; model: which model produced it; missing: inputs the served model reads that this
+    window lacked, so a fallback model estimated it (e.g. ("taps",)).
     """
 
     index: int
@@ -155,6 +159,7 @@ class WindowEstimate:
     lookup_ms: float
     inputs: Inputs
     model: str
+    missing: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -230,11 +235,14 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
             continue
         completing = [_completing(group, est.taken + i) for i in range(len(batch))]
         est.taken += len(batch)
-        taps = None
+        taps = untapped = None
         if "taps" in est.config.extra_groups:
-            if any(b.taps is None for b in completing):
-                raise ValueError("a window's surface has no tap features; the session holds such windows back")
-            taps = np.stack([b.taps for b in completing])
+            missing = np.array([b.taps is None for b in completing])
+            if missing.any():
+                if est.runtime.untapped is None:
+                    raise ValueError("a window's surface has no tap features; the session holds such windows back")
+                untapped = missing
+            taps = np.stack([np.zeros(3) if b.taps is None else b.taps for b in completing])
         out.append(
             PreparedWindows(
                 est,
@@ -245,6 +253,7 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
                 time.perf_counter_ns() - t0,
                 job.frame_checks,
                 taps,
+                untapped,
             )
         )
     return out
@@ -278,12 +287,23 @@ def predict(runtime: Runtime, features: FeatureRows, prepared: Sequence[Prepared
     models: list[ServedModel] = [runtime.main] * n
     checks: list[WindowCheck | None] = [None] * n
     escalated = 0
+    # windows of a surface not tapped: the untapped model, on the columns before the taps group
+    untapped = np.concatenate([np.zeros(len(p.batch), bool) if p.untapped is None else p.untapped for p in prepared])
+    owner_all = np.repeat(np.arange(len(prepared)), sizes)
+    if untapped.any() and runtime.untapped is not None:
+        rows = np.flatnonzero(untapped)
+        k = runtime.untapped.predictor.tactile_config.n_features
+        out[rows] = _run(runtime.untapped, features.rows[rows, :k], None)
+        _check(runtime.untapped, features.rows[:, :k], prepared, rows, owner_all[rows], models, checks)
     for uses_visual in (True, False):
         chosen = [i for i, p in enumerate(prepared) if (p.visual is not None) == uses_visual]
         if not chosen:
             continue
         rows = np.concatenate([np.arange(bounds[i], bounds[i + 1]) for i in chosen])
-        owner = np.concatenate([np.full(sizes[i], i) for i in chosen])  # the prepared item of each row
+        rows = rows[~untapped[rows]]
+        if rows.size == 0:
+            continue
+        owner = owner_all[rows]  # the prepared item of each row
         visual = None
         if uses_visual:
             visual = np.concatenate([np.repeat(prepared[i].visual[None, :], sizes[i], axis=0) for i in chosen])  # type: ignore[index]
@@ -385,6 +405,7 @@ def lookup(
                 lookup_ms=lookup_ms,
                 model=models[i].name,
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
+                missing=("taps",) if p.untapped is not None and p.untapped[i] else (),
             )
         )
         est.next_index += 1

@@ -39,8 +39,10 @@ class Settings(BaseSettings):
     )
     tactile_model_path: Path | None = Field(
         None,
-        description="optional tactile-only model (same feature configuration) that estimates a visual model's "
-        'windows until the session\'s first frame is embedded (events say `"inputs": "tactile"`); without it those windows wait',
+        description="optional tactile-only fallback model: trained on the same features, it estimates a visual "
+        'model\'s windows until the session\'s first frame is embedded (events say `"inputs": "tactile"`); trained on '
+        "them without the taps group, it estimates a taps model's windows of a surface not tapped (events say "
+        '`"missing_inputs": ["taps"]`); without it those windows wait',
     )
     cheap_model_path: Path | None = Field(
         None,
