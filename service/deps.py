@@ -22,10 +22,12 @@ from service.errors import ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
 from service.live_session import Session
+from service.log_throttle import LogThrottle
 from service.runtime import Runtime
 from service.state import ServiceState
 
 log = logging.getLogger("service.access")
+_refusals = LogThrottle(log)  # clients choose how often they are refused: at most one line per kind every 10 s
 
 
 def get_state(connection: HTTPConnection) -> ServiceState:
@@ -87,7 +89,12 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
         raise ServiceError(503, NOT_CONFIGURED)
     if not state.api_keys.check(token):
         state.metrics.sessions_refused.labels(reason="api_key").inc()
-        log.warning("POST /sessions from %s refused: %s API key", client, "no" if token is None else "an unknown")
+        _refusals.warning(
+            ("api_key", token is None),
+            "POST /sessions from %s refused: %s API key",
+            client,
+            "no" if token is None else "an unknown",
+        )
         raise ServiceError(
             401,
             "a fleet API key is required: send 'Authorization: Bearer <key>' (HAPTICLINK_API_KEY for the robot client)"
@@ -130,7 +137,8 @@ async def socket_session(
         _, session = await state.directory.authorized(session_id, token, roles)
         return session
     except ServiceError as exc:
-        log.warning(
+        _refusals.warning(
+            ("socket", robot, exc.status),
             "%s socket for session %s from %s refused: %d %s",
             "ingest" if robot else "events",
             session_id,

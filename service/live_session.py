@@ -43,13 +43,13 @@ from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
 from service.adaptive import SceneViews
-from service.scene_change import scene_changed
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
+from service.scene_change import scene_changed
 from service.schemas import SessionCounters
 from service.settings import Settings
 from texture_library.channels import UNIT_SCALE
