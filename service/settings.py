@@ -181,13 +181,13 @@ class Settings(BaseSettings):
         "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); service/capacity.py",
     )
     session_lag_s: float = Field(
-        0.05,
+        0.25,
         gt=0,
         description="event-loop lag (the queue delay every request and block waits, smoothed) above which new "
         "sessions are refused (429 + Retry-After)",
     )
     shed_lag_s: float = Field(
-        0.1,
+        0.5,
         gt=0,
         description="event-loop lag (smoothed) above which the blocks of the newest sessions are refused "
         "(429 / close 4429) until the loop catches up; the oldest sessions keep streaming",

@@ -8,6 +8,7 @@
       ├─ frames       FrameIntake: camera frames, bytes in (service/intake.py)
       ├─ capacity     CapacityGuard: refuses new sessions and blocks the process cannot serve (service/capacity.py)
       ├─ batcher      WindowBatcher over the window pool (service/batcher.py)
+      ├─ probes       ProbeServer: /health and /ready from a thread of their own, if a probe port is set
       └─ pools        window pool, frame (decode) pool, visual (embedding) pool
 
 Routes are thin: dependencies (service/deps.py) hand them the parts they need; everything that can
@@ -34,6 +35,7 @@ from service.fleet import ApiKeys, TokenBucket
 from service.intake import BlockIntake, FrameIntake
 from service.live_session import Session
 from service.metrics import ServiceMetrics
+from service.probes import ProbeServer
 from service.runtime import Runtime, load_runtime
 from service.settings import Settings
 from service.warmup import warm_up
@@ -69,12 +71,16 @@ class ServiceState:
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)
         self.batcher = WindowBatcher(self.window_pool, max_jobs=settings.pool_threads)
         self._tasks: list[asyncio.Task] = []
+        self.probes: ProbeServer | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
         # Every socket write releases the GIL; with pool threads computing, getting it back can take a
         # whole switch interval (5 ms by default), per write. A short interval bounds that wait.
         sys.setswitchinterval(self.settings.gil_switch_interval_s)
+        if self.settings.probe_port is not None:
+            self.probes = ProbeServer(self, self.settings.host, self.settings.probe_port)
+            self.probes.start()
         await self.broker.start()
         self.batcher.start()
         self.capacity.start(lambda: self.directory.sessions.values())
@@ -125,6 +131,8 @@ class ServiceState:
         await self.broker.close()
         for pool in (self.window_pool, self.frame_pool, self.visual_pool):
             pool.shutdown(wait=False, cancel_futures=True)
+        if self.probes is not None:
+            self.probes.stop()
 
     def readiness(self) -> tuple[bool, str]:
         """(ready, why): ready once the model and library are loaded, cross-checked and warmed up."""
