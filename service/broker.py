@@ -23,6 +23,7 @@ import secrets
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import asdict, dataclass
+from typing import Any
 
 from service.auth import SessionCredentials
 
@@ -228,8 +229,8 @@ class RedisBroker(Broker):
         super().__init__(subscriber_queue)
         self.url = url
         self.instance_id = instance_id
-        self._redis = None
-        self._pubsub = None
+        self._redis: Any = None  # redis.asyncio.Redis once started (imported only when Redis is used)
+        self._pubsub: Any = None
         self._reader: asyncio.Task | None = None
         self._confirmed: dict[str, asyncio.Event] = {}
         self._beats = 0

@@ -131,9 +131,9 @@ async def socket_session(
     robot = roles == ROBOT_ONLY
     try:
         if robot:
-            session = await state.directory.local(session_id, token, roles)
+            local = await state.directory.local(session_id, token, roles)
             state.require_runtime()
-            return session
+            return local
         _, session = await state.directory.authorized(session_id, token, roles)
         return session
     except ServiceError as exc:

@@ -16,6 +16,7 @@ import secrets
 import time
 from collections.abc import Callable, Iterable
 
+from service import memory
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
 from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord
 from service.bus import EventBus
@@ -42,6 +43,7 @@ class SessionDirectory:
         self.bus = bus
         self.metrics = metrics
         self.sessions: dict[str, Session] = {}
+        self._ended = 0  # sessions ended since memory was last given back
 
     # ---- open and end ----------------------------------------------------------------------------
     async def open(self, name: str | None, client: str, model: str, build: SessionFactory) -> tuple[Session, str, str]:
@@ -91,6 +93,7 @@ class SessionDirectory:
         session = self.sessions.pop(session_id, None)
         self.metrics.sessions_active.set(len(self.sessions))
         if session is not None:
+            self._ended += 1
             await session.close()
 
     async def end_all(self, why: str) -> None:
@@ -100,7 +103,8 @@ class SessionDirectory:
 
     # ---- background duties -----------------------------------------------------------------------
     async def reap_idle(self) -> None:
-        """Forever: end sessions that never streamed or went quiet (reap_due)."""
+        """Forever: end sessions that never streamed or went quiet (reap_due); after sessions ended, give their
+        memory back to the system (service/memory.py)."""
         every = min(REAP_EVERY_S, self.settings.session_idle_s / 2, self.settings.session_first_block_s / 2)
         while True:
             await asyncio.sleep(every)
@@ -109,6 +113,9 @@ class SessionDirectory:
                 self.metrics.sessions_reaped.inc()
                 with contextlib.suppress(ServiceError):
                     await self.end(sid, why)
+            if self._ended:
+                self._ended = 0
+                memory.release()
 
     async def keep_alive(self) -> None:
         """Forever: heartbeat for the other replicas; end the sessions of a replica found gone that operators here

@@ -89,10 +89,9 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 why = "session lost" if code == Close.LOST else "session ended"
                 await websocket.close(int(code), reason)
                 return
-            payload = message.get("bytes")
-            binary = payload is not None
-            if not binary:
-                payload = (message.get("text") or "").encode()
+            data: bytes | None = message.get("bytes")
+            binary = data is not None
+            payload = data if data is not None else (message.get("text") or "").encode()
             try:
                 ack = state.blocks.receive(session, payload, binary, arrived)
             except ServiceError as exc:
