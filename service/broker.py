@@ -112,7 +112,7 @@ class Broker(ABC):
         self.incarnation = secrets.token_hex(8)
         self._local: dict[str, set[Subscription]] = {}
 
-    async def start(self) -> None:
+    async def start(self) -> None:  # noqa: B027 - a hook: the in-memory broker has nothing to connect
         """Connect (no-op in memory)."""
 
     async def close(self) -> None:
@@ -161,10 +161,10 @@ class Broker(ABC):
         for sub in list(self._local.get(session_id, ())):
             sub.queue.offer(text, final)
 
-    async def _listen(self, session_id: str) -> None:
+    async def _listen(self, session_id: str) -> None:  # noqa: B027 - a hook, as start
         """Start receiving the session's events from elsewhere (no-op in memory)."""
 
-    async def _unlisten(self, session_id: str) -> None:
+    async def _unlisten(self, session_id: str) -> None:  # noqa: B027 - a hook, as start
         """Stop receiving them (no-op in memory)."""
 
     # ---- session directory ---------------------------------------------------------------------

@@ -63,7 +63,8 @@ class Bounds(BaseModel):
 
 class Interval(BaseModel):
     """Conformal prediction interval of the smoothed `ratings`, per attribute, at nominal coverage `level`
-    (models/inference/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training textures).
+    (models/inference/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training
+    textures).
     target: the calibration used — "ema" (of the smoothed estimate at the service's alpha) or "window" (of one
     window's estimate; used when the service smooths with another alpha). Widens to include the population band
     while the estimate is out of distribution."""
@@ -130,8 +131,9 @@ class WindowEvent(BaseModel):
         "the full one where the cheap estimate was not good enough)"
     )
     inputs: Literal["tactile", "tactile+visual"] = Field(
-        description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
-        "has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap model's estimate)"
+        description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose "
+        "first frame has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap "
+        "model's estimate)"
     )
     missing_inputs: list[Literal["taps"]] = Field(
         default_factory=list,

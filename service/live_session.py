@@ -312,6 +312,8 @@ class Session:
             if i and i % PUBLISH_YIELD_EVERY == 0:
                 await asyncio.sleep(0)  # many events: let ingest and /health run between them
             event = window_event(self.id, w, time.perf_counter_ns())
+            for missing in w.missing:
+                self._metrics.windows_degraded.labels(missing=missing).inc()
             await self._publish(self.id, event, False)
             self._observe(event["latency_ms"])
         self.counters.windows += len(result.estimates)

@@ -111,7 +111,8 @@ class FeatureRows:
 
 @dataclass(frozen=True)
 class WindowCheck:
-    """One window's out-of-distribution check (models.inference.ood.OODDetector.check): flag, reasons, distance (> 0)."""
+    """One window's out-of-distribution check (models.inference.ood.OODDetector.check): flag, reasons, distance
+    (> 0)."""
 
     flagged: bool
     reasons: list[str]

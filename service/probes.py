@@ -1,11 +1,12 @@
 """Liveness and readiness, answered the same way on the service's port and on a probe port of their own.
 
-`health(state)` and `readiness_report(state)` build the answers of GET /health and GET /ready (the routes
-in service/routes/ops.py call them). `ProbeServer` answers the same two paths from a thread of its own
-(`HAPTICLINK_PROBE_PORT`), with the standard library's threading HTTP server: it needs nothing of the
-event loop, so a loop that ingest keeps busy cannot delay it. Its threads only read the state (under
-the GIL, one attribute read at a time), and the short GIL switch interval the service sets
-(`gil_switch_interval_s`) bounds how long they wait for the interpreter behind the loop and the pools.
+`health(instance)` and `readiness_report(readiness, runtime)` build the answers of GET /health and
+GET /ready (the routes in service/routes/ops.py call them). `ProbeServer` answers the same two paths
+from a thread of its own (`HAPTICLINK_PROBE_PORT`), with the standard library's threading HTTP
+server: it needs nothing of the event loop, so a loop that ingest keeps busy cannot delay it. Its
+threads only read the state (under the GIL, one attribute read at a time), and the short GIL switch
+interval the service sets (`gil_switch_interval_s`) bounds how long they wait for the interpreter
+behind the loop and the pools.
 """
 
 from __future__ import annotations
@@ -13,26 +14,23 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import TYPE_CHECKING
 
+from service.runtime import Runtime
 from service.schemas import HealthOut, ReadyOut
-
-if TYPE_CHECKING:
-    from service.state import ServiceState
 
 log = logging.getLogger(__name__)
 
 
-def health(state: ServiceState) -> HealthOut:
+def health(instance: str) -> HealthOut:
     """GET /health: the process runs."""
-    return HealthOut(status="ok", instance=state.settings.instance_id)
+    return HealthOut(status="ok", instance=instance)
 
 
-def readiness_report(state: ServiceState) -> tuple[ReadyOut, int]:
-    """GET /ready: (the answer, 200 when ready else 503)."""
-    ok, why = state.readiness()
-    rt = state.runtime
+def readiness_report(readiness: tuple[bool, str], rt: Runtime | None) -> tuple[ReadyOut, int]:
+    """GET /ready from (ready, why) and the runtime once loaded: (the answer, 200 when ready else 503)."""
+    ok, why = readiness
     if rt is None:
         return ReadyOut(ready=ok, detail=why), 200 if ok else 503
     body = ReadyOut(
@@ -49,10 +47,12 @@ def readiness_report(state: ServiceState) -> tuple[ReadyOut, int]:
 
 
 class ProbeServer:
-    """GET /health and GET /ready on (host, port) from daemon threads; `port` 0 picks a free one (see `.port`)."""
+    """GET /health and GET /ready on (host, port) from daemon threads; `port` 0 picks a free one (see `.port`).
+    live / ready: build the two answers (called on the probe threads: they must only read)."""
 
-    def __init__(self, state: ServiceState, host: str, port: int) -> None:
-        probe_state = state
+    def __init__(
+        self, live: Callable[[], HealthOut], ready: Callable[[], tuple[ReadyOut, int]], host: str, port: int
+    ) -> None:
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
@@ -62,9 +62,9 @@ class ProbeServer:
             def do_GET(self) -> None:  # noqa: N802 - the standard library's name
                 path = self.path.split("?", 1)[0]
                 if path == "/health":
-                    body, status = health(probe_state).model_dump(), 200
+                    body, status = live().model_dump(), 200
                 elif path == "/ready":
-                    out, status = readiness_report(probe_state)
+                    out, status = ready()
                     body = out.model_dump()
                 else:
                     body, status = {"detail": "the probe port answers GET /health and GET /ready only"}, 404

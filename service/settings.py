@@ -163,8 +163,8 @@ class Settings(BaseSettings):
         ge=0,
         le=2,
         description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
-        "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of each, summed; "
-        "service/scene_change.py)",
+        "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of "
+        "each, summed; service/scene_change.py)",
     )
     timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
     request_read_timeout_s: float = Field(

@@ -35,7 +35,7 @@ from service.fleet import ApiKeys, TokenBucket
 from service.intake import BlockIntake, FrameIntake
 from service.live_session import Session
 from service.metrics import ServiceMetrics
-from service.probes import ProbeServer
+from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
 from service.settings import Settings
 from service.warmup import warm_up
@@ -79,7 +79,12 @@ class ServiceState:
         # whole switch interval (5 ms by default), per write. A short interval bounds that wait.
         sys.setswitchinterval(self.settings.gil_switch_interval_s)
         if self.settings.probe_port is not None:
-            self.probes = ProbeServer(self, self.settings.host, self.settings.probe_port)
+            self.probes = ProbeServer(
+                lambda: health(self.settings.instance_id),
+                lambda: readiness_report(self.readiness(), self.runtime),
+                self.settings.host,
+                self.settings.probe_port,
+            )
             self.probes.start()
         await self.broker.start()
         self.batcher.start()

@@ -32,7 +32,7 @@ async def library(runtime: ReadyRuntime) -> LibraryOut:
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")
 async def health(state: State) -> HealthOut:
-    return probes.health(state)
+    return probes.health(state.settings.instance_id)
 
 
 @router.get(
@@ -42,7 +42,7 @@ async def health(state: State) -> HealthOut:
     summary="Readiness: model and library loaded, checked and warmed up",
 )
 async def ready(state: State) -> JSONResponse:
-    body, status = probes.readiness_report(state)
+    body, status = probes.readiness_report(state.readiness(), state.runtime)
     return JSONResponse(body.model_dump(), status_code=status)
 
 

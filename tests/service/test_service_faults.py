@@ -1,4 +1,4 @@
-"""The live service under the robustness study's faults (issue 7 §5): a real uvicorn, a robot on the real ingest
+"""The live service under the robustness study's faults: a real uvicorn, a robot on the real ingest
 WebSocket, frames over HTTP and an operator on the events WebSocket. Noisy, clipped, gapped and out-of-range
 blocks, invalid blocks, an unreadable frame, an under-exposed frame and then no frame at all: the service keeps
 serving, never answers 5xx, flags the windows whose input it was not trained on, and loses no window of an

@@ -1,4 +1,4 @@
-"""Hostile input and overload (issue 8 §5): one test per finding of the hostile-client probe, against a live server."""
+"""Hostile input and overload: one test per finding of the hostile-client probe, against a live server."""
 
 from __future__ import annotations
 
