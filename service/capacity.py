@@ -52,6 +52,13 @@ RETRY_AFTER_S = 2.0
 LOG_EVERY_S = 10.0
 
 
+class AtCapacity(ServiceError):
+    """429: the replica is at capacity (a new session, or a block of one of its newest sessions)."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(429, detail, {"Retry-After": f"{RETRY_AFTER_S:g}"})
+
+
 class CapacityGuard:
     """See the module docstring. `start()` inside the event loop; `sessions` lists this replica's sessions in
     creation order (oldest first)."""
@@ -166,20 +173,14 @@ class CapacityGuard:
             )
         if why is not None:
             self.metrics.sessions_refused.labels(reason="capacity").inc()
-            raise ServiceError(
-                429,
-                f"this replica is at capacity: {why}; try later or another replica",
-                {"Retry-After": f"{RETRY_AFTER_S:g}"},
-            )
+            raise AtCapacity(f"this replica is at capacity: {why}; try later or another replica")
 
     def admit_block(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed while the process is over
         capacity; nothing of the block is taken."""
         if session.id in self._shed:
-            raise ServiceError(
-                429,
+            raise AtCapacity(
                 f"this replica is at capacity (event loop CPU {self.cpu_share:.2f} of {self.settings.cpu_budget:g}, "
                 f"loop lag {self.lag_s * 1e3:.0f} ms) and session {session.id} is among its newest; "
-                "resend from the oldest unacknowledged block later",
-                {"Retry-After": f"{RETRY_AFTER_S:g}"},
+                "resend from the oldest unacknowledged block later"
             )

@@ -10,6 +10,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from service.auth import ROBOT_ONLY
+from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
 from service.routes.common import errors, try_later
@@ -97,7 +98,12 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
             except ServiceError as exc:
                 if exc.status == 429:
                     why = "saturated"
-                    await websocket.close(int(Close.SATURATED), "session saturated; reconnect and resend")
+                    reason = (
+                        "replica at capacity; reconnect after Retry-After 2 s and resend"
+                        if isinstance(exc, AtCapacity)
+                        else "session saturated; reconnect and resend"
+                    )
+                    await websocket.close(int(Close.SATURATED), reason)
                     return
                 await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))
                 continue

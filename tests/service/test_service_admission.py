@@ -54,6 +54,7 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
             with pytest.raises(ConnectionClosed) as closed:
                 ws.recv(timeout=5)
         assert closed.value.rcvd is not None and closed.value.rcvd.code == 4429
+        assert "capacity" in closed.value.rcvd.reason
         metrics = client.get("/metrics").text
         assert 'hapticlink_sessions_refused_total{reason="capacity"}' in metrics
         assert "hapticlink_loop_lag_seconds" in metrics and "hapticlink_loop_cpu_share" in metrics

@@ -268,3 +268,38 @@ def test_an_untapped_surface_is_estimated_by_the_fallback_at_once(kit, fallback_
     offline = fallback.predict(rows)[:4]
     served = np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows])
     assert np.allclose(served, offline, atol=0.011)  # events carry 2 decimals
+
+
+@pytest.mark.parametrize("gap_s", (0.2, 2.0))
+def test_a_dropout_keeps_the_visual_embedding(kit, visual_model, library_dir, gap_s):
+    """A visual model without a tactile-only fallback (its windows could only wait for a frame): after one frame's
+    embedding, a dropout of gap_s neither loses the embedding nor stalls the session."""
+    settings = Settings(
+        model_path=visual_model.model,
+        backbone_path=visual_model.backbone,
+        library_dir=library_dir,
+        instance_id="segments-visual",
+        api_keys=kit.API_KEY,
+        session_queue_windows=64,
+        session_burst=10_000,
+    )
+    blocks = _stream(kit, library_dir, gap_s, entry="synth_003")
+    starts = _expected_starts(blocks, visual_model.model)
+    with (
+        kit.running(settings) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
+        session = kit.create_session(client)
+        with (
+            connect(kit.socket_url(srv, session, "events")) as sub,
+            connect(kit.socket_url(srv, session, "ingest")) as ws,
+        ):
+            assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+            assert _post_frame(client, session, (library_dir / "images" / "synth_003.png").read_bytes())["used"]
+            while json.loads(sub.recv(timeout=60)).get("event") != "visual_updated":
+                pass
+            _send(ws, blocks, 0)
+            windows, statuses = _collect(sub, len(starts))
+    assert [w["t_start_s"] for w in windows] == pytest.approx(starts, abs=1e-6)
+    assert all(w["inputs"] == "tactile+visual" for w in windows)
+    assert not any(s["event"] == "waiting_for_frame" for s in statuses)
