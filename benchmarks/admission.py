@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             results = ctx.Queue()
             ws_url = server.url.replace("http://", "ws://")
             gens = [ctx.Process(target=robots, args=(ws_url, h, payloads, args.duration, results)) for h in halves]
-            lag_samples, cpu_samples = [], []
+            lag_samples, cpu_samples, process_samples = [], [], []
             for g in gens:
                 g.start()
             deadline = time.monotonic() + args.duration + 1
@@ -245,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
                 text = httpx.get(f"{server.url}/metrics", timeout=30).text
                 lag_samples.append(metric(text, "hapticlink_loop_lag_seconds") * 1e3)
                 cpu_samples.append(metric(text, "hapticlink_loop_cpu_share"))
+                process_samples.append(metric(text, "hapticlink_process_cpu_share"))
                 peak = max(peak, rss_mb(server.proc.pid))
             per_robot = [r for _ in gens for r in results.get(timeout=120)]
             for g in gens:
@@ -278,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     report["service"] = {
         "loop_lag_ms_each_second": [round(x, 1) for x in lag_samples],
         "loop_cpu_share_each_second": [round(x, 3) for x in cpu_samples],
+        "process_cpu_share_each_second": [round(x, 3) for x in process_samples],
         "blocks_refused": metric(final, "hapticlink_blocks_total", outcome="refused"),
         "sessions_refused_capacity": metric(final, "hapticlink_sessions_refused_total", reason="capacity"),
     }

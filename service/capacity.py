@@ -12,7 +12,9 @@ every `SAMPLE_EVERY_S`, two things that say how close the process is to saturati
   total CPU would also count whatever else shares the process, e.g. a test client.)
 
 A late timer alone may mean the machine is busy with other processes; the lag counts as the
-process's own only while the loop thread is busy too (over half its budget).
+process's own only while the process is busy too: its loop thread over half its budget, or all its
+threads together over the budget (then the pool threads hold the GIL, and every socket operation of
+the loop waits for it: the loop is late while using little CPU itself).
 
 Both are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). From them:
 
@@ -68,6 +70,7 @@ class CapacityGuard:
         self.metrics = metrics
         self.lag_s = 0.0
         self.cpu_share = 0.0
+        self.process_share = 0.0  # cores the whole process used (all threads), smoothed
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
         self._streaming = 0
         self._shed: set[str] = set()
@@ -90,19 +93,23 @@ class CapacityGuard:
     async def _sample(self) -> None:
         weight = 1 - math.exp(-SAMPLE_EVERY_S / SMOOTHING_S)
         wall, cpu = time.monotonic(), time.thread_time()  # this runs on the loop thread: its CPU clock
+        process_cpu = time.process_time()
         while True:
             await asyncio.sleep(SAMPLE_EVERY_S)
-            now, now_cpu = time.monotonic(), time.thread_time()
+            now, now_cpu, now_process = time.monotonic(), time.thread_time(), time.process_time()
             elapsed = now - wall
             lag = max(0.0, elapsed - SAMPLE_EVERY_S)
             share = (now_cpu - cpu) / elapsed if elapsed > 0 else 0.0
-            wall, cpu = now, now_cpu
+            process = (now_process - process_cpu) / elapsed if elapsed > 0 else 0.0
+            wall, cpu, process_cpu = now, now_cpu, now_process
             # a late timer means the loop was busy for all of it: weigh it by how long it stood
             w = min(1.0, weight * elapsed / SAMPLE_EVERY_S)
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
+            self.process_share += w * (process - self.process_share)
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.cpu_share.set(self.cpu_share)
+            self.metrics.process_cpu_share.set(self.process_share)
             self._update_shedding(now)
 
     def _update_shedding(self, now: float) -> None:
@@ -145,7 +152,9 @@ class CapacityGuard:
         return [s for s in self._sessions() if now - s.last_activity < STREAMING_WITHIN_S and s.last_seq >= 0]
 
     def _busy(self) -> bool:
-        return self.cpu_share > self.settings.cpu_budget / 2
+        """The lag is the process's own: its loop is busy, or its threads together keep the interpreter busy (pool
+        threads holding the GIL make every socket operation of the loop wait for it)."""
+        return self.cpu_share > self.settings.cpu_budget / 2 or self.process_share > self.settings.cpu_budget
 
     def sessions_that_fit(self) -> int:
         """Streaming sessions the CPU budget holds at the measured CPU per session (a large number until measured)."""

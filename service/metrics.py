@@ -95,6 +95,11 @@ class ServiceMetrics:
             "Share of one core the event-loop thread used (smoothed; 1 = always busy).",
             registry=registry,
         )
+        self.process_cpu_share = Gauge(
+            "hapticlink_process_cpu_share",
+            "Cores the whole process used, all threads (smoothed).",
+            registry=registry,
+        )
         self.latency = Histogram(
             "hapticlink_window_latency_seconds",
             "Ingest-to-publish latency of windows, by pipeline stage.",
