@@ -284,7 +284,7 @@ def _replay(settings, stream: Stream, name: str) -> dict:
     from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
     from service.runtime import load_runtime
     from service.scene_change import thumbnail
-    from service.session import canonical_channels, stream_contract
+    from service.live_session import canonical_channels, stream_contract
     from service.warmup import warm_up
 
     runtime = load_runtime(settings)

@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     hatt = sorted((args.hatt_source / "models").glob("*.xml")) if args.hatt_source else []
     errors = {"synthetic": encoding_error(synthetic_models)}
     if hatt:
-        from texture_library.hatt import read_model
+        from texture_library.hatt_xml import read_model
 
         errors["hatt"] = encoding_error([(p.stem, read_model(p)) for p in hatt])
     load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"

@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     models = [make_world(1, 0, image_size=64)[0].model]
     hatt = sorted((args.hatt_source / "models").glob("*.xml")) if args.hatt_source else []
     if hatt:
-        from texture_library.hatt import read_model
+        from texture_library.hatt_xml import read_model
 
         models.append(read_model(hatt[0]))
     else:

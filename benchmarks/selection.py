@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> dict:
     if not (args.hatt / "models").is_dir():
         parser.error(f"{args.hatt}: no models/ folder (HaTT–TexNet, read in place)")
 
-    from texture_library.hatt import read_model
+    from texture_library.hatt_xml import read_model
     from texture_library.nearest import PerceptualIndex
     from texture_library.selection import HysteresisChooser, SelectionRule, SpectralTable
     from texture_library.synthesis import render

@@ -96,7 +96,7 @@ def _service_window(n: int) -> dict:
     from models.offline.train import train_and_export
     from service.pipeline import estimate_batch
     from service.runtime import load_runtime
-    from service.session import stream_contract
+    from service.live_session import stream_contract
     from service.settings import Settings
     from service.warmup import WARM_UP_WINDOWS, synthetic_job
     from texture_library.synthetic_library import build_synthetic_library

@@ -1,4 +1,4 @@
-"""How much model a scene needs: the serving policy (issue 7 §4).
+"""How much model a scene needs: the serving policy.
 
 Two modes (`HAPTICLINK_SERVING_POLICY`):
 

@@ -18,7 +18,7 @@ from service.errors import ServiceError
 TOKEN_BYTES = 32
 
 
-class Role(str, Enum):
+class Role(str, Enum):  # noqa: UP042 - StrEnum would change str(Role.X) in messages
     ROBOT = "robot"  # sends blocks and frames
     OPERATOR = "operator"  # reads events and the session's status
 

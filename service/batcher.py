@@ -14,9 +14,9 @@ import contextlib
 import logging
 from concurrent.futures import Executor
 
+from service.live_session import Session
 from service.pipeline import SessionJob, SessionResult, estimate_batch
 from service.runtime import Runtime
-from service.session import Session
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ class WindowBatcher:
 
     async def _gather(self) -> list[tuple[Session, SessionJob]]:
         """Take up to max_sessions_per_job ready sessions that are not in a job, with their jobs."""
-        batch = []
+        batch: list[tuple[Session, SessionJob]] = []
         for sid, session in list(self._ready.items()):
             if len(batch) >= self.max_sessions_per_job:
                 break

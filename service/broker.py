@@ -23,6 +23,7 @@ import secrets
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import asdict, dataclass
+from typing import Any
 
 from service.auth import SessionCredentials
 
@@ -111,7 +112,7 @@ class Broker(ABC):
         self.incarnation = secrets.token_hex(8)
         self._local: dict[str, set[Subscription]] = {}
 
-    async def start(self) -> None:
+    async def start(self) -> None:  # noqa: B027 - a hook: the in-memory broker has nothing to connect
         """Connect (no-op in memory)."""
 
     async def close(self) -> None:
@@ -160,10 +161,10 @@ class Broker(ABC):
         for sub in list(self._local.get(session_id, ())):
             sub.queue.offer(text, final)
 
-    async def _listen(self, session_id: str) -> None:
+    async def _listen(self, session_id: str) -> None:  # noqa: B027 - a hook, as start
         """Start receiving the session's events from elsewhere (no-op in memory)."""
 
-    async def _unlisten(self, session_id: str) -> None:
+    async def _unlisten(self, session_id: str) -> None:  # noqa: B027 - a hook, as start
         """Stop receiving them (no-op in memory)."""
 
     # ---- session directory ---------------------------------------------------------------------
@@ -228,8 +229,8 @@ class RedisBroker(Broker):
         super().__init__(subscriber_queue)
         self.url = url
         self.instance_id = instance_id
-        self._redis = None
-        self._pubsub = None
+        self._redis: Any = None  # redis.asyncio.Redis once started (imported only when Redis is used)
+        self._pubsub: Any = None
         self._reader: asyncio.Task | None = None
         self._confirmed: dict[str, asyncio.Event] = {}
         self._beats = 0

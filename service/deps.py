@@ -21,11 +21,13 @@ from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
 from service.errors import ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
+from service.live_session import Session
+from service.log_throttle import LogThrottle
 from service.runtime import Runtime
-from service.session import Session
 from service.state import ServiceState
 
 log = logging.getLogger("service.access")
+_refusals = LogThrottle(log)  # clients choose how often they are refused: at most one line per kind every 10 s
 
 
 def get_state(connection: HTTPConnection) -> ServiceState:
@@ -56,15 +58,15 @@ Token = Annotated[str | None, Depends(bearer_token)]
 
 
 async def robot_session(session_id: str, state: State, token: Token) -> Session:
-    return await state.local_session(session_id, token, ROBOT_ONLY)
+    return await state.directory.local(session_id, token, ROBOT_ONLY)
 
 
 async def operator_session(session_id: str, state: State, token: Token) -> Session:
-    return await state.local_session(session_id, token, OPERATOR_ONLY)
+    return await state.directory.local(session_id, token, OPERATOR_ONLY)
 
 
 async def any_session(session_id: str, state: State, token: Token) -> Session:
-    return await state.local_session(session_id, token, EITHER)
+    return await state.directory.local(session_id, token, EITHER)
 
 
 RobotSession = Annotated[Session, Depends(robot_session)]
@@ -86,8 +88,13 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
     if not state.api_keys.configured:
         raise ServiceError(503, NOT_CONFIGURED)
     if not state.api_keys.check(token):
-        state.metrics.sessions_refused.inc(reason="api_key")
-        log.warning("POST /sessions from %s refused: %s API key", client, "no" if token is None else "an unknown")
+        state.metrics.sessions_refused.labels(reason="api_key").inc()
+        _refusals.warning(
+            ("api_key", token is None),
+            "POST /sessions from %s refused: %s API key",
+            client,
+            "no" if token is None else "an unknown",
+        )
         raise ServiceError(
             401,
             "a fleet API key is required: send 'Authorization: Bearer <key>' (HAPTICLINK_API_KEY for the robot client)"
@@ -97,7 +104,7 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
         )
     wait = state.session_limiter.take(client)
     if wait > 0:
-        state.metrics.sessions_refused.inc(reason="rate")
+        state.metrics.sessions_refused.labels(reason="rate").inc()
         raise ServiceError(
             429,
             f"too many sessions opened from {client}; at most {state.settings.session_rate_per_s:g}/s "
@@ -124,13 +131,14 @@ async def socket_session(
     robot = roles == ROBOT_ONLY
     try:
         if robot:
-            session = await state.local_session(session_id, token, roles)
+            local = await state.directory.local(session_id, token, roles)
             state.require_runtime()
-            return session
-        _, session = await state.authorized(session_id, token, roles)
+            return local
+        _, session = await state.directory.authorized(session_id, token, roles)
         return session
     except ServiceError as exc:
-        log.warning(
+        _refusals.warning(
+            ("socket", robot, exc.status),
             "%s socket for session %s from %s refused: %d %s",
             "ingest" if robot else "events",
             session_id,
@@ -139,10 +147,10 @@ async def socket_session(
             exc.detail,
         )
         if robot:
-            state.metrics.sockets_refused.inc(status=str(exc.status))
+            state.metrics.sockets_refused.labels(status=str(exc.status)).inc()
             known = state.sessions.get(session_id)
             if known is not None and exc.status in (401, 403):  # someone tried this session's ingest: say so
-                await state.publish(
+                await state.bus.publish(
                     session_id,
                     status_event(session_id, "robot_refused", f"an ingest connection was refused: {exc.detail}"),
                     False,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from drivers.protocol import SESSION_LOST
+
 
 class ServiceError(Exception):
     """A refusal: HTTP `status` with `detail` (the message the client sees) and optional headers.
@@ -24,3 +26,12 @@ def saturated(what: str, retry_after_s: float) -> ServiceError:
 def bad_input(exc: ValueError) -> ServiceError:
     """A ValueError from the shared validation code, as 422 with its message."""
     return ServiceError(422, str(exc))
+
+
+def session_not_found(session_id: str) -> ServiceError:
+    return ServiceError(404, f"no session {session_id!r}")
+
+
+def session_lost(session_id: str, reason: str) -> ServiceError:
+    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
+    return ServiceError(SESSION_LOST, f"session {session_id} is lost: {reason}; open a new session")

@@ -25,6 +25,7 @@ StatusKind = Literal[
     "visual_updated",  # the visual embedding now used for the scene's windows changed
     "waiting_for_frame",  # a visual model without a tactile-only model holds windows until the first frame is embedded
     "waiting_for_taps",  # a model with tap features holds windows until the surface under the tool is tapped
+    "input_missing",  # windows lack an input the model reads (missing: "taps"); a fallback estimates them meanwhile
     "robot_disconnected",  # the robot's ingest socket closed (the message says why)
     "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
@@ -62,7 +63,8 @@ class Bounds(BaseModel):
 
 class Interval(BaseModel):
     """Conformal prediction interval of the smoothed `ratings`, per attribute, at nominal coverage `level`
-    (models/inference/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training textures).
+    (models/inference/intervals.py, calibrated by `hapticlink train` inside cross-validation over the training
+    textures).
     target: the calibration used — "ema" (of the smoothed estimate at the service's alpha) or "window" (of one
     window's estimate; used when the service smooths with another alpha). Widens to include the population band
     while the estimate is out of distribution."""
@@ -148,8 +150,14 @@ class WindowEvent(BaseModel):
         "the full one where the cheap estimate was not good enough)"
     )
     inputs: Literal["tactile", "tactile+visual"] = Field(
-        description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose first frame "
-        "has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap model's estimate)"
+        description="what the estimate read: tactile+visual, or tactile only (a visual model's session whose "
+        "first frame has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap "
+        "model's estimate)"
+    )
+    missing_inputs: list[Literal["taps"]] = Field(
+        default_factory=list,
+        description="inputs the served model reads that this window lacked, so a fallback model estimated it: "
+        '"taps" (the surface under the tool has not been tapped since the scene changed; send a tap block)',
     )
 
 
@@ -223,6 +231,7 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         },
         "model": w.model,
         "inputs": w.inputs,
+        "missing_inputs": list(w.missing),
     }
 
 

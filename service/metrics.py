@@ -1,187 +1,118 @@
-"""Prometheus metrics, hand-written (text exposition format 0.0.4) so serving needs no extra package.
+"""Prometheus metrics of one service process, with prometheus_client.
 
-Counters and gauges are updated on the event loop; histograms also from pool threads,
-hence the lock. `render()` is what GET /metrics returns.
+Each `ServiceMetrics` has its own `CollectorRegistry` (several app instances may share a process:
+tests, benchmarks); `render()` is what GET /metrics returns, in the text exposition format 0.0.4.
+Metric names and labels are the ones dashboards read; changing one breaks them.
 """
 
 from __future__ import annotations
 
-import math
-import threading
-from collections.abc import Iterable
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
-CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+# The *_created series (a timestamp per counter and label set) double the page and no dashboard reads them.
+disable_created_metrics()
+
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # what generate_latest writes
 LATENCY_BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
-
-
-def _labels(names: tuple[str, ...], values: tuple[str, ...], extra: str = "") -> str:
-    parts = [f'{n}="{_escape(v)}"' for n, v in zip(names, values, strict=True)]
-    if extra:
-        parts.append(extra)
-    return "{" + ",".join(parts) + "}" if parts else ""
-
-
-def _escape(value: str) -> str:
-    return value.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
-
-
-def _number(x: float) -> str:
-    """A sample value as Prometheus writes it (+Inf, integers without a fraction)."""
-    x = float(x)
-    if math.isinf(x):
-        return "+Inf" if x > 0 else "-Inf"
-    if x.is_integer() and abs(x) < 1e15:
-        return str(int(x))
-    return repr(x)
-
-
-class _Metric:
-    kind = ""
-
-    def __init__(self, name: str, help_text: str, labels: tuple[str, ...] = ()) -> None:
-        self.name, self.help, self.label_names = name, help_text, labels
-        self._lock = threading.Lock()
-
-    def _key(self, labels: dict[str, str]) -> tuple[str, ...]:
-        # on the per-block path: one length check and one lookup per label instead of two sets
-        try:
-            if len(labels) == len(self.label_names):
-                return tuple([str(labels[n]) for n in self.label_names])
-        except KeyError:
-            pass
-        raise ValueError(f"{self.name} takes labels {self.label_names}, got {sorted(labels)}")
-
-    def header(self) -> list[str]:
-        return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} {self.kind}"]
-
-    def lines(self) -> list[str]:
-        raise NotImplementedError
-
-
-class Counter(_Metric):
-    """A monotonically increasing count per label set."""
-
-    kind = "counter"
-
-    def __init__(self, name: str, help_text: str, labels: tuple[str, ...] = ()) -> None:
-        super().__init__(name, help_text, labels)
-        self._values: dict[tuple[str, ...], float] = {} if labels else {(): 0.0}
-
-    def inc(self, amount: float = 1.0, **labels: str) -> None:
-        key = self._key(labels)
-        with self._lock:
-            self._values[key] = self._values.get(key, 0.0) + amount
-
-    def value(self, **labels: str) -> float:
-        return self._values.get(self._key(labels), 0.0)
-
-    def lines(self) -> list[str]:
-        with self._lock:
-            items = sorted(self._values.items())
-        return [f"{self.name}{_labels(self.label_names, k)} {_number(v)}" for k, v in items]
-
-
-class Gauge(Counter):
-    """A value that goes up and down (set directly)."""
-
-    kind = "gauge"
-
-    def set(self, value: float, **labels: str) -> None:
-        key = self._key(labels)
-        with self._lock:
-            self._values[key] = float(value)
-
-
-class Histogram(_Metric):
-    """Observations (seconds) counted into cumulative buckets per label set."""
-
-    kind = "histogram"
-
-    def __init__(
-        self, name: str, help_text: str, labels: tuple[str, ...] = (), buckets: Iterable[float] = LATENCY_BUCKETS_S
-    ) -> None:
-        super().__init__(name, help_text, labels)
-        self.buckets = tuple(sorted(buckets))
-        self._counts: dict[tuple[str, ...], list[int]] = {}
-        self._sums: dict[tuple[str, ...], float] = {}
-
-    def observe(self, value: float, **labels: str) -> None:
-        key = self._key(labels)
-        with self._lock:
-            counts = self._counts.setdefault(key, [0] * (len(self.buckets) + 1))
-            for i, bound in enumerate(self.buckets):
-                if value <= bound:
-                    counts[i] += 1
-                    break
-            else:
-                counts[-1] += 1
-            self._sums[key] = self._sums.get(key, 0.0) + value
-
-    def lines(self) -> list[str]:
-        out = []
-        with self._lock:
-            items = sorted((k, list(c), self._sums[k]) for k, c in self._counts.items())
-        for key, counts, total in items:
-            running = 0
-            for bound, n in zip((*self.buckets, math.inf), counts, strict=True):
-                running += n
-                le = 'le="' + _number(bound) + '"'
-                out.append(f"{self.name}_bucket{_labels(self.label_names, key, le)} {running}")
-            out.append(f"{self.name}_sum{_labels(self.label_names, key)} {total!r}")
-            out.append(f"{self.name}_count{_labels(self.label_names, key)} {running}")
-        return out
+BLOCK_OUTCOMES = ("accepted", "duplicate", "rejected", "refused")
 
 
 class ServiceMetrics:
-    """Every metric the service exports."""
+    """Every metric the service exports. Counters and gauges are updated on the event loop, histograms also from
+    pool threads (prometheus_client's metrics are thread-safe)."""
 
     def __init__(self) -> None:
-        self.blocks = Counter("hapticlink_blocks_total", "Sample blocks received, by outcome.", ("outcome",))
-        self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.")
+        self.registry = registry = CollectorRegistry(auto_describe=True)
+        self.blocks = Counter(
+            "hapticlink_blocks_total", "Sample blocks received, by outcome.", ("outcome",), registry=registry
+        )
+        # on the per-block path: bound once, not looked up per block
+        self.block_outcome = {outcome: self.blocks.labels(outcome=outcome) for outcome in BLOCK_OUTCOMES}
+        self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.", registry=registry)
         self.windows_admitted = Counter(
             "hapticlink_windows_admitted_total",
             "Windows completed by accepted blocks (each is published, or its loss counted).",
+            registry=registry,
         )
-        self.frames = Counter("hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",))
+        self.windows_degraded = Counter(
+            "hapticlink_windows_degraded_total",
+            "Windows estimated by a fallback model because an input the served model reads was missing, by input.",
+            ("missing",),
+            registry=registry,
+        )
+        self.frames = Counter(
+            "hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",), registry=registry
+        )
         self.events_dropped = Counter(
-            "hapticlink_events_dropped_total", "Events dropped for slow operator connections (they keep the latest)."
+            "hapticlink_events_dropped_total",
+            "Events dropped for slow operator connections (they keep the latest).",
+            registry=registry,
         )
         self.sessions_refused = Counter(
-            "hapticlink_sessions_refused_total", "POST /sessions refused, by reason (api_key, rate).", ("reason",)
+            "hapticlink_sessions_refused_total",
+            "POST /sessions refused, by reason (api_key, rate, capacity).",
+            ("reason",),
+            registry=registry,
         )
         self.sessions_reaped = Counter(
-            "hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming."
+            "hapticlink_sessions_reaped_total", "Sessions ended for idling or never streaming.", registry=registry
         )
         self.sockets_refused = Counter(
             "hapticlink_ingest_sockets_refused_total",
             "Ingest WebSocket handshakes refused, by HTTP-equivalent status.",
             ("status",),
+            registry=registry,
         )
         self.robot_disconnects = Counter(
-            "hapticlink_robot_disconnects_total", "Ingest WebSockets that closed, by reason.", ("reason",)
+            "hapticlink_robot_disconnects_total",
+            "Ingest WebSockets that closed, by reason.",
+            ("reason",),
+            registry=registry,
         )
-        self.publish_errors = Counter("hapticlink_publish_errors_total", "Events the broker failed to publish.")
-        self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.")
+        self.publish_errors = Counter(
+            "hapticlink_publish_errors_total", "Events the broker failed to publish.", registry=registry
+        )
+        self.sessions_active = Gauge("hapticlink_sessions_active", "Open sessions on this replica.", registry=registry)
         self.sessions_lost = Counter(
             "hapticlink_sessions_lost_total",
             "Sessions of another replica found gone (stopped, crashed, restarted) here.",
+            registry=registry,
         )
-        self.subscribers = Gauge("hapticlink_subscribers", "Open operator event connections on this replica.")
-        self.ready = Gauge("hapticlink_ready", "1 when the model and library are loaded and warmed up.")
+        self.subscribers = Gauge(
+            "hapticlink_subscribers", "Open operator event connections on this replica.", registry=registry
+        )
+        self.ready = Gauge(
+            "hapticlink_ready", "1 when the model and library are loaded and warmed up.", registry=registry
+        )
+        self.loop_lag = Gauge(
+            "hapticlink_loop_lag_seconds",
+            "How late the event loop runs a timer (smoothed): the queue delay every request and block waits.",
+            registry=registry,
+        )
+        self.cpu_share = Gauge(
+            "hapticlink_loop_cpu_share",
+            "Share of one core the event-loop thread used (smoothed; 1 = always busy).",
+            registry=registry,
+        )
+        self.process_cpu_share = Gauge(
+            "hapticlink_process_cpu_share",
+            "Cores the whole process used, all threads (smoothed).",
+            registry=registry,
+        )
         self.latency = Histogram(
-            "hapticlink_window_latency_seconds", "Ingest-to-publish latency of windows, by pipeline stage.", ("stage",)
+            "hapticlink_window_latency_seconds",
+            "Ingest-to-publish latency of windows, by pipeline stage.",
+            ("stage",),
+            buckets=LATENCY_BUCKETS_S,
+            registry=registry,
         )
         self.visual_seconds = Histogram(
             "hapticlink_visual_embedding_seconds",
             "Time to embed one camera frame.",
             buckets=(0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10),
+            registry=registry,
         )
 
-    def all(self) -> list[_Metric]:
-        return [m for m in vars(self).values() if isinstance(m, _Metric)]
-
     def render(self) -> str:
-        lines: list[str] = []
-        for metric in self.all():
-            lines += metric.header() + metric.lines()
-        return "\n".join(lines) + "\n"
+        return generate_latest(self.registry).decode()

@@ -1,9 +1,9 @@
 """A block's way through the service, one typed step per stage:
 
-    ingest      wire bytes ─▶ SampleBlock | TapBlock                        (service.ingest, event loop)
-    admission   SampleBlock ─▶ AdmittedBlock (StreamContract.advance)       (service.session, event loop)
+    ingest      wire bytes ─▶ SampleBlock | TapBlock                        (service.intake, event loop)
+    admission   SampleBlock ─▶ AdmittedBlock (StreamContract.advance)       (service.live_session, event loop)
                 TapBlock ─▶ the session's tap features (models.tactile.taps.tap_features), carried by the
-                AdmittedBlocks of the surface they were tapped on           (service.session, event loop)
+                AdmittedBlocks of the surface they were tapped on           (service.live_session, event loop)
     window batch  AdmittedBlocks of a session ─▶ PreparedWindows             (prepare_windows, pool thread)
     features    every session's windows at once ─▶ FeatureRows               (featurize: window_features)
     model       FeatureRows ─▶ RawRatings (the main model where the session's visual embedding has
@@ -14,7 +14,7 @@
                 nearest library entries, the selection rule's choice (the window's vibration
                 against the library's precomputed spectra where the rule reads it) and its
                 hysteresis                                                    (lookup)
-    publish     WindowEstimate ─▶ window event ─▶ broker                     (service.session, event loop)
+    publish     WindowEstimate ─▶ window event ─▶ broker                     (service.live_session, event loop)
 
 `estimate_batch` runs window batch → lookup for many sessions in one pool call: window_features and
 onnxruntime cost far less per window in a batch, and a pool thread that holds the GIL for fewer,
@@ -85,7 +85,9 @@ class SessionJob:
 class PreparedWindows:
     """One session segment's windows after preprocessing. completed_by: (seq, arrived_ns) of the block that
     completed each window; preprocess_ns: what push + take cost; taps: (m, 3) tap features per window (those
-    its completing block carried) for a model with the taps group, else None."""
+    its completing block carried; zeros where it carried none) for a model with the taps group, else None;
+    untapped: (m,) bool, the windows whose block carried no tap features (estimated by runtime.untapped), or None
+    when every window has them."""
 
     estimator: SessionEstimator
     batch: WindowBatch
@@ -95,6 +97,7 @@ class PreparedWindows:
     preprocess_ns: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
     taps: np.ndarray | None = None
+    untapped: np.ndarray | None = None
 
     @property
     def inputs(self) -> Inputs:
@@ -111,7 +114,8 @@ class FeatureRows:
 
 @dataclass(frozen=True)
 class WindowCheck:
-    """One window's out-of-distribution check (models.inference.ood.OODDetector.check): flag, reasons, distance (> 0)."""
+    """One window's out-of-distribution check (models.inference.ood.OODDetector.check): flag, reasons, distance
+    (> 0)."""
 
     flagged: bool
     reasons: list[str]
@@ -138,7 +142,8 @@ class WindowEstimate:
 
     completed_by: seq of the block whose samples completed the window; ingest_ns: when that block
     arrived; started_ns: when its batch's computation began (perf_counter_ns); inputs: what the
-    estimate was computed from; model: which model produced it.
+    estimate was computed from; model: which model produced it; missing: inputs the served model reads that this
+    window lacked, so a fallback model estimated it (e.g. ("taps",)).
     """
 
     index: int
@@ -160,6 +165,7 @@ class WindowEstimate:
     model: str
     selection: Choice | None = None
     chosen_model_version: str | None = None
+    missing: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -247,11 +253,14 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
             continue
         completing = [_completing(group, est.taken + i) for i in range(len(batch))]
         est.taken += len(batch)
-        taps = None
+        taps = untapped = None
         if "taps" in est.config.extra_groups:
-            if any(b.taps is None for b in completing):
-                raise ValueError("a window's surface has no tap features; the session holds such windows back")
-            taps = np.stack([b.taps for b in completing])
+            missing = np.array([b.taps is None for b in completing])
+            if missing.any():
+                if est.runtime.untapped is None:
+                    raise ValueError("a window's surface has no tap features; the session holds such windows back")
+                untapped = missing
+            taps = np.stack([np.zeros(3) if b.taps is None else b.taps for b in completing])
         out.append(
             PreparedWindows(
                 est,
@@ -262,6 +271,7 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
                 time.perf_counter_ns() - t0,
                 job.frame_checks,
                 taps,
+                untapped,
             )
         )
     return out
@@ -295,12 +305,23 @@ def predict(runtime: Runtime, features: FeatureRows, prepared: Sequence[Prepared
     models: list[ServedModel] = [runtime.main] * n
     checks: list[WindowCheck | None] = [None] * n
     escalated = 0
+    # windows of a surface not tapped: the untapped model, on the columns before the taps group
+    untapped = np.concatenate([np.zeros(len(p.batch), bool) if p.untapped is None else p.untapped for p in prepared])
+    owner_all = np.repeat(np.arange(len(prepared)), sizes)
+    if untapped.any() and runtime.untapped is not None:
+        rows = np.flatnonzero(untapped)
+        k = runtime.untapped.predictor.tactile_config.n_features
+        out[rows] = _run(runtime.untapped, features.rows[rows, :k], None)
+        _check(runtime.untapped, features.rows[:, :k], prepared, rows, owner_all[rows], models, checks)
     for uses_visual in (True, False):
         chosen = [i for i, p in enumerate(prepared) if (p.visual is not None) == uses_visual]
         if not chosen:
             continue
         rows = np.concatenate([np.arange(bounds[i], bounds[i + 1]) for i in chosen])
-        owner = np.concatenate([np.full(sizes[i], i) for i in chosen])  # the prepared item of each row
+        rows = rows[~untapped[rows]]
+        if rows.size == 0:
+            continue
+        owner = owner_all[rows]  # the prepared item of each row
         visual = None
         if uses_visual:
             visual = np.concatenate([np.repeat(prepared[i].visual[None, :], sizes[i], axis=0) for i in chosen])  # type: ignore[index]
@@ -413,6 +434,7 @@ def lookup(
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
                 selection=choice,
                 chosen_model_version=rt.render_models.version(choice.id),
+                missing=("taps",) if p.untapped is not None and p.untapped[i] else (),
             )
         )
         est.next_index += 1

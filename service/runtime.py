@@ -53,6 +53,9 @@ class Runtime:
     selection: the rule that picks the entry to render; spectra: the library's vibration spectra on a
     speed–force grid, precomputed at load for a rule that reads the window's vibration (else None).
     render_models: every library entry's rendering model as served (GET /library/{id}/model).
+    untapped: for a model with the taps group, an optional tactile model trained on the same features without
+    it, which estimates the windows of a surface that has not been tapped (None: such windows wait); it reads the
+    first `untapped.predictor.n_tactile` feature columns (the taps group's columns come last).
     """
 
     main: ServedModel
@@ -71,6 +74,7 @@ class Runtime:
     selection: SelectionRule = SelectionRule()
     spectra: SpectralTable | None = None
     render_models: RenderCatalog = field(default_factory=lambda: RenderCatalog({}))
+    untapped: ServedModel | None = None
 
     @property
     def predictor(self) -> Predictor:
@@ -171,13 +175,7 @@ def load_runtime(settings: Settings) -> Runtime:
         raise ValueError("no texture library configured: set HAPTICLINK_LIBRARY_DIR or pass --library")
     predictor = Predictor(settings.model_path, threads=1)
     tactile_config = serving_config(predictor.tactile_config, settings.hop_s)
-    tactile = None
-    if settings.tactile_model_path is not None and predictor.needs_visual:
-        tactile = Predictor(settings.tactile_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
-        if tactile.needs_visual:
-            raise ValueError(
-                f"{settings.tactile_model_path}: the tactile-only model ({tactile.card.model}) reads images"
-            )
+    tactile, untapped = _load_fallback(predictor, settings.tactile_model_path)
     cheap = None
     if settings.cheap_model_path is not None:
         cheap = Predictor(settings.cheap_model_path, threads=1, expected_tactile_hash=predictor.card.tactile_hash)
@@ -226,6 +224,36 @@ def load_runtime(settings: Settings) -> Runtime:
         selection,
         spectra,
         RenderCatalog.from_library(library),
+        None if untapped is None else ServedModel.load(untapped, alpha),
+    )
+
+
+def untapped_config(config: TactileConfig) -> TactileConfig:
+    """`config` without the taps group (the features a surface that has not been tapped still has)."""
+    return TactileConfig(**{**config.to_dict(), "extra_groups": [g for g in config.extra_groups if g != "taps"]})
+
+
+def _load_fallback(predictor: Predictor, path: Path | None) -> tuple[Predictor | None, Predictor | None]:
+    """The tactile fallback model at `path` → (tactile-only fallback of a visual model, untapped fallback of a
+    taps model): a model reading no images, trained on the main model's tactile features (windows without a frame)
+    or on those without the taps group (windows of a surface not tapped). (None, None) when it serves neither."""
+    needs_taps = "taps" in predictor.tactile_config.extra_groups
+    if path is None or not (predictor.needs_visual or needs_taps):
+        return None, None
+    fallback = Predictor(path, threads=1)
+    if fallback.needs_visual:
+        raise ValueError(f"{path}: the tactile-only model ({fallback.card.model}) reads images")
+    same = predictor.card.tactile_hash
+    if fallback.card.tactile_hash == same:
+        return (fallback if predictor.needs_visual else None), None
+    if needs_taps and fallback.card.tactile_hash == untapped_config(predictor.tactile_config).hash():
+        return None, fallback
+    wanted = f"{same}" + (
+        f" or, without the taps group, {untapped_config(predictor.tactile_config).hash()}" if needs_taps else ""
+    )
+    raise ValueError(
+        f"{path}: model expects tactile features {fallback.card.tactile_hash}, the pipeline computes {wanted}; "
+        "re-export the model or change the feature settings"
     )
 
 

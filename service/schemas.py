@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -70,7 +70,7 @@ class FrameAck(BaseModel):
 
 @dataclass
 class SessionCounters:
-    """A session's counts since it was opened (kept by service.session.Session, answered in its status)."""
+    """A session's counts since it was opened (kept by service.live_session.Session, answered in its status)."""
 
     blocks_accepted: int = 0
     blocks_duplicate: int = 0
@@ -238,29 +238,26 @@ class JsonTaps(BaseModel):
     )
 
 
+_TAP_BLOCK_EXAMPLE: dict[str, Any] = {
+    "seq": 0,
+    "t0": 0.0,
+    "kind": "taps",
+    "taps": {
+        "rate_hz": 1000,
+        "units": "m/s^2",
+        "speeds": [22.5, 41.0],
+        "data": [
+            [0.0] * 5 + [3.1, -2.4, 1.7, -1.1, 0.6] + [0.0] * 6,
+            [0.0] * 5 + [5.8, -4.5, 3.2, -2.0, 1.1] + [0.0] * 6,
+        ],
+    },
+}
+
+
 class JsonTapBlock(BaseModel):
     """A tap block as JSON (drivers/blocks.py): the tap exploratory procedure on the surface under the tool."""
 
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "seq": 0,
-                    "t0": 0.0,
-                    "kind": "taps",
-                    "taps": {
-                        "rate_hz": 1000,
-                        "units": "m/s^2",
-                        "speeds": [22.5, 41.0],
-                        "data": [
-                            [0.0] * 5 + [3.1, -2.4, 1.7, -1.1, 0.6] + [0.0] * 6,
-                            [0.0] * 5 + [5.8, -4.5, 3.2, -2.0, 1.1] + [0.0] * 6,
-                        ],
-                    },
-                }
-            ]
-        }
-    )
+    model_config = ConfigDict(json_schema_extra={"examples": [_TAP_BLOCK_EXAMPLE]})
     seq: int = Field(ge=0, lt=2**63, description="one more per block (shared with sample blocks); required")
     t0: float = Field(description="time of the first tap on the robot's clock, s")
     kind: Literal["taps"]

@@ -8,8 +8,14 @@
   at most `request_read_timeout_s`; past it the connection is closed. A client that sends half a
   request (or nothing) cannot hold a connection forever; keep-alive idling is uvicorn's
   `timeout_keep_alive`.
+- `RefusingWebSocketProtocol`: uvicorn's WebSocket protocol, with what clients send kept out of the
+  ERROR log: a handshake the app refuses with an HTTP answer (404, 410, 401, …) counts as completed
+  (uvicorn would log "ASGI callable returned without completing handshake" at ERROR for every one),
+  and a text frame that is not UTF-8 closes the socket 1007 with one rate-limited WARNING instead of
+  an ERROR with a traceback.
 - `RedactQueries`: a logging filter that cuts query strings (WebSocket URLs carry `?token=`) out of
-  uvicorn's log lines; `install_log_redaction()` puts it on uvicorn's loggers.
+  uvicorn's log lines; `install_log_redaction()` puts it on uvicorn's loggers, with a throttle on the
+  WARNINGs uvicorn writes for malformed requests (one per kind every 10 s).
 """
 
 from __future__ import annotations
@@ -20,10 +26,15 @@ import re
 from typing import Any
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from service.log_throttle import LogThrottle, ThrottleFilter
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+_client_warnings = LogThrottle(log)
+#: uvicorn's WARNINGs about what a client sent (httptools_impl), throttled
+UVICORN_CLIENT_WARNINGS = ("Invalid HTTP request received.", "Unsupported upgrade request.")
 _QUERY = re.compile(r"\?[^\s\"']*")
 
 
@@ -67,10 +78,36 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
     def _expired(self) -> None:
         self._deadline = None
         if not self.transport.is_closing():
-            log.warning(
-                "closing a connection from %s: no complete request within %g s", _peer(self.client), self.read_timeout_s
+            _client_warnings.warning(
+                "deadline",
+                "closing a connection from %s: no complete request within %g s",
+                _peer(self.client),
+                self.read_timeout_s,
             )
             self.transport.close()
+
+
+class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
+    """uvicorn's WebSocket protocol, quiet about refused handshakes and non-UTF-8 text (module docstring)."""
+
+    async def send(self, message: Any) -> None:
+        await super().send(message)
+        if message["type"] == "websocket.http.response.body" and not message.get("more_body", False):
+            self.handshake_complete = True  # refused with an HTTP answer: the handshake is over, and answered
+
+    def send_receive_event_to_app(self) -> None:
+        if self.curr_msg_data_type == "text" and not self.close_sent:
+            try:
+                b"".join(self.frames).decode()
+            except UnicodeDecodeError:
+                self.frames = []
+                _client_warnings.warning(
+                    "utf8", "closing a WebSocket from %s: a text frame that is not UTF-8 (1007)", _peer(self.client)
+                )
+                self.conn.send_close(1007, "text frames must be UTF-8")
+                self.handle_parser_exception()
+                return
+        super().send_receive_event_to_app()
 
 
 def _peer(client: tuple[str, int] | None) -> str:
@@ -89,14 +126,18 @@ class RedactQueries(logging.Filter):
 
 
 _REDACTION = RedactQueries()
+_THROTTLE = ThrottleFilter(UVICORN_CLIENT_WARNINGS)
 
 
 def install_log_redaction() -> None:
-    """Put RedactQueries on uvicorn's loggers (idempotent)."""
+    """Put RedactQueries on uvicorn's loggers, and the throttle on its client-caused WARNINGs (idempotent)."""
     for name in ("uvicorn.error", "uvicorn.access", "uvicorn"):
         logger = logging.getLogger(name)
         if _REDACTION not in logger.filters:
             logger.addFilter(_REDACTION)
+    error = logging.getLogger("uvicorn.error")
+    if _THROTTLE not in error.filters:
+        error.addFilter(_THROTTLE)
 
 
 def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
@@ -115,6 +156,7 @@ def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
         "ws_per_message_deflate": False,
         "timeout_keep_alive": settings.timeout_keep_alive_s,
         "http": protocol,
+        "ws": RefusingWebSocketProtocol,
         "proxy_headers": True,
         "forwarded_allow_ips": settings.forwarded_allow_ips,
         "access_log": settings.log_level == "debug",  # lines without query strings (RedactQueries), but many

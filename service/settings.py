@@ -39,8 +39,10 @@ class Settings(BaseSettings):
     )
     tactile_model_path: Path | None = Field(
         None,
-        description="optional tactile-only model (same feature configuration) that estimates a visual model's "
-        'windows until the session\'s first frame is embedded (events say `"inputs": "tactile"`); without it those windows wait',
+        description="optional tactile-only fallback model: trained on the same features, it estimates a visual "
+        'model\'s windows until the session\'s first frame is embedded (events say `"inputs": "tactile"`); trained on '
+        "them without the taps group, it estimates a taps model's windows of a surface not tapped (events say "
+        '`"missing_inputs": ["taps"]`); without it those windows wait',
     )
     cheap_model_path: Path | None = Field(
         None,
@@ -181,14 +183,41 @@ class Settings(BaseSettings):
         ge=0,
         le=2,
         description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
-        "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of each, summed; "
-        "service/scene_change.py)",
+        "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of "
+        "each, summed; service/scene_change.py)",
     )
     timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
     request_read_timeout_s: float = Field(
         10.0,
         gt=0,
         description="a request's headers and body must arrive within this, s (half-open requests are closed)",
+    )
+    # ---- admission: what the process can serve ------------------------------------------------------
+    cpu_budget: float = Field(
+        0.85,
+        gt=0,
+        le=1,
+        description="share of one core the event-loop thread may use (smoothed over ~1 s) before the replica refuses "
+        "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); service/capacity.py",
+    )
+    session_lag_s: float = Field(
+        0.25,
+        gt=0,
+        description="event-loop lag (the queue delay every request and block waits, smoothed) above which new "
+        "sessions are refused (429 + Retry-After)",
+    )
+    shed_lag_s: float = Field(
+        0.5,
+        gt=0,
+        description="event-loop lag (smoothed) above which the blocks of the newest sessions are refused "
+        "(429 / close 4429) until the loop catches up; the oldest sessions keep streaming",
+    )
+    probe_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="also answer GET /health and /ready on this port from a thread of their own, which a busy "
+        "event loop cannot delay (None: off; 0: any free port)",
     )
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(

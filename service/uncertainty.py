@@ -155,7 +155,8 @@ class SessionUncertainty:
         """One window, in order: the model that produced its raw estimate, the smoothed ratings (4,), and the
         window's own check (None without a detector)."""
         if flagged is None or distance is None:
-            flag_s, dist_s, out = self._ema.update(False)[0], 1.0, ()
+            out: tuple[str, ...] = ()
+            flag_s, dist_s = self._ema.update(False)[0], 1.0
             ood_flag: bool | None = None
         else:
             flag_s, dist_s = self._ema.update(bool(flagged), float(distance))

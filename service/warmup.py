@@ -18,9 +18,9 @@ import time
 import numpy as np
 
 from models.tactile.taps import tap_features
+from service.live_session import stream_contract
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
 from service.runtime import Runtime
-from service.session import stream_contract
 from service.settings import Settings
 from texture_library.recording import Channel
 

@@ -20,7 +20,7 @@ and over the set of taps, medians (robust to a missed or double tap):
 
 ``tap_features`` is the one function that turns taps into features: datasets call it on each
 texture's TapSet; the service calls it on the tap blocks a robot sends (drivers.blocks.TapBlock,
-service.session), so a served model sees the features it was trained on.
+service.live_session), so a served model sees the features it was trained on.
 """
 
 from __future__ import annotations

@@ -36,10 +36,10 @@ async def events_socket(
     except Refused:
         return
     await websocket.accept()
-    subscription = await state.subscribe(session_id)
+    subscription = await state.bus.subscribe(session_id)
     try:
         try:
-            await state.credentials(session_id)
+            await state.directory.credentials(session_id)
         except ServiceError as exc:  # it ended (or was lost) while this socket was set up: its final event has passed
             gone = exc.status in (404, SESSION_LOST)
             await websocket.close(
@@ -66,7 +66,7 @@ async def events_socket(
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
-        await state.unsubscribe(subscription)
+        await state.bus.unsubscribe(subscription)
 
 
 async def _forward(websocket: WebSocket, subscription, state: ServiceState, lean: RenderView | None) -> None:

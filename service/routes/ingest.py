@@ -10,9 +10,9 @@ from starlette.websockets import WebSocketDisconnect
 
 from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from service.auth import ROBOT_ONLY
+from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
-from service.ingest import count_rejected, receive_block
 from service.routes.common import errors, try_later
 from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, BlockAck, FrameAck
 from service.state import ServiceState
@@ -39,12 +39,12 @@ def media_type(request: Request) -> str:
 async def post_block(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> dict:
     kind = media_type(request)
     if kind not in ("application/json", BINARY_CONTENT_TYPE):
-        count_rejected(state.metrics, session)
+        state.blocks.rejected(session)
         raise ServiceError(
             415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}"
         )
     payload = await request.body()
-    return receive_block(state.metrics, session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
+    return state.blocks.receive(session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
 
 
 @router.post(
@@ -64,10 +64,9 @@ async def post_block(request: Request, state: State, session: RobotSession, runt
 async def post_frame(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> FrameAck:
     kind = media_type(request)
     if kind not in FRAME_CONTENT_TYPES:
-        session.counters.frames_rejected += 1
-        state.metrics.frames.inc(outcome="rejected")
+        state.frames.rejected(session)
         raise ServiceError(415, f"frames are {' or '.join(FRAME_CONTENT_TYPES)}, got {kind or 'no Content-Type'}")
-    return await state.receive_frame(session, runtime, request)
+    return await state.frames.receive(session, runtime, await request.body())
 
 
 @router.websocket("/sessions/{session_id}/ingest")
@@ -91,16 +90,20 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 why = "session lost" if code == Close.LOST else "session ended"
                 await websocket.close(int(code), reason)
                 return
-            payload = message.get("bytes")
-            binary = payload is not None
-            if not binary:
-                payload = (message.get("text") or "").encode()
+            data: bytes | None = message.get("bytes")
+            binary = data is not None
+            payload = data if data is not None else (message.get("text") or "").encode()
             try:
-                ack = receive_block(state.metrics, session, payload, binary, arrived)
+                ack = state.blocks.receive(session, payload, binary, arrived)
             except ServiceError as exc:
                 if exc.status == 429:
                     why = "saturated"
-                    await websocket.close(int(Close.SATURATED), "session saturated; reconnect and resend")
+                    reason = (
+                        "replica at capacity; reconnect after Retry-After 2 s and resend"
+                        if isinstance(exc, AtCapacity)
+                        else "session saturated; reconnect and resend"
+                    )
+                    await websocket.close(int(Close.SATURATED), reason)
                     return
                 await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))
                 continue
@@ -108,14 +111,14 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
     except WebSocketDisconnect:
         return
     finally:
-        await state.robot_disconnected(session, why)
+        await state.directory.robot_disconnected(session, why)
 
 
 async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:
     """How to close the ingest socket of a session no longer here: lost (4410 and the reason: this replica was
     silent too long and another one marked it lost) or ended (1000)."""
     try:
-        await state.credentials(session_id)
+        await state.directory.credentials(session_id)
     except ServiceError as exc:
         if exc.status == SESSION_LOST:
             return Close.LOST, exc.detail[:120]

@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 
-from service import console
-from service.deps import State
+from service import console, probes
+from service.deps import ReadyRuntime, State
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from service.schemas import HealthOut, ReadyOut
 
@@ -15,7 +15,7 @@ router = APIRouter(tags=["service"])
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")
 async def health(state: State) -> HealthOut:
-    return HealthOut(status="ok", instance=state.settings.instance_id)
+    return probes.health(state.settings.instance_id)
 
 
 @router.get(
@@ -25,21 +25,8 @@ async def health(state: State) -> HealthOut:
     summary="Readiness: model and library loaded, checked and warmed up",
 )
 async def ready(state: State) -> JSONResponse:
-    ok, why = state.readiness()
-    rt = state.runtime
-    body = ReadyOut(ready=ok, detail=why)
-    if rt is not None:
-        body = ReadyOut(
-            ready=ok,
-            detail=why,
-            model=rt.model_name,
-            modality=rt.predictor.card.modality,
-            tactile_model=rt.tactile.card.model if rt.tactile else None,
-            library=rt.library.name,
-            library_entries=len(rt.library.ids),
-            backbone=rt.backbone.name if rt.backbone else None,
-        )
-    return JSONResponse(body.model_dump(), status_code=200 if ok else 503)
+    body, status = probes.readiness_report(state.readiness(), state.runtime)
+    return JSONResponse(body.model_dump(), status_code=status)
 
 
 @router.get(

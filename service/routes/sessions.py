@@ -43,4 +43,4 @@ async def get_session(session: OperatorSession) -> dict:
     summary="End a session (robot or operator token)",
 )
 async def delete_session(state: State, session: EitherSession) -> dict:
-    return await state.end_session(session.id, "ended by request")
+    return await state.directory.end(session.id, "ended by request")

@@ -205,6 +205,21 @@ def tactile_model(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def taps_model(tmp_path_factory) -> Path:
+    """ridge-tactile on MFCC + taps, trained on a small synthetic world (its textures carry tap transients). Its
+    features without the taps group are `tactile_model`'s: that model is its untapped fallback."""
+    from models.offline.datasets.build import build
+    from models.offline.train import train_and_export
+    from models.tactile.config import TactileConfig
+
+    root = tmp_path_factory.mktemp("taps-model")
+    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
+    return train_and_export(
+        dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx", tactile_config=TactileConfig(extra_groups=("taps",))
+    )
+
+
+@pytest.fixture(scope="session")
 def visual_model(tmp_path_factory) -> SimpleNamespace:
     """ridge-both on 3 synthetic textures and the EfficientNet backbone ONNX it was trained with.
 

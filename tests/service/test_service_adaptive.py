@@ -139,9 +139,9 @@ def test_the_cheap_model_answers_unless_the_policy_sends_the_window_to_the_full_
     bound and no margin the cheap estimate stands (except flagged windows); with width 0 every window goes to
     the full model. Either way raw_ratings are exactly that model's prediction of the window's features."""
     from models.tactile.features import recording_features
+    from service.live_session import canonical_channels, stream_contract
     from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
     from service.runtime import load_runtime
-    from service.session import canonical_channels, stream_contract
     from service.settings import Settings
 
     settings = Settings(

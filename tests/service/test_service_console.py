@@ -315,7 +315,7 @@ HATT_MODELS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "
 def test_pad_renderer_equals_the_python_renderer_on_hatt_models(pad_page, texture):
     """The same on HaTT's own models (AR order 18 and MA order 16 on a 40-point grid), at points inside the grid,
     between its rows, and beyond its range."""
-    from texture_library.hatt import read_model
+    from texture_library.hatt_xml import read_model
 
     path = HATT_MODELS / f"{texture}.xml"
     if not path.is_file():

@@ -1,4 +1,4 @@
-"""The live service under the robustness study's faults (issue 7 §5): a real uvicorn, a robot on the real ingest
+"""The live service under the robustness study's faults: a real uvicorn, a robot on the real ingest
 WebSocket, frames over HTTP and an operator on the events WebSocket. Noisy, clipped, gapped and out-of-range
 blocks, invalid blocks, an unreadable frame, an under-exposed frame and then no frame at all: the service keeps
 serving, never answers 5xx, flags the windows whose input it was not trained on, and loses no window of an
@@ -22,7 +22,7 @@ from models.offline.faults import camera, touch
 from models.tactile.stream import StreamContract
 from models.visual.image import load_image
 from service.events import WindowEvent
-from service.session import canonical_channels
+from service.live_session import canonical_channels
 from service.settings import Settings
 from texture_library.attributes import ATTRIBUTES
 from texture_library.recording import Recording

@@ -17,7 +17,7 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         from service.cli import build_parser
         from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
         from service.runtime import load_runtime
-        from service.session import canonical_channels, stream_contract
+        from service.live_session import canonical_channels, stream_contract
         from service.settings import Settings
         from drivers.blocks import ChannelBlock, SampleBlock
 

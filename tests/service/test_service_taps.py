@@ -29,19 +29,6 @@ from texture_library.recording import Channel, Recording
 
 
 @pytest.fixture(scope="module")
-def taps_model(tmp_path_factory):
-    """ridge-tactile on MFCC + taps, trained on a small synthetic world (its textures carry tap transients)."""
-    from models.offline.datasets.build import build
-    from models.offline.train import train_and_export
-
-    root = tmp_path_factory.mktemp("taps-model")
-    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
-    return train_and_export(
-        dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx", tactile_config=TactileConfig(extra_groups=("taps",))
-    )
-
-
-@pytest.fixture(scope="module")
 def taps_server(kit, taps_model, library_dir):
     settings = Settings(
         model_path=taps_model,
@@ -232,11 +219,22 @@ def test_taps_the_features_cannot_use_are_refused_over_the_socket_and_the_stream
     assert status["counters"]["blocks_rejected"] == 1 and status["counters"]["tap_blocks_used"] == 1
 
 
-def test_a_new_surface_starts_without_the_last_ones_taps(kit, taps_server, library_dir):
-    """A gap in the stream (the tool lifted onto another surface) without a new tap block: its windows wait;
-    a tap block just before the new segment carries over to it."""
+def test_a_gap_keeps_the_taps_and_a_new_scene_waits_for_its_own(kit, taps_server, library_dir):
+    """A gap in the stream (a new segment) on the same surface keeps its tap features; once the camera shows
+    another scene, windows of the new surface wait (no untapped fallback here: state waiting_for_taps, telling
+    what to send) until its tap block arrives."""
     items = _simulated_items(library_dir, "synth_004", 1.0)
     taps, blocks = items[0], [i for i in items if isinstance(i, SampleBlock)]
+    images = library_dir / "images"
+
+    def frame(client, session, name):
+        r = client.post(
+            f"/sessions/{session['session_id']}/frames",
+            content=(images / name).read_bytes(),
+            headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
+        )
+        assert r.status_code == 202 and r.json()["outcome"] == "ignored", r.text
+
     with httpx.Client(base_url=taps_server.url, timeout=10) as client:
         session = kit.create_session(client)
         seq = 0
@@ -248,20 +246,21 @@ def test_a_new_surface_starts_without_the_last_ones_taps(kit, taps_server, libra
             seq += 1
 
         send(taps)
+        frame(client, session, "synth_004.png")  # the tapped surface
         for b in blocks:
             send(b)
         kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 2)
-        for b in blocks:  # the same stroke 10 s later: a new segment, not tapped
+        for b in blocks:  # the same stroke 10 s later: a new segment on the same surface
             send(SampleBlock(b.t0 + 10.0, b.channels))
-        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["state"] == "waiting_for_taps" and s)
-        assert status["counters"]["windows"] == 2
-        send(TapBlock(10.0, taps.speeds, taps.accel))  # tapped late: the waiting windows go
         kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 4)
-        send(TapBlock(20.0, taps.speeds, taps.accel))  # tapped before the next surface: it carries over
+        frame(client, session, "synth_000.png")  # the tool is over another surface now
         for b in blocks:
             send(SampleBlock(b.t0 + 20.0, b.channels))
+        status = kit.wait_for(lambda: (s := kit.session_status(client, session))["state"] == "waiting_for_taps" and s)
+        assert status["counters"]["windows"] == 4
+        send(TapBlock(20.0, taps.speeds, taps.accel))  # tapped late: the waiting windows go
         status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] == 6 and s)
-    assert status["state"] == "streaming" and status["counters"]["tap_blocks_used"] == 3
+    assert status["state"] == "streaming" and status["counters"]["tap_blocks_used"] == 2
 
 
 def test_tap_blocks_round_trip_both_encodings():

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from drivers.blocks import ChannelBlock, SampleBlock
 from models.tactile.config import TactileConfig
@@ -14,8 +15,8 @@ from models.tactile.stream import StreamContract
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, issue_credentials
 from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
+from service.live_session import canonical_channels
 from service.metrics import ServiceMetrics
-from service.session import canonical_channels
 from service.settings import Settings, env_name, settings_table
 from service.smoothing import SD_UNIFORM, ExponentialSmoother, Steadiness
 
@@ -198,15 +199,23 @@ def test_a_slow_subscriber_never_holds_back_the_others():
 # ---- metrics and settings --------------------------------------------------------------------------
 def test_metrics_render_prometheus_text():
     m = ServiceMetrics()
-    m.blocks.inc(outcome="accepted")
-    m.blocks.inc(2, outcome="accepted")
-    m.latency.observe(0.003, stage="total")
+    m.block_outcome["accepted"].inc()
+    m.blocks.labels(outcome="accepted").inc(2)
+    m.latency.labels(stage="total").observe(0.003)
     text = m.render()
-    assert 'hapticlink_blocks_total{outcome="accepted"} 3' in text
-    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="0.002"} 0' in text
-    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="0.005"} 1' in text
-    assert 'hapticlink_window_latency_seconds_bucket{stage="total",le="+Inf"} 1' in text
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+    assert samples[("hapticlink_blocks_total", (("outcome", "accepted"),))] == 3
+    assert samples[("hapticlink_blocks_total", (("outcome", "refused"),))] == 0
+    bucket = "hapticlink_window_latency_seconds_bucket"
+    assert samples[(bucket, (("le", "0.002"), ("stage", "total")))] == 0
+    assert samples[(bucket, (("le", "0.005"), ("stage", "total")))] == 1
+    assert samples[(bucket, (("le", "+Inf"), ("stage", "total")))] == 1
     assert "# TYPE hapticlink_window_latency_seconds histogram" in text
+    assert "_created" not in text
 
 
 def test_settings_come_from_the_environment_and_serialise(monkeypatch, tmp_path):

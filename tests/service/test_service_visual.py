@@ -178,7 +178,7 @@ def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_mode
         answers: list[httpx.Response] = []
         waiting = threading.Thread(target=lambda: answers.append(post(first)))
         waiting.start()
-        kit.wait_for(lambda: state.visual_load == 1, timeout_s=10)
+        kit.wait_for(lambda: state.frames.visual_load == 1, timeout_s=10)
         refused = post(second)
         assert refused.status_code == 429 and "visual queue is full" in refused.json()["detail"]
         assert refused.headers["retry-after"] == "1"

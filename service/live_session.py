@@ -8,10 +8,15 @@
 Tap blocks (the tap exploratory procedure): a model whose features include the taps group gets the
 surface's tap features from them, computed on admission by the same pure function the datasets use
 (models.tactile.taps.tap_features); other models acknowledge and ignore them. Tap features belong to
-the surface under the tool: they hold for the sample blocks admitted after the tap block, and for the
-blocks of the current stream segment still waiting for them; a new segment (the tool was lifted: a new
-surface) starts without tap features unless a tap block came just before it. Windows of a taps model
-whose surface has not been tapped wait, like windows waiting for a first frame (bounded the same way).
+the surface under the tool: they hold for every sample block admitted after the tap block — across
+stream gaps, clock resets and new segments, which do not change the surface — and for the blocks
+still waiting for them, until the camera shows that the scene changed (a frame whose thumbnail
+differs from the tapped surface's by more than frame_change; a taps model looks at frames for this
+even when it reads no images). Windows of a surface without tap features are estimated by the
+untapped fallback model (a tactile model trained on the same features without the taps group:
+HAPTICLINK_TACTILE_MODEL_PATH) and marked `"missing_inputs": ["taps"]`; without one they wait, like
+windows waiting for a first frame (bounded the same way). Either way the session is told once per
+untapped surface (an `input_missing` status event) that a tap block would restore the full model.
 
 Bounds, checked before anything is taken: a block that would leave more than
 session_queue_windows complete-but-unpublished windows, or more than session_queue_blocks pending
@@ -34,7 +39,6 @@ from typing import Literal
 import numpy as np
 
 from drivers.blocks import Block, SampleBlock, TapBlock
-from drivers.protocol import SESSION_LOST
 from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
@@ -45,6 +49,7 @@ from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
+from service.scene_change import scene_changed
 from service.schemas import SessionCounters
 from service.settings import Settings
 from texture_library.channels import UNIT_SCALE
@@ -124,7 +129,8 @@ class Session:
         self._told_waiting = False
         self._told_waiting_taps = False
         self._taps: np.ndarray | None = None  # tap features of the surface now under the tool (taps models)
-        self._taps_fresh = False  # a tap block came after the last sample block: it is for the next segment too
+        self._tapped_scene: np.ndarray | None = None  # thumbnail of the tapped surface (its first frame after the taps)
+        self._told_missing_taps = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
         self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
@@ -169,10 +175,7 @@ class Session:
                 f"resend block {block.seq} later",
                 RETRY_AFTER_S,
             )
-        self.cursor = advance.cursor
-        if advance.new_segment and not self._taps_fresh:
-            self._taps = None  # a new surface: its taps are not known yet
-        self._taps_fresh = False
+        self.cursor = advance.cursor  # a new segment keeps the surface's taps: a gap does not move the tool
         self._pending.append(
             AdmittedBlock(
                 block.seq,
@@ -203,11 +206,12 @@ class Session:
                 features = tap_features(block.speeds, accel.data.astype(np.float64) * scale, accel.rate_hz)
             except ValueError as exc:
                 raise bad_input(exc) from None
-            self._taps, self._taps_fresh = features, True
-            self._told_waiting_taps = False  # the next untapped surface is told again
-            # blocks of this surface admitted before its taps were waiting for them
+            self._taps, self._tapped_scene = features, None  # the next frame shows the tapped surface
+            self._told_waiting_taps = self._told_missing_taps = False  # the next untapped surface is told again
+            # blocks admitted before the taps were waiting for them (or for the untapped model): they are of
+            # this surface, which the camera has not seen change since
             for i, b in enumerate(self._pending):
-                if b.taps is None and b.segment == self.cursor.segment:
+                if b.taps is None:
                     self._pending[i] = replace(b, taps=features)
             self.counters.tap_blocks_used += 1
         else:
@@ -235,7 +239,12 @@ class Session:
         return self.visual is None and not self.runtime.can_estimate_without_frame
 
     def waiting_for_taps(self) -> bool:
-        """True while windows must wait: a taps model, and a pending block whose surface has not been tapped."""
+        """True while windows must wait: a taps model without an untapped fallback, and a pending block whose
+        surface has not been tapped."""
+        return self.missing_taps() and self.runtime.untapped is None
+
+    def missing_taps(self) -> bool:
+        """True when a pending block's surface has not been tapped (a taps model)."""
         return self.runtime.needs_taps and any(b.taps is None for b in self._pending)
 
     def take_job(self) -> SessionJob | None:
@@ -257,7 +266,9 @@ class Session:
                     "waiting_for_taps",
                     f"model {self.runtime.model_name} reads tap features and the "
                     "surface under the tool has not been tapped; windows wait for a tap block, at most "
-                    f"{self.settings.session_queue_windows} of them, then blocks are refused (429)",
+                    f"{self.settings.session_queue_windows} of them, then blocks are refused (429); no untapped "
+                    "fallback model is configured (HAPTICLINK_TACTILE_MODEL_PATH)",
+                    send="taps",
                 )
             return
         if not self._told_waiting:
@@ -285,10 +296,24 @@ class Session:
                 "the stream restarts at the next block",
             )
             return
+        if not self._told_missing_taps and any("taps" in w.missing for w in result.estimates):
+            self._told_missing_taps = True
+            untapped = self.runtime.untapped
+            await self._status(
+                "input_missing",
+                f"model {self.runtime.model_name} reads tap features and the surface under the tool has not been "
+                f"tapped{' since the scene changed' if self._tapped_scene is not None else ''}; its windows are "
+                f"estimated by {untapped.name if untapped else 'the fallback model'} without them (marked "
+                "missing_inputs) until the robot sends a tap block of this surface",
+                missing="taps",
+                send="taps",
+            )
         for i, w in enumerate(result.estimates):
             if i and i % PUBLISH_YIELD_EVERY == 0:
                 await asyncio.sleep(0)  # many events: let ingest and /health run between them
             event = window_event(self.id, w, time.perf_counter_ns())
+            for missing in w.missing:
+                self._metrics.windows_degraded.labels(missing=missing).inc()
             await self._publish(self.id, event, False)
             self._observe(event["latency_ms"])
         self.counters.windows += len(result.estimates)
@@ -299,7 +324,7 @@ class Session:
     def _observe(self, latency_ms: dict[str, float]) -> None:
         self._metrics.windows.inc()
         for stage, ms in latency_ms.items():
-            self._metrics.latency.observe(ms / 1e3, stage=stage)
+            self._metrics.latency.labels(stage=stage).observe(ms / 1e3)
 
     async def _status(self, event: str, message: str, **extra: object) -> None:
         await self._publish(self.id, status_event(self.id, event, message, **extra), False)  # type: ignore[arg-type]
@@ -314,6 +339,8 @@ class Session:
         `visual_done`); superseded: replaces a frame waiting for the running embedding job."""
         self.touch()
         self.counters.frames_received += 1
+        if self.runtime.needs_taps:
+            self._watch_surface(thumb)
         if not self.runtime.needs_visual:
             return "ignored"
         take, changed = self._scene.offer(thumb)
@@ -330,6 +357,18 @@ class Session:
         self._frame = (gray, changed)
         self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
         return "embedding"
+
+    def _watch_surface(self, thumb: np.ndarray) -> None:
+        """Taps models: the first frame after a tap block shows the tapped surface; a later frame of another scene
+        means the tool is over another surface, whose taps are not known (blocks from now on carry none)."""
+        if self._taps is None:
+            return
+        if self._tapped_scene is None:
+            self._tapped_scene = thumb
+        elif scene_changed(self._tapped_scene, thumb, self.settings.frame_change):
+            log.info("session %s: the scene changed; the tapped surface's features no longer apply", self.id)
+            self._taps = None
+            self._told_waiting_taps = self._told_missing_taps = False
 
     async def _embed_frames(self) -> None:
         loop = asyncio.get_running_loop()
@@ -400,12 +439,3 @@ class Session:
             "pending_blocks": len(self._pending),
             "counters": asdict(self.counters),
         }
-
-
-def session_not_found(session_id: str) -> ServiceError:
-    return ServiceError(404, f"no session {session_id!r}")
-
-
-def session_lost(session_id: str, reason: str) -> ServiceError:
-    """410: the session existed, but the replica holding its state is gone; nothing can resume it."""
-    return ServiceError(SESSION_LOST, f"session {session_id} is lost: {reason}; open a new session")

@@ -1,0 +1,294 @@
+"""Refuse early, answer always: /health and /ready under overload, what admission refused, memory after a burst.
+
+Run from the repository root:  python -m benchmarks.admission [--robots 150] [--burst 300] [--duration 20]
+
+One service process (a ridge-tactile model on a small synthetic world, trained here first; the probe port
+on). In order:
+1. idle: RSS;
+2. a burst of `--burst` `POST /sessions` (50 at a time) — created, refused for capacity (429) or past
+   max_sessions (503);
+3. `--robots` of the created sessions stream in real time (20 ms binary blocks over the ingest WebSocket,
+   pre-encoded, from two generator processes): each block's acknowledgement time, and the blocks refused
+   (close 4429: the robot reconnects after Retry-After's 2 s and resends from its oldest unacknowledged block);
+4. every session is deleted; RSS again after 6 s.
+Meanwhile a process of its own polls GET /health and /ready on the service port and GET /health on the probe
+port every 20 ms. Reported: each probe's p50/p99/max, the robots' acknowledgement p50/p99 (the oldest half
+and the newest half of the streaming sessions apart: admission keeps the oldest at full speed), refusals,
+the loop lag and CPU share the service measured, and RSS idle / loaded / after. Writes
+reports/bench/admission.json. Timings on a shared machine are upper bounds: say what else ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing as mp
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from drivers.blocks import encode_binary
+from drivers.protocol import bearer, session_path
+from service.launcher import ServerProcess, free_port
+
+DEFAULT_OUT = Path("reports/bench/admission.json")
+API_KEY = "admission-benchmark-key-0123456789"
+BLOCK_S = 0.02
+POLL_EVERY_S = 0.02
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return None if not values else round(float(np.percentile(values, q)), 2)
+
+
+def summary(values: list[float]) -> dict:
+    return {
+        "n": len(values),
+        "p50": percentile(values, 50),
+        "p99": percentile(values, 99),
+        "max": percentile(values, 100),
+    }
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def prepare(root: Path) -> tuple[Path, Path]:
+    """(model, library): ridge-tactile on 8 synthetic textures, and a 6-texture synthetic library."""
+    from models.offline.datasets.build import build
+    from models.offline.train import train_and_export
+    from texture_library.synthetic_library import build_synthetic_library
+
+    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
+    model = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
+    build_synthetic_library(root / "library", n_textures=6, image_size=256)
+    return model, root / "library"
+
+
+# ---- the probe poller (a process of its own) -----------------------------------------------------------
+def poll(urls: dict[str, str], stop, out) -> None:
+    """GET each url in turn every POLL_EVERY_S until stop is set; out gets {name: [ms, ...]} (failures: -1)."""
+    times: dict[str, list[float]] = {name: [] for name in urls}
+    with httpx.Client(timeout=10) as client:
+        while not stop.is_set():
+            for name, url in urls.items():
+                t0 = time.perf_counter()
+                try:
+                    ok = client.get(url).status_code in (200, 503)
+                except httpx.HTTPError:
+                    ok = False
+                times[name].append((time.perf_counter() - t0) * 1e3 if ok else -1.0)
+            time.sleep(POLL_EVERY_S)
+    out.put(times)
+
+
+# ---- robots (generator processes) ----------------------------------------------------------------------
+def robots(ws_url: str, sessions: list[tuple[int, dict]], payloads: list[bytes], duration_s: float, out) -> None:
+    """Stream `payloads` (pre-encoded blocks, seq 0…) to each session in real time; out gets per-robot results."""
+    out.put(asyncio.run(_robots(ws_url, sessions, payloads, duration_s)))
+
+
+async def _robots(ws_url: str, sessions: list[tuple[int, dict]], payloads: list[bytes], duration_s: float) -> list:
+    start = time.perf_counter() + 0.5
+    return await asyncio.gather(*(_robot(ws_url, rank, s, payloads, start, duration_s) for rank, s in sessions))
+
+
+async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], start: float, duration_s: float):
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+    url = f"{ws_url}{session_path(session['session_id'], 'ingest')}?token={session['robot_token']}"
+    acks: list[float] = []
+    refused = reconnects = 0
+    lag: list[float] = []  # how late the generator sent each block (its own health)
+    seq = 0
+    end = start + duration_s
+    while seq < len(payloads) and time.perf_counter() < end:
+        try:
+            async with connect(url, max_size=None, compression=None) as ws:
+                while seq < len(payloads):
+                    due = start + seq * BLOCK_S
+                    now = time.perf_counter()
+                    if now >= end:
+                        return {"rank": rank, "acks_ms": acks, "refused": refused, "reconnects": reconnects, "lag": lag}
+                    if due > now:
+                        await asyncio.sleep(due - now)
+                    sent = time.perf_counter()
+                    lag.append((sent - due) * 1e3)
+                    await ws.send(payloads[seq])
+                    ack = json.loads(await ws.recv())
+                    acks.append((time.perf_counter() - sent) * 1e3)
+                    if ack.get("ok"):
+                        seq += 1
+        except ConnectionClosed as exc:
+            refused += exc.rcvd is not None and exc.rcvd.code == 4429
+            reconnects += 1
+            await asyncio.sleep(2.0)  # the service's Retry-After
+        except (InvalidStatus, OSError):
+            reconnects += 1
+            await asyncio.sleep(2.0)
+    return {"rank": rank, "acks_ms": acks, "refused": refused, "reconnects": reconnects, "lag": lag}
+
+
+def stream_payloads(library: Path, seconds: float) -> list[bytes]:
+    """One robot's blocks (the same stroke for every robot: the service's cost does not depend on it)."""
+    from drivers.source import blocks_from_arrays
+    from texture_library.library import Library
+    from texture_library.stroke import stroke
+    from texture_library.trajectory import freehand, model_ranges
+
+    model = Library.load(library).model(Library.load(library).ids[0])
+    rng = np.random.default_rng(0)
+    traj = freehand(seconds + 0.5, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
+    s = stroke(model, traj, rng)
+    channels = {
+        "accel": (s.accel, s.rate_hz, "m/s^2"),
+        "force": (s.force, s.rate_hz, "N"),
+        "speed": (s.speed, s.rate_hz, "mm/s"),
+    }
+    return [encode_binary(b) for b in blocks_from_arrays(channels, BLOCK_S)][: int(seconds / BLOCK_S)]
+
+
+async def burst(url: str, n: int) -> tuple[list[dict], dict[int, int]]:
+    created: list[dict] = []
+    statuses: dict[int, int] = {}
+    limit = asyncio.Semaphore(50)
+    async with httpx.AsyncClient(timeout=30) as client:
+
+        async def one(i: int) -> None:
+            async with limit:
+                r = await client.post(f"{url}/sessions", json={"name": f"b{i}"}, headers=bearer(API_KEY))
+            statuses[r.status_code] = statuses.get(r.status_code, 0) + 1
+            if r.status_code == 201:
+                created.append(r.json())
+
+        await asyncio.gather(*(one(i) for i in range(n)))
+    return created, statuses
+
+
+def metric(text: str, name: str, **labels: str) -> float:
+    for line in text.splitlines():
+        if line.startswith(name) and all(f'{k}="{v}"' in line for k, v in labels.items()):
+            rest = line[len(name) :]
+            if rest.startswith((" ", "{")):
+                return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--robots", type=int, default=150)
+    parser.add_argument("--burst", type=int, default=300)
+    parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        model, library = prepare(Path(tmp))
+        probe_port = free_port()
+        env = {
+            "HAPTICLINK_API_KEYS": API_KEY,
+            "HAPTICLINK_PROBE_PORT": str(probe_port),
+            "HAPTICLINK_SESSION_BURST": str(args.burst + 10),
+            "HAPTICLINK_MAX_SESSIONS": str(args.burst + 10),
+            "HAPTICLINK_LOG_LEVEL": "warning",
+        }
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--model", str(model), "--library", str(library)]
+        server = ServerProcess(cmd, env)
+        payloads = stream_payloads(library, args.duration + 1)
+        report: dict = {
+            "command": "python -m benchmarks.admission " + " ".join(argv or sys.argv[1:]),
+            "args": {**vars(args), "out": str(args.out)},
+        }
+        report["machine"] = {
+            "cpus": os.cpu_count(),
+            "load_average": os.getloadavg(),
+            "python": platform.python_version(),
+        }
+        try:
+            time.sleep(2)
+            report["rss_mb"] = {"idle": rss_mb(server.proc.pid)}
+            ctx = mp.get_context("spawn")
+            stop, polled = ctx.Event(), ctx.Queue()
+            urls = {
+                "service /health": f"{server.url}/health",
+                "service /ready": f"{server.url}/ready",
+                "probe port /health": f"http://127.0.0.1:{probe_port}/health",
+            }
+            poller = ctx.Process(target=poll, args=(urls, stop, polled))
+            poller.start()
+            created, statuses = asyncio.run(burst(server.url, args.burst))
+            report["burst"] = {"requests": args.burst, "statuses": statuses}
+            streaming = list(enumerate(created[: args.robots]))
+            halves = [streaming[0::2], streaming[1::2]]
+            results = ctx.Queue()
+            ws_url = server.url.replace("http://", "ws://")
+            gens = [ctx.Process(target=robots, args=(ws_url, h, payloads, args.duration, results)) for h in halves]
+            lag_samples, cpu_samples, process_samples = [], [], []
+            for g in gens:
+                g.start()
+            deadline = time.monotonic() + args.duration + 1
+            peak = report["rss_mb"]["idle"]
+            while time.monotonic() < deadline:
+                time.sleep(1.0)
+                text = httpx.get(f"{server.url}/metrics", timeout=30).text
+                lag_samples.append(metric(text, "hapticlink_loop_lag_seconds") * 1e3)
+                cpu_samples.append(metric(text, "hapticlink_loop_cpu_share"))
+                process_samples.append(metric(text, "hapticlink_process_cpu_share"))
+                peak = max(peak, rss_mb(server.proc.pid))
+            per_robot = [r for _ in gens for r in results.get(timeout=120)]
+            for g in gens:
+                g.join(timeout=30)
+            final = httpx.get(f"{server.url}/metrics", timeout=30).text
+            with httpx.Client(timeout=30) as client:
+                for s in created:
+                    client.delete(server.url + session_path(s["session_id"]), headers=bearer(s["robot_token"]))
+            time.sleep(6)  # the service gives memory back on its next reaper pass (every 5 s)
+            report["rss_mb"].update({"loaded_peak": peak, "after_sessions_deleted": rss_mb(server.proc.pid)})
+            stop.set()
+            probes = polled.get(timeout=60)
+            poller.join(timeout=30)
+        finally:
+            server.stop()
+    n = len(per_robot)
+    ranked = sorted(per_robot, key=lambda r: r["rank"])
+    oldest, newest = ranked[: n // 2], ranked[n // 2 :]
+    report["probes_ms"] = {
+        name: {**summary([t for t in ts if t >= 0]), "failed": sum(t < 0 for t in ts)} for name, ts in probes.items()
+    }
+    report["robots"] = {
+        "streaming": n,
+        "acks_ms_oldest_half": summary([a for r in oldest for a in r["acks_ms"]]),
+        "acks_ms_newest_half": summary([a for r in newest for a in r["acks_ms"]]),
+        "blocks_acknowledged": sum(len(r["acks_ms"]) for r in per_robot),
+        "closed_4429": sum(r["refused"] for r in per_robot),
+        "reconnects": sum(r["reconnects"] for r in per_robot),
+        "generator_lag_ms": summary([x for r in per_robot for x in r["lag"]]),
+    }
+    report["service"] = {
+        "loop_lag_ms_each_second": [round(x, 1) for x in lag_samples],
+        "loop_cpu_share_each_second": [round(x, 3) for x in cpu_samples],
+        "process_cpu_share_each_second": [round(x, 3) for x in process_samples],
+        "blocks_refused": metric(final, "hapticlink_blocks_total", outcome="refused"),
+        "sessions_refused_capacity": metric(final, "hapticlink_sessions_refused_total", reason="capacity"),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    print(json.dumps({k: report[k] for k in ("burst", "probes_ms", "robots", "rss_mb")}, indent=2))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,55 @@
+"""The event bus: a session's events go to its operators, on whichever replica they watch from.
+
+`EventBus` serialises each event once and hands it to the broker's publish/subscribe half
+(service/broker.py: in-process or Redis); a broker failure costs the event, never the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from service.broker import Broker, Subscription
+from service.events import encode
+from service.metrics import ServiceMetrics
+
+log = logging.getLogger(__name__)
+
+#: at most one WARNING per this many seconds about events the broker failed to publish
+PUBLISH_ERROR_LOG_EVERY_S = 10.0
+
+
+class EventBus:
+    """publish / subscribe / unsubscribe over `broker`, counted in `metrics`."""
+
+    def __init__(self, broker: Broker, metrics: ServiceMetrics) -> None:
+        self.broker = broker
+        self.metrics = metrics
+        self._subscribers = 0
+        self._last_publish_error = 0.0
+
+    async def publish(self, session_id: str, event: dict, final: bool) -> None:
+        """Serialise once and hand to the broker; `final`: the session's last event (its subscriptions end)."""
+        try:
+            await self.broker.publish(session_id, encode(event), final)
+        except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: count, log at most every 10 s
+            self.metrics.publish_errors.inc()
+            now = time.monotonic()
+            if now - self._last_publish_error > PUBLISH_ERROR_LOG_EVERY_S:
+                self._last_publish_error = now
+                log.warning("publishing an event of session %s failed: %s", session_id, exc)
+
+    async def subscribe(self, session_id: str) -> Subscription:
+        sub = await self.broker.subscribe(session_id)
+        self._subscribers += 1
+        self.metrics.subscribers.set(self._subscribers)
+        return sub
+
+    async def unsubscribe(self, sub: Subscription) -> None:
+        self._subscribers -= 1
+        self.metrics.subscribers.set(self._subscribers)
+        await self.broker.unsubscribe(sub)
+
+    def watched(self) -> list[str]:
+        """Sessions operators on this replica subscribe to (the broker's view)."""
+        return self.broker.subscribed()

@@ -1,0 +1,175 @@
+"""What robots send, from bytes to a session: blocks (`BlockIntake`) and camera frames (`FrameIntake`).
+
+Routes read the body (HTTP) or the message (WebSocket) and hand the bytes over, so a block is
+decoded and validated once, in one place, whichever way it came, and outcomes are counted here.
+
+    block bytes ─▶ BlockIntake: capacity (shed?) ─▶ decode_block: SampleBlock | TapBlock ─▶ Session.ingest
+        (admission) ─▶ acknowledgement
+    frame bytes ─▶ FrameIntake: refused early (429) when the visual queue is full ─▶ decode + thumbnail
+        (frame pool) ─▶ Session.offer_frame (the serving policy: embed it?) ─▶ frame_received event
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from concurrent.futures import Executor
+
+import numpy as np
+
+from drivers.blocks import Block, decode_binary, decode_json
+from service.bus import EventBus
+from service.capacity import CapacityGuard
+from service.errors import ServiceError, saturated, session_not_found
+from service.events import status_event
+from service.live_session import RETRY_AFTER_S, Session
+from service.metrics import ServiceMetrics
+from service.runtime import Runtime
+from service.scene_change import thumbnail
+from service.schemas import FrameAck
+from service.settings import Settings
+
+#: what a malformed payload can raise inside the shared decoders (huge ints overflow, deep nesting recurses)
+DECODE_ERRORS = (ValueError, TypeError, OverflowError, RecursionError)
+
+
+# ---- blocks --------------------------------------------------------------------------------------
+class BlockIntake:
+    """Blocks of every session: the capacity check, decoding, the session's admission, outcomes counted."""
+
+    def __init__(self, metrics: ServiceMetrics, capacity: CapacityGuard) -> None:
+        self.metrics = metrics
+        self.capacity = capacity
+
+    def receive(self, session: Session, payload: bytes, binary: bool, arrived_ns: int) -> dict:
+        """Decode and admit one block → its acknowledgement; ServiceError 400/422 (invalid), 429 (the session's queue
+        is full, or the replica is over capacity and sheds this session's blocks) otherwise."""
+        try:
+            self.capacity.admit_block(session)
+        except ServiceError:
+            self.metrics.block_outcome["refused"].inc()
+            session.counters.blocks_refused += 1
+            raise
+        try:
+            block = decode_block(payload, binary)
+            ack = session.ingest(block, arrived_ns)
+        except ServiceError as exc:
+            if exc.status == 429:
+                self.metrics.block_outcome["refused"].inc()  # the session counted it (its queue is full)
+            else:
+                self.rejected(session)
+            raise
+        self.metrics.block_outcome["duplicate" if ack["duplicate"] else "accepted"].inc()
+        return ack
+
+    def rejected(self, session: Session) -> None:
+        """Count an invalid block (also one refused before decoding, e.g. a wrong Content-Type)."""
+        self.metrics.block_outcome["rejected"].inc()
+        session.counters.blocks_rejected += 1
+
+
+def decode_block(payload: bytes, binary: bool) -> Block:
+    """Wire bytes → SampleBlock | TapBlock; ServiceError 400 (not JSON) or 422 (not a valid block) with the decoder's
+    message."""
+    try:
+        if binary:
+            return decode_binary(payload)
+        try:
+            obj = json.loads(payload, parse_int=_json_int)
+        except (ValueError, RecursionError) as exc:
+            raise ServiceError(400, f"body is not valid JSON: {exc}") from None
+        return decode_json(obj)
+    except DECODE_ERRORS as exc:
+        if isinstance(exc, ValueError):
+            detail = str(exc)
+        elif isinstance(exc, OverflowError):
+            detail = f"a number in the block is out of range ({exc})"
+        else:
+            detail = f"invalid block ({type(exc).__name__}: {exc})"
+        raise ServiceError(422, detail) from None
+
+
+def _json_int(text: str) -> int | float:
+    """JSON integers beyond float range become ±inf, so the validators name the field instead of overflowing."""
+    value = int(text)
+    if abs(value) > 2**1023:
+        return float("inf") if value > 0 else float("-inf")
+    return value
+
+
+# ---- frames --------------------------------------------------------------------------------------
+FRAME_MESSAGES = {
+    "unchanged": "frame received (scene unchanged: the current embedding stays)",
+    "embedding": "frame received (scene changed: embedding it)",
+    "superseded": "frame received (replaces a frame waiting for the embedder)",
+}
+
+
+class FrameIntake:
+    """Camera frames of every session: a bounded visual queue, decoding on its own pool (a thread that never waits
+    behind an embedding), and the frame_received event.
+
+    visual_load: frames being decoded or waiting for/in an embedding, all sessions (≤ settings.visual_queue)."""
+
+    def __init__(self, settings: Settings, metrics: ServiceMetrics, bus: EventBus, decode_pool: Executor) -> None:
+        self.settings = settings
+        self.metrics = metrics
+        self.bus = bus
+        self.decode_pool = decode_pool
+        self.visual_load = 0
+
+    async def receive(self, session: Session, runtime: Runtime, payload: bytes) -> FrameAck:
+        """One encoded frame (PNG/JPEG bytes): refused (429) when the visual queue is full or the session's previous
+        frame is still decoding; 422 when it cannot be decoded; otherwise offered to the session, which embeds it
+        only if the scene changed."""
+        if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
+            self.metrics.frames.labels(outcome="refused").inc()
+            session.counters.frames_refused += 1
+            what = (
+                f"session {session.id} is still decoding its previous frame"
+                if session.decoding_frame
+                else f"the visual queue is full ({self.settings.visual_queue} frames)"
+            )
+            raise saturated(f"{what}; send the newest frame later", RETRY_AFTER_S)
+        session.decoding_frame = True
+        self.visual_load += 1
+        try:
+            loop = asyncio.get_running_loop()
+            gray, thumb = await loop.run_in_executor(self.decode_pool, decode_frame, runtime, payload)
+        except ValueError as exc:
+            session.counters.frames_rejected += 1
+            self.metrics.frames.labels(outcome="rejected").inc()
+            raise ServiceError(422, f"frame: {exc}") from None
+        finally:
+            session.decoding_frame = False
+            self.visual_load -= 1
+        if session.closed:  # ended while the frame was decoded
+            raise session_not_found(session.id)
+        outcome = session.offer_frame(gray, thumb)
+        if outcome == "embedding":
+            self.visual_load += 1  # released by visual_done when the embedding ends
+        self.metrics.frames.labels(outcome=outcome).inc()
+        height, width = gray.shape
+        used = outcome != "ignored"
+        message = FRAME_MESSAGES.get(outcome, f"frame received (ignored: model {runtime.model_name} reads no images)")
+        await self.bus.publish(
+            session.id,
+            status_event(session.id, "frame_received", message, used=used, outcome=outcome, width=width, height=height),
+            False,
+        )
+        return FrameAck(used=used, outcome=outcome, width=width, height=height)
+
+    def rejected(self, session: Session) -> None:
+        """Count a frame refused before it reached the intake (e.g. a wrong Content-Type)."""
+        session.counters.frames_rejected += 1
+        self.metrics.frames.labels(outcome="rejected").inc()
+
+    def visual_done(self) -> None:
+        """An embedding job ended (a session's embedder calls it)."""
+        self.visual_load -= 1
+
+
+def decode_frame(runtime: Runtime, payload: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pool: frame bytes → (grey image (H, W) in [0, 1], its scene_change thumbnail)."""
+    gray = runtime.decode_frame(payload)
+    return gray, thumbnail(gray)

@@ -1,0 +1,63 @@
+"""Log lines a client can cause, rate-limited: a client must not be able to flood (or alarm) the log.
+
+`LogThrottle.warning(key, msg, *args)` logs at most one WARNING per key every `every_s` seconds;
+the next one that gets through says how many were left out. Keys are a small fixed set (a kind of
+refusal), never a client address or anything else a client chooses, so the throttle's memory is
+bounded. `ThrottleFilter` does the same for records of another library's logger (uvicorn's
+"Invalid HTTP request received." and the like) picked by their message.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Hashable, Iterable
+
+#: at most one WARNING per kind of client-caused event per this many seconds
+EVERY_S = 10.0
+
+
+class LogThrottle:
+    """At most one record per key every `every_s` (thread-safe: the loop and pool threads may share it)."""
+
+    def __init__(self, logger: logging.Logger, every_s: float = EVERY_S) -> None:
+        self.logger = logger
+        self.every_s = every_s
+        self._last: dict[Hashable, tuple[float, int]] = {}  # key → (when last logged, left out since)
+        self._lock = threading.Lock()
+
+    def admit(self, key: Hashable) -> int | None:
+        """None when a record for `key` must be left out now; else how many were left out before it."""
+        now = time.monotonic()
+        with self._lock:
+            last, skipped = self._last.get(key, (-float("inf"), 0))
+            if now - last < self.every_s:
+                self._last[key] = (last, skipped + 1)
+                return None
+            self._last[key] = (now, 0)
+            return skipped
+
+    def warning(self, key: Hashable, msg: str, *args: object) -> None:
+        skipped = self.admit(key)
+        if skipped is None:
+            return
+        if skipped:
+            msg += " (and %d more like it in the last %g s, not logged)"
+            args = (*args, skipped, self.every_s)
+        self.logger.warning(msg, *args)
+
+
+class ThrottleFilter(logging.Filter):
+    """A logging filter that lets through at most one record every `every_s` per message among `messages`
+    (their unformatted text), and every other record."""
+
+    def __init__(self, messages: Iterable[str], every_s: float = EVERY_S) -> None:
+        super().__init__()
+        self.messages = frozenset(messages)
+        self._throttle = LogThrottle(logging.getLogger(__name__), every_s)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not isinstance(record.msg, str) or record.msg not in self.messages:
+            return True
+        return self._throttle.admit(record.msg) is not None

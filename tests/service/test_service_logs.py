@@ -1,0 +1,90 @@
+"""Logs clients cannot write to, on a real uvicorn with real clients: refused handshakes, a text frame that is
+not UTF-8 and a garbled HTTP request log at most one WARNING per kind (rate-limited), with no traceback and
+never at ERROR; the service keeps serving."""
+
+from __future__ import annotations
+
+import logging
+import socket
+from collections import Counter
+
+import httpx
+import pytest
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
+
+REPEATS = 5
+WATCHED = ("", "uvicorn", "uvicorn.error", "uvicorn.access", "service")
+
+
+class Records(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not any(r is record for r in self.records):  # a record reaches every watched ancestor
+            self.records.append(record)
+
+
+@pytest.fixture
+def captured():
+    """Every record of the root, uvicorn's and the service's loggers (uvicorn's do not propagate to the root)."""
+    handler = Records()
+    loggers = [logging.getLogger(name) for name in WATCHED]
+    for logger in loggers:
+        logger.addHandler(handler)
+    try:
+        yield handler.records
+    finally:
+        for logger in loggers:
+            logger.removeHandler(handler)
+
+
+def _refused(url: str) -> int | None:
+    """Open a WebSocket the server refuses → the HTTP status of the refusal, or the close code after an accept."""
+    try:
+        with connect(url) as ws:
+            ws.recv(timeout=5)
+    except InvalidStatus as exc:
+        return exc.response.status_code
+    except ConnectionClosed as exc:
+        return exc.rcvd.code if exc.rcvd else None
+    return None
+
+
+def test_client_mistakes_write_no_error_and_one_warning_per_kind(kit, server, client, captured):
+    session = kit.create_session(client)
+    sid = session["session_id"]
+    cases = {
+        "unknown session, ingest": (f"{server.ws_url}/sessions/test-a.nobody/ingest?token=x", 404),
+        "unknown session, events": (f"{server.ws_url}/sessions/test-a.nobody/events?token=x", 404),
+        "wrong token, events": (f"{server.ws_url}/sessions/{sid}/events?token=wrong", 401),
+        "wrong token, ingest": (f"{server.ws_url}/sessions/{sid}/ingest?token=wrong", 1008),
+        "robot token, events": (f"{server.ws_url}/sessions/{sid}/events?token={session['robot_token']}", 403),
+    }
+    for name, (url, expected) in cases.items():
+        for _ in range(REPEATS):
+            assert _refused(url) == expected, name
+    for _ in range(REPEATS):  # a text frame that is not UTF-8: the socket closes 1007
+        with connect(kit.socket_url(server, session, "ingest")) as ws:
+            with ws.send_context():
+                ws.protocol.send_text(b"\xff\xfe{")
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=5)
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1007
+    for _ in range(REPEATS):  # not HTTP at all
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5) as raw:
+            raw.sendall(b"\x16\x03\x01 not http\r\n\r\n")
+            assert raw.recv(1024).startswith(b"HTTP/1.1 400")
+    # the service is unharmed
+    block = kit.recording_blocks(kit.stroke_recording(server.settings.library_dir, "synth_001", 0.1))[0]
+    assert kit.post_block(client, session, block).status_code == 202
+    assert httpx.get(f"{server.url}/health", timeout=5).status_code == 200
+
+    mine = [r for r in captured if not r.name.startswith(("httpx", "httpcore", "websockets"))]
+    assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
+    assert [r.getMessage() for r in mine if r.exc_info] == []
+    warnings = Counter(r.getMessage() for r in mine if r.levelno == logging.WARNING)
+    # at most one line per kind of mistake (7 kinds), not one per request (35)
+    assert all(n == 1 for n in warnings.values()) and sum(warnings.values()) <= len(cases) + 2, warnings
