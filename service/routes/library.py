@@ -100,7 +100,7 @@ async def _authorize(state: State, token: str | None, session: str | None) -> No
             "with ?session=<session id>) or a fleet API key",
             {"WWW-Authenticate": "Bearer"},
         )
-    await state.authorized(session, token, EITHER)
+    await state.directory.authorized(session, token, EITHER)
 
 
 def _matches(if_none_match: str, etag: str) -> bool:
