@@ -30,15 +30,14 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.loadgen import frame_of, robot_streams
 from benchmarks.service import (
     HOP_S,
     ServerProcess,
     _metric_sum,
     _run,
-    frame_of,
     percentile,
     prepare_assets,
-    robot_streams,
     run_load,
 )
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary

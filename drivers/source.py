@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 Item = SampleBlock | TapBlock | Frame
 
+#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise
+DEFAULT_BLOCK_S = 0.02
+
 
 @runtime_checkable
 class SensorSource(Protocol):

@@ -18,12 +18,14 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import dataclasses
 import json
 import logging
 import secrets
 import signal
+import threading
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -261,6 +263,29 @@ async def print_events(
             )
 
 
+class DaemonThreads(concurrent.futures.Executor):
+    """The demo loop's default executor: one daemon thread per call. The simulated robot renders its next
+    stretch of stroke in a thread (seconds of CPU on a busy machine); exiting must not wait for it, and nothing
+    the demo runs in a thread holds anything that has to be finished."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        future: concurrent.futures.Future = concurrent.futures.Future()
+
+        def run() -> None:
+            if not future.set_running_or_notify_cancel():
+                return
+            try:
+                future.set_result(fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever awaits the future
+                future.set_exception(exc)
+
+        threading.Thread(target=run, name="demo-worker", daemon=True).start()
+        return future
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        pass  # daemon threads: nothing to wait for
+
+
 class DemoStopped(Exception):
     """A signal asked the demo to stop before it was streaming."""
 
@@ -317,6 +342,7 @@ async def run_demo(
             yield
 
     loop = asyncio.get_running_loop()
+    loop.set_default_executor(DaemonThreads())
     main = asyncio.current_task()
     stop = asyncio.Event()
     stop_asked: list[float] = []
