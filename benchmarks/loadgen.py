@@ -262,6 +262,7 @@ async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:
             out.failures.append(f"set-up: {type(exc).__name__}: {exc}")
             conn.send(("ready", None))
             conn.recv()
+            conn.send(("streamed", None))
             return out
         conn.send(("ready", None))
         start = conn.recv()  # the common instant (perf_counter: CLOCK_MONOTONIC, the same in every process)
@@ -279,6 +280,7 @@ async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:
         await asyncio.gather(*senders, *framers, return_exceptions=True)
         await asyncio.sleep(2.0)  # the last windows are in flight
         out.cpu_s, out.wall_s = time.process_time() - cpu0, time.perf_counter() - wall0
+        conn.send(("streamed", None))
         for r in robots:
             for ws in (r.ingest, r.events):
                 if ws is not None:
@@ -299,9 +301,12 @@ def _main(plan: Plan, ks: list[int], conn) -> None:
     conn.close()
 
 
-def run_generators(plan: Plan, on_start: Callable[[], None] = lambda: None) -> list[GeneratorResult]:
-    """Start the processes, release them at one instant once all are connected (on_start() is called at that
-    instant), collect their results."""
+def run_generators(
+    plan: Plan, on_start: Callable[[], None] = lambda: None, on_end: Callable[[], None] = lambda: None
+) -> list[GeneratorResult]:
+    """Start the processes, release them at one instant once all are connected, collect their results.
+    on_start() is called at that instant, on_end() once every process has streamed and received its last
+    windows (before they close their connections)."""
     if plan.generators < 1 or plan.robots < 1:
         raise ValueError(f"need ≥ 1 generator and ≥ 1 robot, got {plan.generators} and {plan.robots}")
     shares = [list(range(g, plan.robots, plan.generators)) for g in range(min(plan.generators, plan.robots))]
@@ -313,20 +318,30 @@ def run_generators(plan: Plan, on_start: Callable[[], None] = lambda: None) -> l
         proc.start()
         procs.append(proc)
         pipes.append(parent)
+
+    def receive(pipe, proc, expected: str):
+        try:
+            kind, value = pipe.recv()
+        except EOFError:
+            proc.join(timeout=5)
+            code = proc.exitcode
+            raise RuntimeError(f"a load-generator process exited (code {code}) before its {expected}") from None
+        if kind != expected:
+            raise RuntimeError(f"a load-generator process sent {kind!r} instead of its {expected}")
+        return value
+
     try:
-        for pipe in pipes:
-            kind, _ = pipe.recv()
-            assert kind == "ready"
+        for pipe, proc in zip(pipes, procs):
+            receive(pipe, proc, "ready")
         start = time.perf_counter() + SETUP_S
         for pipe in pipes:
             pipe.send(start)
         time.sleep(max(0.0, start - time.perf_counter()))
         on_start()
-        results = []
-        for pipe in pipes:
-            kind, fields = pipe.recv()
-            assert kind == "result"
-            results.append(GeneratorResult(**fields))
+        for pipe, proc in zip(pipes, procs):
+            receive(pipe, proc, "streamed")
+        on_end()
+        results = [GeneratorResult(**receive(pipe, proc, "result")) for pipe, proc in zip(pipes, procs)]
     finally:
         for proc in procs:
             proc.join(timeout=30)

@@ -376,9 +376,14 @@ def measure(
         def started() -> None:  # the service's CPU from the moment the streams start (sessions already open)
             at_start.extend([sum(s.cpu_seconds() for s in servers), machine_cpu_seconds(), time.perf_counter()])
 
-        results = loadgen.run_generators(plan, on_start=started)
+        at_end: list[float] = []
+
+        def ended() -> None:  # … until every generator has streamed and received its last windows
+            at_end.extend([sum(s.cpu_seconds() for s in servers), machine_cpu_seconds(), time.perf_counter()])
+
+        results = loadgen.run_generators(plan, on_start=started, on_end=ended)
         cpu0, machine0, wall0 = at_start
-        cpu1, machine1, wall1 = sum(s.cpu_seconds() for s in servers), machine_cpu_seconds(), time.perf_counter()
+        cpu1, machine1, wall1 = at_end
         memory = [s.memory_mb() for s in servers]
         metrics = [httpx.get(f"{s.url}/metrics").text for s in servers]
     finally:

@@ -23,8 +23,10 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
 import secrets
 import signal
+import sys
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -263,7 +265,7 @@ async def print_events(
             )
 
 
-class DaemonThreads(concurrent.futures.Executor):
+class DaemonThreads(concurrent.futures.ThreadPoolExecutor):
     """The demo loop's default executor: one daemon thread per call. The simulated robot renders its next
     stretch of stroke in a thread (seconds of CPU on a busy machine); exiting must not wait for it, and nothing
     the demo runs in a thread holds anything that has to be finished."""
@@ -283,7 +285,7 @@ class DaemonThreads(concurrent.futures.Executor):
         return future
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        pass  # daemon threads: nothing to wait for
+        pass  # daemon threads of their own (the pool's are never started): nothing to wait for
 
 
 class DemoStopped(Exception):
@@ -440,9 +442,20 @@ def demo(
     per_texture_s: float = 20.0,
     duration_s: float | None = None,
 ) -> int:
-    """Run the loop on prepared assets until Ctrl-C (or SIGTERM) or duration_s."""
+    """The `hapticlink demo` entry: run the loop on prepared assets until Ctrl-C (or SIGTERM) or duration_s.
+
+    Returns the exit code (0). A service worker thread may still be busy when the loop has stopped (an
+    embedding under way cannot be interrupted, and the interpreter would join it at exit for seconds); then
+    the output is flushed and the process exits at once with that code, so one Ctrl-C is enough."""
     try:
         asyncio.run(run_demo(assets, host=host, port=port, per_texture_s=per_texture_s, duration_s=duration_s))
     except (KeyboardInterrupt, asyncio.CancelledError):
         print("\nstopped.")
+    busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+    if busy:
+        print(f"(not waiting for {len(busy)} worker thread(s) still computing)", flush=True)
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
