@@ -23,6 +23,7 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.source import (
+    DEFAULT_BLOCK_S,
     Item,
     Layout,
     StreamAssembler,
@@ -110,7 +111,7 @@ class DaqStats(StreamStats):
 class PacketDecoder:
     """Bulk transfers → SampleBlocks (no I/O). Gap handling: drivers.source.StreamAssembler."""
 
-    def __init__(self, config: DaqConfig, block_s: float = 0.02) -> None:
+    def __init__(self, config: DaqConfig, block_s: float = DEFAULT_BLOCK_S) -> None:
         self.config = config
         self.stats = DaqStats()
         self._scales = config.column_scales()
@@ -161,7 +162,7 @@ class UsbDaqSource(ThreadedSource):
         vid: int = DEFAULT_VID,
         pid: int = DEFAULT_PID,
         backend: object | None = None,
-        block_s: float = 0.02,
+        block_s: float = DEFAULT_BLOCK_S,
         queue_size: int = 256,
     ) -> None:
         super().__init__(queue_size)
