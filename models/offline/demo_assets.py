@@ -26,6 +26,9 @@ def demo_features():
     return TactileConfig(extra_groups=DEMO_GROUPS)
 
 
+#: models made by an older version of this recipe are retrained — 2: the OOD detector reads the speed/force
+#: statistics where they are (before the extra groups' columns), not the last six columns (the tap features)
+MODELS_VERSION = 2
 #: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
 WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
 
@@ -35,6 +38,7 @@ def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> 
 
     return {
         "world_version": WORLD_VERSION,
+        "models_version": MODELS_VERSION,
         "model": DEMO_MODEL,
         "tactile_model": TACTILE_MODEL,
         "tactile_hash": demo_features().hash(),
