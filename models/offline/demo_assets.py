@@ -12,11 +12,15 @@ from pathlib import Path
 
 from service.demo import DemoAssets
 
-DEMO_MODEL = "ridge-both"  # reads touch and vision, fits in a second, best exportable model on the synthetic world with these features (reports/synthetic)
+#: reads touch and vision, fits in a second, best exportable model on the synthetic world with these features
+#: (reports/synthetic)
+DEMO_MODEL = "ridge-both"
 TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
 #: tactile feature groups of the demo's models: every physical cue (the robot taps each probe before stroking it)
 DEMO_GROUPS = ("friction", "spatial", "taps")
-DEMO_TEXTURES = 96  # the world the models learn from (the library holds the first 24 of them): error still falls with more textures at 48
+#: the world the models learn from (the library holds the first 24 of them): error still falls with more
+#: textures at 48
+DEMO_TEXTURES = 96
 
 
 def demo_features():
