@@ -601,7 +601,7 @@ def main(argv: list[str] | None = None) -> int:
         "--generators",
         type=int,
         default=None,
-        help="load-generator processes (default: one per 25 robots, at most the cores less one)",
+        help="load-generator processes (default: one per 25 robots, at most the cores less one but 2 on 2 cores)",
     )
     p.add_argument(
         "--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement"
@@ -647,7 +647,7 @@ def main(argv: list[str] | None = None) -> int:
     for config in args.configs:
         for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
             print(f"{config}: {n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
-            generators = args.generators or max(1, min(-(-n // 25), (os.cpu_count() or 2) - 1))
+            generators = args.generators or min(-(-n // 25), max(2, (os.cpu_count() or 2) - 1))
             rows.append(
                 measure(n, all_assets[config], args.duration, args.block_s, args.seed, replicas, api_key, generators)
             )
