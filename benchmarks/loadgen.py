@@ -41,6 +41,7 @@ from texture_library.trajectory import freehand, model_ranges
 
 STAGES = ("queue", "features", "model", "lookup", "total")
 SETUP_S = 1.0  # after every process is connected, before the first block is due
+TAIL_S = 10.0  # after the last block, how long a generator waits for the windows still in flight
 
 
 @dataclass(frozen=True)
@@ -278,7 +279,11 @@ async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:
             if r.frame is not None
         ]
         await asyncio.gather(*senders, *framers, return_exceptions=True)
-        await asyncio.sleep(2.0)  # the last windows are in flight
+        # the last windows are in flight: wait for every one the streams completed, at most TAIL_S
+        expected = len(robots) * int(plan.duration_s / plan.hop_s + 1e-9)
+        deadline = time.perf_counter() + TAIL_S
+        while out.windows < expected and time.perf_counter() < deadline:
+            await asyncio.sleep(0.05)
         out.cpu_s, out.wall_s = time.process_time() - cpu0, time.perf_counter() - wall0
         conn.send(("streamed", None))
         for r in robots:

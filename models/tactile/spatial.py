@@ -131,8 +131,11 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     return channel_power(np.ascontiguousarray(signal.transpose(2, 0, 1)), x_edges, dx_mm, n_fft).transpose(1, 2, 0)
 
 
-def channel_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray:
-    """position_power with the channel axis first: signal (c, n, L) float64 → power (c, n, n_fft//2 + 1).
+def channel_power(
+    signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int, bins: slice = slice(None)
+) -> np.ndarray:
+    """position_power with the channel axis first: signal (c, n, L) float64 → power (c, n, n_fft//2 + 1),
+    or only the `bins` of it (the band sums need the bins up to the shortest period's).
 
     Channel-first keeps every step on contiguous rows (one searchsorted for all channels, the FFT along the
     last axis), which is what makes the spatial group cheap per window."""
@@ -172,7 +175,7 @@ def channel_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: 
     a = (s2 * y0s - s1 * y1s) / det
     b = (s0 * y1s - s1 * y0s) / det
     tapered = w * (means - a[:, :, None] - b[:, :, None] * t)
-    spec = scipy.fft.rfft(tapered, n=n_fft, axis=2)
+    spec = scipy.fft.rfft(tapered, n=n_fft, axis=2)[:, :, bins]
     norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
     return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None]
 
@@ -222,7 +225,8 @@ def spatial_features(
     signal = np.empty((4, n, length))  # channels first: accel x, y, z in mm/s², then normal force
     np.multiply(accel.transpose(2, 0, 1), 1e3, out=signal[:3])
     signal[3] = force
-    power = channel_power(signal, x, dx_mm, n_fft)  # (4, n, n_fft//2 + 1)
+    used = slice(0, max(height_bins[0] + height_bins[1].size, force_bins[0] + force_bins[1].size))
+    power = channel_power(signal, x, dx_mm, n_fft, used)  # (4, n, bins up to the last band's)
     energy = np.concatenate(
         [
             _band_sums(power[0] + power[1] + power[2], height_bins) / v4[:, None] + ENERGY_FLOOR_MM2,
