@@ -2,29 +2,33 @@
 
 Run from the repository root:
     python -m benchmarks.service  [--robots 1 10 50 100 200] [--replicas 1 2] [--configs served tactile]
-                                  [--duration 20] [--profile]
+                                  [--duration 20] [--block-s S] [--generators G] [--profile]
 
 Two configurations:
-- `served`: the model the demo serves — `ann` reading touch and vision, with its EfficientNet-Lite0
+- `served`: the models the demo serves — `ridge-both` reading touch and vision, with the EfficientNet-Lite0
   backbone — and `ridge-tactile` as the tactile-only model for windows before a session's first
   frame; every robot sends its texture's photo as a camera frame at 1 fps through the real visual
   path (decode, scene-change test, embedding when the scene changed).
 - `tactile`: `ridge-tactile` alone, no frames.
 
-Robots are the real `drivers.robot.RobotClient` (one per robot, all in this process, WebSocket
-transport, binary blocks, the fleet API key), fed by a source that yields 1 kHz accel (3 axes), force
-(3 axes) and speed in 20 ms blocks at real-time pace (a block when its span has ended; starts
-staggered over one hop), rendered by the library's vibration models along freehand strokes. Robot k
-is pinned to replica k mod R, as nginx pins sessions in deploy/. Each service replica is its own
-process (`hapticlink serve`). An operator per session reads WS /events. Reported per row:
+The robots and their operators are the load generator of benchmarks/loadgen.py: several processes, blocks
+encoded before the clock starts, 1 kHz accel (3 axes), force (3 axes) and speed in blocks of the robot
+client's default size (drivers.source.DEFAULT_BLOCK_S) sent at real-time pace (a block when its span has
+ended; starts staggered over one hop), rendered by the library's vibration models along freehand strokes;
+binary blocks over WebSocket with the fleet API key. Robot k is pinned to replica k mod R, as nginx pins
+sessions in deploy/. Each service replica is its own process (`hapticlink serve`). Reported per row:
 
+- the generator's own send lag (p50/p99/max) and `valid`: false when its p99 exceeds a quarter of a block
+  (at most 10 ms) or a robot or operator failed — such a row measured the generator, not the service;
 - windows received, lost (= ⌊duration / hop⌋ per robot − received), and what the service refused
-  (blocks refused with 429/4429, frames refused, sessions refused): overload must be refused early and
-  visibly, never by losing windows that were accepted;
-- latency, ms: end-to-end (operator receive − the moment the robot's source yielded the block that
-  completed the window; one clock) and the service's stages from the events' latency_ms, p50/p99;
-  the first window of each session against the median (cold start);
-- server CPU % (of one core; 200 % = both cores), RSS; the client's CPU and everyone else's.
+  (blocks refused with 429/4429, frames refused): overload must be refused early and visibly, never by
+  losing windows that were accepted;
+- latency, ms: end-to-end (operator receive − the moment the block that completed the window left the
+  generator; one clock) and the service's stages from the events' latency_ms, p50/p99; the first window
+  of each session against the median (cold start);
+- service CPU by accounting: CPU time of the service processes over the streaming phase ÷ robot-seconds of
+  stream sent (`service_cpu_ms_per_robot_s`) and the robots per core that follows; server CPU % (of one
+  core; 200 % = both cores), RSS; the generators' CPU and everyone else's.
 
 Capacity, in the same run: one session fed as fast as it is acknowledged, with an operator attached,
 against the service and against the framework's floor — a bare uvicorn WebSocket endpoint that
