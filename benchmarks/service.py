@@ -53,7 +53,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -92,11 +91,15 @@ class Assets:
     taps: bool = False
 
 
+DEFAULT_ASSETS = Path("artifacts/demo")  # `make demo`'s assets: the benchmark serves what the demo serves
+
+
 def prepare_assets(root: Path) -> dict[str, Assets]:
-    """Both configurations, built under root once (the demo's assets: a synthetic world of 24 textures)."""
+    """Both configurations from the demo's assets under root (built once, shared with `hapticlink demo`: a
+    synthetic world of 96 textures, its library of 24)."""
     from models.offline.demo_assets import prepare_assets as demo_assets
 
-    demo = demo_assets(root / "served")
+    demo = demo_assets(root)
     taps = "taps" in read_card(demo.model).tactile_config.get("extra_groups", ())
     return {
         "served": Assets("served", demo.model, demo.tactile, demo.backbone, demo.library, frames=True, taps=taps),
@@ -615,8 +618,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--assets",
         type=Path,
-        default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
-        help="where the models and library are built and cached",
+        default=DEFAULT_ASSETS,
+        help=f"the demo's assets, built there when missing (default {DEFAULT_ASSETS}, shared with `make demo`)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
