@@ -58,7 +58,8 @@ class DeviceNotFoundError(LookupError):
 
 @dataclass(frozen=True)
 class DaqConfig:
-    """What the DAQ reports: rate (Hz), layout (kind, columns, units) in column order, int16 → units scale per channel."""
+    """What the DAQ reports: rate (Hz), layout (kind, columns, units) in column order, int16 → units scale per
+    channel."""
 
     rate_hz: float
     layout: Layout
@@ -192,7 +193,8 @@ class UsbDaqSource(ThreadedSource):
             ) from None
         if dev is None:
             raise DeviceNotFoundError(
-                f"no USB device {self.vid:04x}:{self.pid:04x} found (is the DAQ plugged in? on Linux, does a udev rule give you access?)"
+                f"no USB device {self.vid:04x}:{self.pid:04x} found "
+                "(is the DAQ plugged in? on Linux, does a udev rule give you access?)"
             )
         return dev
 
