@@ -611,7 +611,10 @@ def main(argv: list[str] | None = None) -> int:
         help="load-generator processes (default: one per 25 robots, at most the cores less one but 2 on 2 cores)",
     )
     p.add_argument(
-        "--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement"
+        "--capacity-s",
+        type=float,
+        default=300.0,
+        help="seconds of stream pumped for the capacity measurement (default 300: enough samples for --profile)",
     )
     p.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
     p.add_argument("--profile", action="store_true", help="sample the service with py-spy during the capacity run")
