@@ -23,22 +23,21 @@ import dataclasses
 import json
 import secrets
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 
+from benchmarks.loadgen import frame_of, robot_streams
 from benchmarks.service import (
+    DEFAULT_ASSETS,
     HOP_S,
     ServerProcess,
     _metric_sum,
     _run,
-    frame_of,
     percentile,
     prepare_assets,
-    robot_streams,
     run_load,
 )
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary
@@ -133,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--burst-robots", type=int, default=150, help="robots that start together, each with a frame")
     p.add_argument("--duration", type=float, default=20.0)
     p.add_argument("--block-s", type=float, default=0.02)
-    p.add_argument("--assets", type=Path, default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets")
+    p.add_argument("--assets", type=Path, default=DEFAULT_ASSETS, help="the demo's assets (built when missing)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     api_key = secrets.token_urlsafe(24)

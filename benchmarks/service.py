@@ -2,29 +2,33 @@
 
 Run from the repository root:
     python -m benchmarks.service  [--robots 1 10 50 100 200] [--replicas 1 2] [--configs served tactile]
-                                  [--duration 20] [--profile]
+                                  [--duration 20] [--block-s S] [--generators G] [--profile]
 
 Two configurations:
-- `served`: the model the demo serves — `ann` reading touch and vision, with its EfficientNet-Lite0
+- `served`: the models the demo serves — `ridge-both` reading touch and vision, with the EfficientNet-Lite0
   backbone — and `ridge-tactile` as the tactile-only model for windows before a session's first
   frame; every robot sends its texture's photo as a camera frame at 1 fps through the real visual
   path (decode, scene-change test, embedding when the scene changed).
 - `tactile`: `ridge-tactile` alone, no frames.
 
-Robots are the real `drivers.robot.RobotClient` (one per robot, all in this process, WebSocket
-transport, binary blocks, the fleet API key), fed by a source that yields 1 kHz accel (3 axes), force
-(3 axes) and speed in 20 ms blocks at real-time pace (a block when its span has ended; starts
-staggered over one hop), rendered by the library's vibration models along freehand strokes. Robot k
-is pinned to replica k mod R, as nginx pins sessions in deploy/. Each service replica is its own
-process (`hapticlink serve`). An operator per session reads WS /events. Reported per row:
+The robots and their operators are the load generator of benchmarks/loadgen.py: several processes, blocks
+encoded before the clock starts, 1 kHz accel (3 axes), force (3 axes) and speed in blocks of the robot
+client's default size (drivers.source.DEFAULT_BLOCK_S) sent at real-time pace (a block when its span has
+ended; starts staggered over one hop), rendered by the library's vibration models along freehand strokes;
+binary blocks over WebSocket with the fleet API key. Robot k is pinned to replica k mod R, as nginx pins
+sessions in deploy/. Each service replica is its own process (`hapticlink serve`). Reported per row:
 
+- the generator's own send lag (p50/p99/max) and `valid`: false when its p99 exceeds a quarter of a block
+  (at most 10 ms) or a robot or operator failed — such a row measured the generator, not the service;
 - windows received, lost (= ⌊duration / hop⌋ per robot − received), and what the service refused
-  (blocks refused with 429/4429, frames refused, sessions refused): overload must be refused early and
-  visibly, never by losing windows that were accepted;
-- latency, ms: end-to-end (operator receive − the moment the robot's source yielded the block that
-  completed the window; one clock) and the service's stages from the events' latency_ms, p50/p99;
-  the first window of each session against the median (cold start);
-- server CPU % (of one core; 200 % = both cores), RSS; the client's CPU and everyone else's.
+  (blocks refused with 429/4429, frames refused): overload must be refused early and visibly, never by
+  losing windows that were accepted;
+- latency, ms: end-to-end (operator receive − the moment the block that completed the window left the
+  generator; one clock) and the service's stages from the events' latency_ms, p50/p99; the first window
+  of each session against the median (cold start);
+- service CPU by accounting: CPU time of the service processes over the streaming phase ÷ robot-seconds of
+  stream sent (`service_cpu_ms_per_robot_s`) and the robots per core that follows; server CPU % (of one
+  core; 200 % = both cores), RSS; the generators' CPU and everyone else's.
 
 Capacity, in the same run: one session fed as fast as it is acknowledged, with an operator attached,
 against the service and against the framework's floor — a bare uvicorn WebSocket endpoint that
@@ -49,7 +53,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -58,28 +61,26 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks import loadgen
+from benchmarks.loadgen import STAGES, robot_streams
 from drivers.blocks import Block, Frame, TapBlock
 from drivers.protocol import ws_url
 from drivers.robot import RobotClient
-from drivers.simulated import tap_block
-from drivers.source import blocks_from_arrays
+from drivers.source import DEFAULT_BLOCK_S
 from models.inference.modelfile import read_card
 from service import launcher
-from texture_library.library import Library
-from texture_library.stroke import stroke
-from texture_library.trajectory import freehand, model_ranges
 
 DEFAULT_OUT = Path("reports/bench/service.json")
-STAGES = ("queue", "features", "model", "lookup", "total")
 HOP_S = 0.5
+GENERATOR_LAG_LIMIT_MS = 10.0  # send lag p99 beyond which a row's load generator fell behind (see measure)
 CONFIGS = ("served", "tactile")
 
 
 # ---- assets --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Assets:
-    """What a configuration serves: model, optional tactile-only model and backbone, library (its images are the frames);
-    taps: its models read tap features (each robot taps its surface before stroking)."""
+    """What a configuration serves: model, optional tactile-only model and backbone, library (its images are the
+    frames); taps: its models read tap features (each robot taps its surface before stroking)."""
 
     name: str
     model: Path
@@ -90,50 +91,20 @@ class Assets:
     taps: bool = False
 
 
+DEFAULT_ASSETS = Path("artifacts/demo")  # `make demo`'s assets: the benchmark serves what the demo serves
+
+
 def prepare_assets(root: Path) -> dict[str, Assets]:
-    """Both configurations, built under root once (the demo's assets: a synthetic world of 24 textures)."""
+    """Both configurations from the demo's assets under root (built once, shared with `hapticlink demo`: a
+    synthetic world of 96 textures, its library of 24)."""
     from models.offline.demo_assets import prepare_assets as demo_assets
 
-    demo = demo_assets(root / "served")
+    demo = demo_assets(root)
     taps = "taps" in read_card(demo.model).tactile_config.get("extra_groups", ())
     return {
         "served": Assets("served", demo.model, demo.tactile, demo.backbone, demo.library, frames=True, taps=taps),
         "tactile": Assets("tactile", demo.tactile, None, None, demo.library, frames=False, taps=taps),
     }
-
-
-def robot_streams(
-    library_dir: Path, n_streams: int, seconds: float, block_s: float, seed: int = 0, taps: bool = False
-) -> list[list[Block]]:
-    """n_streams block sequences (seq from 0), each `seconds` long, over the library's textures; with `taps`
-    each starts with its texture's tap block, as a robot serving a model that reads tap features does."""
-    lib = Library.load(library_dir)
-    out = []
-    for k in range(n_streams):
-        model = lib.model(lib.ids[k % len(lib.ids)])
-        head: list[Block] = [tap_block(model)] if taps else []
-        rng = np.random.default_rng([seed, k])
-        traj = freehand(seconds + 0.5, rng, rate_hz=model.rate_hz, **model_ranges(model.max_speed, model.max_force))
-        s = stroke(model, traj, rng)
-        n = int(round(seconds * s.rate_hz))
-        channels = {
-            "accel": (s.accel[:n], s.rate_hz, "m/s^2"),
-            "force": (s.force[:n], s.rate_hz, "N"),
-            "speed": (s.speed[:n], s.rate_hz, "mm/s"),
-        }
-        out.append(head + list(blocks_from_arrays(channels, block_s)))
-    return out
-
-
-def frame_of(library_dir: Path, k: int) -> bytes:
-    """The photo of robot k's texture (encoded), its camera frame."""
-    lib = Library.load(library_dir)
-    image = lib.image(lib.ids[k % len(lib.ids)])
-    if image is None:
-        raise ValueError(
-            f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one"
-        )
-    return image
 
 
 # ---- CPU accounting ------------------------------------------------------------------------------
@@ -314,7 +285,8 @@ async def run_load(
     realtime: bool = True,
     window: int = 64,
 ) -> tuple[list, list[OperatorView], list[PacedSource]]:
-    """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views, sources."""
+    """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views,
+    sources."""
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
     rng = random.Random(seed)
     offsets = [rng.uniform(0, HOP_S) if realtime else 0.0 for _ in streams]  # robots do not start in lockstep
@@ -370,95 +342,130 @@ def _metric_sum(text: str, name: str, **labels: str) -> float:
     return total
 
 
+def generator_lag_limit_ms(block_s: float) -> float:
+    """The send lag p99 beyond which a row's generator fell behind: a quarter of a block, at most 10 ms."""
+    return min(GENERATOR_LAG_LIMIT_MS, 250 * block_s)
+
+
 def measure(
     n: int,
     assets: Assets,
-    streams: list[list[Block]],
     duration_s: float,
     block_s: float,
     seed: int,
     replicas: int,
     api_key: str,
+    generators: int,
 ) -> dict:
-    """n robots against `replicas` service processes; CPU, memory and refusals summed over them."""
+    """n robots against `replicas` service processes, generated by `generators` processes (benchmarks/loadgen.py);
+    CPU, memory and refusals summed over the replicas. The row is `valid` only when every generator kept its
+    send lag p99 within generator_lag_limit_ms, every robot and operator connected, and no generator failed."""
     servers: list[ServerProcess] = []
-    frames = [frame_of(assets.library, k) if assets.frames else None for k in range(n)]
     try:
         for k in range(replicas):
             servers.append(ServerProcess.service(assets, api_key, instance_id=f"bench{k}"))
-
-        def server_cpu() -> float:
-            return sum(s.cpu_seconds() for s in servers)
-
-        cpu0, client0, machine0, wall0 = (
-            server_cpu(),
-            process_cpu_seconds("self"),
-            machine_cpu_seconds(),
-            time.perf_counter(),
+        plan = loadgen.Plan(
+            urls=tuple(s.url for s in servers),
+            library=assets.library,
+            api_key=api_key,
+            robots=n,
+            duration_s=duration_s,
+            block_s=block_s,
+            generators=max(1, min(generators, n)),
+            seed=seed,
+            taps=assets.taps,
+            frames=assets.frames,
+            hop_s=HOP_S,
         )
-        stats, views, sources = _run(run_load([s.url for s in servers], streams[:n], frames, block_s, api_key, seed))
-        cpu1, client1, machine1, wall1 = (
-            server_cpu(),
-            process_cpu_seconds("self"),
-            machine_cpu_seconds(),
-            time.perf_counter(),
-        )
+        metrics0 = [httpx.get(f"{s.url}/metrics").text for s in servers]
+        at_start: list[float] = []
+
+        def started() -> None:  # the service's CPU from the moment the streams start (sessions already open)
+            at_start.extend([sum(s.cpu_seconds() for s in servers), machine_cpu_seconds(), time.perf_counter()])
+
+        at_end: list[float] = []
+
+        def ended() -> None:  # … until every generator has streamed and received its last windows
+            at_end.extend([sum(s.cpu_seconds() for s in servers), machine_cpu_seconds(), time.perf_counter()])
+
+        results = loadgen.run_generators(plan, on_start=started, on_end=ended)
+        cpu0, machine0, wall0 = at_start
+        cpu1, machine1, wall1 = at_end
         memory = [s.memory_mb() for s in servers]
         metrics = [httpx.get(f"{s.url}/metrics").text for s in servers]
     finally:
         for s in servers:
             s.stop()
+
+    def counted(name: str, **labels: str) -> int:
+        """A counter's increase over the run, summed over the replicas."""
+        return int(
+            sum(_metric_sum(m, name, **labels) for m in metrics) - sum(_metric_sum(m, name, **labels) for m in metrics0)
+        )
+
     expected = n * int(duration_s / HOP_S + 1e-9)
-    received = sum(v.windows for v in views)
-    e2e = [x for v in views for x in v.e2e_ms]
-    lag = [x for s in sources for x in s.send_lag_ms]
-    stages = {s: [x for v in views for x in v.stages_ms[s]] for s in STAGES}
-    firsts = [v.first_features_ms for v in views if v.first_features_ms is not None]
+    received = sum(r.windows for r in results)
+    e2e = [x for r in results for x in r.e2e_ms]
+    lag = [x for r in results for x in r.send_lag_ms]
+    stages = {st: [x for r in results for x in r.stages_ms[st]] for st in STAGES}
+    firsts = [x for r in results for x in r.first_features_ms]
+    failures = [f for r in results for f in r.failures]
     median_features = percentile(stages["features"], 50)
-    inputs = sum((v.inputs for v in views), Counter())
+    lag_p99 = percentile(lag, 99)
+    limit = generator_lag_limit_ms(block_s)
+    # the generator's stream phase: from the common start to its last window (the generators' own wall clocks)
+    served_s = n * duration_s  # robot-seconds of stream the service was sent
+    server_cpu_s = cpu1 - cpu0
+    generator_cpu_s = sum(r.cpu_s for r in results)
+    ms_per_robot_s = 1e3 * server_cpu_s / served_s
     return {
         "config": assets.name,
         "robots": n,
         "replicas": replicas,
+        "generators": plan.generators,
         "duration_s": duration_s,
+        "block_s": block_s,
+        "valid": bool(lag_p99 is not None and lag_p99 <= limit and not failures),
+        "invalid_because": None
+        if lag_p99 is not None and lag_p99 <= limit and not failures
+        else (f"generator send lag p99 {lag_p99} ms > {limit:g} ms" if lag_p99 is None or lag_p99 > limit else "")
+        + ("; " if failures and (lag_p99 is None or lag_p99 > limit) else "")
+        + (f"{len(failures)} generator failure(s): {failures[0]}" if failures else ""),
+        "generator_lag_ms": {"p50": percentile(lag, 50), "p99": lag_p99, "max": percentile(lag, 100), "limit": limit},
         "windows_expected": expected,
         "windows_received": received,
         "windows_lost": expected - received,
         # of those, windows that accepted blocks had completed: overload must never cost these
-        "windows_lost_after_acceptance": int(sum(_metric_sum(m, "hapticlink_windows_admitted_total") for m in metrics))
-        - received,
-        "windows_tactile_only": inputs.get("tactile", 0) if assets.frames else None,
-        "operators_failed": sum(v.error is not None for v in views),
-        "blocks_refused": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="refused") for m in metrics)),
-        "blocks_rejected": int(sum(_metric_sum(m, "hapticlink_blocks_total", outcome="rejected") for m in metrics)),
-        "frames_refused": int(sum(_metric_sum(m, "hapticlink_frames_total", outcome="refused") for m in metrics)),
-        "frames_embedded": int(sum(_metric_sum(m, "hapticlink_visual_embedding_seconds_count") for m in metrics)),
-        "robot_saturated": sum(s.saturated for s in stats),
-        "robot_lost_blocks": sum(s.lost for s in stats),
-        "robot_unsent_blocks": sum(s.unsent for s in stats),
-        "events_dropped_by_service": int(sum(_metric_sum(m, "hapticlink_events_dropped_total") for m in metrics)),
+        "windows_lost_after_acceptance": counted("hapticlink_windows_admitted_total") - received,
+        "windows_tactile_only": sum(r.windows_tactile_only for r in results) if assets.frames else None,
+        "blocks_sent": sum(r.blocks_sent for r in results),
+        "blocks_refused": counted("hapticlink_blocks_total", outcome="refused"),
+        "blocks_rejected": counted("hapticlink_blocks_total", outcome="rejected"),
+        "ingest_closed_saturated": sum(r.saturated_closes for r in results),
+        "frames_sent": sum(r.frames_sent for r in results),
+        "frames_refused": counted("hapticlink_frames_total", outcome="refused"),
+        "frames_embedded": counted("hapticlink_visual_embedding_seconds_count"),
+        "events_dropped_by_service": counted("hapticlink_events_dropped_total"),
         "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99), "max": percentile(e2e, 100)},
-        "stages_ms": {s: {"p50": percentile(v, 50), "p99": percentile(v, 99)} for s, v in stages.items()},
+        "stages_ms": {st: {"p50": percentile(v, 50), "p99": percentile(v, 99)} for st, v in stages.items()},
         "cold_start": {
             "first_window_features_ms_max": round(max(firsts), 3) if firsts else None,
             "features_median_ms": median_features,
             "first_over_median": round(max(firsts) / median_features, 2) if firsts and median_features else None,
-            "features_p99_over_p50": round(
-                stages["features"] and percentile(stages["features"], 99) / median_features, 2
-            )
-            if median_features
-            else None,
         },
-        "client_send_lag_ms": {"p50": percentile(lag, 50), "p99": percentile(lag, 99)},
-        "server_cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
-        "client_cpu_percent": round(100 * (client1 - client0) / (wall1 - wall0), 1),
-        # other processes on this (shared) machine during the run: they compete for the same 2 cores
+        # CPU by accounting: the service processes' CPU time over the run ÷ the robot-seconds of stream sent
+        "service_cpu_ms_per_robot_s": round(ms_per_robot_s, 3),
+        "robots_per_core": round(1e3 / ms_per_robot_s, 1) if ms_per_robot_s > 0 else None,
+        "server_cpu_percent": round(100 * server_cpu_s / (wall1 - wall0), 1),
+        "generator_cpu_percent": round(100 * generator_cpu_s / (wall1 - wall0), 1),
+        # other processes on this (shared) machine during the run: they compete for the same cores
         "others_cpu_percent": round(
-            100 * ((machine1 - machine0) - (cpu1 - cpu0) - (client1 - client0)) / (wall1 - wall0), 1
+            100 * ((machine1 - machine0) - server_cpu_s - generator_cpu_s) / (wall1 - wall0), 1
         ),
         "server_rss_mb": round(sum(m[0] for m in memory), 1),
         "server_peak_rss_mb": round(sum(m[1] for m in memory), 1),
         "blocks_per_s": round(n / block_s, 1),
+        "failures": failures[:5],
     }
 
 
@@ -519,7 +526,7 @@ def measure_capacity(
         "server_cpu_us_per_block": round(per_block, 1),
         "floor_cpu_us_per_block": round(floor_per_block, 1),
         "server_over_floor": round(per_block / floor_per_block, 2),
-        # a 20 ms-block robot sends 50 blocks/s: the share of one core each robot costs
+        # a robot sends 1/block_s blocks a second: the share of one core each robot costs
         "server_core_percent_per_robot": round(per_block * (1 / block_s) / 1e4, 2),
     }
 
@@ -541,20 +548,42 @@ def summarize_profile(path: Path, top: int = 20) -> list[tuple[str, float]]:
 # ---- report --------------------------------------------------------------------------------------
 def print_table(rows: list[dict]) -> None:
     head = (
-        f"{'config':>7} {'robots':>6} {'repl':>4} {'win/s':>6} {'lost':>5} {'refused':>7} {'e2e p50':>8} {'e2e p99':>8} "
-        f"{'queue p99':>9} {'feat p99':>8} {'first/med':>9} {'cpu %':>6} {'client %':>8} {'others %':>8} {'lag p99':>8}"
+        f"{'config':>7} {'robots':>6} {'repl':>4} {'gens':>4} {'valid':>5} {'lag p99':>8} {'win/s':>6} {'lost':>5} "
+        f"{'refused':>7} {'e2e p50':>8} {'e2e p99':>8} {'queue p99':>9} {'feat p99':>8} {'ms/robot-s':>10} "
+        f"{'robots/core':>11} {'cpu %':>6} {'gen %':>6} {'others %':>8}"
     )
     print(head)
     print("-" * len(head))
     for r in rows:
         st = r["stages_ms"]
         print(
-            f"{r['config']:>7} {r['robots']:>6} {r['replicas']:>4} {r['windows_received'] / r['duration_s']:>6.1f} "
+            f"{r['config']:>7} {r['robots']:>6} {r['replicas']:>4} {r['generators']:>4} {str(r['valid']):>5} "
+            f"{r['generator_lag_ms']['p99'] or 0:>8.2f} {r['windows_received'] / r['duration_s']:>6.1f} "
             f"{r['windows_lost']:>5} {r['blocks_refused'] + r['frames_refused']:>7} {r['e2e_ms']['p50'] or 0:>8.2f} "
             f"{r['e2e_ms']['p99'] or 0:>8.2f} {st['queue']['p99'] or 0:>9.2f} {st['features']['p99'] or 0:>8.2f} "
-            f"{r['cold_start']['first_over_median'] or 0:>9.2f} {r['server_cpu_percent']:>6.1f} {r['client_cpu_percent']:>8.1f} "
-            f"{r['others_cpu_percent']:>8.1f} {r['client_send_lag_ms']['p99'] or 0:>8.2f}"
+            f"{r['service_cpu_ms_per_robot_s']:>10.2f} {r['robots_per_core'] or 0:>11.1f} "
+            f"{r['server_cpu_percent']:>6.1f} {r['generator_cpu_percent']:>6.1f} {r['others_cpu_percent']:>8.1f}"
         )
+
+
+def headline(rows: list[dict]) -> dict | None:
+    """Robots per core of the served configuration by CPU accounting, from its largest valid row (the most
+    robot-seconds over the fixed costs), and the largest valid load with its end-to-end p99 and windows lost."""
+    served = [r for r in rows if r["config"] == "served" and r["valid"]]
+    if not served:
+        return None
+    best = max(served, key=lambda r: (r["robots"], -r["replicas"]))
+    return {
+        "config": "served",
+        "block_s": best["block_s"],
+        "robots": best["robots"],
+        "replicas": best["replicas"],
+        "service_cpu_ms_per_robot_s": best["service_cpu_ms_per_robot_s"],
+        "robots_per_core": best["robots_per_core"],
+        "e2e_ms_p99": best["e2e_ms"]["p99"],
+        "windows_lost": best["windows_lost"],
+        "generator_lag_ms_p99": best["generator_lag_ms"]["p99"],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -569,30 +598,42 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--configs", nargs="+", choices=CONFIGS, default=list(CONFIGS))
     p.add_argument("--duration", type=float, default=20.0, help="seconds of stream per robot (default 20)")
-    p.add_argument("--block-s", type=float, default=0.02, help="seconds per block (default 0.02)")
     p.add_argument(
-        "--capacity-s", type=float, default=60.0, help="seconds of stream pumped for the capacity measurement"
+        "--block-s",
+        type=float,
+        default=DEFAULT_BLOCK_S,
+        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: the robot client's default)",
+    )
+    p.add_argument(
+        "--generators",
+        type=int,
+        default=None,
+        help="load-generator processes (default: one per 25 robots, at most the cores less one but 2 on 2 cores)",
+    )
+    p.add_argument(
+        "--capacity-s",
+        type=float,
+        default=300.0,
+        help="seconds of stream pumped for the capacity measurement (default 300: enough samples for --profile)",
     )
     p.add_argument("--no-capacity", action="store_true", help="skip the capacity measurement")
     p.add_argument("--profile", action="store_true", help="sample the service with py-spy during the capacity run")
     p.add_argument(
         "--assets",
         type=Path,
-        default=Path(tempfile.gettempdir()) / "hapticlink-bench-assets",
-        help="where the models and library are built and cached",
+        default=DEFAULT_ASSETS,
+        help=f"the demo's assets, built there when missing (default {DEFAULT_ASSETS}, shared with `make demo`)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    if min(args.replicas) < 1 or min(args.robots) < 1:
-        p.error("--robots and --replicas must be ≥ 1")
+    if min(args.replicas) < 1 or min(args.robots) < 1 or (args.generators is not None and args.generators < 1):
+        p.error("--robots, --replicas and --generators must be ≥ 1")
     api_key = secrets.token_urlsafe(24)  # this run's fleet key
     print("preparing assets (cached) …", flush=True)
     all_assets = prepare_assets(args.assets)
     library = all_assets["tactile"].library
-    print(f"rendering {max(args.robots)} streams of {args.duration:g} s …", flush=True)
     taps = all_assets["tactile"].taps  # both configurations serve the demo's features
-    streams = robot_streams(library, max(args.robots), args.duration, args.block_s, args.seed, taps=taps)
     capacity = None
     profile = None
     if not args.no_capacity:
@@ -601,9 +642,10 @@ def main(argv: list[str] | None = None) -> int:
         profile_path = args.out.with_name("service-profile.txt") if args.profile else None
         capacity = measure_capacity(all_assets["tactile"], blocks, api_key, args.block_s, profile_path)
         print(
-            f"  service {capacity['server_cpu_us_per_block']:.0f} µs, floor {capacity['floor_cpu_us_per_block']:.0f} µs "
-            f"server CPU per block: {capacity['server_over_floor']:.2f} × the floor; "
-            f"{capacity['server_core_percent_per_robot']:.2f} % of a core per 20 ms-block robot",
+            f"  service {capacity['server_cpu_us_per_block']:.0f} µs, "
+            f"floor {capacity['floor_cpu_us_per_block']:.0f} µs server CPU per block: "
+            f"{capacity['server_over_floor']:.2f} × the floor; "
+            f"{capacity['server_core_percent_per_robot']:.2f} % of a core per {args.block_s * 1e3:g} ms-block robot",
             flush=True,
         )
         if profile_path is not None and profile_path.is_file():
@@ -615,8 +657,17 @@ def main(argv: list[str] | None = None) -> int:
     for config in args.configs:
         for replicas, n in [(r, n) for r in args.replicas for n in args.robots]:
             print(f"{config}: {n} robot(s) on {replicas} replica(s) for {args.duration:g} s …", flush=True)
+            generators = args.generators or min(-(-n // 25), max(2, (os.cpu_count() or 2) - 1))
             rows.append(
-                measure(n, all_assets[config], streams, args.duration, args.block_s, args.seed, replicas, api_key)
+                measure(n, all_assets[config], args.duration, args.block_s, args.seed, replicas, api_key, generators)
+            )
+            r = rows[-1]
+            print(
+                f"  valid {r['valid']} (generator lag p99 {r['generator_lag_ms']['p99']} ms), "
+                f"lost {r['windows_lost']}, e2e p99 {r['e2e_ms']['p99']} ms, "
+                f"{r['service_cpu_ms_per_robot_s']:.2f} ms service CPU per robot-second → "
+                f"{r['robots_per_core']} robots per core",
+                flush=True,
             )
     print()
     print_table(rows)
@@ -640,6 +691,7 @@ def main(argv: list[str] | None = None) -> int:
                 if k in args.configs
             },
         },
+        "robots_per_core": headline(rows),
         "capacity": capacity,
         "profile_top": profile,
         "results": rows,

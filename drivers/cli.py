@@ -7,6 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from drivers.source import DEFAULT_BLOCK_S
+
 SOURCE_SPECS = (
     "simulated:LIBRARY_DIR:ENTRY_ID",
     "replay:DATASET_DIR:TEXTURE_ID",
@@ -50,7 +52,13 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
         default=True,
         help="pace simulated/replay sources in real time (default)",
     )
-    p.add_argument("--block-s", type=float, default=0.02, metavar="S", help="seconds per block (default 0.02)")
+    p.add_argument(
+        "--block-s",
+        type=float,
+        default=DEFAULT_BLOCK_S,
+        metavar="S",
+        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: 10 blocks per 500 ms window)",
+    )
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
     p.add_argument(
@@ -106,7 +114,7 @@ def source_from_spec(
     spec: str,
     *,
     realtime: bool = True,
-    block_s: float = 0.02,
+    block_s: float = DEFAULT_BLOCK_S,
     seed: int = 0,
     image: str | None = None,
     recording: int = 0,

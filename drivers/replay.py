@@ -10,7 +10,7 @@ from pathlib import Path
 
 from drivers.blocks import Frame
 from drivers.camera import frame_from_file
-from drivers.source import Item, blocks_from_arrays, check_positive, paced
+from drivers.source import DEFAULT_BLOCK_S, Item, blocks_from_arrays, check_positive, paced
 from texture_library.channels import CANONICAL_UNITS
 from texture_library.recording import Recording, load_recording
 
@@ -30,7 +30,7 @@ class ReplaySource:
     def __init__(
         self,
         recording: Recording,
-        block_s: float = 0.02,
+        block_s: float = DEFAULT_BLOCK_S,
         realtime: bool = True,
         speed: float = 1.0,
         loop: bool = False,

@@ -22,6 +22,7 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.source import (
+    DEFAULT_BLOCK_S,
     Item,
     StreamAssembler,
     StreamStats,
@@ -107,7 +108,7 @@ class BoardDecoder:
     stream time continues after the last sample.
     """
 
-    def __init__(self, block_s: float = 0.02, header: BoardHeader | None = None) -> None:
+    def __init__(self, block_s: float = DEFAULT_BLOCK_S, header: BoardHeader | None = None) -> None:
         check_positive("block_s", block_s)
         self.block_s = block_s
         self.stats = BoardStats()
@@ -208,7 +209,7 @@ class SerialBoardSource(ThreadedSource):
         self,
         port: str,
         baudrate: int = 921_600,
-        block_s: float = 0.02,
+        block_s: float = DEFAULT_BLOCK_S,
         header: str | None = None,
         queue_size: int = 256,
     ) -> None:

@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.blocks import ChannelBlock, Frame, TapBlock
 from drivers.camera import encode_image, sniff_content_type
-from drivers.source import Item, blocks_from_arrays, check_positive, paced
+from drivers.source import DEFAULT_BLOCK_S, Item, blocks_from_arrays, check_positive, paced
 from texture_library.library import Library
 from texture_library.stroke import StrokeSignals, random_rotation, stroke
 from texture_library.taps import TAP_RATE_HZ
@@ -72,7 +72,7 @@ class SimulatedSource:
         model: VibrationModel,
         image_png: bytes | None = None,
         seed: int = 0,
-        block_s: float = 0.02,
+        block_s: float = DEFAULT_BLOCK_S,
         realtime: bool = True,
         chunk_s: float = 5.0,
         duration_s: float | None = None,

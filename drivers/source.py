@@ -29,6 +29,12 @@ log = logging.getLogger(__name__)
 
 Item = SampleBlock | TapBlock | Frame
 
+#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 50 ms, ten
+#: blocks per 500 ms window. The service's cost is mostly per block (a WebSocket message, its acknowledgement,
+#: decoding, admission), so 50 ms blocks cost it about half the CPU per robot-second of 20 ms ones, for at most
+#: 30 ms more before a window's last samples leave the robot (benchmarks/service.py, docs/service.md).
+DEFAULT_BLOCK_S = 0.05
+
 
 @runtime_checkable
 class SensorSource(Protocol):

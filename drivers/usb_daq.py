@@ -23,6 +23,7 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.source import (
+    DEFAULT_BLOCK_S,
     Item,
     Layout,
     StreamAssembler,
@@ -57,7 +58,8 @@ class DeviceNotFoundError(LookupError):
 
 @dataclass(frozen=True)
 class DaqConfig:
-    """What the DAQ reports: rate (Hz), layout (kind, columns, units) in column order, int16 → units scale per channel."""
+    """What the DAQ reports: rate (Hz), layout (kind, columns, units) in column order, int16 → units scale per
+    channel."""
 
     rate_hz: float
     layout: Layout
@@ -110,7 +112,7 @@ class DaqStats(StreamStats):
 class PacketDecoder:
     """Bulk transfers → SampleBlocks (no I/O). Gap handling: drivers.source.StreamAssembler."""
 
-    def __init__(self, config: DaqConfig, block_s: float = 0.02) -> None:
+    def __init__(self, config: DaqConfig, block_s: float = DEFAULT_BLOCK_S) -> None:
         self.config = config
         self.stats = DaqStats()
         self._scales = config.column_scales()
@@ -161,7 +163,7 @@ class UsbDaqSource(ThreadedSource):
         vid: int = DEFAULT_VID,
         pid: int = DEFAULT_PID,
         backend: object | None = None,
-        block_s: float = 0.02,
+        block_s: float = DEFAULT_BLOCK_S,
         queue_size: int = 256,
     ) -> None:
         super().__init__(queue_size)
@@ -191,7 +193,8 @@ class UsbDaqSource(ThreadedSource):
             ) from None
         if dev is None:
             raise DeviceNotFoundError(
-                f"no USB device {self.vid:04x}:{self.pid:04x} found (is the DAQ plugged in? on Linux, does a udev rule give you access?)"
+                f"no USB device {self.vid:04x}:{self.pid:04x} found "
+                "(is the DAQ plugged in? on Linux, does a udev rule give you access?)"
             )
         return dev
 

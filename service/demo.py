@@ -9,16 +9,25 @@
    (sending its camera frame first), and a terminal subscriber that prints what the operator console shows
    and, REPORT_AFTER_S into each probe's stroke, the estimate next to the probe's ground truth
    with the error (0–100 scale, mean over the four attributes).
-3. Print the console URL; Ctrl-C ends everything cleanly.
+   The robot opens its session once the service's /ready answers 200.
+3. Print the console URL; one Ctrl-C (or SIGTERM) stops the robot, the feed and the service within
+   STOP_S and prints the summary (each probe's error, windows flagged out of distribution); a
+   second one quits at once.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import contextlib
 import dataclasses
 import json
 import logging
+import os
 import secrets
+import signal
+import sys
+import threading
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -31,6 +40,8 @@ from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 log = logging.getLogger("hapticlink.demo")
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
 REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
+READY_TIMEOUT_S = 120.0  # the service loads, cross-checks and warms up its models before /ready answers 200
+STOP_S = 2.0  # one Ctrl-C stops robot, feed and service within this
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,8 +119,14 @@ class ProbeTour:
         self._closing = True
 
 
+def attribute_label(attribute: str) -> str:
+    """'rough_smooth' → 'rough→smooth': the two poles of a bipolar attribute, whole."""
+    low, _, high = attribute.partition("_")
+    return f"{low}→{high}"
+
+
 def _fmt(ratings: dict) -> str:
-    return " ".join(f"{a.split('_')[0][:5]}→{a.split('_')[1][:5]} {ratings[a]:+6.1f}" for a in ATTRIBUTES)
+    return " ".join(f"{attribute_label(a)} {ratings[a]:+6.1f}" for a in ATTRIBUTES)
 
 
 def _interval(event: dict) -> str:
@@ -181,8 +198,39 @@ class ProbeReport:
         )
 
 
+@dataclasses.dataclass
+class FeedCounts:
+    """What the terminal feed saw: window events, and those flagged out of distribution (by reason)."""
+
+    windows: int = 0
+    flagged: int = 0
+    reasons: dict[str, int] = dataclasses.field(default_factory=dict)
+
+    def add(self, event: dict) -> None:
+        self.windows += 1
+        if event.get("out_of_distribution"):
+            self.flagged += 1
+            for reason in event.get("ood_reasons") or ():
+                self.reasons[reason] = self.reasons.get(reason, 0) + 1
+
+    def summary(self) -> str:
+        if not self.windows:
+            return "no window estimated"
+        why = ", ".join(f"{r} {n}" for r, n in sorted(self.reasons.items(), key=lambda kv: -kv[1]))
+        return (
+            f"{self.windows} windows estimated, {self.flagged} ({100 * self.flagged / self.windows:.1f} %) flagged out "
+            f"of distribution" + (f" ({why})" if why else "")
+        )
+
+
 async def print_events(
-    url: str, session: str, token: str, tour: ProbeTour, every_s: float = 2.0, report: ProbeReport | None = None
+    url: str,
+    session: str,
+    token: str,
+    tour: ProbeTour,
+    every_s: float = 2.0,
+    report: ProbeReport | None = None,
+    counts: FeedCounts | None = None,
 ) -> None:
     """Subscribe like the console does and print a line every few seconds, and each probe's report."""
     import websockets
@@ -194,6 +242,8 @@ async def print_events(
             event = json.loads(message)
             if event.get("type") != "window":
                 continue
+            if counts is not None:
+                counts.add(event)
             if report is not None:
                 lines = report.add(event["t_end_s"], event["ratings"], event["raw_ratings"])
                 if lines:
@@ -215,6 +265,62 @@ async def print_events(
             )
 
 
+class DaemonThreads(concurrent.futures.ThreadPoolExecutor):
+    """The demo loop's default executor: one daemon thread per call. The simulated robot renders its next
+    stretch of stroke in a thread (seconds of CPU on a busy machine); exiting must not wait for it, and nothing
+    the demo runs in a thread holds anything that has to be finished."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        future: concurrent.futures.Future = concurrent.futures.Future()
+
+        def run() -> None:
+            if not future.set_running_or_notify_cancel():
+                return
+            try:
+                future.set_result(fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever awaits the future
+                future.set_exception(exc)
+
+        threading.Thread(target=run, name="demo-worker", daemon=True).start()
+        return future
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        pass  # daemon threads of their own (the pool's are never started): nothing to wait for
+
+
+class DemoStopped(Exception):
+    """A signal asked the demo to stop before it was streaming."""
+
+
+async def wait_ready(url: str, serving: asyncio.Task, stop: asyncio.Event, timeout_s: float = READY_TIMEOUT_S) -> None:
+    """Poll GET url/ready until 200 (the model and library are loaded and warmed up).
+
+    RuntimeError with /ready's last reason when the service stopped or was not ready within timeout_s;
+    DemoStopped when `stop` was set meanwhile."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    why = "no answer yet"
+    async with httpx.AsyncClient(timeout=2.0) as http:
+        while True:
+            if serving.done():
+                serving.result()  # raises why it could not start (e.g. the port is taken)
+                raise RuntimeError("the service stopped while starting")
+            try:
+                r = await http.get(f"{url}/ready")
+                if r.status_code == 200:
+                    return
+                why = f"HTTP {r.status_code}: {r.text[:300]}"
+            except httpx.TransportError as exc:
+                why = f"{type(exc).__name__}: {exc}"
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the service at {url} was not ready within {timeout_s:g} s: {why}")
+            if stop.is_set():
+                raise DemoStopped
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 0.1)
+
+
 async def run_demo(
     assets: DemoAssets,
     *,
@@ -224,11 +330,41 @@ async def run_demo(
     duration_s: float | None,
     report_after_s: float = REPORT_AFTER_S,
 ) -> None:
+    """Serve, stream and print until duration_s, or until SIGINT / SIGTERM: the first stops the robot, the
+    terminal feed and the service within STOP_S and prints the summary; a second quits at once."""
     import uvicorn
 
     from drivers.robot import RobotClient
     from service.app import create_app, server_options
     from service.settings import Settings
+
+    class DemoServer(uvicorn.Server):
+        @contextlib.contextmanager
+        def capture_signals(self):  # the demo handles SIGINT/SIGTERM: one stops robot, feed and service together
+            yield
+
+    loop = asyncio.get_running_loop()
+    loop.set_default_executor(DaemonThreads())
+    main = asyncio.current_task()
+    stop = asyncio.Event()
+    stop_asked: list[float] = []
+
+    def on_signal() -> None:
+        if stop.is_set():
+            if main is not None:
+                main.cancel()  # a second signal: quit now
+            return
+        stop_asked.append(time.monotonic())
+        print("\nstopping (again to quit at once) …", flush=True)
+        stop.set()
+
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, on_signal)
+            installed.append(sig)
+        except (NotImplementedError, RuntimeError, ValueError):
+            pass  # not the main thread (a test's loop): signals keep their default meaning
 
     api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
     settings = Settings(
@@ -241,34 +377,60 @@ async def run_demo(
         log_level="warning",
         api_keys=api_key,
     )
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), **server_options(settings)))
+    server = DemoServer(uvicorn.Config(create_app(settings), **server_options(settings)))
     serving = asyncio.create_task(server.serve())
-    while not server.started:
-        if serving.done():
-            serving.result()  # raises why it could not start (e.g. the port is taken)
-            raise RuntimeError("the service stopped while starting")
-        await asyncio.sleep(0.05)
     url = f"http://{host}:{port}"
     tour = ProbeTour(assets.probes, per_texture_s)
-    robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key)
-    info = await robot.open_session()
-    print(
-        f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
-        f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
-        flush=True,
-    )
+    # a short drain: at a stop the service goes too, so what is still unacknowledged after it cannot be delivered
+    robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key, drain_timeout_s=STOP_S / 2)
     truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
     report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
-    printer = asyncio.create_task(print_events(url, info.session_id, info.operator_token, tour, report=report))
+    counts = FeedCounts()
+    started = time.monotonic()
+    tasks: list[asyncio.Task] = []
     try:
-        await robot.run(duration_s)
-        await asyncio.sleep(0.5)  # the last windows' events are still on their way
+        await wait_ready(url, serving, stop)  # the robot opens its session only once the service can take it
+        info = await robot.open_session()
+        print(
+            f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
+            f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
+            flush=True,
+        )
+        printer = asyncio.create_task(
+            print_events(url, info.session_id, info.operator_token, tour, report=report, counts=counts)
+        )
+        streaming = asyncio.create_task(robot.run(duration_s))
+        stopping = asyncio.create_task(stop.wait())
+        tasks = [printer, streaming, stopping]
+        await asyncio.wait([streaming, stopping], return_when=asyncio.FIRST_COMPLETED)
+        if stop.is_set():
+            robot.stop()  # stop reading; deliver what is buffered for at most drain_timeout_s
+            await asyncio.wait([streaming], timeout=STOP_S / 2 + 0.2)
+        else:
+            await asyncio.sleep(0.5)  # the last windows' events are still on their way
+        if streaming.done() and not streaming.cancelled() and streaming.exception() is not None:
+            raise streaming.exception()  # type: ignore[misc]
+    except DemoStopped:
+        pass
     finally:
-        printer.cancel()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
         server.should_exit = True
-        await asyncio.gather(printer, serving, return_exceptions=True)
+        done, _ = await asyncio.wait([serving], timeout=STOP_S / 4)
+        if not done:  # connections still open: close them now
+            server.force_exit = True
+            done, _ = await asyncio.wait([serving], timeout=STOP_S / 4)
+        if not done:
+            serving.cancel()
+            await asyncio.gather(serving, return_exceptions=True)
+        for sig in installed:
+            loop.remove_signal_handler(sig)
         if report.summary():
             print(report.summary(), flush=True)
+        print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)
+        if stop_asked:
+            print(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal", flush=True)
     print(f"robot stats: {robot.stats.as_dict()}")
 
 
@@ -280,9 +442,20 @@ def demo(
     per_texture_s: float = 20.0,
     duration_s: float | None = None,
 ) -> int:
-    """Run the loop on prepared assets until Ctrl-C or duration_s."""
+    """The `hapticlink demo` entry: run the loop on prepared assets until Ctrl-C (or SIGTERM) or duration_s.
+
+    Returns the exit code (0). A service worker thread may still be busy when the loop has stopped (an
+    embedding under way cannot be interrupted, and the interpreter would join it at exit for seconds); then
+    the output is flushed and the process exits at once with that code, so one Ctrl-C is enough."""
     try:
         asyncio.run(run_demo(assets, host=host, port=port, per_texture_s=per_texture_s, duration_s=duration_s))
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):
         print("\nstopped.")
+    busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+    if busy:
+        print(f"(not waiting for {len(busy)} worker thread(s) still computing)", flush=True)
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0

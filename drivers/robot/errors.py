@@ -14,6 +14,10 @@ class RobotAuthError(ServiceRefused, PermissionError):
     """The robot token or the fleet API key was refused (HTTP 401/403, WebSocket close 1008)."""
 
 
+class ServiceUnavailable(ServiceRefused):
+    """The service stayed unreachable or not ready (HTTP 503) for longer than the client was told to wait."""
+
+
 class SessionLostError(ServiceRefused):
     """The service lost the session (HTTP 410: the replica that held its state is gone — stopped, crashed or
     restarted); retrying cannot bring it back, only a new session goes on."""

@@ -4,44 +4,40 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import TYPE_CHECKING
 
 import httpx
 
 from drivers.protocol import RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
 from drivers.robot.errors import RobotAuthError, session_lost
-
-if TYPE_CHECKING:
-    from drivers.robot.client import RobotClient
+from drivers.robot.outbox import Endpoint, Outbox
 
 log = logging.getLogger("drivers.robot")
 
-FRAME_QUEUE = 4  # frames kept during an outage: the newest matter, older ones are superseded
 
-
-async def send_frames(client: RobotClient) -> None:
-    """Send queued frames in order until drained; 429 (visual queue full) waits Retry-After and sends the newest."""
-    http = client._http
+async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
+    """Send the outbox's queued frames in order until drained; 429 (visual queue full) waits Retry-After and
+    sends the newest."""
+    http = outbox.http
     assert http is not None
-    url = client.url + session_path(str(client.session_id), "frames")
-    frames = client._frames
+    url = endpoint.url + session_path(str(endpoint.session_id), "frames")
+    frames = outbox.frames
     while True:
-        client._frames_changed.clear()
+        outbox.frames_changed.clear()
         if not frames:
-            if client._draining:
+            if outbox.draining:
                 return
-            await client._frames_changed.wait()
+            await outbox.frames_changed.wait()
             continue
         frame = frames[0]
         try:
             r = await http.post(
                 url,
                 content=frame.image,
-                headers={**bearer(str(client.robot_token)), "Content-Type": frame.content_type},
+                headers={**bearer(str(endpoint.robot_token)), "Content-Type": frame.content_type},
             )
         except httpx.TransportError as exc:
-            delay = client._frame_backoff.next()
+            delay = outbox.frame_backoff.next()
             log.warning("POST frame: %s: %s; retrying in %.2f s", type(exc).__name__, exc, delay)
             await asyncio.sleep(delay)
             continue
@@ -49,17 +45,17 @@ async def send_frames(client: RobotClient) -> None:
         if status in (401, 403):
             raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {detail(r)})")
         if status == SESSION_LOST:
-            raise session_lost(client.session_id, detail(r))
+            raise session_lost(endpoint.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
-            client.stats.frames_refused += status == 429
-            delay = (retry_after(r) if status == 429 else None) or client._frame_backoff.next()
+            outbox.stats.frames_refused += status == 429
+            delay = (retry_after(r) if status == 429 else None) or outbox.frame_backoff.next()
             await asyncio.sleep(delay)
             continue
         if frames and frames[0] is frame:  # it may have been superseded meanwhile
             frames.popleft()
         if 200 <= status < 300:
-            client.stats.frames_sent += 1
-            client._frame_backoff.reset()
+            outbox.stats.frames_sent += 1
+            outbox.frame_backoff.reset()
         else:
-            client.stats.frames_rejected += 1
+            outbox.stats.frames_rejected += 1
             log.error("the service rejected a frame (%s): HTTP %d: %s", frame.content_type, status, detail(r))

@@ -4,47 +4,44 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import TYPE_CHECKING
 
 import httpx
 
 from drivers.protocol import BINARY_CONTENT_TYPE, RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
 from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
-
-if TYPE_CHECKING:
-    from drivers.robot.client import RobotClient
+from drivers.robot.outbox import Endpoint, Outbox
 
 log = logging.getLogger("drivers.robot")
 
 
-async def send_http(client: RobotClient) -> None:
-    """Deliver the client's blocks by HTTP POST until drained; RobotAuthError / ServiceRefused (SessionLostError on
+async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
+    """Deliver the outbox's blocks by HTTP POST until drained; RobotAuthError / ServiceRefused (SessionLostError on
     410) when final."""
-    http = client._http
+    http = outbox.http
     assert http is not None
-    url = client.url + session_path(str(client.session_id), "blocks")
+    url = endpoint.url + session_path(str(endpoint.session_id), "blocks")
     headers = {
-        **bearer(str(client.robot_token)),
-        "Content-Type": BINARY_CONTENT_TYPE if client.binary else "application/json",
+        **bearer(str(endpoint.robot_token)),
+        "Content-Type": BINARY_CONTENT_TYPE if endpoint.binary else "application/json",
     }
-    buffer = client._buffer
+    buffer = outbox.buffer
     outage = False
     while True:
-        client._blocks_changed.clear()
+        outbox.blocks_changed.clear()
         entry = buffer.first_from(0)
         if entry is None:
-            if client._draining:
+            if outbox.draining:
                 return
-            await client._blocks_changed.wait()
+            await outbox.blocks_changed.wait()
             continue
         try:
             r = await http.post(url, content=entry.payload, headers=headers)
         except httpx.TransportError as exc:
             if not isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout)):
-                client._count_send(entry.seq)  # it may have arrived: the resend will tell
+                outbox.count_send(entry.seq)  # it may have arrived: the resend will tell
             outage = True
-            delay = client._block_backoff.next()
+            delay = outbox.block_backoff.next()
             log.warning(
                 "POST block %d: %s: %s; retrying in %.2f s (%d block(s) buffered)",
                 entry.seq,
@@ -55,33 +52,33 @@ async def send_http(client: RobotClient) -> None:
             )
             await asyncio.sleep(delay)
             continue
-        client._count_send(entry.seq)
+        outbox.count_send(entry.seq)
         status = r.status_code
         if status < 500 and outage:
             outage = False
-            client.stats.reconnects += 1
+            outbox.stats.reconnects += 1
             log.info("the service is reachable again; resending from block %d", entry.seq)
         if status in (200, 201, 202):
             try:
                 duplicate = bool(r.json().get("duplicate", False))
             except (ValueError, AttributeError):
                 duplicate = False
-            client._settle(entry.seq, duplicate)
+            outbox.settle(entry.seq, duplicate)
         elif status == 429:
-            client.stats.saturated += 1
-            delay = retry_after(r) or client._block_backoff.next()
+            outbox.stats.saturated += 1
+            delay = retry_after(r) or outbox.block_backoff.next()
             log.warning("session saturated (429); resending block %d in %.2f s", entry.seq, delay)
             await asyncio.sleep(delay)
         elif status in (401, 403):
             raise RobotAuthError(f"the service refused the robot token (HTTP {status}: {detail(r)})")
         elif status == 404:
-            raise ServiceRefused(f"the service has no session {client.session_id!r} (HTTP 404: {detail(r)})")
+            raise ServiceRefused(f"the service has no session {endpoint.session_id!r} (HTTP 404: {detail(r)})")
         elif status == SESSION_LOST:
-            raise session_lost(client.session_id, detail(r))
+            raise session_lost(endpoint.session_id, detail(r))
         elif 400 <= status < 500 and status not in RETRY_STATUSES:
-            client._reject(entry.seq, f"HTTP {status}: {detail(r)}")
+            outbox.reject(entry.seq, f"HTTP {status}: {detail(r)}")
         else:  # 5xx, 408, 421, 425: the service cannot take it now
             outage = True
-            delay = client._block_backoff.next()
+            delay = outbox.block_backoff.next()
             log.warning("POST block %d: HTTP %d; retrying in %.2f s", entry.seq, status, delay)
             await asyncio.sleep(delay)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import time
 from dataclasses import dataclass
 from urllib.parse import urlencode
 
@@ -12,7 +13,7 @@ import httpx
 
 from drivers.protocol import API_KEY_ENV, bearer
 from drivers.robot.backoff import Backoff, detail, retry_after
-from drivers.robot.errors import RobotAuthError, ServiceRefused
+from drivers.robot.errors import RobotAuthError, ServiceRefused, ServiceUnavailable
 
 log = logging.getLogger("drivers.robot")
 
@@ -31,9 +32,16 @@ def api_key_from_env(api_key: str | None) -> str | None:
 
 
 async def open_session(
-    http: httpx.AsyncClient, url: str, api_key: str | None, name: str | None, backoff: Backoff
+    http: httpx.AsyncClient,
+    url: str,
+    api_key: str | None,
+    name: str | None,
+    backoff: Backoff,
+    *,
+    timeout_s: float | None = 60.0,
 ) -> SessionInfo:
-    """Create a session at the service `url`, retrying transport errors, 5xx and 429 (after Retry-After).
+    """Create a session at the service `url`, retrying transport errors, 5xx and 429 (after Retry-After) for at
+    most `timeout_s` seconds (None: for ever); then ServiceUnavailable, naming the last answer.
 
     The operator token and console link are in the result, never in the log: logs travel further than
     the people who should read the session. RobotAuthError for a refused or missing API key,
@@ -41,20 +49,31 @@ async def open_session(
     """
     body = {"name": name} if name else {}
     headers = bearer(api_key) if api_key else {}
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+
+    async def wait(delay: float, why: str) -> None:
+        """Sleep `delay` before the next attempt, or give up when that would pass the deadline."""
+        if deadline is not None and time.monotonic() + delay > deadline:
+            raise ServiceUnavailable(
+                f"could not create a session at {url} within {timeout_s:g} s: {why} "
+                "(is the service running, and does its /ready answer 200?)"
+            )
+        await asyncio.sleep(delay)
+
     while True:
         try:
             r = await http.post(f"{url}/sessions", json=body, headers=headers)
         except httpx.TransportError as exc:
             delay = backoff.next()
             log.warning("cannot reach %s (%s); retrying in %.1f s", url, exc, delay)
-            await asyncio.sleep(delay)
+            await wait(delay, f"cannot reach it ({type(exc).__name__}: {exc})")
             continue
         if r.status_code == 503 and "API key" in detail(r):  # the service is not configured for fleets
             raise ServiceRefused(f"creating a session: HTTP 503: {detail(r)}")
         if r.status_code >= 500 or r.status_code == 429:
             delay = retry_after(r) or backoff.next()
             log.warning("creating a session: HTTP %d; retrying in %.1f s", r.status_code, delay)
-            await asyncio.sleep(delay)
+            await wait(delay, f"the last answer was HTTP {r.status_code}: {detail(r)}")
             continue
         if r.status_code in (401, 403):
             raise RobotAuthError(

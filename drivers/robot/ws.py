@@ -6,14 +6,11 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from typing import TYPE_CHECKING
 
 from drivers.protocol import SESSION_LOST, Close, parse_ack, ws_url
 from drivers.robot.backoff import body_detail
 from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
-
-if TYPE_CHECKING:
-    from drivers.robot.client import RobotClient
+from drivers.robot.outbox import Endpoint, Outbox
 
 log = logging.getLogger("drivers.robot")
 
@@ -27,42 +24,42 @@ class Disconnected(Exception):
         self.reason = reason
 
 
-async def send_ws(client: RobotClient) -> None:
-    """Deliver the client's blocks over WebSocket until drained; RobotAuthError / ServiceRefused (SessionLostError
+async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
+    """Deliver the outbox's blocks over WebSocket until drained; RobotAuthError / ServiceRefused (SessionLostError
     on 410) when final."""
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
-    uri = ws_url(client.url, str(client.session_id), "ingest", str(client.robot_token))
+    uri = ws_url(endpoint.url, str(endpoint.session_id), "ingest", str(endpoint.robot_token))
     failed = False
     while True:
-        if client._draining and not client._buffer:
+        if outbox.draining and not outbox.buffer:
             return
         try:
             async with connect(
                 uri,
-                open_timeout=client.request_timeout_s,
+                open_timeout=endpoint.request_timeout_s,
                 close_timeout=2.0,
                 max_size=2**20,
                 compression=None,
                 proxy=None,
             ) as ws:
                 if failed:
-                    client.stats.reconnects += 1
-                    log.info("reconnected to %s; resending from block %s", client.url, client._buffer.oldest_seq)
+                    outbox.stats.reconnects += 1
+                    log.info("reconnected to %s; resending from block %s", endpoint.url, outbox.buffer.oldest_seq)
                 failed = False
-                await _stream(client, ws)
+                await _stream(endpoint, outbox, ws)
                 return
         except InvalidStatus as exc:
             status = exc.response.status_code
             if status in (401, 403):
                 raise RobotAuthError(f"the service refused the robot token (HTTP {status})") from None
             if status == 404:
-                raise ServiceRefused(f"the service has no session {client.session_id!r} (HTTP 404)") from None
+                raise ServiceRefused(f"the service has no session {endpoint.session_id!r} (HTTP 404)") from None
             if status == SESSION_LOST:
-                raise session_lost(client.session_id, body_detail(exc.response.body)) from None
+                raise session_lost(endpoint.session_id, body_detail(exc.response.body)) from None
             if status == 429:
-                client.stats.saturated += 1
+                outbox.stats.saturated += 1
             why = f"HTTP {status}"
         except Disconnected as exc:
             if exc.close_code == Close.POLICY:
@@ -70,27 +67,27 @@ async def send_ws(client: RobotClient) -> None:
                     f"the service closed the connection: authentication failed ({exc.reason or 'close 1008'})"
                 ) from None
             if exc.close_code == Close.LOST:
-                raise session_lost(client.session_id, exc.reason or f"close {int(Close.LOST)}") from None
+                raise session_lost(endpoint.session_id, exc.reason or f"close {int(Close.LOST)}") from None
             if exc.close_code == Close.SESSION_ENDED and exc.reason == "session ended":
-                raise ServiceRefused(f"the service ended session {client.session_id!r}") from None
+                raise ServiceRefused(f"the service ended session {endpoint.session_id!r}") from None
             if exc.close_code == Close.SATURATED:
-                client.stats.saturated += 1
+                outbox.stats.saturated += 1
             why = str(exc)
         except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as exc:
             why = f"{type(exc).__name__}: {exc}"
         failed = True
-        delay = client._block_backoff.next()
+        delay = outbox.block_backoff.next()
         log.warning(
             "WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)",
-            client.url,
+            endpoint.url,
             why,
             delay,
-            len(client._buffer),
+            len(outbox.buffer),
         )
         await asyncio.sleep(delay)
 
 
-async def _stream(client: RobotClient, ws) -> None:
+async def _stream(endpoint: Endpoint, outbox: Outbox, ws) -> None:
     """Send over one connection, from the oldest unacknowledged block, until drained (return) or the
     connection ends (Disconnected)."""
     from websockets.exceptions import ConnectionClosed
@@ -98,22 +95,22 @@ async def _stream(client: RobotClient, ws) -> None:
     # The service answers every message in order, so the n-th answer is about the n-th block
     # sent on this connection; that names the block even when an error answer carries no seq.
     sent_order: deque[int] = deque()
-    receiver = asyncio.create_task(_receive(client, ws, sent_order), name="robot-acks")
-    buffer = client._buffer
-    next_seq = buffer.oldest_seq if buffer.oldest_seq is not None else client._next_seq
+    receiver = asyncio.create_task(_receive(outbox, ws, sent_order), name="robot-acks")
+    buffer = outbox.buffer
+    next_seq = buffer.oldest_seq if buffer.oldest_seq is not None else outbox.next_seq
     try:
         while not receiver.done():
-            client._blocks_changed.clear()
+            outbox.blocks_changed.clear()
             entry = buffer.first_from(next_seq)
-            if entry is not None and buffer.count_before(entry.seq) < client.window:
+            if entry is not None and buffer.count_before(entry.seq) < endpoint.window:
                 sent_order.append(entry.seq)
-                await ws.send(entry.payload if client.binary else entry.payload.decode())
-                client._count_send(entry.seq)
+                await ws.send(entry.payload if endpoint.binary else entry.payload.decode())
+                outbox.count_send(entry.seq)
                 next_seq = entry.seq + 1
                 continue
-            if client._draining and not buffer:
+            if outbox.draining and not buffer:
                 return
-            await client._blocks_changed.wait()
+            await outbox.blocks_changed.wait()
     except ConnectionClosed:
         pass
     finally:
@@ -122,7 +119,7 @@ async def _stream(client: RobotClient, ws) -> None:
     raise Disconnected(ws.close_code, ws.close_reason or "")
 
 
-async def _receive(client: RobotClient, ws, sent_order: deque[int]) -> None:
+async def _receive(outbox: Outbox, ws, sent_order: deque[int]) -> None:
     from websockets.exceptions import ConnectionClosed
 
     try:
@@ -137,10 +134,10 @@ async def _receive(client: RobotClient, ws, sent_order: deque[int]) -> None:
             if seq is None:
                 log.warning("ignoring an acknowledgement for no block sent on this connection: %r", message[:200])
             elif ack.ok:
-                client._settle(seq, ack.duplicate)
+                outbox.settle(seq, ack.duplicate)
             else:
-                client._reject(seq, ack.error or "no reason given")
+                outbox.reject(seq, ack.error or "no reason given")
     except ConnectionClosed:
         pass
     finally:
-        client._blocks_changed.set()  # wake the sender: the connection is gone
+        outbox.blocks_changed.set()  # wake the sender: the connection is gone

@@ -198,10 +198,23 @@ class FrameCheck:
     visual_distance: float | None
 
 
+def stat_columns(X: np.ndarray, start: int | None) -> np.ndarray:
+    """(n, F) window features → (n, 6) speed/force statistics (STAT_NAMES): the 6 columns from `start`, or the
+    last 6 when start is None. ValueError when they do not fit in F."""
+    n = len(STAT_NAMES)
+    if start is None:
+        return X[:, -n:]
+    if not 0 <= start <= X.shape[1] - n:
+        raise ValueError(f"the speed/force statistics start at column {start}, beyond {X.shape[1]} features")
+    return X[:, start : start + n]
+
+
 @dataclass(frozen=True)
 class OODDetector:
     """See the module docstring. stat_lo, stat_hi: (6,) allowed range of the speed/force statistics
-    (the last 6 tactile columns, models.tactile.config.STAT_NAMES); frame_lo, frame_hi: (5,) allowed
+    (models.tactile.config.STAT_NAMES: the 6 tactile columns from `stat_start`, which the feature set's
+    columns precede and the extra groups' follow — TactileConfig.group_slices()["base"] ends with them; None:
+    the last 6 columns, right for a configuration without extra groups); frame_lo, frame_hi: (5,) allowed
     range of `frame_statistics` or None."""
 
     tactile: Subspace
@@ -212,6 +225,7 @@ class OODDetector:
     frame_hi: np.ndarray | None = None
     n_textures: int = 0
     settings: dict = field(default_factory=dict)
+    stat_start: int | None = None
 
     @property
     def n_tactile(self) -> int:
@@ -235,10 +249,12 @@ class OODDetector:
         windows_per_texture: int | None = 64,
         folds: int = 5,
         seed: int = 0,
+        stat_start: int | None = None,
     ) -> OODDetector:
         """tactile: per training texture its windows (n_i, F); visual: (T, V, D) views or None;
         frames: (T, 5) `frame_statistics` of the training photos or None. windows_per_texture:
-        a seeded subset per texture keeps fitting fast (windows of one stroke are redundant)."""
+        a seeded subset per texture keeps fitting fast (windows of one stroke are redundant).
+        stat_start: the first of the 6 speed/force statistic columns (None: the last 6)."""
         if len(tactile) < 3:
             raise ValueError(f"an OOD detector needs ≥ 3 training textures, got {len(tactile)}")
         if not 0 <= margin <= 1:
@@ -254,7 +270,7 @@ class OODDetector:
             groups.append(np.full(len(rows[-1]), i))
         X, g = np.concatenate(rows), np.concatenate(groups)
         sub_t = Subspace.fit(X, g, k=k_tactile, quantile=quantile, folds=folds, seed=seed)
-        stats = np.concatenate([np.asarray(w, float)[:, -len(STAT_NAMES) :] for w in tactile])
+        stats = np.concatenate([stat_columns(np.asarray(w, float), stat_start) for w in tactile])
         lo, hi = stats.min(axis=0), stats.max(axis=0)
         pad = margin * (hi - lo)
         sub_v = None
@@ -283,7 +299,7 @@ class OODDetector:
             "folds": folds,
             "seed": seed,
         }
-        return cls(sub_t, lo - pad, hi + pad, sub_v, flo, fhi, len(tactile), settings)
+        return cls(sub_t, lo - pad, hi + pad, sub_v, flo, fhi, len(tactile), settings, stat_start)
 
     # ---- serving -----------------------------------------------------------------------------------
     def check_visual(self, visual: np.ndarray | None, frame_reasons: list[str] | tuple[str, ...] = ()) -> FrameCheck:
@@ -327,7 +343,7 @@ class OODDetector:
         v_score = f.visual_score
         if f.visual_distance is not None:
             distance = 0.5 * (distance + f.visual_distance)
-        stats = X[:, -len(STAT_NAMES) :]
+        stats = stat_columns(X, self.stat_start)
         outside = (stats < self.stat_lo) | (stats > self.stat_hi)
         speed_bad = np.asarray(outside[:, :3].any(axis=1))
         force_bad = np.asarray(outside[:, 3:].any(axis=1))
@@ -378,6 +394,7 @@ class OODDetector:
             "n_textures": self.n_textures,
             "settings": self.settings,
             "stat_names": list(STAT_NAMES),
+            "stat_start": self.stat_start,
             "tactile": self.tactile.to_dict(),
             "stat_lo": jsonarrays.encode(self.stat_lo),
             "stat_hi": jsonarrays.encode(self.stat_hi),
@@ -406,6 +423,7 @@ class OODDetector:
                 None if obj["frame_hi"] is None else dec(obj["frame_hi"]).astype(float),
                 int(obj["n_textures"]),
                 dict(obj.get("settings", {})),
+                None if obj.get("stat_start") is None else int(obj["stat_start"]),
             )
         except KeyError as exc:
             raise ValueError(f"OOD detector lacks {exc}") from None

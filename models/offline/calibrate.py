@@ -18,6 +18,7 @@ from models.inference.intervals import IntervalCalibration, ema
 from models.inference.ood import OODDetector
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
+from models.tactile.config import STAT_NAMES, TactileConfig
 from texture_library.attributes import RATING_MAX, RATING_MIN
 
 CALIBRATION_WINDOWS = 20  # contiguous windows per texture (10 s of stroking): the window and EMA targets
@@ -118,7 +119,11 @@ def calibrate(
 
 
 def fit_detector(data: TextureData, frames: np.ndarray | None = None, **options) -> OODDetector:
-    """An OODDetector on a TextureData's windows, image views and photo statistics (T, 5) or None."""
+    """An OODDetector on a TextureData's windows, image views and photo statistics (T, 5) or None; the
+    speed/force statistics are found from the data's tactile configuration (before any extra group's columns)."""
+    config = data.meta.get("tactile_config")
+    if config is not None and "stat_start" not in options:
+        options["stat_start"] = TactileConfig(**config).group_slices()["base"].stop - len(STAT_NAMES)
     return OODDetector.fit(list(data.tactile), data.visual, frames, **options)
 
 

@@ -12,13 +12,14 @@ from pathlib import Path
 
 from service.demo import DemoAssets
 
-# reads touch and vision, fits in a second, best exportable model on the synthetic world with these features
-# (reports/synthetic)
+#: reads touch and vision, fits in a second, best exportable model on the synthetic world with these features
+#: (reports/synthetic)
 DEMO_MODEL = "ridge-both"
 TACTILE_MODEL = "ridge-tactile"  # estimates windows until the session's first frame is embedded
 #: tactile feature groups of the demo's models: every physical cue (the robot taps each probe before stroking it)
 DEMO_GROUPS = ("friction", "spatial", "taps")
-# the world the models learn from (the library holds the first 24 of them): error still falls with more textures at 48
+#: the world the models learn from (the library holds the first 24 of them): error still falls with more
+#: textures at 48
 DEMO_TEXTURES = 96
 
 
@@ -29,6 +30,9 @@ def demo_features():
     return TactileConfig(extra_groups=DEMO_GROUPS)
 
 
+#: models made by an older version of this recipe are retrained — 2: the OOD detector reads the speed/force
+#: statistics where they are (before the extra groups' columns), not the last six columns (the tap features)
+MODELS_VERSION = 2
 #: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
 WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
 
@@ -38,6 +42,7 @@ def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> 
 
     return {
         "world_version": WORLD_VERSION,
+        "models_version": MODELS_VERSION,
         "model": DEMO_MODEL,
         "tactile_model": TACTILE_MODEL,
         "tactile_hash": demo_features().hash(),

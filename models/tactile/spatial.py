@@ -87,6 +87,37 @@ def _band_weights(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int
     return members * inv[:, None]
 
 
+@lru_cache(maxsize=16)
+def _band_bins(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """The bands as runs of consecutive bins: (first bin, per-bin weights 1/(2πk)^power from it to the last
+    band's end, each band's start relative to the first bin). Bands are contiguous in k, so a band's energy
+    is a sum over a slice (np.add.reduceat) rather than a (bins × bands) product, which BLAS spreads over
+    threads even at this size."""
+    weights = _band_weights(n_fft, dx_mm, edges, power)
+    k = scipy.fft.rfftfreq(n_fft, dx_mm)
+    bounds = np.searchsorted(k, np.asarray(edges), side="left")  # band b holds bins bounds[b] … bounds[b+1] − 1
+    first, stop = int(bounds[0]), int(bounds[-1])
+    run = weights[first:stop].sum(axis=1)  # each bin is in at most one band
+    run.setflags(write=False)
+    starts = bounds[:-1] - first
+    starts.setflags(write=False)
+    return first, run, starts
+
+
+def _band_sums(power: np.ndarray, bins: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
+    """(n, n_bins) power → (n, n_bands): Σ over each band's bins of power × weight (0 for a band with no bin)."""
+    first, run, starts = bins
+    n_bands = starts.size
+    if run.size == 0:
+        return np.zeros((power.shape[0], n_bands))
+    weighted = power[:, first : first + run.size] * run
+    empty = np.diff(np.append(starts, run.size)) == 0
+    sums = np.add.reduceat(weighted, np.minimum(starts, run.size - 1), axis=1)
+    if empty.any():
+        sums[:, empty] = 0.0
+    return sums
+
+
 def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray:
     """One-sided power spectra over spatial frequency of signals against position, n windows at once.
 
@@ -96,41 +127,57 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     zero-padded to n_fft → power (n, n_fft//2 + 1, c), normalised to sum to the mean square;
     all zeros for a window covering fewer than MIN_CELLS cells.
     """
-    n, length, c = signal.shape
+    signal = np.asarray(signal, dtype=np.float64)
+    return channel_power(np.ascontiguousarray(signal.transpose(2, 0, 1)), x_edges, dx_mm, n_fft).transpose(1, 2, 0)
+
+
+def channel_power(
+    signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int, bins: slice = slice(None)
+) -> np.ndarray:
+    """position_power with the channel axis first: signal (c, n, L) float64 → power (c, n, n_fft//2 + 1),
+    or only the `bins` of it (the band sums need the bins up to the shortest period's).
+
+    Channel-first keeps every step on contiguous rows (one searchsorted for all channels, the FFT along the
+    last axis), which is what makes the spatial group cheap per window."""
+    c, n, length = signal.shape
     cells = np.minimum((x_edges[:, -1] / dx_mm).astype(np.int64), n_fft)  # (n,)
     n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
-    integral = np.concatenate(
-        [np.zeros((n, 1, c)), np.cumsum(signal * np.diff(x_edges, axis=1)[:, :, None], axis=1)], axis=1
-    )
-    # one np.interp per column for every window: rows are laid end to end, `gap` mm apart
+    integral = np.zeros((c, n, length + 1))
+    np.cumsum(signal * np.diff(x_edges, axis=1)[None], axis=2, out=integral[:, :, 1:])
+    # linear interpolation of each integral at the cell edges (np.interp's arithmetic, one search for every
+    # channel): rows are laid end to end, `gap` mm apart
     gap = float(x_edges[:, -1].max(initial=0.0)) + (n_grid + 2) * dx_mm
     offset = (np.arange(n) * gap)[:, None]
-    grid = (np.arange(n_grid + 1) * dx_mm)[None, :] + offset  # (n, n_grid + 1) cell edges
+    grid = ((np.arange(n_grid + 1) * dx_mm)[None, :] + offset).ravel()  # (n·(n_grid + 1),) cell edges
     xs = (x_edges + offset).ravel()
-    at = np.stack([np.interp(grid.ravel(), xs, integral[:, :, k].ravel()) for k in range(c)], axis=1)
+    j = np.clip(np.searchsorted(xs, grid, side="right") - 1, 0, xs.size - 2)
+    x0 = xs[j]
+    frac = grid - x0
+    ys = integral.reshape(c, -1)
+    y0 = ys[:, j]
+    slope = (ys[:, j + 1] - y0) / (xs[j + 1] - x0)
+    at = slope * frac + y0
     # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part
-    means = (np.diff(at.reshape(n, n_grid + 1, c), axis=1) / dx_mm).astype(
-        np.float32
-    )  # (n, n_grid, c); beyond a window's cells: ignored
-    j = np.arange(n_grid, dtype=np.float32)[None, :]
+    means = (np.diff(at.reshape(c, n, n_grid + 1), axis=2) / dx_mm).astype(np.float32)  # (c, n, n_grid)
+    k = np.arange(n_grid, dtype=np.float32)[None, :]
     m = np.maximum(cells, 2)[:, None].astype(np.float32)
-    inside = j < cells[:, None]
+    inside = k < cells[:, None]
     w = np.where(
-        inside, np.sin(np.float32(np.pi) * (j + 1) / (m + 1)) ** 2, np.float32(0)
+        inside, np.sin(np.float32(np.pi) * (k + 1) / (m + 1)) ** 2, np.float32(0)
     )  # Hann without its zero ends
-    t = np.where(inside, 2 * j / (m - 1) - 1, np.float32(0))
-    # weighted least-squares line a + b·t through each column (weights w²), removed before the taper
+    t = np.where(inside, 2 * k / (m - 1) - 1, np.float32(0))
+    # weighted least-squares line a + b·t through each row (weights w²), removed before the taper
     w2 = w * w
     s0, s1, s2 = w2.sum(axis=1), (w2 * t).sum(axis=1), (w2 * t * t).sum(axis=1)
-    y0 = np.einsum("nj,njc->nc", w2, means)
-    y1 = np.einsum("nj,njc->nc", w2 * t, means)
+    y0s = np.einsum("nj,cnj->cn", w2, means)
+    y1s = np.einsum("nj,cnj->cn", w2 * t, means)
     det = np.where(s0 * s2 - s1 * s1 > 0, s0 * s2 - s1 * s1, 1.0)
-    a = (s2[:, None] * y0 - s1[:, None] * y1) / det[:, None]
-    b = (s0[:, None] * y1 - s1[:, None] * y0) / det[:, None]
-    tapered = w[:, :, None] * (means - a[:, None, :] - b[:, None, :] * t[:, :, None])
-    spec = scipy.fft.rfft(tapered, n=n_fft, axis=1)
+    a = (s2 * y0s - s1 * y1s) / det
+    b = (s0 * y1s - s1 * y0s) / det
+    tapered = w * (means - a[:, :, None] - b[:, :, None] * t)
+    spec = scipy.fft.rfft(tapered, n=n_fft, axis=2)[:, :, bins]
     norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
-    return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None, None]
+    return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None]
 
 
 def spatial_features(
@@ -164,21 +211,26 @@ def spatial_features(
     if 2 * dx_mm > min_period_mm:
         raise ValueError(f"dx_mm={dx_mm} cannot resolve periods of {min_period_mm} mm (needs dx ≤ period/2)")
     edges = tuple(band_edges_per_mm(min_period_mm, max_period_mm, n_bands))
-    height_w = _band_weights(n_fft, dx_mm, edges, 4)
-    force_w = _band_weights(n_fft, dx_mm, edges, 0)
-    n = accel.shape[0]
+    height_bins = _band_bins(n_fft, dx_mm, edges, 4)
+    force_bins = _band_bins(n_fft, dx_mm, edges, 0)
+    n, length = speed.shape
     if n == 0:
         return np.empty((0, 2 * n_bands + 2))
     v = np.maximum(speed, 0.0)
     step = np.maximum(v, 1e-9) / rate_hz  # mm travelled during each sample (strictly > 0: x increases)
-    x = np.concatenate([np.zeros((n, 1)), np.cumsum(step, axis=1)], axis=1)  # (n, L + 1) sample edges
+    x = np.zeros((n, length + 1))
+    np.cumsum(step, axis=1, out=x[:, 1:])  # (n, L + 1) sample edges
     # position-weighted mean of v⁴ ((mm/s)⁴): the acceleration's power over a profile is |z''|²·v⁴
     v4 = np.maximum(np.sum(v**4 * step, axis=1) / np.maximum(x[:, -1], 1e-12), min_speed**4)
-    power = position_power(np.concatenate([1e3 * accel, force[:, :, None]], axis=2), x, dx_mm, n_fft)
+    signal = np.empty((4, n, length))  # channels first: accel x, y, z in mm/s², then normal force
+    np.multiply(accel.transpose(2, 0, 1), 1e3, out=signal[:3])
+    signal[3] = force
+    used = slice(0, max(height_bins[0] + height_bins[1].size, force_bins[0] + force_bins[1].size))
+    power = channel_power(signal, x, dx_mm, n_fft, used)  # (4, n, bins up to the last band's)
     energy = np.concatenate(
         [
-            power[:, :, :3].sum(axis=2) @ height_w / v4[:, None] + ENERGY_FLOOR_MM2,
-            power[:, :, 3] @ force_w + FORCE_FLOOR_N2,
+            _band_sums(power[0] + power[1] + power[2], height_bins) / v4[:, None] + ENERGY_FLOOR_MM2,
+            _band_sums(power[3], force_bins) + FORCE_FLOOR_N2,
         ],
         axis=1,
     )  # mm² per accel band, N² per force band

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from drivers.blocks import Frame
-from drivers.robot import Backoff, Pending, ResendBuffer, RobotAuthError, RobotClient, ServiceRefused, SessionLostError
+from drivers.robot import (
+    Backoff,
+    Pending,
+    ResendBuffer,
+    RobotAuthError,
+    RobotClient,
+    ServiceRefused,
+    ServiceUnavailable,
+    SessionLostError,
+)
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -324,3 +333,44 @@ def test_a_failing_source_ends_the_run_after_its_blocks_are_delivered(kit, fake_
         asyncio.run(main())
     _assert_exactly_once(kit, fake_service.only_session(), arrays, 20)
     assert source.closed
+
+
+def test_a_service_that_never_becomes_ready_fails_fast_with_its_reason(kit):
+    from starlette.applications import Starlette
+    from starlette.responses import JSONResponse
+    from starlette.routing import Route
+
+    calls = []
+
+    async def not_ready(request):
+        calls.append(request.url.path)
+        return JSONResponse({"detail": "not ready: loading the model"}, status_code=503)
+
+    server = kit.LoopbackServer(Starlette(routes=[Route("/sessions", not_ready, methods=["POST"])]))
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.EndlessSource(), open_timeout_s=0.3, **FAST)
+            started = asyncio.get_running_loop().time()
+            with pytest.raises(ServiceUnavailable) as refused:
+                await client.run()
+            return asyncio.get_running_loop().time() - started, str(refused.value)
+        finally:
+            await server.stop()
+
+    elapsed, message = asyncio.run(main())
+    assert len(calls) >= 2, "it retried before giving up"
+    assert elapsed < 2.0, "gave up near open_timeout_s, not after the backoff cap"
+    assert "within 0.3 s" in message and "HTTP 503: not ready: loading the model" in message
+
+
+def test_an_unreachable_service_fails_fast_naming_it(kit):
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{s.getsockname()[1]}"
+    client = RobotClient(url, kit.EndlessSource(), open_timeout_s=0.3, **FAST)
+    with pytest.raises(ServiceUnavailable, match=r"cannot reach it \(ConnectError"):
+        asyncio.run(client.open_session())

@@ -118,3 +118,28 @@ def test_a_frame_checked_once_gives_the_same_answer_per_window(fitted):
     assert a.reasons == b.reasons and all("frame_blurred" in r for r in b.reasons)
     np.testing.assert_allclose(a.distance, b.distance)
     assert det.check_visual(None).reasons == ("no_frame",)
+
+
+def test_statistics_before_extra_groups_are_found_by_position_and_kept_in_json():
+    """With extra feature groups the 6 speed/force statistics sit before the groups' columns (the base block
+    ends with them): the range checks read those columns, not the groups' (tap features vary per surface)."""
+    tactile, _, _, _ = world(n_textures=12, seed=3)
+    rng = np.random.default_rng(4)
+    groups = [rng.normal(size=(1, 5)) * np.ones((len(t), 1)) for t in tactile]  # one value per surface, like taps
+    with_groups = [np.hstack([t, g]) for t, g in zip(tactile, groups)]
+    start = tactile[0].shape[1] - 6
+    det = OODDetector.fit(with_groups, k_tactile=3, stat_start=start)
+    probe = with_groups[0].copy()
+    probe[:, -5:] += 50  # a new surface's group features far from the training ones: not a speed or force fault
+    reasons = det.check(probe).reasons
+    assert not any("speed_out_of_range" in r or "force_out_of_range" in r for r in reasons)
+    fast = with_groups[0].copy()
+    fast[:, start : start + 3] += 1000  # mm/s
+    assert all("speed_out_of_range" in r for r in det.check(fast).reasons)
+    again = OODDetector.from_json(det.to_json())
+    assert again.stat_start == start and all("speed_out_of_range" in r for r in again.check(fast).reasons)
+    # the columns counted from the end (a detector without stat_start) read the groups instead: the fault
+    naive = OODDetector.fit(with_groups, k_tactile=3)
+    assert any("speed_out_of_range" in r for r in naive.check(probe).reasons)
+    with pytest.raises(ValueError, match="start at column"):
+        OODDetector.fit(with_groups, k_tactile=3, stat_start=with_groups[0].shape[1] - 2)
