@@ -258,11 +258,17 @@ async def print_events(
                 f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
                 f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
                 f"{'':10s}{_interval(event)}\n"
-                f"{'':10s}nearest library texture: {event['chosen']} "
-                f"(top-{len(event['matches'])}: {', '.join(m['id'] for m in event['matches'])}), "
+                f"{'':10s}rendering model: {event['chosen']}{_why(event)} "
+                f"(nearest by ratings: {', '.join(m['id'] for m in event['matches'])}), "
                 f"pipeline {event['latency_ms']['total']:.1f} ms",
                 flush=True,
             )
+
+
+def _why(event: dict) -> str:
+    """' (held by hysteresis)' when the selection rule's own pick is another entry; '' otherwise or on older servers."""
+    selection = event.get("selection") or {}
+    return " (held by hysteresis)" if selection.get("held_by_hysteresis") else ""
 
 
 class DaemonThreads(concurrent.futures.ThreadPoolExecutor):
@@ -393,6 +399,8 @@ async def run_demo(
         info = await robot.open_session()
         print(
             f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
+            "feel it   open the console URL, press Start sound, then stroke its touch pad with a mouse, pen or finger: "
+            "the chosen texture plays in headphones (or a voice-coil on the audio jack)\n"
             f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
             flush=True,
         )
