@@ -4,8 +4,9 @@ Run from the repository root:  python -m benchmarks.deploy  [--robots 20] [--dur
 
 Brings up deploy/'s topology on loopback (deploy/local.py: nginx, two replicas and Redis exactly as
 docker-compose.yml wires them, a synthetic ridge-tactile model and library: deploy.local.synthetic_assets). N
-simulated robots — the real RobotClient, with the topology's fleet API key — stream 1 kHz accel/force/speed in 20 ms binary blocks through nginx at real-time pace, each
-with an operator WebSocket on the *other* replica, so every window event crosses Redis. Over a steady stretch of
+simulated robots — the real RobotClient, with the topology's fleet API key — stream 1 kHz accel/force/speed in the
+client's default binary blocks through nginx at real-time pace, each with an operator WebSocket on the *other*
+replica, so every window event crosses Redis. Over a steady stretch of
 `--duration` seconds it reads the CPU time of every process from /proc (nginx: master and workers; each replica;
 redis-server) and reports CPU µs per block for each, Redis's per window event, and the share of a core one robot
 costs each part. CPU time per unit of work holds up on a busy machine, where latencies measure the neighbours.

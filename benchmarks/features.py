@@ -89,11 +89,14 @@ def group_timings(per_window: dict[str, float], n: int, repeats: int) -> None:
     for name, config, extra in (("friction_spatial", demo, ()), ("all_groups", every, (taps,))):
         print(f"timing window_features with {name} (batched, then one window per call) ...", flush=True)
         per_window[f"window_features_batched_{name}"] = (
-            median_seconds(lambda: window_features(accel, speed, force, config, *extra), repeats) / n
+            median_seconds(
+                lambda config=config, extra=extra: window_features(accel, speed, force, config, *extra), repeats
+            )
+            / n
         )
         per_window[f"window_features_single_{name}"] = (
             median_seconds(
-                lambda: [
+                lambda config=config, extra=extra: [
                     window_features(
                         accel[i : i + 1], speed[i : i + 1], force[i : i + 1], config, *(e[i : i + 1] for e in extra)
                     )

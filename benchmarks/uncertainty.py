@@ -94,9 +94,9 @@ def _service_window(n: int) -> dict:
 
     from models.offline.datasets.build import build
     from models.offline.train import train_and_export
+    from service.live_session import stream_contract
     from service.pipeline import estimate_batch
     from service.runtime import load_runtime
-    from service.live_session import stream_contract
     from service.settings import Settings
     from service.warmup import WARM_UP_WINDOWS, synthetic_job
     from texture_library.synthetic_library import build_synthetic_library

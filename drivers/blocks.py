@@ -171,7 +171,8 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
 
 def decode_json(obj: object) -> Block:
     seq, t0, channels = _check_header(obj)
-    if obj.get("kind") == "taps":  # type: ignore[union-attr]
+    assert isinstance(obj, dict)  # _check_header refused anything else
+    if obj.get("kind") == "taps":
         data = channels.get("data")
         if not isinstance(data, list):
             raise ValueError("taps: data must be a list of taps, each a list of samples")

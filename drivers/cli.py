@@ -238,7 +238,8 @@ async def _stream(client, duration_s: float | None):
     def on_signal() -> None:
         nonlocal interrupted
         if interrupted:
-            main.cancel()
+            if main is not None:
+                main.cancel()
             return
         interrupted = True
         print("stopping: delivering buffered blocks (Ctrl-C again to quit now)", file=sys.stderr, flush=True)

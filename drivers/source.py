@@ -53,7 +53,9 @@ class SensorSource(Protocol):
 
 def check_positive(label: str, value: object, what: str = "number of seconds") -> None:
     """ValueError naming `label` unless `value` is a finite real number > 0 (`what` says what it counts)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{label} must be a positive {what}, got {value!r}")
+    if not (math.isfinite(value) and float(value) > 0):
         raise ValueError(f"{label} must be a positive {what}, got {value!r}")
 
 

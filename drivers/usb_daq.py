@@ -88,7 +88,8 @@ def parse_config(raw: bytes) -> DaqConfig:
     chans = doc.get("channels")
     if not isinstance(chans, list) or not chans:
         raise ValueError("USB DAQ config: channels must be a non-empty list")
-    layout, scales = [], []
+    layout: list[tuple[str, int, str]] = []
+    scales: list[float] = []
     for i, ch in enumerate(chans):
         if not isinstance(ch, dict):
             raise ValueError(f"USB DAQ config: channel {i} must be an object")

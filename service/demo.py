@@ -404,6 +404,8 @@ async def run_demo(
             f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
             flush=True,
         )
+        if info.operator_token is None:
+            raise RuntimeError("the service opened the demo's session without an operator token")
         printer = asyncio.create_task(
             print_events(url, info.session_id, info.operator_token, tour, report=report, counts=counts)
         )

@@ -280,7 +280,7 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
 def featurize(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> FeatureRows:
     """Features step: THE training feature function on every window of the batch at once."""
     t0 = time.perf_counter_ns()
-    taps = np.concatenate([p.taps for p in prepared]) if runtime.needs_taps else None  # type: ignore[misc]
+    taps = np.concatenate([p.taps for p in prepared]) if runtime.needs_taps else None
     rows = window_features(
         np.concatenate([p.batch.accel for p in prepared]),
         np.concatenate([p.batch.speed for p in prepared]),
@@ -332,8 +332,8 @@ def predict(runtime: Runtime, features: FeatureRows, prepared: Sequence[Prepared
             continue
         flagged = distance = None
         if first.detector is not None:
-            flagged = np.array([checks[r].flagged for r in rows])  # type: ignore[union-attr]
-            distance = np.array([checks[r].distance for r in rows])  # type: ignore[union-attr]
+            flagged = np.array([checks[r].flagged for r in rows])
+            distance = np.array([checks[r].distance for r in rows])
         width = first.window_width(out[rows], flagged, distance, runtime.interval_level)
         margin = decision_margin(runtime.index.distances_many(out[rows]))
         need = runtime.policy.needs_full(width, margin, flagged)

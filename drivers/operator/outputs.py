@@ -57,7 +57,7 @@ class WavOutput:
 def load_sounddevice():
     """The sounddevice module; RuntimeError saying how to get it when it or PortAudio is missing."""
     try:
-        import sounddevice  # type: ignore[import-untyped]  # noqa: PLC0415 - optional: only sound output needs it
+        import sounddevice  # optional: only sound output needs it
     except ImportError:
         raise RuntimeError(
             "sound output needs the sounddevice package: pip install 'hapticlink[operator]' (or sounddevice)"
@@ -127,7 +127,7 @@ class SerialOutput:
     HEADER = b"#HLO rate=1000 accel=m/s^2 friction=N\n"
 
     def __init__(self, port: str, baudrate: int = 921_600) -> None:
-        import serial  # type: ignore[import-untyped]  # noqa: PLC0415 - pyserial, as drivers/serial_board.py
+        import serial  # pyserial, as drivers/serial_board.py
 
         self._serial = serial.Serial(port, baudrate, timeout=0.1, write_timeout=1.0)
         self._serial.write(self.HEADER)

@@ -56,7 +56,7 @@ def detail(response: httpx.Response) -> str:
     return body_detail(response.content)
 
 
-def body_detail(content: bytes | None) -> str:
+def body_detail(content: bytes | bytearray | None) -> str:
     """The `detail` of a JSON error body (an HTTP answer, or a refused WebSocket handshake's), else its first
     200 characters."""
     try:

@@ -6,7 +6,7 @@ from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 
 from service import console, probes
-from service.deps import ReadyRuntime, State
+from service.deps import State
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from service.schemas import HealthOut, ReadyOut
 

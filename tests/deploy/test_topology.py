@@ -34,6 +34,7 @@ from deploy.local import (
 from drivers.protocol import bearer  # noqa: E402
 from drivers.robot import RobotClient  # noqa: E402
 from drivers.simulated import SimulatedSource  # noqa: E402
+from drivers.source import DEFAULT_BLOCK_S  # noqa: E402
 
 NGINX, REDIS = find_program("nginx"), find_program("redis-server")
 MISSING = [name for name, path in (("nginx", NGINX), ("redis-server", REDIS)) if path is None]
@@ -82,8 +83,8 @@ def instance_of(session_id: str) -> str:
 
 
 def make_robot(topology: Topology, k: int) -> RobotClient:
-    """A simulated robot (1 kHz accel/force/speed in 20 ms blocks at real-time pace, and its texture's image as a
-    camera frame) streaming to nginx, as a robot outside the compose network does."""
+    """A simulated robot (1 kHz accel/force/speed in the client's default blocks at real-time pace, and its
+    texture's image as a camera frame) streaming to nginx, as a robot outside the compose network does."""
     library = library_of(topology)
     entries = json.loads((library / "library.json").read_text())["entries"]
     source = SimulatedSource.from_library(library, entries[k % len(entries)]["id"], seed=k, realtime=True)
@@ -290,7 +291,7 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
         for robot, st, owner, operator in zip(robots, stats, owners, operators):
             info = robot.session
             # the robot saw a clean stream: every block acknowledged once, never misrouted (421) or refused
-            assert st.read > 100 and st.acked == st.read and st.resent == 0, st
+            assert st.read >= 0.9 * STREAM_S / DEFAULT_BLOCK_S and st.acked == st.read and st.resent == 0, st
             assert st.rejected == st.lost == st.unsent == st.reconnects == st.saturated == 0, st
             assert st.frames_sent == 1 and st.frames_rejected == 0, st
             # ... and all of it landed on the replica its id names
@@ -492,5 +493,7 @@ async def _kill_a_replica(topology: Topology) -> None:
     assert any(dead in upstream for _, upstream in answered), answered
     # ... and logged those failures without a token (nginx's error lines quote the request line, ?token= included),
     # as the replicas logged their refusals (410 at the handshake) without one
-    assert f"{robots[lost[0]].session_id} from" in logs(topology)[f"{topology.replicas[survivor].name}.log"]
+    # (refusals of one kind are logged once per interval: one of the lost sessions' lines is there)
+    survivor_log = logs(topology)[f"{topology.replicas[survivor].name}.log"]
+    assert any(f"{robots[k].session_id} from" in survivor_log for k in lost), survivor_log[-2000:]
     assert_no_secret_logged(topology, session_secrets(topology, robots + again))

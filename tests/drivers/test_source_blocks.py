@@ -106,7 +106,7 @@ def test_paced_follows_an_absolute_schedule_without_drift(monkeypatch):
 
     async def consume():
         emitted = []
-        async for item in paced(items, realtime=True, speed=2.0):
+        async for _ in paced(items, realtime=True, speed=2.0):
             emitted.append(clock.now - 100.0)
             if len(emitted) == 4:
                 clock.now += 0.05  # the consumer is late once: the schedule must not shift

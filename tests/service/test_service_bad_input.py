@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, MAGIC, SampleBlock, encode_binary, encode_json
@@ -238,7 +239,7 @@ def test_oversized_bodies_are_refused_before_they_are_read(kit, base_settings, l
         url = kit.socket_url(srv, session, "ingest")
         with connect(url, max_size=None) as ws:
             ws.send(b"\0" * (limit + 1))
-            with pytest.raises(Exception):
+            with pytest.raises(ConnectionClosed):
                 ws.recv(timeout=5)
             assert ws.close_code == 1009  # message too big
 

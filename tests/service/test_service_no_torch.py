@@ -31,12 +31,14 @@ def test_serving_path_imports_no_torch(visual_model, library_dir):
         est = SessionEstimator(rt, contract, alpha=0.5, steadiness_windows=5, top_k=3, hysteresis_margin=5,
                                hysteresis_hold=2)
         rng = np.random.default_rng(0)
-        block = SampleBlock(0.0, {{"accel": ChannelBlock(rng.standard_normal((600, 3)).astype(np.float32), 1000.0, "m/s^2"),
+        accel = rng.standard_normal((600, 3)).astype(np.float32)
+        block = SampleBlock(0.0, {{"accel": ChannelBlock(accel, 1000.0, "m/s^2"),
                                   "force": ChannelBlock(np.full(600, 1.5, np.float32), 1000.0, "N"),
                                   "speed": ChannelBlock(np.full(600, 80.0, np.float32), 1000.0, "mm/s")}}, 0)
         adv = contract.admit(contract.start(), canonical_channels(block), block.t0)
         admitted = AdmittedBlock(0, adv.cursor.segment, adv.cursor.origin_t0, adv.channels, adv.windows_after, 0)
-        (result,) = estimate_batch(rt, [SessionJob(est, [admitted], visual, adv.windows_added)])  # what the batcher runs
+        # what the batcher runs
+        (result,) = estimate_batch(rt, [SessionJob(est, [admitted], visual, adv.windows_added)])
         assert result.error is None and len(result.estimates) == 1, result
         leaked = sorted(m for m in sys.modules if m == "torch" or m.startswith("torch."))
         print("LEAKED" if leaked else "CLEAN", leaked[:5])

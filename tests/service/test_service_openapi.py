@@ -96,13 +96,14 @@ def test_api_never_fails_and_conforms_to_its_schema(api_schema, live_session):
                 derandomize=True,
                 database=None,
             )
-            def check(case):
-                if keep_session and "session_id" in (case.path_parameters or {}):
+            def check(case):  # run at once, inside this iteration (below): the loop variables are current
+                if keep_session and "session_id" in (case.path_parameters or {}):  # noqa: B023
                     case.path_parameters["session_id"] = live_session["session_id"]  # reach past the 404
                 case.call_and_validate(
-                    headers={"Authorization": f"Bearer {live_session[role]}"}, excluded_checks=excluded
+                    headers={"Authorization": f"Bearer {live_session[role]}"},  # noqa: B023
+                    excluded_checks=excluded,
                 )
-                calls[name] = calls.get(name, 0) + 1
+                calls[name] = calls.get(name, 0) + 1  # noqa: B023
 
             try:
                 check()

@@ -100,7 +100,8 @@ def test_intervals_and_flags_equal_the_card_replayed_offline(
 
 
 def test_the_flag_outlives_a_flagged_window_while_it_weighs_in_the_ema():
-    """Unit: one flagged window taints the smoothed estimate while its weight exceeds 0.1 (α 0.5: it and the next two windows)."""
+    """Unit: one flagged window taints the smoothed estimate while its weight exceeds 0.1 (α 0.5: it and the next
+    two windows)."""
     ratings = np.zeros(4)
     cal = _tiny_calibration()
     model = ServedModel(predictor=None, calibration=cal, window_calibration=cal, detector=None)  # type: ignore[arg-type]

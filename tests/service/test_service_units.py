@@ -1,4 +1,5 @@
-"""The service's small parts on their own: auth, smoothing/steadiness, stream admission, broker queues, metrics, settings."""
+"""The service's small parts on their own: auth, smoothing/steadiness, stream admission, broker queues, metrics,
+settings."""
 
 from __future__ import annotations
 
