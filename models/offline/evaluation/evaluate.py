@@ -140,13 +140,14 @@ def evaluate(
         "scale": "0-100 (bipolar error / 2)",
         **summarize_runs(data, runs),
         "n_params": runs[0].n_params,
-        "latency_us": window_latency(data, spec) if latency else None,
+        # an image-only dataset has no windows: per-frame visual cost is measured by benchmarks/visual.py
+        "latency_us": window_latency(data, spec) if latency and data.has_tactile else None,
         "wall_s": time.perf_counter() - t0,
         "hardware": hardware(),
         "features": {
             **{k: v for k, v in data.meta.items() if k not in ("tactile_config", "true_ratings")},
-            "tactile_features": data.meta["tactile_config"]["feature_set"],
-            "extra_groups": list(data.meta["tactile_config"].get("extra_groups", [])),
+            "tactile_features": data.meta["tactile_config"]["feature_set"] if data.has_tactile else None,
+            "extra_groups": list(data.meta.get("tactile_config", {}).get("extra_groups", [])),
         },
         "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None,
     }
