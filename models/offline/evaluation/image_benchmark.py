@@ -144,15 +144,16 @@ def withheld_predictions(
 
 
 # ---- transfer between benchmarks ----------------------------------------------------------------
-def image_data(root: str | Path, cfg: VisualConfig) -> TextureData:
-    """A dataset's rated textures as image-only data (no tactile features computed, whatever it holds)."""
+def image_data(root: str | Path, cfg: VisualConfig, n_views: int = 1) -> TextureData:
+    """A dataset's rated textures as image-only data (no tactile features computed, whatever it holds), with
+    `n_views` image views each (1: the photo itself; view 0 of every stored set)."""
     from models.offline.evaluation.data import part_columns
     from models.offline.featurize import visual_table
     from models.visual.embedding import visual_layout
 
     ds = Dataset(root)
     rated = ds.texture_ids("yes")
-    vt = visual_table(root, cfg)
+    vt = visual_table(root, cfg, n_views=n_views)
     index = {t: i for i, t in enumerate(vt.textures)}
     cols, blocks = part_columns(visual_layout(vt.backbone_dim, cfg), "both")
     means = ds.mean_ratings()
@@ -195,8 +196,9 @@ TRANSFER_MODELS = {
 def transfer(a: str | Path, b: str | Path, out: str | Path, *, cfg: VisualConfig | None = None, seed: int = 0) -> dict:
     """Train on every rated texture of one benchmark, score on the other's, both ways: as is, and with a
     per-benchmark linear recalibration fitted leave-one-out on the target benchmark (inside the folds).
-    Model: kernel ridge (RBF) on pooled views of each block set in TRANSFER_MODELS (α, γ per attribute by
-    closed-form LOO on the source benchmark)."""
+    Model: kernel ridge (RBF) on each block set in TRANSFER_MODELS (α, γ per attribute by closed-form LOO on
+    the source benchmark), reading each texture's photo itself (one view: augmented views of 100 HaTT photos
+    were more CPU than this run had)."""
     from models.offline.evaluation.kernel import KernelRidgeEstimator
 
     cfg = cfg or BENCHMARK_VISUAL
@@ -209,7 +211,7 @@ def transfer(a: str | Path, b: str | Path, out: str | Path, *, cfg: VisualConfig
         direction = f"{s.meta['dataset']} → {d.meta['dataset']}"
         rows = {"predict-the-mean (target, LOO)": score(mean_pred, truth, mean_pred)}
         for name, blocks in TRANSFER_MODELS.items():
-            est = KernelRidgeEstimator("visual", "rbf", visual_blocks=blocks).fit(s, seed)
+            est = KernelRidgeEstimator("visual", "rbf", views=1, visual_blocks=blocks).fit(s, seed)
             pred = np.clip(est.predict(d.with_targets(None)), RATING_MIN, RATING_MAX)
             rows[f"{name} as is"] = score(pred, truth, mean_pred)
             rows[f"{name} recalibrated"] = score(loo_recalibrate(pred, truth), truth, mean_pred)
