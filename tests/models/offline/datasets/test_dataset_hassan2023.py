@@ -161,3 +161,13 @@ def test_real_folder_builds_73_rated_18_withheld(tmp_path):
     with open(HASSAN_DIR / "ratings.csv", newline="") as fh:
         first = next(csv.DictReader(fh))
     np.testing.assert_allclose(ds.mean_ratings()[first["texture"]], [2 * float(first[a]) for a in ATTRIBUTES])
+
+
+def test_export_refuses_an_image_only_dataset(tiny_source, tmp_path):
+    from models.offline.train import train_and_export
+
+    out = build("hassan2023", tmp_path / "ds", path=tiny_source)
+    with pytest.raises(
+        ValueError, match="'hassan2023' is image-only .* exporting a model trained on it is not supported"
+    ):
+        train_and_export(out, "ridge-visual", tmp_path / "m.onnx")
