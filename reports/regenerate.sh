@@ -108,7 +108,7 @@ bash reports/tradeoffs/regenerate.sh
 # ---- hassan2023: touch-rated textures, image only (reports/hassan2023) ---------------------------
 # The photos and the published predictions are read from ../shared (never copied). Visual features: the
 # frontier's 2×2 backbone grid with every texture descriptor on (≈ 20 min for 91 photos × 8 views on 2
-# busy cores). One seed: kernel ridge is deterministic, and selected-image's inner shuffles are the only
+# busy cores). One seed (selected-image: three): kernel ridge is deterministic; the nested selections' inner shuffles are the only
 # seeded part (CPU time).
 HS=data/hassan2023
 HV=(--visual-grid 2 --descriptors lbp spectrum colour grids scattering)
@@ -116,7 +116,7 @@ HR=reports/hassan2023
 [ -f $HS/dataset.json ] || hl dataset build --source hassan2023 --path ../shared/data/hassan2023 --out $HS --no-features
 hl dataset check $HS
 hl evaluate --dataset $HS --model mean --out $HR/mean --seeds 0 "${HV[@]}" --no-figures
-hl evaluate --dataset $HS --model selected-image --out $HR/selected-image --seeds 0 "${HV[@]}" --no-figures
+hl evaluate --dataset $HS --model selected-image --out $HR/selected-image --seeds 0 1 2 "${HV[@]}" --no-figures
 hl evaluate --dataset $HS --model selected --out $HR/selected --seeds 0 "${HV[@]}" --no-figures
 for part in backbone classic both; do
   hl evaluate --dataset $HS --model ridge-visual --visual-part $part --out $HR/ridge-visual-$part --seeds 0 "${HV[@]}" --no-figures
