@@ -89,7 +89,8 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     e.add_argument(
         "--model",
         required=True,
-        help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both",
+        help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, "
+        "shuffled-ridge-both, selected-image (image-only datasets)",
     )
     e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
     e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -252,9 +253,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             raise ValueError(f"{path} holds results of {res['model']!r}, not {args.model!r}")
         res["latency_us"] = window_latency(data, spec)
         path.write_text(json.dumps(res, indent=1))
-        print(
-            f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs ({res['latency_us']['runtime']})"
-        )
+        latency = res["latency_us"]
+        print(f"{args.model}: per-window latency p50 {latency['p50_us']:.0f} µs ({latency['runtime']})")
         return 0
     res = evaluate(
         data,

@@ -211,7 +211,8 @@ class Dataset:
         return textures, raters, table
 
     def mean_ratings(self) -> dict[str, np.ndarray]:
-        """Texture id → mean bipolar rating over raters (4,), first presentation only; NaN for an attribute nobody rated."""
+        """Texture id → mean bipolar rating over raters (4,), first presentation only; NaN for an attribute
+        nobody rated."""
         textures, _, table = self.rating_table()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # "Mean of empty slice": that NaN is the answer

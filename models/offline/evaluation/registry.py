@@ -17,6 +17,12 @@ from models.offline.evaluation.estimators import (
 from models.offline.evaluation.kernel import KernelRidgeEstimator, KernelSVREstimator, MeanOfEstimator
 from models.offline.evaluation.selection import SelectedEstimator
 
+
+def _bound(cls, modality: str, **fixed):
+    """A factory of `cls(modality, **fixed, **options)` with the modality bound now (not at call time)."""
+    return lambda **kw: cls(modality, **fixed, **kw)
+
+
 CLASSICAL = {
     "mean": lambda **kw: MeanEstimator(),
     "stack-both": lambda **kw: StackedEstimator(
@@ -28,10 +34,10 @@ CLASSICAL = {
         **kw,
     ),
     "svr-tactile-windows": lambda **kw: WindowSVREstimator(**kw),
-    **{f"ridge-{m}": (lambda m: lambda **kw: RidgeEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"knn-{m}": (lambda m: lambda **kw: KNNEstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"svr-{m}": (lambda m: lambda **kw: SVREstimator(m, **kw))(m) for m in ("tactile", "visual", "both")},
-    **{f"svr-{m}-views": (lambda m: lambda **kw: SVREstimator(m, views="all", **kw))(m) for m in ("visual", "both")},
+    **{f"ridge-{m}": _bound(RidgeEstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"knn-{m}": _bound(KNNEstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}": _bound(SVREstimator, m) for m in ("tactile", "visual", "both")},
+    **{f"svr-{m}-views": _bound(SVREstimator, m, views="all") for m in ("visual", "both")},
 }
 
 
