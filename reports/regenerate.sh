@@ -131,3 +131,12 @@ py report --dataset $HS --results $HR
 py withheld --dataset $HS --model selected-image --seed 0 --out $HR/withheld_predictions.csv
 py transfer --a $H --b $HS --out $HR/transfer.json   # HaTT–TexNet ↔ hassan2023, same visual configuration
 .venv/bin/python -m benchmarks.descriptors --image ../shared/data/hassan2023/images/t002.jpg --out reports/bench/descriptors.json
+# the same image-only models on HaTT–TexNet (looks), for the per-benchmark comparison
+hl evaluate --dataset $H --model mean --out $HR/hatt-image/mean --seeds 0 "${HV[@]}" --no-figures
+for m in krr-backbone-image krr-all-image krr-classic-image; do
+  hl evaluate --dataset $H --model $m --out $HR/hatt-image/$m --seeds 0 "${HV[@]}" --no-figures
+  hl evaluate --dataset $HS --model $m --out $HR/$m --seeds 0 "${HV[@]}" --no-figures
+done
+hl evaluate --dataset $H --model selected-image --out $HR/hatt-image/selected-image --seeds 0 1 2 "${HV[@]}" --no-figures
+py report --dataset $H --results $HR/hatt-image
+py report --dataset $HS --results $HR
