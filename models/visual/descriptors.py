@@ -15,6 +15,8 @@ Images: gray (H, W) float in [0, 1]; colour (H, W, 3) float in [0, 1].
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import ndimage
 
@@ -174,7 +176,7 @@ def grid_statistics(gray: np.ndarray, scales: tuple[int, ...] = (2, 4, 8, 16)) -
 
 
 # ---- wavelet scattering -------------------------------------------------------------------------
-_SCATTERING: dict[tuple[int, int, int], object] = {}  # one kymatio filter bank per (size, J, L): its setup is slow
+_SCATTERING: dict[tuple[int, int, int], Any] = {}  # one kymatio filter bank per (size, J, L): its setup is slow
 
 
 def scattering_dim(J: int, L: int) -> int:
@@ -257,7 +259,7 @@ def descriptor_vector(gray: np.ndarray, colour: np.ndarray | None, config) -> np
     """
     parts = []
     need_gray = [d for d in config.descriptors if d in ("lbp", "spectrum", "grids")]
-    small = zoom_to(gray, min(config.descriptor_size, min(gray.shape))) if need_gray else None
+    small = zoom_to(gray, min(config.descriptor_size, min(gray.shape))) if need_gray else gray
     for name in config.descriptors:
         if name == "lbp":
             parts.append(lbp_histograms(small, tuple(config.lbp_radii)))

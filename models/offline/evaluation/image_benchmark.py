@@ -206,7 +206,7 @@ def transfer(a: str | Path, b: str | Path, out: str | Path, *, cfg: VisualConfig
     res: dict = {"scale": "0-100", "directions": {}}
     for src, dst in (("a", "b"), ("b", "a")):
         s, d = data[src], data[dst]
-        truth = d.targets.astype(float)
+        truth = np.asarray(d.targets, float)
         mean_pred = loo_mean(truth)
         direction = f"{s.meta['dataset']} → {d.meta['dataset']}"
         rows = {"predict-the-mean (target, LOO)": score(mean_pred, truth, mean_pred)}
