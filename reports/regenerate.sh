@@ -109,3 +109,39 @@ hl fidelity --dataset $H --predictions reports/hatt-texnet/selected/results.json
 
 # ---- speed–accuracy frontier, robustness, calibrated intervals --------------------------------
 bash reports/tradeoffs/regenerate.sh
+
+# ---- hassan2023: touch-rated textures, image only (reports/hassan2023) ---------------------------
+# The photos and the published predictions are read from ../shared (never copied). Visual features: the
+# frontier's 2×2 backbone grid with every texture descriptor on (≈ 20 min for 91 photos × 8 views on 2
+# busy cores). One seed (selected-image: three): kernel ridge is deterministic; the nested selections' inner shuffles are the only
+# seeded part (CPU time).
+HS=data/hassan2023
+HV=(--visual-grid 2 --descriptors lbp spectrum colour grids scattering)
+HR=reports/hassan2023
+[ -f $HS/dataset.json ] || hl dataset build --source hassan2023 --path ../shared/data/hassan2023 --out $HS --no-features
+hl dataset check $HS
+hl evaluate --dataset $HS --model mean --out $HR/mean --seeds 0 "${HV[@]}" --no-figures
+hl evaluate --dataset $HS --model selected-image --out $HR/selected-image --seeds 0 1 2 "${HV[@]}" --no-figures
+hl evaluate --dataset $HS --model selected --out $HR/selected --seeds 0 "${HV[@]}" --no-figures
+for part in backbone classic both; do
+  hl evaluate --dataset $HS --model ridge-visual --visual-part $part --out $HR/ridge-visual-$part --seeds 0 "${HV[@]}" --no-figures
+  hl evaluate --dataset $HS --model krr-pooled --visual-part $part --out $HR/krr-pooled-$part --seeds 0 "${HV[@]}" --no-figures
+  hl evaluate --dataset $HS --model knn-visual --visual-part $part --out $HR/knn-visual-$part --seeds 0 "${HV[@]}" --no-figures
+done
+for part in backbone classic; do
+  hl evaluate --dataset $HS --model svr-visual --visual-part $part --out $HR/svr-visual-$part --seeds 0 "${HV[@]}" --no-figures
+done
+py() { .venv/bin/python -m models.offline.evaluation.image_benchmark "$@"; }
+py report --dataset $HS --results $HR
+py withheld --dataset $HS --model selected-image --seed 0 --out $HR/withheld_predictions.csv
+py transfer --a $H --b $HS --out $HR/transfer.json   # HaTT–TexNet ↔ hassan2023, same visual configuration
+.venv/bin/python -m benchmarks.descriptors --image ../shared/data/hassan2023/images/t002.jpg --out reports/bench/descriptors.json
+# the same image-only models on HaTT–TexNet (looks), for the per-benchmark comparison
+hl evaluate --dataset $H --model mean --out $HR/hatt-image/mean --seeds 0 "${HV[@]}" --no-figures
+for m in krr-backbone-image krr-all-image krr-classic-image; do
+  hl evaluate --dataset $H --model $m --out $HR/hatt-image/$m --seeds 0 "${HV[@]}" --no-figures
+  hl evaluate --dataset $HS --model $m --out $HR/$m --seeds 0 "${HV[@]}" --no-figures
+done
+hl evaluate --dataset $H --model selected-image --out $HR/hatt-image/selected-image --seeds 0 1 2 "${HV[@]}" --no-figures
+py report --dataset $H --results $HR/hatt-image
+py report --dataset $HS --results $HR

@@ -12,15 +12,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     dsub = ds.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
 
     b = dsub.add_parser("build", help="build a dataset directory from a source")
-    b.add_argument("--source", required=True, choices=["hatt-texnet", "synthetic", "recordings"])
+    b.add_argument("--source", required=True, choices=["hatt-texnet", "hassan2023", "synthetic", "recordings"])
     b.add_argument("--out", required=True, help="dataset directory to write")
-    b.add_argument("--path", help="source folder (hatt-texnet, recordings)")
+    b.add_argument("--path", help="source folder (hatt-texnet, hassan2023, recordings)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--duration", type=float, help="seconds per rendered recording (hatt-texnet 60, synthetic 10)")
     b.add_argument("--recordings", type=int, default=1, help="recordings per texture (rendered sources)")
     b.add_argument("--n-textures", type=int, default=24, help="synthetic: number of textures")
     b.add_argument("--withheld", type=int, default=0, help="synthetic: build the last N textures without ratings")
-    b.add_argument("--limit", type=int, help="hatt-texnet: only the first N textures (quick trials)")
+    b.add_argument("--limit", type=int, help="hatt-texnet, hassan2023: only the first N textures (quick trials)")
     b.add_argument(
         "--rating-scale", default="bipolar", choices=["bipolar", "0-100"], help="recordings: scale of ratings.csv"
     )
@@ -55,6 +55,8 @@ def _dataset_build(args: argparse.Namespace) -> int:
             options["duration_s"] = args.duration
     if args.source == "hatt-texnet":
         options.update(limit=args.limit, workers=args.workers)
+    if args.source == "hassan2023":
+        options.update(limit=args.limit)
     if args.source == "synthetic":
         options.update(n_textures=args.n_textures, withheld=args.withheld)
     if args.source == "recordings":
@@ -90,9 +92,8 @@ def register_models(sub: argparse._SubParsersAction) -> None:
     e.add_argument(
         "--model",
         required=True,
-        help=(
-            "e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, shuffled-ridge-both"
-        ),
+        help="e.g. selected, krr-pooled, ridge-both, knn-visual, svr-tactile-windows, vtnet-compact, "
+        "shuffled-ridge-both, selected-image (image-only datasets)",
     )
     e.add_argument("--out", required=True, help="output folder, e.g. reports/hatt-texnet/ridge-both")
     e.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -111,6 +112,7 @@ def register_models(sub: argparse._SubParsersAction) -> None:
         "training is unchanged. K must divide the stored views (8)",
     )
     _feature_args(e)
+    _visual_args(e)
     _net_args(e)
     e.add_argument("--no-figures", action="store_true")
     e.add_argument(
@@ -167,12 +169,40 @@ def _feature_args(parser: argparse.ArgumentParser) -> None:
         help=f"tactile feature groups added to the feature set: any of {', '.join(EXTRA_GROUPS)} "
         "(friction needs 3-column force; taps needs tap transients per texture)",
     )
-    parser.add_argument("--visual-part", default="both", choices=["both", "backbone", "glcm"])
+    parser.add_argument(
+        "--visual-part",
+        default="both",
+        choices=["both", "backbone", "glcm", "descriptors", "classic"],
+        help="visual columns the model reads: both = all; classic = GLCM + descriptors",
+    )
     parser.add_argument(
         "--views",
         type=int,
         help="image views pooled per texture (ridge-*, *-pooled, selected; default: ridge 1, pooled models all stored)",
     )
+
+
+def _visual_args(parser: argparse.ArgumentParser) -> None:
+    from models.visual.config import DESCRIPTOR_NAMES
+
+    parser.add_argument("--visual-grid", type=int, help="patches per side of the backbone grid (default 7)")
+    parser.add_argument(
+        "--descriptors",
+        nargs="*",
+        default=[],
+        choices=list(DESCRIPTOR_NAMES),
+        metavar="NAME",
+        help=f"classic texture descriptors appended to the visual vector: any of {', '.join(DESCRIPTOR_NAMES)}",
+    )
+
+
+def _visual_config(args: argparse.Namespace):
+    from models.visual.config import VisualConfig
+
+    fields: dict = {"descriptors": tuple(getattr(args, "descriptors", None) or ())}
+    if getattr(args, "visual_grid", None) is not None:
+        fields["grid"] = args.visual_grid
+    return VisualConfig(**fields)
 
 
 def _tactile_config(args: argparse.Namespace):
@@ -195,11 +225,14 @@ def _options(args: argparse.Namespace) -> dict:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from models.offline.datasets.format import Dataset
     from models.offline.evaluation.data import load_texture_data
-    from models.offline.evaluation.estimator_registry import EstimatorSpec
+    from models.offline.evaluation.estimator_registry import EstimatorSpec, for_dataset
     from models.offline.evaluation.evaluate import evaluate
 
-    spec = EstimatorSpec(args.model, _options(args))
+    ds = Dataset(args.dataset)
+    # an image-only dataset: a model that needs touch is refused here, naming the model and the missing modality
+    spec = for_dataset(EstimatorSpec(args.model, _options(args)), not ds.has_recordings, f"dataset {ds.name!r}")
     modality = spec.build().modality
     data = load_texture_data(
         args.dataset,
@@ -207,6 +240,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         visual=modality in ("visual", "both"),
         visual_part=args.visual_part,
         workers=args.workers,
+        visual_config=_visual_config(args),
     )
     if args.latency_only:
         import json
@@ -222,10 +256,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             raise ValueError(f"{path} holds results of {res['model']!r}, not {args.model!r}")
         res["latency_us"] = window_latency(data, spec)
         path.write_text(json.dumps(res, indent=1))
-        print(
-            f"{args.model}: per-window latency p50 {res['latency_us']['p50_us']:.0f} µs "
-            f"({res['latency_us']['runtime']})"
-        )
+        latency = res["latency_us"]
+        print(f"{args.model}: per-window latency p50 {latency['p50_us']:.0f} µs ({latency['runtime']})")
         return 0
     res = evaluate(
         data,

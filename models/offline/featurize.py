@@ -102,8 +102,10 @@ def _tactile_job(job: dict) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def tactile_table(root: str | Path, config: TactileConfig | None = None, *, workers: int | None = None) -> TactileTable:
-    """Tactile features of every texture's recordings (cached)."""
+    """Tactile features of every texture's recordings (cached); ValueError for an image-only dataset."""
     ds = Dataset(root)
+    if not ds.has_recordings:
+        raise ValueError(f"{ds.root}: dataset {ds.name!r} is image-only (no recordings): it has no tactile features")
     cfg = config or TactileConfig()
     textures = ds.texture_ids()
     cache = ds.features_dir / f"tactile-{cfg.hash()}-{dataset_fingerprint(ds)}.npz"
@@ -203,10 +205,13 @@ def visual_table(
 def featurize_dataset(
     root: str | Path, *, workers: int | None = None, visual: bool = True, tactile_config: TactileConfig | None = None
 ) -> str:
-    """Fill the feature caches of a dataset (tactile: the given configuration, default the paper's);
-    returns a one-line summary."""
-    t = tactile_table(root, tactile_config, workers=workers)
-    summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
+    """Fill the feature caches of a dataset (tactile: the given configuration, default the paper's; none for an
+    image-only dataset); returns a one-line summary."""
+    if Dataset(root).has_recordings:
+        t = tactile_table(root, tactile_config, workers=workers)
+        summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
+    else:
+        summary = "image-only: no tactile features"
     if visual:
         v = visual_table(root)
         summary += f"; visual {v.X.shape[0]} textures × {v.X.shape[1]} views × {v.X.shape[2]} ({v.backbone})"

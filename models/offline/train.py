@@ -48,6 +48,16 @@ def train_and_export(
     exclude: rated textures left out of everything (training, calibration, detector), e.g. the textures a
     benchmark then streams as unseen.
     """
+    from models.offline.datasets.format import Dataset
+
+    ds = Dataset(dataset)
+    if not ds.has_recordings:
+        # every exported model card carries the tactile pipeline the service checks; an image-only card does not
+        # exist yet. Offline predictions: python -m models.offline.evaluation.image_benchmark withheld
+        raise ValueError(
+            f"dataset {ds.name!r} is image-only (no recordings): exporting a model trained on it is not supported; "
+            "use `python -m models.offline.evaluation.image_benchmark withheld` for its predictions"
+        )
     est = build_estimator(model, **(options or {}))
     if not hasattr(est, "export"):
         raise ValueError(f"model {model!r} has no ONNX export; export a network, ridge, a *-pooled model or selected")

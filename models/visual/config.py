@@ -18,6 +18,19 @@ BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0"]
 # resolved backbone travels beside the hash as name, dim and weights fingerprint,
 # so a model trained on one machine still matches a service on another.
 _SELECTION_FIELDS = frozenset({"backbone", "resnet50_weights"})
+# Descriptor settings: serialised (and hashed) only when some descriptor is on, so the default
+# configuration keeps its hash, its caches and its exported models.
+_DESCRIPTOR_FIELDS = (
+    "descriptors",
+    "descriptor_size",
+    "lbp_radii",
+    "spectrum_bands",
+    "grid_scales",
+    "scattering_size",
+    "scattering_j",
+    "scattering_l",
+)
+DESCRIPTOR_NAMES = ("lbp", "spectrum", "colour", "grids", "scattering")  # = models.visual.descriptors.DESCRIPTORS
 
 
 class VisualConfig(BaseModel):
@@ -33,6 +46,15 @@ class VisualConfig(BaseModel):
     resize           None: use the image as it comes; N: first scale it (antialiased, aspect kept) so its
                      shorter side is N pixels (≥ patch_size), then cut patches and compute the GLCM — a
                      cheaper frame: fewer pixels, and patches that see more of the surface each
+    descriptors      classic texture descriptors appended after the GLCM (models.visual.descriptors), any of
+                     lbp, spectrum, colour, grids, scattering; kept in that order whatever order they are given
+    descriptor_size  the descriptors read the frame's centre square scaled to this many pixels a side
+    lbp_radii        LBP circle radii, pixels (8 neighbours each)
+    spectrum_bands   octave bands of the radial power spectrum
+    grid_scales      cells per side of each patch grid
+    scattering_size  scattering reads the centre square scaled to this many pixels a side
+    scattering_j     scattering scales (J) and orientations (L)
+    scattering_l
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -45,6 +67,29 @@ class VisualConfig(BaseModel):
     backbone: BackboneChoice = "auto"
     resnet50_weights: str | None = None
     resize: int | None = Field(None, ge=32)
+    descriptors: tuple[str, ...] = ()
+    descriptor_size: int = Field(512, ge=64)
+    lbp_radii: tuple[int, ...] = (1, 2, 4)
+    spectrum_bands: int = Field(6, ge=1, le=8)
+    grid_scales: tuple[int, ...] = (2, 4, 8, 16)
+    scattering_size: int = Field(128, ge=32)
+    scattering_j: int = Field(3, ge=1, le=5)
+    scattering_l: int = Field(8, ge=1, le=16)
+
+    @field_validator("descriptors")
+    @classmethod
+    def _known_descriptors(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        unknown = [d for d in value if d not in DESCRIPTOR_NAMES]
+        if unknown:
+            raise ValueError(f"unknown descriptor(s) {unknown}; expected any of {list(DESCRIPTOR_NAMES)}")
+        return tuple(d for d in DESCRIPTOR_NAMES if d in value)  # one canonical order, no repeats
+
+    @field_validator("lbp_radii", "grid_scales")
+    @classmethod
+    def _positive_ints(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+        if not value or any(v < 1 for v in value):
+            raise ValueError(f"must be a non-empty tuple of positive ints, got {value}")
+        return value
 
     @field_validator("glcm_distances")
     @classmethod
@@ -78,12 +123,41 @@ class VisualConfig(BaseModel):
         """Length of the flattened GLCM feature (levels²)."""
         return self.glcm_levels * self.glcm_levels
 
+    @property
+    def descriptor_dims(self) -> dict[str, int]:
+        """Columns of each descriptor that is on, in column order."""
+        dims = {
+            "lbp": len(self.lbp_radii) * 10,
+            "spectrum": self.spectrum_bands + 2,
+            "colour": 13,
+            "grids": 3 * len(self.grid_scales),
+            "scattering": 1 + self.scattering_j + self.scattering_l * self.scattering_j * (self.scattering_j - 1) // 2,
+        }
+        return {d: dims[d] for d in self.descriptors}
+
+    @property
+    def descriptor_dim(self) -> int:
+        """Total descriptor columns (0 when none is on)."""
+        return sum(self.descriptor_dims.values())
+
+    @property
+    def needs_colour(self) -> bool:
+        """Whether a frame must be given in colour (the colour statistics read it)."""
+        return "colour" in self.descriptors
+
+    def without_descriptors(self) -> VisualConfig:
+        """The same backbone and GLCM computation with no descriptors (its hash is the one from before them)."""
+        return self.model_copy(update={"descriptors": ()})
+
     def canonical_json(self) -> str:
-        """Sorted, whitespace-free JSON of the fields that define the computation (patching and GLCM)."""
+        """Sorted, whitespace-free JSON of the fields that define the computation (patching, GLCM, descriptors)."""
         data = self.model_dump(mode="json", exclude=set(_SELECTION_FIELDS))
         if data["resize"] is None:
             # Added after models were exported: absent, it leaves every existing hash (and cache entry) as it was.
             del data["resize"]
+        if not self.descriptors:
+            for key in _DESCRIPTOR_FIELDS:
+                del data[key]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
     def hash(self) -> str:

@@ -38,6 +38,26 @@ def load_image(source: ImageSource, *, min_size: int = 224) -> np.ndarray:
     return gray
 
 
+def load_colour(source: ImageSource, *, min_size: int = 224) -> np.ndarray:
+    """Decode `source` in colour: (H, W, 3) float32 in [0, 1] (grayscale repeated over the channels, alpha
+    dropped). The same frame `load_image` reads as gray: Pillow's luma of this array is that gray."""
+    if isinstance(source, np.ndarray):
+        if source.ndim == 2:
+            rgb = np.repeat(_scale(source, "array")[..., None], 3, axis=2)
+        elif source.ndim == 3 and source.shape[2] in (3, 4):
+            rgb = _scale(source[..., :3], "array")
+        else:
+            raise ValueError(f"array must have shape (H, W) or (H, W, 3|4), got {source.shape}")
+    else:
+        image = _open(source)
+        if image.mode in _SIXTEEN_BIT_MODES or image.mode == "F":
+            rgb = np.repeat(pil_to_gray(image)[..., None].astype(np.float64), 3, axis=2)
+        else:
+            rgb = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
+    check_size(rgb[..., 0], min_size)
+    return rgb.astype(np.float32)
+
+
 def _open(source: str | Path | bytes | bytearray | Image.Image) -> Image.Image:
     if isinstance(source, Image.Image):
         return source

@@ -17,10 +17,16 @@ def build(source: str, out: str | Path, path: str | Path | None = None, **option
         from models.offline.datasets.synthetic import build_synthetic
 
         return build_synthetic(out, **options)
+    if source == "hassan2023":
+        from models.offline.datasets.hassan2023 import build_hassan2023
+
+        if path is None:
+            raise ValueError("--source hassan2023 needs --path (e.g. ../shared/data/hassan2023)")
+        return build_hassan2023(path, out, **options)
     if source == "recordings":
         from models.offline.datasets.recordings import build_recordings
 
         if path is None:
             raise ValueError("--source recordings needs --path to the folder of recordings")
         return build_recordings(path, out, **options)
-    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, synthetic or recordings")
+    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, hassan2023, synthetic or recordings")

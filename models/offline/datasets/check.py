@@ -16,6 +16,7 @@ from PIL import Image, UnidentifiedImageError
 
 from models.offline.datasets.format import (
     FORMAT,
+    MODALITIES,
     RATED_VALUES,
     RATING_COLUMNS,
     TEXTURE_COLUMNS,
@@ -60,6 +61,13 @@ def check_dataset(root: str | Path, *, deep: bool = True) -> list[str]:
         problems.append(
             f"{header_path}: rating_scale is {header.get('rating_scale')!r}, expected {[RATING_MIN, RATING_MAX]}"
         )
+    modalities = header.get("modalities", list(MODALITIES))
+    if not isinstance(modalities, list) or not modalities or any(m not in MODALITIES for m in modalities):
+        problems.append(
+            f"{header_path}: modalities is {modalities!r}, expected a non-empty subset of {list(MODALITIES)}"
+        )
+    elif "images" not in modalities:
+        problems.append(f"{header_path}: modalities {modalities!r} has no images; every texture needs an image")
     if problems:
         return problems
 
@@ -85,7 +93,7 @@ def check_dataset(root: str | Path, *, deep: bool = True) -> list[str]:
     problems += _check_ratings(root, rated)
     dataset = Dataset(root)
     for tid in rated:
-        problems += _check_texture(dataset, tid, deep)
+        problems += _check_texture(dataset, tid, deep, image_only="recordings" not in modalities)
     return problems
 
 
@@ -134,13 +142,18 @@ def _check_ratings(root: Path, rated: dict[str, str]) -> list[str]:
     return problems
 
 
-def _check_texture(dataset: Dataset, tid: str, deep: bool) -> list[str]:
+def _check_texture(dataset: Dataset, tid: str, deep: bool, image_only: bool = False) -> list[str]:
     problems = []
     try:
         meta = dataset.meta(tid)  # its ValueError names the texture and the file
     except ValueError as exc:
         return [str(exc)]
-    if not meta.recordings:
+    if image_only and meta.recordings:
+        problems.append(
+            f"texture {tid!r}: lists recordings in meta.json, but dataset.json says the dataset is image-only "
+            f"(modalities {list(dataset.modalities)})"
+        )
+    elif not image_only and not meta.recordings:
         problems.append(f"texture {tid!r}: no recordings listed in meta.json")
     if not meta.images:
         problems.append(f"texture {tid!r}: no images listed in meta.json")

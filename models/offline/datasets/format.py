@@ -30,6 +30,7 @@ VERSION = 1
 RATED_VALUES = ("yes", "withheld", "no")
 TEXTURE_COLUMNS = ("texture", "name", "group", "rated")
 RATING_COLUMNS = ("texture", "rater", "presentation", "attribute", "rating")
+MODALITIES = ("recordings", "images")  # what a dataset's textures carry; dataset.json "modalities", absent = both
 
 
 @dataclass(frozen=True)
@@ -70,8 +71,22 @@ class DatasetWriter:
     """Builds a dataset directory texture by texture; `close()` writes the tables and the header."""
 
     def __init__(
-        self, root: str | Path, *, name: str, source: str, licence: str, provenance: str, build: dict | None = None
+        self,
+        root: str | Path,
+        *,
+        name: str,
+        source: str,
+        licence: str,
+        provenance: str,
+        build: dict | None = None,
+        modalities: tuple[str, ...] = MODALITIES,
+        reference_predictions: dict | None = None,
     ):
+        """modalities: what every texture carries (("images",): an image-only dataset, no recordings);
+        reference_predictions: {"name", "path", …} of a published prediction table kept outside the dataset."""
+        unknown = [m for m in modalities if m not in MODALITIES]
+        if unknown or not modalities:
+            raise ValueError(f"modalities must be a non-empty subset of {MODALITIES}, got {modalities}")
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         (self.root / "textures").mkdir(exist_ok=True)
@@ -86,6 +101,11 @@ class DatasetWriter:
             "provenance": provenance,
             "build": build or {},
         }
+        if tuple(modalities) != MODALITIES:
+            # written only when it differs from the default, so every dataset built before keeps its fingerprint
+            self.header["modalities"] = [m for m in MODALITIES if m in modalities]
+        if reference_predictions is not None:
+            self.header["reference_predictions"] = reference_predictions
         self.textures: list[TextureInfo] = []
         self.ratings: list[RatingRow] = []
 
@@ -146,6 +166,21 @@ class Dataset:
     @property
     def name(self) -> str:
         return str(self.header.get("name", self.root.name))
+
+    @property
+    def modalities(self) -> tuple[str, ...]:
+        """What the textures carry: ("recordings", "images") unless dataset.json says less."""
+        return tuple(self.header.get("modalities", MODALITIES))
+
+    @property
+    def has_recordings(self) -> bool:
+        """False for an image-only dataset: no texture has a recording, and no model may ask for touch."""
+        return "recordings" in self.modalities
+
+    @property
+    def reference_predictions(self) -> dict | None:
+        """The published prediction table the header names ({"name", "path", …}), or None."""
+        return self.header.get("reference_predictions")
 
     def textures(self) -> list[TextureInfo]:
         return [

@@ -10,7 +10,12 @@ import numpy as np
 from models.offline.datasets.format import Dataset
 from models.offline.featurize import tactile_table
 from models.tactile.config import TactileConfig
-from models.visual.embedding import VisualPart, visual_slice
+from models.visual.config import VisualConfig
+from models.visual.embedding import visual_layout
+
+# Named column sets of the visual vector: "both" is every column (backbone ⊕ GLCM ⊕ any descriptors);
+# "classic" every hand-made one (GLCM and the descriptors); "descriptors" only the descriptors.
+VISUAL_PARTS = ("both", "backbone", "glcm", "descriptors", "classic")
 
 
 @dataclass(frozen=True)
@@ -37,6 +42,11 @@ class TextureData:
         if self.targets is not None and self.targets.shape != (t, 4):
             raise ValueError(f"targets must be ({t}, 4), got {self.targets.shape}")
 
+    @property
+    def has_tactile(self) -> bool:
+        """False for an image-only dataset (its textures have no windows)."""
+        return not self.meta.get("image_only", False)
+
     def __len__(self) -> int:
         return len(self.textures)
 
@@ -55,34 +65,71 @@ class TextureData:
         return replace(self, targets=None if targets is None else np.asarray(targets, np.float32))
 
 
+def part_columns(layout: dict[str, slice], part: str) -> tuple[np.ndarray, dict[str, list[int]]]:
+    """The columns of a named visual part (VISUAL_PARTS) and the blocks they hold, renumbered from 0:
+    (column indices, block name → [start, stop))."""
+    names = {
+        "both": list(layout),
+        "backbone": ["backbone"],
+        "glcm": ["glcm"],
+        "descriptors": [n for n in layout if n not in ("backbone", "glcm")],
+        "classic": [n for n in layout if n != "backbone"],
+    }
+    if part not in names:
+        raise ValueError(f"visual part must be one of {list(VISUAL_PARTS)}, got {part!r}")
+    if not names[part]:
+        raise ValueError(f"visual part {part!r} is empty: the visual configuration turns on no descriptors")
+    cols, blocks, start = [], {}, 0
+    for n in names[part]:
+        sl = layout[n]
+        cols.append(np.arange(sl.start, sl.stop))
+        blocks[n] = [start, start + sl.stop - sl.start]
+        start += sl.stop - sl.start
+    return np.concatenate(cols), blocks
+
+
 def load_texture_data(
     root: str | Path,
     *,
     tactile_config: TactileConfig | None = None,
     visual: bool = True,
-    visual_part: VisualPart = "both",
+    visual_part: str = "both",
     rated: str | None = "yes",
     workers: int | None = None,
+    visual_config: VisualConfig | None = None,
 ) -> TextureData:
-    """Assemble TextureData for the textures whose `rated` status matches (None: all)."""
+    """Assemble TextureData for the textures whose `rated` status matches (None: all).
+
+    An image-only dataset gives every texture an empty (0, 0) window array and meta["image_only"] = True;
+    meta["visual_blocks"] names the column block of each visual feature group (backbone, glcm, descriptors)."""
     ds = Dataset(root)
     infos = [t for t in ds.textures() if rated is None or t.rated == rated]
     if not infos:
         raise ValueError(f"{root}: no textures with rated={rated!r}")
-    tt = tactile_table(root, tactile_config, workers=workers)
-    index = {t: i for i, t in enumerate(tt.textures)}
-    tactile = [tt.X[tt.texture == index[t.texture]] for t in infos]
-    meta: dict = {"dataset": ds.name, "tactile_config": tt.config.to_dict(), "tactile_hash": tt.config.hash()}
+    meta: dict = {"dataset": ds.name}
+    if ds.has_recordings:
+        tt = tactile_table(root, tactile_config, workers=workers)
+        index = {t: i for i, t in enumerate(tt.textures)}
+        tactile = [tt.X[tt.texture == index[t.texture]] for t in infos]
+        meta.update(tactile_config=tt.config.to_dict(), tactile_hash=tt.config.hash())
+    else:
+        tactile = [np.zeros((0, 0), np.float32) for _ in infos]
+        meta["image_only"] = True
     vis = None
     if visual:
         from models.offline.featurize import visual_table
 
-        vt = visual_table(root)
+        vcfg = visual_config or VisualConfig()
+        vt = visual_table(root, vcfg)
         vindex = {t: i for i, t in enumerate(vt.textures)}
-        cols = visual_slice(vt.X.shape[2], visual_part)
+        cols, blocks = part_columns(visual_layout(vt.backbone_dim, vcfg), visual_part)
         vis = vt.X[[vindex[t.texture] for t in infos]][:, :, cols]
         meta.update(
-            backbone=vt.backbone, backbone_dim=vt.backbone_dim, visual_hash=vt.config_hash, visual_part=visual_part
+            backbone=vt.backbone,
+            backbone_dim=vt.backbone_dim,
+            visual_hash=vt.config_hash,
+            visual_part=visual_part,
+            visual_blocks=blocks,
         )
     targets = None
     if rated == "yes":

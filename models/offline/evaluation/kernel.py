@@ -53,15 +53,43 @@ def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class PooledBlocks:
     """The visual and tactile blocks of the module docstring, fit on training textures.
 
-    modality: which blocks; views: image views pooled per texture (None: every stored view)."""
+    modality: which blocks; views: image views pooled per texture (None: every stored view);
+    visual_blocks: None reads the whole visual vector as one block (÷ √width); names of visual feature groups
+    (data.meta["visual_blocks"]: backbone, glcm, lbp, …) read only those columns, each group ÷ √(its width),
+    so a 13-column colour group weighs as much as the 1280 backbone columns."""
 
-    def __init__(self, modality: Modality, views: int | None = None):
+    def __init__(self, modality: Modality, views: int | None = None, visual_blocks: tuple[str, ...] | None = None):
         if modality not in ("tactile", "visual", "both"):
             raise ValueError(f"modality must be tactile, visual or both, got {modality!r}")
         if views is not None and views < 1:
             raise ValueError(f"views must be ≥ 1, got {views}")
+        if visual_blocks is not None and not visual_blocks:
+            raise ValueError("visual_blocks must name at least one block (or be None: the whole vector)")
         self.modality = modality
         self.views = views
+        self.visual_blocks = None if visual_blocks is None else tuple(visual_blocks)
+
+    def _visual(self, data: TextureData) -> np.ndarray:
+        pooled = pooled_visual(data, self.views)
+        return pooled if self.visual_blocks is None else pooled[:, self.visual_columns]
+
+    def _resolve_blocks(self, data: TextureData) -> None:
+        layout = data.meta.get("visual_blocks")
+        if layout is None:
+            raise ValueError(f"visual blocks {list(self.visual_blocks)} asked for, but the data names no blocks")
+        missing = [b for b in self.visual_blocks if b not in layout]
+        if missing:
+            raise ValueError(
+                f"visual block(s) {missing} are not in the data (it has {list(layout)}): "
+                "compute the features with those descriptors on (VisualConfig.descriptors)"
+            )
+        self.visual_columns = np.concatenate([np.arange(*layout[b]) for b in self.visual_blocks])
+        self.visual_weights = np.concatenate(
+            [
+                np.full(layout[b][1] - layout[b][0], 1.0 / np.sqrt(layout[b][1] - layout[b][0]))
+                for b in self.visual_blocks
+            ]
+        )
 
     @property
     def uses_visual(self) -> bool:
@@ -76,7 +104,9 @@ class PooledBlocks:
             if data.visual is None:
                 raise ValueError("this estimator needs visual features, but the data has none")
             self.views = data.visual.shape[1] if self.views is None else self.views
-            self.visual_scaler = Standardizer().fit(pooled_visual(data, self.views))
+            if self.visual_blocks is not None:
+                self._resolve_blocks(data)
+            self.visual_scaler = Standardizer().fit(self._visual(data))
         if self.uses_tactile:
             self.tactile_scaler = Standardizer().fit(np.concatenate(data.tactile).astype(np.float64))
         return self
@@ -85,7 +115,8 @@ class PooledBlocks:
         """(zv (T, Dv) | None, per texture its windows' zt (n_i, Dt) | None), each ÷ √width."""
         zv = zt = None
         if self.uses_visual:
-            zv = self.visual_scaler.transform(pooled_visual(data, self.views)) / np.sqrt(self.visual_scaler.mean.size)
+            z = self.visual_scaler.transform(self._visual(data))
+            zv = z / np.sqrt(z.shape[1]) if self.visual_blocks is None else z * self.visual_weights
         if self.uses_tactile:
             s = self.tactile_scaler
             zt = [s.transform(w.astype(np.float64)) / np.sqrt(s.mean.size) for w in data.tactile]
@@ -100,6 +131,11 @@ class PooledBlocks:
         """The same blocks per window in a GraphBuilder: (visual z, tactile z) output names; a block the
         model does not read (visual/tactile False) is left out, so the graph has no input for it."""
         zv = zt = None
+        if self.uses_visual and visual and self.visual_blocks is not None:
+            raise ValueError(
+                f"a model on visual blocks {list(self.visual_blocks)} cannot be exported to ONNX yet "
+                "(the graph reads the whole visual vector)"
+            )
         if self.uses_visual and visual:
             s = self.visual_scaler
             zv = g.standardized("visual", s.mean, s.std, 1.0 / np.sqrt(s.mean.size), clip=Z_CLIP)
@@ -157,6 +193,7 @@ class AdditiveKernelModel(Estimator):
         views: int | None = None,
         tactile_weights: tuple[float, ...] = TACTILE_WEIGHTS,
         gammas: tuple[float, ...] = RBF_GAMMAS,
+        visual_blocks: tuple[str, ...] | None = None,
     ):
         if visual_kernel not in ("linear", "rbf"):
             raise ValueError(f"visual_kernel must be linear or rbf, got {visual_kernel!r}")
@@ -164,10 +201,12 @@ class AdditiveKernelModel(Estimator):
             raise ValueError(f"tactile_weights must be non-negative, got {tactile_weights}")
         self.modality = modality
         self.visual_kernel = visual_kernel
-        self.blocks = PooledBlocks(modality, views)
+        self.blocks = PooledBlocks(modality, views, visual_blocks)
         self.tactile_weights = tuple(tactile_weights) if modality == "both" else (1.0,)
         self.gammas = tuple(gammas) if (visual_kernel == "rbf" and modality != "tactile") else (None,)
-        suffix = "" if views is None else f"-v{views}"
+        suffix = ("" if views is None else f"-v{views}") + (
+            "" if visual_blocks is None else "-" + "+".join(visual_blocks)
+        )
         self.name = f"{self.family}-{visual_kernel if modality != 'tactile' else 'linear'}-{modality}{suffix}"
 
     @property
@@ -218,7 +257,9 @@ class AdditiveKernelModel(Estimator):
         for i, windows in enumerate(data.tactile):
             v = None if zv is None else zv[i : i + 1]
             t = None if zt is None else zt[i]
-            rows = np.stack([np.broadcast_to(e(v, t), (len(windows),)) for e in self.expansions], axis=1)
+            # an image-only texture has no windows: it gets one answer, from its image
+            n = len(windows) if t is not None else max(len(windows), 1)
+            rows = np.stack([np.broadcast_to(e(v, t), (n,)) for e in self.expansions], axis=1)
             out.append(rows)
         return out
 
@@ -386,7 +427,7 @@ class MeanOfEstimator(Estimator):
             raise ValueError(f"a mean of estimators needs at least 2 members, got {len(members)}")
         self.factories = dict(members)
         self.name = name
-        self.modality = "both"
+        self.modality = union_modality(f().modality for f in self.factories.values())  # what it may read
 
     def fit(self, data: TextureData, seed: int) -> MeanOfEstimator:
         self.members = {k: f().fit(data, seed) for k, f in self.factories.items()}

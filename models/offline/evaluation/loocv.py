@@ -121,6 +121,11 @@ def loocv_seeds(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if data.targets is None or len(data) < 3:
         raise ValueError("leave-one-texture-out needs at least 3 rated textures")
+    if not data.has_tactile and spec.build().modality in ("tactile", "both"):
+        raise ValueError(
+            f"model {spec.name!r} needs touch (tactile recordings), but {data.meta.get('dataset', 'the dataset')!r} "
+            "is image-only; see registry.for_dataset for the image-only variants"
+        )
     if not seeds:
         raise ValueError("give at least one seed")
     if test_views is not None:

@@ -57,7 +57,7 @@ class SelectedEstimator(Estimator):
         self.folds = folds
         self.repeats = repeats
         self.name = name
-        self.modality = "both"
+        self.modality = union_modality(f().modality for f in self.factories.values())  # what it may read
 
     @property
     def candidates(self) -> list[str]:
