@@ -163,7 +163,7 @@ def visual_features(
             return np.concatenate([values, hit.astype(np.float32, copy=False)])
     seen = seen_view()
     seen_colour = None
-    if config.needs_colour:
+    if colour is not None and config.needs_colour:  # checked above: needs_colour → colour was given
         size = min(config.descriptor_size, *img.shape)  # colour statistics are global: a small copy suffices
         seen_colour = np.stack(
             [apply_view(zoom_to(colour[..., c], size).astype(np.float32), params) for c in range(3)], axis=2

@@ -18,7 +18,6 @@ from models.offline.evaluation.estimators import (
 from models.offline.evaluation.kernel import KernelRidgeEstimator, KernelSVREstimator, MeanOfEstimator
 from models.offline.evaluation.selection import SelectedEstimator
 
-
 CLASSICAL = {
     "mean": lambda **kw: MeanEstimator(),
     "stack-both": lambda **kw: StackedEstimator(

@@ -14,8 +14,8 @@ from models.offline.datasets.build import build
 from models.offline.datasets.check import check_dataset
 from models.offline.datasets.format import Dataset
 from models.offline.evaluation.data import TextureData
-from models.offline.evaluation.loocv import loocv
 from models.offline.evaluation.estimator_registry import EstimatorSpec, for_dataset
+from models.offline.evaluation.loocv import loocv
 from texture_library.attributes import ATTRIBUTES
 
 PROJECT_ROOT = Path(__file__).resolve().parents[4]
