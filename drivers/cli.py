@@ -224,14 +224,14 @@ def _run_robot(args: argparse.Namespace) -> int:
 async def _stream(client, duration_s: float | None):
     """Create the session if needed (printing the operator link), then run; first Ctrl-C drains, second quits."""
     import asyncio
-    import signal
+
+    from drivers.stop_signals import on_stop_signals
 
     if client.session_id is None:
         info = await client.open_session()
         print(
             f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True
         )
-    loop = asyncio.get_running_loop()
     main = asyncio.current_task()
     interrupted = False
 
@@ -245,15 +245,5 @@ async def _stream(client, duration_s: float | None):
         print("stopping: delivering buffered blocks (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
         client.stop()
 
-    installed = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            loop.add_signal_handler(sig, on_signal)
-            installed.append(sig)
-        except (NotImplementedError, RuntimeError, ValueError):
-            pass  # no signal handlers here (Windows, not the main thread): Ctrl-C stops at once
-    try:
+    with on_stop_signals(on_signal):
         return await client.run(duration_s)
-    finally:
-        for sig in installed:
-            loop.remove_signal_handler(sig)

@@ -25,7 +25,6 @@ import json
 import logging
 import os
 import secrets
-import signal
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.blocks import Frame, SampleBlock, TapBlock
+from drivers.stop_signals import on_stop_signals
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 log = logging.getLogger("hapticlink.demo")
@@ -364,84 +364,76 @@ async def run_demo(
         print("\nstopping (again to quit at once) …", flush=True)
         stop.set()
 
-    installed = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    with on_stop_signals(on_signal):  # removed after the service has stopped and the summary is printed
+        api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
+        settings = Settings(
+            model_path=assets.model,
+            tactile_model_path=assets.tactile,
+            library_dir=assets.library,
+            backbone_path=assets.backbone,
+            host=host,
+            port=port,
+            log_level="warning",
+            api_keys=api_key,
+        )
+        server = DemoServer(uvicorn.Config(create_app(settings), **server_options(settings)))
+        serving = asyncio.create_task(server.serve())
+        url = f"http://{host}:{port}"
+        tour = ProbeTour(assets.probes, per_texture_s)
+        # a short drain: at a stop the service goes too, so what is still unacknowledged after it cannot be delivered
+        robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key, drain_timeout_s=STOP_S / 2)
+        truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
+        report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
+        counts = FeedCounts()
+        started = time.monotonic()
+        tasks: list[asyncio.Task] = []
         try:
-            loop.add_signal_handler(sig, on_signal)
-            installed.append(sig)
-        except (NotImplementedError, RuntimeError, ValueError):
-            pass  # not the main thread (a test's loop): signals keep their default meaning
-
-    api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
-    settings = Settings(
-        model_path=assets.model,
-        tactile_model_path=assets.tactile,
-        library_dir=assets.library,
-        backbone_path=assets.backbone,
-        host=host,
-        port=port,
-        log_level="warning",
-        api_keys=api_key,
-    )
-    server = DemoServer(uvicorn.Config(create_app(settings), **server_options(settings)))
-    serving = asyncio.create_task(server.serve())
-    url = f"http://{host}:{port}"
-    tour = ProbeTour(assets.probes, per_texture_s)
-    # a short drain: at a stop the service goes too, so what is still unacknowledged after it cannot be delivered
-    robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key, drain_timeout_s=STOP_S / 2)
-    truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
-    report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
-    counts = FeedCounts()
-    started = time.monotonic()
-    tasks: list[asyncio.Task] = []
-    try:
-        await wait_ready(url, serving, stop)  # the robot opens its session only once the service can take it
-        info = await robot.open_session()
-        print(
-            f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
-            "feel it   open the console URL, press Start sound, then stroke its touch pad with a mouse, pen or finger: "
-            "the chosen texture plays in headphones (or a voice-coil on the audio jack)\n"
-            f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n",
-            flush=True,
-        )
-        if info.operator_token is None:
-            raise RuntimeError("the service opened the demo's session without an operator token")
-        printer = asyncio.create_task(
-            print_events(url, info.session_id, info.operator_token, tour, report=report, counts=counts)
-        )
-        streaming = asyncio.create_task(robot.run(duration_s))
-        stopping = asyncio.create_task(stop.wait())
-        tasks = [printer, streaming, stopping]
-        await asyncio.wait([streaming, stopping], return_when=asyncio.FIRST_COMPLETED)
-        if stop.is_set():
-            robot.stop()  # stop reading; deliver what is buffered for at most drain_timeout_s
-            await asyncio.wait([streaming], timeout=STOP_S / 2 + 0.2)
-        else:
-            await asyncio.sleep(0.5)  # the last windows' events are still on their way
-        if streaming.done() and not streaming.cancelled() and streaming.exception() is not None:
-            raise streaming.exception()  # type: ignore[misc]
-    except DemoStopped:
-        pass
-    finally:
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        server.should_exit = True
-        done, _ = await asyncio.wait([serving], timeout=STOP_S / 4)
-        if not done:  # connections still open: close them now
-            server.force_exit = True
+            await wait_ready(url, serving, stop)  # the robot opens its session only once the service can take it
+            info = await robot.open_session()
+            print(
+                f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
+                "feel it   open the console URL, press Start sound, then stroke its touch pad with a mouse, pen "
+                "or finger: the chosen texture plays in headphones (or a voice-coil on the audio jack)\n"
+                f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; "
+                "Ctrl-C to stop\n",
+                flush=True,
+            )
+            if info.operator_token is None:
+                raise RuntimeError("the service opened the demo's session without an operator token")
+            printer = asyncio.create_task(
+                print_events(url, info.session_id, info.operator_token, tour, report=report, counts=counts)
+            )
+            streaming = asyncio.create_task(robot.run(duration_s))
+            stopping = asyncio.create_task(stop.wait())
+            tasks = [printer, streaming, stopping]
+            await asyncio.wait([streaming, stopping], return_when=asyncio.FIRST_COMPLETED)
+            if stop.is_set():
+                robot.stop()  # stop reading; deliver what is buffered for at most drain_timeout_s
+                await asyncio.wait([streaming], timeout=STOP_S / 2 + 0.2)
+            else:
+                await asyncio.sleep(0.5)  # the last windows' events are still on their way
+            if streaming.done() and not streaming.cancelled() and streaming.exception() is not None:
+                raise streaming.exception()  # type: ignore[misc]
+        except DemoStopped:
+            pass
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            server.should_exit = True
             done, _ = await asyncio.wait([serving], timeout=STOP_S / 4)
-        if not done:
-            serving.cancel()
-            await asyncio.gather(serving, return_exceptions=True)
-        for sig in installed:
-            loop.remove_signal_handler(sig)
-        if report.summary():
-            print(report.summary(), flush=True)
-        print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)
-        if stop_asked:
-            print(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal", flush=True)
-    print(f"robot stats: {robot.stats.as_dict()}")
+            if not done:  # connections still open: close them now
+                server.force_exit = True
+                done, _ = await asyncio.wait([serving], timeout=STOP_S / 4)
+            if not done:
+                serving.cancel()
+                await asyncio.gather(serving, return_exceptions=True)
+            if report.summary():
+                print(report.summary(), flush=True)
+            print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)
+            if stop_asked:
+                print(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal", flush=True)
+        print(f"robot stats: {robot.stats.as_dict()}")
 
 
 def demo(
