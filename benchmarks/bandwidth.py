@@ -39,7 +39,7 @@ from drivers.protocol import bearer, ws_url
 from drivers.robot import RobotClient
 from drivers.source import blocks_from_arrays
 from service.launcher import ServerProcess
-from texture_library import model_codec
+from texture_library import atomic_file, model_codec
 from texture_library.library import Library
 from texture_library.render_model import RenderModel
 from texture_library.spectrum import spectral_distance_db
@@ -47,6 +47,10 @@ from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
 
 OUT = Path("reports/fidelity/bandwidth.json")
+#: the fidelity report's results.json: this benchmark fills its `bandwidth` and `renderer` keys
+RESULTS = Path("reports/fidelity/results.json")
+#: the renderer benchmark's output (python -m benchmarks.renderer): its real-time factor at 10 ms blocks
+RENDERER_BENCH = Path("reports/bench/renderer.json")
 API_KEY = "bandwidth-bench-key-0123456789"
 RAW_BPS = 1000 * 3 * 16
 CODEC_ANCHOR_BPS = 2300
@@ -306,6 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    if args.out == OUT:
+        update_fidelity_results(doc, RESULTS, RENDERER_BENCH)
     print(json.dumps({k: doc[k] for k in ("session", "bps", "encoding", "switch_latency_ms")}, indent=1))
     print(
         f"models on demand: {bps['b_models_on_demand']:.0f} bit/s (target ≤ {TARGET_BPS}); library shared: "
@@ -314,6 +320,30 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     return 0
+
+
+def update_fidelity_results(doc: dict, results_path: Path, renderer_path: Path) -> None:
+    """Fill results.json's `bandwidth` and `renderer` keys from this run (and the renderer benchmark's last run);
+    the other keys — the selection study's, and `renderer.browser_vs_python_db`, which the console's parity test
+    measures — are kept as they are."""
+    results = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    results["bandwidth"] = {
+        "model_mediated_bps": doc["model_mediated_bps"],
+        "raw_bps": doc["raw_bps"],
+        "library_shared_bps": doc["bps"]["a_library_shared"],
+        "command": doc["command"],
+    }
+    renderer = dict(results.get("renderer") or {})
+    renderer["switch_latency_ms"] = doc["switch_latency_ms"]["p95"]
+    renderer["switch_latency_what"] = "p95 over the session's switches: " + doc["switch_latency_ms"]["what"]
+    if renderer_path.is_file():
+        rows = json.loads(renderer_path.read_text())["rows"]
+        factors = [s["realtime_factor"] for row in rows for s in row["streaming"] if s["block_ms"] == 10]
+        if factors:
+            renderer["realtime_factor"] = min(factors)
+            renderer["realtime_factor_what"] = f"slowest model, 10 ms blocks, one core ({renderer_path})"
+    results["renderer"] = renderer
+    atomic_file.write_text(results_path, json.dumps(results, indent=1) + "\n")
 
 
 if __name__ == "__main__":
