@@ -34,6 +34,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.service import memory_mb, percentile
 from drivers.blocks import encode_binary
 from drivers.protocol import bearer, session_path
 from service.launcher import ServerProcess, free_port
@@ -42,10 +43,6 @@ DEFAULT_OUT = Path("reports/bench/admission.json")
 API_KEY = "admission-benchmark-key-0123456789"
 BLOCK_S = 0.02
 POLL_EVERY_S = 0.02
-
-
-def percentile(values: list[float], q: float) -> float | None:
-    return None if not values else round(float(np.percentile(values, q)), 2)
 
 
 def summary(values: list[float]) -> dict:
@@ -58,10 +55,8 @@ def summary(values: list[float]) -> dict:
 
 
 def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return round(int(line.split()[1]) / 1024, 1)
-    raise RuntimeError(f"no VmRSS for process {pid}")
+    """RSS of a process, MiB, to 0.1."""
+    return round(memory_mb(pid)[0], 1)
 
 
 def prepare(root: Path) -> tuple[Path, Path]:

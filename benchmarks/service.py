@@ -114,6 +114,12 @@ def process_cpu_seconds(pid: int | str) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def memory_mb(pid: int | str) -> tuple[float, float]:
+    """(RSS, peak RSS) of a process in MiB, from /proc/<pid>/status."""
+    status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
+    return int(status["VmRSS"].split()[0]) / 1024, int(status["VmHWM"].split()[0]) / 1024
+
+
 def machine_cpu_seconds() -> float:
     """Busy CPU time of the whole machine (all cores), s: everything but idle and iowait."""
     values = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
@@ -165,10 +171,7 @@ class ServerProcess(launcher.ServerProcess):
 
     def memory_mb(self) -> tuple[float, float]:
         """(RSS, peak RSS) in MiB."""
-        status = dict(
-            line.split(":", 1) for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines() if ":" in line
-        )
-        return int(status["VmRSS"].split()[0]) / 1024, int(status["VmHWM"].split()[0]) / 1024
+        return memory_mb(self.proc.pid)
 
 
 # ---- the robots ----------------------------------------------------------------------------------
