@@ -107,8 +107,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.textures < 2 or args.seconds < 1.5 or args.fps <= 0:
         parser.error("--textures must be ≥ 2, --seconds ≥ 1.5 and --fps > 0")
 
+    from models.inference.predictor import Predictor
     from models.offline.featurize import backbone_onnx
-    from models.visual.config import VisualConfig
     from service.settings import Settings
 
     source, dataset, library = _data(args)
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> dict:
     full_folds = args.calibration_folds if args.full_calibration_folds is None else args.full_calibration_folds
     full = _model(dataset, args.full, streamed, args, "none", full_folds)
     cheap = _model(dataset, args.cheap, streamed, args, "distance", args.calibration_folds)
-    backbone = backbone_onnx(VisualConfig())
+    backbone = backbone_onnx(Predictor(full).visual_config)
     stream = _stream(dataset, streamed, args.seconds, args.fps, args.seed)
     print(
         f"stream: {len(streamed)} × {args.seconds:g} s, {len(stream.blocks)} blocks, {len(stream.frames)} frames",
@@ -216,9 +216,11 @@ def _pick(dataset: Path, n: int, seed: int) -> list[str]:
 
 def _model(dataset: Path, name: str, streamed: list[str], args, scale: str, folds: int) -> Path:
     """The model trained without the streamed textures (cached by its recipe)."""
+    from models.offline.featurize import SERVED_VISUAL
     from models.offline.train import train_and_export
 
-    key = f"{Path(dataset).name}-{name}-{scale}-k{folds}-s{args.seed}-" + "-".join(streamed)
+    visual = SERVED_VISUAL.hash()
+    key = f"{Path(dataset).name}-{name}-{scale}-k{folds}-s{args.seed}-v{visual}-" + "-".join(streamed)
     out = Path("cache") / "adaptive" / "models" / f"{hashlib.sha256(key.encode()).hexdigest()[:12]}-{name}.onnx"
     recipe = out.with_suffix(".json")
     if out.is_file() and recipe.is_file() and json.loads(recipe.read_text()).get("key") == key:
@@ -227,7 +229,14 @@ def _model(dataset: Path, name: str, streamed: list[str], args, scale: str, fold
     print(f"training {name} on the other rated textures (calibration: {folds}-fold, {scale}) …", flush=True)
     started = time.perf_counter()
     train_and_export(
-        dataset, name, out, seed=args.seed, calibration_folds=folds, interval_scale=scale, exclude=tuple(streamed)
+        dataset,
+        name,
+        out,
+        seed=args.seed,
+        visual_config=SERVED_VISUAL,
+        calibration_folds=folds,
+        interval_scale=scale,
+        exclude=tuple(streamed),
     )
     recipe.write_text(json.dumps({"key": key, "train_s": round(time.perf_counter() - started, 1)}))
     return out

@@ -25,7 +25,9 @@ hl dataset check $H
 [ -f $P/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $P
 
 # ---- HaTT–TexNet: the selected model (nested CV: the rule in docs/models.md) and its candidates ----
-hl evaluate --dataset $H --model selected --out reports/hatt-texnet/selected --seeds 0 1 2
+# the served visual configuration: the frontier's pick (2×2 patches, no GLCM; docs/models.md)
+SERVED=(--visual-grid 2 --no-glcm)
+hl evaluate --dataset $H --model selected "${SERVED[@]}" --out reports/hatt-texnet/selected --seeds 0 1 2
 for m in ridge-pooled krr-pooled; do  # deterministic: one seed
   hl evaluate --dataset $H --model $m --out reports/hatt-texnet/$m --seeds 0
 done
@@ -36,7 +38,9 @@ done
 for k in 1 2 4 8; do
   for m in ridge-visual krr-pooled selected; do
     [ "$m-v$k" = selected-v8 ] && continue  # the main selected run pooled 8 views; the report uses it there
-    hl evaluate --dataset $H --model $m --views $k --out reports/hatt-texnet/views/$m-v$k --seeds 0 --no-figures
+    flags=(); [ $m = selected ] && flags=("${SERVED[@]}")  # selected as served; the others on the default
+    hl evaluate --dataset $H --model $m --views $k "${flags[@]}" --out reports/hatt-texnet/views/$m-v$k --seeds 0 \
+      --no-figures
   done
 done
 # ---- HaTT–TexNet: classical models and controls (3 seeds) ---------------------------------------
@@ -66,7 +70,7 @@ done
 hl report --dataset $H --reports reports/hatt-texnet --regenerate "bash reports/regenerate.sh" --readme README.md
 
 # ---- the model for the service and the withheld textures: the selection rule on all rated textures --
-hl train --dataset $H --model selected --seed 0 --metrics reports/hatt-texnet/selected/results.json --out artifacts/hatt-selected.onnx
+hl train --dataset $H --model selected "${SERVED[@]}" --seed 0 --metrics reports/hatt-texnet/selected/results.json --out artifacts/hatt-selected.onnx
 hl predict --model artifacts/hatt-selected.onnx --dataset $H --textures withheld --out reports/hatt-texnet/withheld_predictions.csv
 # ---- LOOCV on the serial, process and Ray backends (same jobs, wall times in one run) -------------
 .venv/bin/python -m benchmarks.loocv --dataset $H --model ridge-pooled

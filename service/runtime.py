@@ -19,7 +19,7 @@ from models.inference.ood import FrameCheck
 from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
-from models.visual.embedding import visual_features, visual_slice
+from models.visual.embedding import part_columns, visual_features, visual_layout
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from service.adaptive import ServingPolicy
@@ -67,7 +67,7 @@ class Runtime:
     index: PerceptualIndex
     visual_config: VisualConfig
     backbone: OnnxBackbone | None
-    visual_columns: slice | None
+    visual_columns: np.ndarray | None
     problem: str | None
     load_s: float
     interval_level: float = 0.9
@@ -201,7 +201,7 @@ def load_runtime(settings: Settings) -> Runtime:
                 f"selection rule {selection.name!r} compares windows at {tactile_config.rate_hz:g} Hz with library "
                 f"models at {spectra.rate_hz:g} Hz; use the perceptual rule or a library at the model's rate"
             )
-    visual_config = VisualConfig()
+    visual_config = predictor.visual_config
     backbone, columns, problem = None, None, None
     if predictor.needs_visual:
         backbone, columns, problem = _load_backbone(
@@ -259,7 +259,7 @@ def _load_fallback(predictor: Predictor, path: Path | None) -> tuple[Predictor |
 
 def _load_backbone(
     predictor: Predictor, config: VisualConfig, path: Path | None, threads: int
-) -> tuple[OnnxBackbone | None, slice | None, str | None]:
+) -> tuple[OnnxBackbone | None, np.ndarray | None, str | None]:
     """The backbone a visual model needs, checked against its card; (None, None, problem) without one."""
     card = predictor.card
     wanted = card.visual or {}
@@ -278,8 +278,8 @@ def _load_backbone(
             f"model {card.model} was trained on {wanted.get('backbone')} features ({wanted.get('visual_hash')}); "
             f"{path} is {backbone.name} ({backbone.config_hash})"
         )
-    columns = visual_slice(backbone.dim + config.glcm_dim, wanted.get("visual_part", "both"))
-    width = columns.stop - columns.start
+    columns, _ = part_columns(visual_layout(backbone.dim, config), wanted.get("visual_part", "both"))
+    width = len(columns)
     if width != predictor.n_visual:
         raise ValueError(
             f"model {card.model} reads {predictor.n_visual} visual features; {backbone.name} gives {width}"

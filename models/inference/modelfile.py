@@ -24,7 +24,8 @@ OUTPUT = "ratings"
 @dataclass(frozen=True)
 class ModelCard:
     """model: registry name; modality: tactile | visual | both; tactile_config: TactileConfig.to_dict();
-    visual: {"backbone", "backbone_dim", "visual_hash", "visual_part", "views", "pooling", "view_seed"} or None —
+    visual: {"backbone", "backbone_dim", "visual_hash", "visual_config", "visual_part", "views", "pooling",
+    "view_seed"} or None — visual_config: models.visual.config.VisualConfig.computation();
     views: how many image views the model's visual input pools (models.visual.pooling; 1: one photo/frame);
     metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute);
     intervals: {"window" | "ema" | "texture": models.inference.intervals.IntervalCalibration.to_dict()} or None;

@@ -9,12 +9,15 @@ import onnxruntime as ort
 
 from models.inference.modelfile import INPUT_TACTILE, INPUT_VISUAL, ModelCard
 from models.tactile.config import TactileConfig
+from models.visual.config import VisualConfig
 
 
 class Predictor:
     """ratings = predictor.predict(tactile (N, F) float32, visual (N, D) float32 | None) → (N, 4) bipolar.
 
     expected_tactile_hash: refuse a model trained on other tactile features than the pipeline computes.
+    visual_config: the image configuration the model was trained on (from its card; the default for a card from
+    before the card carried it), so the service computes the vector the model reads.
     """
 
     def __init__(self, path: str | Path, *, threads: int = 1, expected_tactile_hash: str | None = None):
@@ -39,6 +42,13 @@ class Predictor:
             raise ValueError(
                 f"{self.path}: model expects tactile features {self.card.tactile_hash}, "
                 f"the pipeline computes {expected_tactile_hash}; re-export the model or change the feature settings"
+            )
+        self.visual_config = VisualConfig(**(self.card.visual or {}).get("visual_config", {}))
+        if self.card.visual and self.visual_config.hash() != self.card.visual.get("visual_hash"):
+            # a card from before the configuration was recorded names only the hash; the default is what it had
+            raise ValueError(
+                f"{self.path}: visual config hash {self.card.visual.get('visual_hash')} does not match its config "
+                f"({self.visual_config.hash()}); re-export the model"
             )
         self.inputs = {i.name: i for i in self.session.get_inputs()}
         self.n_tactile = self._width(INPUT_TACTILE)

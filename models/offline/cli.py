@@ -141,6 +141,7 @@ def register_models(sub: argparse._SubParsersAction) -> None:
         help="intervals of constant width, or scaled by feature-space distance (reports/tradeoffs)",
     )
     _feature_args(t)
+    _visual_args(t)
     _net_args(t)
     t.set_defaults(func=_train)
 
@@ -187,6 +188,9 @@ def _visual_args(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--visual-grid", type=int, help="patches per side of the backbone grid (default 7)")
     parser.add_argument(
+        "--no-glcm", action="store_true", help="compute no GLCM: the frame costs the backbone (and descriptors) alone"
+    )
+    parser.add_argument(
         "--descriptors",
         nargs="*",
         default=[],
@@ -202,6 +206,8 @@ def _visual_config(args: argparse.Namespace):
     fields: dict = {"descriptors": tuple(getattr(args, "descriptors", None) or ())}
     if getattr(args, "visual_grid", None) is not None:
         fields["grid"] = args.visual_grid
+    if getattr(args, "no_glcm", False):
+        fields["glcm"] = False
     return VisualConfig(**fields)
 
 
@@ -244,7 +250,6 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     if args.latency_only:
         import json
-        from pathlib import Path
 
         from models.offline.evaluation.evaluate import window_latency
 
@@ -282,6 +287,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from models.inference.predictor import Predictor
+    from models.offline.featurize import backbone_onnx
     from models.offline.train import train_and_export
 
     path = train_and_export(
@@ -290,6 +297,7 @@ def _train(args: argparse.Namespace) -> int:
         args.out,
         seed=args.seed,
         tactile_config=_tactile_config(args),
+        visual_config=_visual_config(args),
         visual_part=args.visual_part,
         metrics=args.metrics,
         options=_options(args),
@@ -297,6 +305,9 @@ def _train(args: argparse.Namespace) -> int:
         interval_scale=args.interval_scale,
     )
     print(f"wrote {path}")
+    predictor = Predictor(path)
+    if predictor.needs_visual:  # the backbone exported for the model's own visual configuration
+        print(f"serve it with --backbone {backbone_onnx(predictor.visual_config)}")
     return 0
 
 

@@ -30,9 +30,17 @@ def demo_features():
     return TactileConfig(extra_groups=DEMO_GROUPS)
 
 
+def demo_visual():
+    """The demo model's VisualConfig: the served one (a frame costs tens of milliseconds, not ~0.6 s)."""
+    from models.offline.featurize import SERVED_VISUAL
+
+    return SERVED_VISUAL
+
+
 #: models made by an older version of this recipe are retrained — 2: the OOD detector reads the speed/force
-#: statistics where they are (before the extra groups' columns), not the last six columns (the tap features)
-MODELS_VERSION = 2
+#: statistics where they are (before the extra groups' columns), not the last six columns (the tap features);
+#: 3: the card carries its visual configuration
+MODELS_VERSION = 3
 #: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
 WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
 
@@ -46,6 +54,7 @@ def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> 
         "model": DEMO_MODEL,
         "tactile_model": TACTILE_MODEL,
         "tactile_hash": demo_features().hash(),
+        "visual_hash": demo_visual().hash(),
         "n_textures": n_textures,
         "library_textures": library_textures,
         "n_probes": n_probes,
@@ -63,7 +72,6 @@ def prepare_assets(
     from models.offline.datasets.build import build
     from models.offline.featurize import backbone_onnx, featurize_dataset
     from models.offline.train import train_and_export
-    from models.visual.config import VisualConfig
     from texture_library.synthetic_library import build_synthetic_library
 
     root.mkdir(parents=True, exist_ok=True)
@@ -79,7 +87,7 @@ def prepare_assets(
     if old != stamp:
         assets.model.unlink(missing_ok=True)
         assets.tactile.unlink(missing_ok=True)
-    features = demo_features()
+    features, visual = demo_features(), demo_visual()
     library_textures = min(library_textures, n_textures)
     groups = " + ".join(["MFCC", *DEMO_GROUPS])
     steps = [
@@ -91,12 +99,14 @@ def prepare_assets(
         (
             True,
             "computing features (cached after the first run)",
-            lambda: featurize_dataset(assets.dataset, tactile_config=features),
+            lambda: featurize_dataset(assets.dataset, tactile_config=features, visual_config=visual),
         ),
         (
             not assets.model.is_file(),
             f"training {DEMO_MODEL} on it ({groups}) and exporting ONNX",
-            lambda: train_and_export(assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features),
+            lambda: train_and_export(
+                assets.dataset, DEMO_MODEL, assets.model, seed=seed, tactile_config=features, visual_config=visual
+            ),
         ),
         (
             not assets.tactile.is_file(),
@@ -119,7 +129,7 @@ def prepare_assets(
             print(f"  · {what} …", flush=True)
             step()
     stamp_path.write_text(json.dumps(stamp))
-    return dataclasses.replace(assets, backbone=backbone_onnx(VisualConfig()))
+    return dataclasses.replace(assets, backbone=backbone_onnx(visual))
 
 
 def prepared(assets_dir: str | Path) -> DemoAssets:

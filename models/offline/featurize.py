@@ -28,6 +28,9 @@ if TYPE_CHECKING:
     from models.visual.embedding import PatchEmbedder
 
 DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
+#: the image configuration the served models read: the one the speed–accuracy frontier's fixed rule picks
+#: (reports/tradeoffs: 2×2 patches at native size, no GLCM), so a frame costs the backbone on 4 patches
+SERVED_VISUAL = VisualConfig(grid=2, glcm=False)
 
 
 def cache_root() -> Path:
@@ -203,16 +206,21 @@ def visual_table(
 
 
 def featurize_dataset(
-    root: str | Path, *, workers: int | None = None, visual: bool = True, tactile_config: TactileConfig | None = None
+    root: str | Path,
+    *,
+    workers: int | None = None,
+    visual: bool = True,
+    tactile_config: TactileConfig | None = None,
+    visual_config: VisualConfig | None = None,
 ) -> str:
     """Fill the feature caches of a dataset (tactile: the given configuration, default the paper's; none for an
-    image-only dataset); returns a one-line summary."""
+    image-only dataset; visual: the given configuration, default VisualConfig()); returns a one-line summary."""
     if Dataset(root).has_recordings:
         t = tactile_table(root, tactile_config, workers=workers)
         summary = f"tactile {t.X.shape[0]} windows × {t.X.shape[1]} features over {len(t.textures)} textures"
     else:
         summary = "image-only: no tactile features"
     if visual:
-        v = visual_table(root)
+        v = visual_table(root, visual_config)
         summary += f"; visual {v.X.shape[0]} textures × {v.X.shape[1]} views × {v.X.shape[2]} ({v.backbone})"
     return summary

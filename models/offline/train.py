@@ -14,6 +14,7 @@ from models.inference.predictor import Predictor
 from models.offline.evaluation.data import TextureData, load_texture_data
 from models.offline.evaluation.estimator_registry import build_estimator
 from models.tactile.config import TactileConfig
+from models.visual.config import VisualConfig
 from models.visual.embedding import VisualPart
 from models.visual.pooling import POOLING, pool_views
 from texture_library.attributes import ATTRIBUTES
@@ -31,6 +32,7 @@ def train_and_export(
     *,
     seed: int = 0,
     tactile_config: TactileConfig | None = None,
+    visual_config: VisualConfig | None = None,
     visual_part: VisualPart = "both",
     metrics: str | Path | None = None,
     options: dict | None = None,
@@ -44,6 +46,7 @@ def train_and_export(
     calibration_folds: K of the cross-validation that calibrates the card's prediction intervals
     and goes with its out-of-distribution detector (models.offline.calibrate.cv_uncertainty; K more fits);
     0 leaves both out. interval_scale: "none" or "distance" (see models.inference.intervals).
+    visual_config: how images become features (default VisualConfig()); the card records it for the service.
     `selected` runs its selection rule (inner CV) on all rated textures here, as each LOOCV fold did on its own.
     exclude: rated textures left out of everything (training, calibration, detector), e.g. the textures a
     benchmark then streams as unseen.
@@ -62,7 +65,13 @@ def train_and_export(
     if not hasattr(est, "export"):
         raise ValueError(f"model {model!r} has no ONNX export; export a network, ridge, a *-pooled model or selected")
     needs_visual = est.modality in ("visual", "both")
-    data = load_texture_data(dataset, tactile_config=tactile_config, visual=needs_visual, visual_part=visual_part)
+    data = load_texture_data(
+        dataset,
+        tactile_config=tactile_config,
+        visual=needs_visual,
+        visual_part=visual_part,
+        visual_config=visual_config,
+    )
     if exclude:
         unknown = sorted(set(exclude) - set(data.textures))
         if unknown:
@@ -77,7 +86,7 @@ def train_and_export(
         loocv = {"mae": res["mae"], "rmse": res["rmse"], "seeds": res["seeds"], "model": res["model"]}
     visual = None
     if est.modality in ("visual", "both"):  # what the fitted model reads (a selection may drop a modality)
-        visual = {k: data.meta[k] for k in ("backbone", "backbone_dim", "visual_hash", "visual_part")}
+        visual = {k: data.meta[k] for k in ("backbone", "backbone_dim", "visual_hash", "visual_config", "visual_part")}
         visual.update(
             views=est.pooled_views(data.visual.shape[1]),
             pooling=POOLING,
@@ -132,7 +141,12 @@ def predict_dataset(
     card = predictor.card
     part = card.visual["visual_part"] if card.visual else "both"
     data: TextureData = load_texture_data(
-        dataset, tactile_config=predictor.tactile_config, visual=predictor.needs_visual, visual_part=part, rated=rated
+        dataset,
+        tactile_config=predictor.tactile_config,
+        visual=predictor.needs_visual,
+        visual_part=part,
+        visual_config=predictor.visual_config,
+        rated=rated,
     )
     if predictor.needs_visual:
         if data.meta["backbone"] != card.visual["backbone"] or data.meta["visual_hash"] != card.visual["visual_hash"]:

@@ -38,6 +38,8 @@ class VisualConfig(BaseModel):
 
     patch_size       side of each square patch, pixels (the backbones' 224 input)
     grid             patches per side; grid × grid overlapping patches cover the image
+    glcm             compute the grey-level co-occurrence matrix (False: the vector has no GLCM columns, and a
+                     frame costs the backbone alone)
     glcm_levels      grey levels of the co-occurrence matrix (levels² features)
     glcm_distances   pixel offsets of the co-occurrence pairs
     glcm_angles_deg  directions of the pairs, degrees (0 = to the right)
@@ -61,6 +63,7 @@ class VisualConfig(BaseModel):
 
     patch_size: int = Field(224, ge=32)
     grid: int = Field(7, ge=1)
+    glcm: bool = True
     glcm_levels: int = Field(16, ge=2, le=256)
     glcm_distances: tuple[int, ...] = (1,)
     glcm_angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
@@ -120,8 +123,8 @@ class VisualConfig(BaseModel):
 
     @property
     def glcm_dim(self) -> int:
-        """Length of the flattened GLCM feature (levels²)."""
-        return self.glcm_levels * self.glcm_levels
+        """Length of the flattened GLCM feature (levels², 0 with the GLCM off)."""
+        return self.glcm_levels * self.glcm_levels if self.glcm else 0
 
     @property
     def descriptor_dims(self) -> dict[str, int]:
@@ -155,10 +158,17 @@ class VisualConfig(BaseModel):
         if data["resize"] is None:
             # Added after models were exported: absent, it leaves every existing hash (and cache entry) as it was.
             del data["resize"]
+        if self.glcm:
+            del data["glcm"]  # likewise: the GLCM was always on before it could be turned off
         if not self.descriptors:
             for key in _DESCRIPTOR_FIELDS:
                 del data[key]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
+
+    def computation(self) -> dict:
+        """The fields `canonical_json` holds, as a dict: `VisualConfig(**computation())` computes the same vector
+        (a model card carries it, so the service builds the configuration its model was trained on)."""
+        return json.loads(self.canonical_json())
 
     def hash(self) -> str:
         """First 16 hex digits of the sha256 of `canonical_json()`."""

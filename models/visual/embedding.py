@@ -1,4 +1,4 @@
-"""An image's visual feature vector: backbone features averaged over its patches ⊕ its GLCM.
+"""An image's visual feature vector: backbone features averaged over its patches ⊕ its GLCM ⊕ descriptors.
 
 Torch-free: works with any embedder that has `name`, `dim`, `fingerprint` and
 `embed()` — the torch `Backbone` in training, `OnnxBackbone` in the service.
@@ -22,12 +22,17 @@ from models.visual.image import ImageSource, check_gray, load_colour, load_image
 from models.visual.patches import extract_patches
 
 PROGRESS_THRESHOLD = 8  # views; below this a progress bar is noise
-VisualPart = Literal["both", "backbone", "glcm"]
+# Named column sets of the visual vector: "both" is every column (backbone ⊕ GLCM ⊕ any descriptors);
+# "classic" every hand-made one (GLCM and the descriptors); "descriptors" only the descriptors.
+VisualPart = Literal["both", "backbone", "glcm", "descriptors", "classic"]
+VISUAL_PARTS: tuple[str, ...] = ("both", "backbone", "glcm", "descriptors", "classic")
 
 
 def visual_layout(backbone_dim: int, config: VisualConfig) -> dict[str, slice]:
-    """Column blocks of a visual vector: backbone, glcm, then each descriptor `config` turns on."""
-    layout = {"backbone": slice(0, backbone_dim), "glcm": slice(backbone_dim, backbone_dim + config.glcm_dim)}
+    """Column blocks of a visual vector: backbone, glcm (when on), then each descriptor `config` turns on."""
+    layout = {"backbone": slice(0, backbone_dim)}
+    if config.glcm:
+        layout["glcm"] = slice(backbone_dim, backbone_dim + config.glcm_dim)
     start = backbone_dim + config.glcm_dim
     for name, width in config.descriptor_dims.items():
         layout[name] = slice(start, start + width)
@@ -35,15 +40,27 @@ def visual_layout(backbone_dim: int, config: VisualConfig) -> dict[str, slice]:
     return layout
 
 
-def visual_slice(dim: int, part: VisualPart, glcm_dim: int = 256) -> slice:
-    """Columns of a visual vector (backbone ⊕ GLCM, `dim` wide) that `part` keeps (feature ablations)."""
-    if part == "both":
-        return slice(0, dim)
-    if part == "backbone":
-        return slice(0, dim - glcm_dim)
-    if part == "glcm":
-        return slice(dim - glcm_dim, dim)
-    raise ValueError(f"visual part must be both, backbone or glcm, got {part!r}")
+def part_columns(layout: dict[str, slice], part: str) -> tuple[np.ndarray, dict[str, list[int]]]:
+    """The columns of a named visual part (VISUAL_PARTS) and the blocks they hold, renumbered from 0:
+    (column indices, block name → [start, stop)). Training and the service both cut a vector with it."""
+    names = {
+        "both": list(layout),
+        "backbone": ["backbone"],
+        "glcm": [n for n in layout if n == "glcm"],
+        "descriptors": [n for n in layout if n not in ("backbone", "glcm")],
+        "classic": [n for n in layout if n != "backbone"],
+    }
+    if part not in names:
+        raise ValueError(f"visual part must be one of {list(VISUAL_PARTS)}, got {part!r}")
+    if not names[part]:
+        raise ValueError(f"visual part {part!r} is empty: the visual configuration computes none of its columns")
+    cols, blocks, start = [], {}, 0
+    for n in names[part]:
+        sl = layout[n]
+        cols.append(np.arange(sl.start, sl.stop))
+        blocks[n] = [start, start + sl.stop - sl.start]
+        start += sl.stop - sl.start
+    return np.concatenate(cols), blocks
 
 
 class PatchEmbedder(Protocol):
@@ -191,8 +208,10 @@ def _backbone_glcm(
         raise ValueError(
             f"backbone {backbone.name!r} returned {embedded.shape}, expected ({patches.shape[0]}, {backbone.dim})"
         )
-    texture = glcm_features(seen, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg)
-    values = np.concatenate([embedded.mean(axis=0, dtype=np.float64).astype(np.float32), texture])
+    values = embedded.mean(axis=0, dtype=np.float64).astype(np.float32)
+    if config.glcm:
+        texture = glcm_features(seen, config.glcm_levels, config.glcm_distances, config.glcm_angles_deg)
+        values = np.concatenate([values, texture])
     if cache is not None and key is not None:
         cache.put(key, values)
     return values

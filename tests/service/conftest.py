@@ -242,17 +242,17 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
 def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
     """ridge-both on 8 synthetic textures (enough for `hapticlink train` to calibrate intervals and fit the OOD
     detector, frame ranges included), its ridge-tactile fallback, the backbone, and the dataset (8 s of stroking
-    per texture: tests stream a texture's own recording as the in-distribution case)."""
+    per texture: tests stream a texture's own recording as the in-distribution case). It reads the served visual
+    configuration (2×2 patches, no GLCM); `visual_model` reads the default one."""
     from models.offline.datasets.build import build
-    from models.offline.featurize import backbone_onnx
+    from models.offline.featurize import SERVED_VISUAL, backbone_onnx
     from models.offline.train import train_and_export
-    from models.visual.config import VisualConfig
 
     root = tmp_path_factory.mktemp("calibrated-visual-model")
     dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=8, image_size=256)
-    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
+    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx", visual_config=SERVED_VISUAL)
     tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
-    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(SERVED_VISUAL), dataset=dataset)
 
 
 @pytest.fixture(scope="session")

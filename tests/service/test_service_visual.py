@@ -10,8 +10,7 @@ from websockets.sync.client import connect
 
 from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
-from models.visual.config import VisualConfig
-from models.visual.embedding import visual_features, visual_slice
+from models.visual.embedding import part_columns, visual_features, visual_layout
 from models.visual.image import load_image
 from models.visual.onnx_backbone import OnnxBackbone
 from service.settings import Settings
@@ -63,8 +62,10 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
         Recording(f32(rec.accel), f32(rec.force), f32(rec.speed)), predictor.tactile_config
     )
     backbone = OnnxBackbone(visual_model.backbone)
-    vector = visual_features(load_image(image), VisualConfig(), backbone)
-    vector = vector[visual_slice(vector.shape[0], predictor.card.visual["visual_part"])]
+    config = predictor.visual_config
+    vector = visual_features(load_image(image), config, backbone)
+    columns, _ = part_columns(visual_layout(backbone.dim, config), predictor.card.visual["visual_part"])
+    vector = vector[columns]
     offline = predictor.predict(features[:3], np.repeat(vector[None], 3, axis=0))
     served = np.array([[w["raw_ratings"][a] for a in ATTRIBUTES] for w in windows])
     assert np.allclose(served, offline, atol=0.02)

@@ -11,11 +11,7 @@ from models.offline.datasets.format import Dataset
 from models.offline.featurize import tactile_table
 from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
-from models.visual.embedding import visual_layout
-
-# Named column sets of the visual vector: "both" is every column (backbone ⊕ GLCM ⊕ any descriptors);
-# "classic" every hand-made one (GLCM and the descriptors); "descriptors" only the descriptors.
-VISUAL_PARTS = ("both", "backbone", "glcm", "descriptors", "classic")
+from models.visual.embedding import part_columns, visual_layout
 
 
 @dataclass(frozen=True)
@@ -65,29 +61,6 @@ class TextureData:
         return replace(self, targets=None if targets is None else np.asarray(targets, np.float32))
 
 
-def part_columns(layout: dict[str, slice], part: str) -> tuple[np.ndarray, dict[str, list[int]]]:
-    """The columns of a named visual part (VISUAL_PARTS) and the blocks they hold, renumbered from 0:
-    (column indices, block name → [start, stop))."""
-    names = {
-        "both": list(layout),
-        "backbone": ["backbone"],
-        "glcm": ["glcm"],
-        "descriptors": [n for n in layout if n not in ("backbone", "glcm")],
-        "classic": [n for n in layout if n != "backbone"],
-    }
-    if part not in names:
-        raise ValueError(f"visual part must be one of {list(VISUAL_PARTS)}, got {part!r}")
-    if not names[part]:
-        raise ValueError(f"visual part {part!r} is empty: the visual configuration turns on no descriptors")
-    cols, blocks, start = [], {}, 0
-    for n in names[part]:
-        sl = layout[n]
-        cols.append(np.arange(sl.start, sl.stop))
-        blocks[n] = [start, start + sl.stop - sl.start]
-        start += sl.stop - sl.start
-    return np.concatenate(cols), blocks
-
-
 def load_texture_data(
     root: str | Path,
     *,
@@ -128,6 +101,7 @@ def load_texture_data(
             backbone=vt.backbone,
             backbone_dim=vt.backbone_dim,
             visual_hash=vt.config_hash,
+            visual_config=vcfg.computation(),
             visual_part=visual_part,
             visual_blocks=blocks,
         )

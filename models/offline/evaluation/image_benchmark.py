@@ -147,9 +147,8 @@ def withheld_predictions(
 def image_data(root: str | Path, cfg: VisualConfig, n_views: int = 1) -> TextureData:
     """A dataset's rated textures as image-only data (no tactile features computed, whatever it holds), with
     `n_views` image views each (1: the photo itself; view 0 of every stored set)."""
-    from models.offline.evaluation.data import part_columns
     from models.offline.featurize import visual_table
-    from models.visual.embedding import visual_layout
+    from models.visual.embedding import part_columns, visual_layout
 
     ds = Dataset(root)
     rated = ds.texture_ids("yes")

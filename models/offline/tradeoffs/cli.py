@@ -30,6 +30,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument(
         "--glcm", default="both", choices=["both", "on", "off"], help="configurations with GLCM, without, or both"
     )
+    f.add_argument(
+        "--descriptor-sets",
+        nargs="+",
+        default=["none"],
+        metavar="SET",
+        help="classic descriptor sets beside the backbone, each a comma-separated list or 'none', "
+        "e.g. none spectrum,grids (default: none)",
+    )
     f.add_argument("--repeats", type=int, default=5, help="timed frames per configuration (interleaved)")
     f.add_argument(
         "--nested-folds", type=int, default=5, help="inner folds of the nested check of the pick rule (0: skip)"
@@ -221,6 +229,7 @@ def _frontier(args: argparse.Namespace) -> int:
         timing_cache=Path(args.work),
         retime=args.retime,
         glcm={"both": (True, False), "on": (True,), "off": (False,)}[args.glcm],
+        descriptor_sets=tuple(descriptor_set(s) for s in args.descriptor_sets),
     )
     out = Path(args.out or DEFAULT_REPORT / f"frontier-{args.model}.json")
     write_json(out, {**result, "command": _command(args)})
@@ -235,6 +244,21 @@ def _frontier(args: argparse.Namespace) -> int:
         )
     print(f"wrote {out}")
     return 0
+
+
+def descriptor_set(text: str) -> tuple[str, ...]:
+    """ "none" → (); "spectrum,grids" → ("spectrum", "grids"), each a known descriptor."""
+    from models.visual.config import DESCRIPTOR_NAMES
+
+    if text == "none":
+        return ()
+    names = tuple(n for n in text.split(",") if n)
+    unknown = [n for n in names if n not in DESCRIPTOR_NAMES]
+    if unknown or not names:
+        raise ValueError(
+            f"descriptor set {text!r}: expected 'none' or a comma-separated list of {list(DESCRIPTOR_NAMES)}"
+        )
+    return names
 
 
 def _command(args: argparse.Namespace) -> str:

@@ -13,7 +13,7 @@ from models.offline.evaluation.data import TextureData, load_texture_data
 from models.offline.evaluation.estimator_registry import CLASSICAL, POOLED_BASES, POOLED_MEANS
 from models.offline.featurize import DEFAULT_VIEWS, visual_table
 from models.visual.config import VisualConfig
-from models.visual.embedding import VisualPart, visual_slice
+from models.visual.embedding import VisualPart, part_columns, visual_layout
 from texture_library.atomic_file import write_text
 
 POOLING_MODELS = (*POOLED_BASES, *POOLED_MEANS, "selected")  # classical models that pool a texture's views
@@ -34,12 +34,14 @@ def with_visual(
     """`data` (loaded without visual features) with the visual features of `config` attached."""
     table = visual_table(root, config, n_views=n_views, backbone=backbone)
     index = {t: i for i, t in enumerate(table.textures)}
-    vis = table.X[[index[t] for t in data.textures]][:, :, visual_slice(table.X.shape[2], part)]
+    cols, _ = part_columns(visual_layout(table.backbone_dim, config), part)
+    vis = table.X[[index[t] for t in data.textures]][:, :, cols]
     meta = {
         **data.meta,
         "backbone": table.backbone,
         "backbone_dim": table.backbone_dim,
         "visual_hash": config.hash(),
+        "visual_config": config.computation(),
         "visual_part": part,
     }
     return replace(data, visual=vis, meta=meta)

@@ -52,24 +52,33 @@ BACKBONE_NOTES = {"efficientnet_lite0": "ImageNet weights", "resnet50": "random 
 
 @dataclass(frozen=True)
 class Patching:
-    """How a frame is cut: grid × grid patches of an image whose shorter side is `resize` (None: as it comes)."""
+    """How a frame is cut: grid × grid patches of an image whose shorter side is `resize` (None: as it comes),
+    and the classic texture descriptors computed beside the backbone (models.visual.descriptors; none: ())."""
 
     grid: int
     resize: int | None
+    descriptors: tuple[str, ...] = ()
 
-    def visual_config(self, backbone: str = "efficientnet_lite0") -> VisualConfig:
-        return VisualConfig(grid=self.grid, resize=self.resize, backbone=backbone)
+    def visual_config(self, backbone: str = "efficientnet_lite0", glcm: bool = True) -> VisualConfig:
+        return VisualConfig(
+            grid=self.grid, resize=self.resize, backbone=backbone, glcm=glcm, descriptors=self.descriptors
+        )
 
     @property
     def label(self) -> str:
-        return f"{self.grid}×{self.grid} @ {'native' if self.resize is None else self.resize}"
+        size = f"{self.grid}×{self.grid} @ {'native' if self.resize is None else self.resize}"
+        return size + "".join(f" + {d}" for d in self.descriptors)
 
 
-def sweep(grids: tuple[int, ...] = GRIDS, resizes: tuple[int | None, ...] = RESIZES) -> list[Patching]:
-    """Every grid at every size, plus the whole frame shrunk to one 224-pixel patch."""
-    out = [Patching(g, r) for r in resizes for g in grids]
+def sweep(
+    grids: tuple[int, ...] = GRIDS,
+    resizes: tuple[int | None, ...] = RESIZES,
+    descriptor_sets: tuple[tuple[str, ...], ...] = ((),),
+) -> list[Patching]:
+    """Every grid at every size with every descriptor set, plus the whole frame shrunk to one 224-pixel patch."""
+    out = [Patching(g, r, d) for d in descriptor_sets for r in resizes for g in grids]
     if 224 not in resizes and 1 in grids:
-        out.append(Patching(1, 224))
+        out.extend(Patching(1, 224, d) for d in descriptor_sets)
     return out
 
 
@@ -120,7 +129,8 @@ def time_frames(
 
     image: (H, W) float in [0, 1], a decoded camera frame; sessions: embedders by (backbone, threads).
     Steps: prep (resize + patch extraction), embed (backbone on the patches + their mean), glcm (on
-    the resized frame)."""
+    the resized frame), desc (the patching's descriptors on the resized frame; 0 without any)."""
+    from models.visual.descriptors import descriptor_vector
     from models.visual.glcm import glcm_features
     from models.visual.image import resize_shorter
     from models.visual.patches import extract_patches
@@ -131,7 +141,7 @@ def time_frames(
     for s in sessions.values():  # warm-up: the first run allocates
         s.embed(extract_patches(image, cfg.patch_size, 2))
     jobs = [(b, t, p) for (b, t) in sessions for p in patchings]
-    samples: dict[tuple, dict[str, list[float]]] = {j: {"prep": [], "embed": [], "glcm": []} for j in jobs}
+    samples: dict[tuple, dict[str, list[float]]] = {j: {"prep": [], "embed": [], "glcm": [], "desc": []} for j in jobs}
     order = random.Random(seed)
     with tqdm(total=repeats * len(jobs), desc="timing frames (interleaved)", unit="frame") as bar:
         for _ in range(repeats):
@@ -146,7 +156,10 @@ def time_frames(
                 t2 = time.perf_counter()
                 glcm_features(scaled, cfg.glcm_levels, cfg.glcm_distances, cfg.glcm_angles_deg)
                 t3 = time.perf_counter()
-                for k, v in (("prep", t1 - t0), ("embed", t2 - t1), ("glcm", t3 - t2)):
+                if p.descriptors:
+                    descriptor_vector(scaled, None, p.visual_config())
+                t4 = time.perf_counter()
+                for k, v in (("prep", t1 - t0), ("embed", t2 - t1), ("glcm", t3 - t2), ("desc", t4 - t3)):
                     samples[job][k].append(v * 1e3)
                 bar.update()
     rows = []
@@ -157,6 +170,7 @@ def time_frames(
                 "threads": t,
                 "grid": p.grid,
                 "resize": p.resize,
+                "descriptors": list(p.descriptors),
                 **{f"{k}_ms": float(np.median(v)) for k, v in s.items()},
                 "repeats": repeats,
             }
@@ -310,8 +324,8 @@ def sweep_accuracy(
     for p in tqdm(patchings, desc=f"LOOCV {model} per configuration", unit="config"):
         for with_glcm in glcm:
             label = config_label("efficientnet_lite0", p, with_glcm)
-            part = "both" if with_glcm else "backbone"
-            d = with_visual(data0, root, p.visual_config(), n_views=n_views, part=part, backbone=embedder)
+            config = p.visual_config(glcm=with_glcm)
+            d = with_visual(data0, root, config, n_views=n_views, part="both", backbone=embedder)
             result.predictions[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
             result.data[label] = d
             result.rows.append(
@@ -320,6 +334,7 @@ def sweep_accuracy(
                     "backbone": "efficientnet_lite0",
                     "grid": p.grid,
                     "resize": p.resize,
+                    "descriptors": list(p.descriptors),
                     "glcm": with_glcm,
                     "model_us": model_us,
                 }
@@ -343,9 +358,11 @@ def frontier_rows(
     frontier = []
     for t in timing:
         for with_glcm in glcm:
-            label = config_label(t["backbone"], Patching(t["grid"], t["resize"]), with_glcm)
+            patching = Patching(t["grid"], t["resize"], tuple(t.get("descriptors", ())))
+            label = config_label(t["backbone"], patching, with_glcm)
             acc = next((r for r in sweep.rows if r["label"] == label), None)
-            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if with_glcm else 0.0)
+            desc_ms = t.get("desc_ms", 0.0)
+            frame_ms = t["prep_ms"] + t["embed_ms"] + (t["glcm_ms"] if with_glcm else 0.0) + desc_ms
             row = {
                 "config": f"{label} · {t['threads']} thread{'s' if t['threads'] > 1 else ''}",
                 "label": label,
@@ -359,6 +376,8 @@ def frontier_rows(
                 "prep_ms": t["prep_ms"],
                 "embed_ms": t["embed_ms"],
                 "glcm_ms": t["glcm_ms"] if with_glcm else 0.0,
+                "descriptors": list(patching.descriptors),
+                "desc_ms": desc_ms,
                 "mae": None,
                 "window_us": None,
                 "pareto": False,
@@ -402,9 +421,9 @@ def recommendation(
     chosen = one[choice]
     out = {
         "config": choice,
-        "visual_config": Patching(chosen["grid"], chosen["resize"])
-        .visual_config()
-        .model_dump(mode="json", exclude={"backbone", "resnet50_weights"}),
+        "visual_config": Patching(chosen["grid"], chosen["resize"], tuple(chosen["descriptors"]))
+        .visual_config(glcm=chosen["glcm"])
+        .computation(),
         "glcm": chosen["glcm"],
         "mae": chosen["mae"],
         "mae_ci": chosen["mae_ci"],
@@ -447,13 +466,14 @@ def run_frontier(
     timing_cache: Path | None = None,
     retime: bool = False,
     glcm: tuple[bool, ...] = (True, False),
+    descriptor_sets: tuple[tuple[str, ...], ...] = ((),),
 ) -> dict:
     """The whole accuracy-against-cost study → a JSON-able dict (no per-texture values): timing, the
     accuracy sweep, the frontier and the recommendation (see frontier_timing for timing_cache and retime)."""
     from models.visual.image import load_image
 
     options = options or {}
-    patchings = sweep(grids, resizes)
+    patchings = sweep(grids, resizes, descriptor_sets)
     paths = backbone_paths(backbones)
     started = load_state()
     data0 = tactile_data(root, workers=workers)

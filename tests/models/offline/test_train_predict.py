@@ -13,6 +13,7 @@ from models.offline.evaluation.data import load_texture_data
 from models.offline.evaluation.estimator_registry import build_estimator
 from models.offline.train import predict_dataset, train_and_export
 from models.tactile.config import TactileConfig
+from models.visual.config import VisualConfig
 from service.cli import main as cli
 from texture_library.attributes import ATTRIBUTES
 
@@ -129,7 +130,8 @@ def stand_in_images(monkeypatch):
             **data.meta,
             "backbone": "stand-in",
             "backbone_dim": 24,
-            "visual_hash": "0" * 16,
+            "visual_hash": VisualConfig(grid=2, glcm=False).hash(),
+            "visual_config": VisualConfig(grid=2, glcm=False).computation(),
             "visual_part": visual_part,
         }
         return replace(data, visual=views.astype(np.float32), meta=meta)
@@ -154,6 +156,24 @@ def test_train_selected_applies_the_rule_to_every_rated_texture_and_records_it(d
     expected = est.predict(stand_in_images(dataset, rated="withheld"))
     assert textures == ["synth_006", "synth_007"]
     np.testing.assert_allclose(preds, expected, atol=1e-2)
+
+
+def test_the_card_carries_the_visual_configuration_and_a_forged_one_is_refused(dataset, tmp_path, stand_in_images):
+    import json
+
+    import onnx
+
+    path = train_and_export(dataset, "selected", tmp_path / "selected.onnx", seed=1, options={"folds": 3, "repeats": 1})
+    assert Predictor(path).visual_config == VisualConfig(grid=2, glcm=False)  # what the service will compute
+    model = onnx.load(str(path))
+    for prop in model.metadata_props:
+        if prop.key == "visual":
+            visual = json.loads(prop.value)
+            visual["visual_config"]["grid"] = 3  # the configuration no longer matches the hash trained on
+            prop.value = json.dumps(visual)
+    onnx.save(model, str(tmp_path / "forged.onnx"))
+    with pytest.raises(ValueError, match="visual config hash .* does not match its config"):
+        Predictor(tmp_path / "forged.onnx")
 
 
 def test_train_refuses_metrics_of_another_model(dataset, tmp_path):

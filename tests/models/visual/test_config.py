@@ -81,3 +81,19 @@ def test_resize_must_hold_one_patch():
     with pytest.raises(ValidationError, match="resize"):
         VisualConfig(resize=200)
     assert VisualConfig(resize=224).resize == 224
+
+
+def test_glcm_off_changes_the_hash_and_on_leaves_it_as_before():
+    assert VisualConfig(glcm=True).hash() == VisualConfig().hash()
+    off = VisualConfig(grid=2, glcm=False)
+    assert off.hash() != VisualConfig(grid=2).hash() and '"glcm":false' in off.canonical_json()
+    assert off.glcm_dim == 0 and VisualConfig().glcm_dim == 256
+
+
+@pytest.mark.parametrize(
+    "config", [VisualConfig(), VisualConfig(grid=2, glcm=False), VisualConfig(resize=448, descriptors=("lbp",))]
+)
+def test_computation_rebuilds_the_same_configuration(config):
+    # what a model card carries, so the service computes the vector its model was trained on
+    rebuilt = VisualConfig(**config.computation())
+    assert rebuilt.hash() == config.hash() and rebuilt == config

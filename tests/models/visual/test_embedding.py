@@ -4,7 +4,7 @@ import pytest
 from models.visual.augment import view_params
 from models.visual.cache import FeatureCache
 from models.visual.config import VisualConfig
-from models.visual.embedding import VisualFeatures, batch_visual_features, visual_features
+from models.visual.embedding import VisualFeatures, batch_visual_features, part_columns, visual_features, visual_layout
 from models.visual.glcm import glcm_features
 from models.visual.patches import extract_patches
 
@@ -110,3 +110,25 @@ def test_resize_scales_the_image_before_patches_and_glcm():
     by_hand = visual_features(resize_shorter(img, 240), VisualConfig(grid=2), embedder)
     np.testing.assert_array_equal(resized, by_hand)
     assert not np.array_equal(resized, visual_features(img, VisualConfig(grid=2), embedder))
+
+
+def test_glcm_off_gives_the_backbone_part_alone(texture):
+    embedder = CountingEmbedder()
+    on, off = VisualConfig(grid=2), VisualConfig(grid=2, glcm=False)
+    with_glcm = visual_features(texture, on, embedder)
+    without = visual_features(texture, off, embedder)
+    assert off.glcm_dim == 0 and without.shape == (embedder.dim,)
+    np.testing.assert_array_equal(without, with_glcm[: embedder.dim])
+    assert list(visual_layout(embedder.dim, off)) == ["backbone"]
+    assert list(visual_layout(embedder.dim, on)) == ["backbone", "glcm"]
+
+
+def test_part_columns_cut_named_blocks_and_refuse_an_absent_one():
+    layout = visual_layout(4, VisualConfig(descriptors=("spectrum",)))
+    cols, blocks = part_columns(layout, "classic")
+    assert cols.tolist() == list(range(4, 4 + 256 + 8)) and blocks == {"glcm": [0, 256], "spectrum": [256, 264]}
+    assert part_columns(layout, "backbone")[0].tolist() == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="'glcm' is empty"):
+        part_columns(visual_layout(4, VisualConfig(glcm=False)), "glcm")
+    with pytest.raises(ValueError, match="visual part must be one of"):
+        part_columns(layout, "colours")

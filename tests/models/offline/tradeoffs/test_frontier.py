@@ -41,6 +41,27 @@ def test_timing_interleaves_every_configuration_and_reports_each_step():
         time_frames(img, configs, {("fake", 1): emb}, repeats=0)
 
 
+def test_descriptor_sets_multiply_the_sweep_and_are_timed_as_their_own_step():
+    configs = sweep((2,), (None,), ((), ("spectrum", "grids")))
+    assert configs == [Patching(2, None), Patching(2, None, ("spectrum", "grids"))]
+    assert configs[1].label == "2×2 @ native + spectrum + grids"
+    assert configs[1].visual_config(glcm=False) == VisualConfig(
+        grid=2, backbone="efficientnet_lite0", glcm=False, descriptors=("spectrum", "grids")
+    )
+    img = np.random.default_rng(0).random((400, 400)).astype(np.float32)
+    rows = time_frames(img, configs, {("fake", 1): FakeEmbedder()}, repeats=1)
+    by = {tuple(r["descriptors"]): r for r in rows}
+    assert by[()]["desc_ms"] < by[("spectrum", "grids")]["desc_ms"]  # without descriptors: the clock's overhead
+
+
+def test_descriptor_sets_parse_from_the_command_line():
+    from models.offline.tradeoffs.cli import descriptor_set
+
+    assert descriptor_set("none") == () and descriptor_set("spectrum,grids") == ("spectrum", "grids")
+    with pytest.raises(ValueError, match="descriptor set 'sift'"):
+        descriptor_set("sift")
+
+
 def test_pick_takes_the_cheapest_within_the_margin():
     mae = {"big": 5.0, "mid": 5.25, "small": 5.4, "tiny": 6.0}
     cost = {"big": 500.0, "mid": 100.0, "small": 40.0, "tiny": 5.0}
