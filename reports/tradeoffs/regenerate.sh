@@ -12,6 +12,10 @@ H=${DATASET:-data/hatt-texnet}
 
 # The frontier: every visual configuration timed interleaved, LOOCV MAE with the reference model (ridge-both)
 hl tradeoffs frontier --dataset $H --model ridge-both
+# The same with the served model itself on the three cheapest grids, with and without the spectrum + grid descriptors
+hl tradeoffs frontier --dataset $H --model selected --grids 3 2 1 --resizes native --backbones efficientnet_lite0 \
+  --glcm off --descriptor-sets none spectrum,grids --nested-folds 0 --workers 2 --threads 1 2 --repeats 7 \
+  --out reports/tradeoffs/frontier-selected.json
 # Robustness and intervals: faulted inputs of every texture, then fits per (model, seed): curves, breaking points,
 # spread, material-group shift, augmentation, interval coverage
 hl tradeoffs faults --dataset $H

@@ -163,7 +163,8 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
         "EfficientNet-Lite0 (ImageNet weights): accuracy and cost per configuration (sorted by MAE); Pareto "
         "over 1-thread frame cost and MAE.",
         "",
-        "| configuration | MAE [95 % CI] | Δ vs best [95 % CI] | frame ms, 1 thread | prep / backbone / GLCM ms | "
+        "| configuration | MAE [95 % CI] | Δ vs best [95 % CI] | frame ms, 1 thread | prep / backbone / GLCM / "
+        "descriptors ms | "
         "frame ms, 2 threads | quiet-equivalent ms, 1 thread | window µs | Pareto |",
         "|---|---|---|---:|---|---:|---:|---:|:-:|",
     ]
@@ -171,7 +172,8 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
         t2 = two.get(r["label"])
         lines.append(
             f"| {r['label']} | {r['mae']:.2f} {_ci(r['mae_ci'])} | {r['vs_best']['mean']:+.2f} {_ci(r['vs_best'])} | "
-            f"{r['frame_ms']:.1f} | {r['prep_ms']:.1f} / {r['embed_ms']:.1f} / {r['glcm_ms']:.1f} | "
+            f"{r['frame_ms']:.1f} | {r['prep_ms']:.1f} / {r['embed_ms']:.1f} / {r['glcm_ms']:.1f} / "
+            f"{r.get('desc_ms', 0.0):.1f} | "
             f"{'—' if t2 is None else format(t2['frame_ms'], '.1f')} | "
             f"{'—' if scale is None else format(r['frame_ms'] * scale['factor'], '.0f')} | {_fmt(r['window_us'], 0)} | "
             f"{'●' if r['pareto'] else ''} |"
