@@ -141,9 +141,9 @@ class Settings(BaseSettings):
         12.0, ge=0, description="cost a challenger must gain to replace the choice, in the selection rule's units"
     )
     hysteresis_hold: int = Field(4, ge=1, description="windows in a row a challenger must win")
-    # 72 = 6 windows' worth of the margin: the largest lead a challenger reached on steady one-minute strokes of the
-    # test library (12 streams, hybrid rule) was 55, and a surface change between far-apart entries reaches 72 in 2
-    # windows (docs/service.md, selection)
+    # 72 = 6 windows' worth of the margin: on steady one-minute strokes over the tests' library the largest lead a
+    # challenger reached was 55 (36 and 48 flipped such strokes), and after a change to the entry furthest away
+    # at most 2 windows are held (python -m benchmarks.hysteresis; docs/service.md, Events)
     hysteresis_release_lead: float = Field(
         72.0,
         ge=0,

@@ -115,7 +115,14 @@ class OnnxBackbone:
 
     @property
     def stopped(self) -> bool:
+        """True once `stop()` was called (every later run raises BackboneStopped)."""
         return self._stopped
+
+    @property
+    def runs_in_flight(self) -> int:
+        """Runs under way now (each a batch of at most batch_size patches)."""
+        with self._lock:
+            return len(self._runs)
 
     def stop(self) -> None:
         """Terminate the runs in flight and refuse later ones (both raise BackboneStopped); idempotent.

@@ -116,7 +116,7 @@ def test_stop_terminates_the_run_in_flight_and_refuses_later_ones(efficientnet_o
 
     worker = threading.Thread(target=embed)
     worker.start()
-    while not runner._runs:  # deterministic: the run is in flight
+    while not runner.runs_in_flight:  # deterministic: the run is in flight
         time.sleep(0.001)
     time.sleep(0.05)
     stopped = time.perf_counter()
