@@ -4,6 +4,7 @@ clean stop on one signal."""
 import asyncio
 import dataclasses
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from models.offline.demo_assets import prepare_assets
-from service.demo import run_demo
+from service.demo import STOP_S, run_demo
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -55,10 +56,11 @@ def _read_until(proc: subprocess.Popen, marker: str, timeout_s: float) -> str:
     raise AssertionError(f"no line with {marker!r}; printed:\n{''.join(out)}")
 
 
-# The target is 2 s (service.demo.STOP_S); the demo stops in about 0.4 s when the machine is quiet
-# (benchmarks/demo_stop.py). The bound leaves room for a loaded CI machine: what it catches is a process that does
-# not exit at all, e.g. one waiting for an embedding nobody can interrupt.
-EXIT_BOUND_S = 4.0
+# The target: the demo stops robot, feed and service and prints its summary within STOP_S (2 s) of the signal,
+# as it measures itself ("stopped … s after the signal"; about 0.2 s, benchmarks/demo_stop.py). The process's
+# exit, seen from here, gets a generous bound: interpreter teardown on a loaded CI machine varies, and what the
+# bound has to catch is a process that does not exit at all, e.g. one waiting for an embedding nobody can end.
+EXIT_BOUND_S = 5.0
 
 # An embedding on the visual pool that never ends unless the backbone is stopped: the first session frame's
 # embedding announces itself and keeps running the backbone until Runtime.stop() terminates it (the warm-up's, on
@@ -114,6 +116,8 @@ def _assert_clean_stop(before: str, rest: str, took: float, code: int) -> None:
     assert code == 0, out
     assert took <= EXIT_BOUND_S, f"exited {took:.2f} s after the signal:\n{out}"
     assert "demo summary: " in rest and "robot stats: " in rest, out
+    stopped = re.search(r"stopped ([0-9.]+) s after the signal", rest)
+    assert stopped is not None and float(stopped.group(1)) <= STOP_S, out
     for never in ("HTTP 503", "resend buffer full", "Traceback", "ERROR"):
         assert never not in out, f"{never!r} printed:\n{out}"
 
@@ -131,4 +135,3 @@ def test_a_signal_during_an_embedding_stops_it(small_assets, kit):
         small_assets, kit.free_port(), signal.SIGINT, "EMBEDDING the first frame", ENDLESS_EMBEDDING
     )
     _assert_clean_stop(before, rest, took, code)
-    assert "stopped " in rest and " s after the signal" in rest, rest
