@@ -124,8 +124,9 @@ def test_stop_terminates_the_run_in_flight_and_refuses_later_ones(efficientnet_o
     worker.join(timeout=30)
     took = time.perf_counter() - stopped
     assert not worker.is_alive() and len(raised) == 1 and isinstance(raised[0], BackboneStopped), raised
-    # the whole run would take about 8 × one_eighth_s; a terminated one returns within a node's time
-    assert took < max(0.5, 2 * one_eighth_s), (took, one_eighth_s)
+    # the whole run would take about 8 × one_eighth_s; a terminated one returns after the node it is in (2–194 ms
+    # measured at load average 7.6 on 2 cores; the bound leaves room for a busier machine)
+    assert took < max(1.0, 3 * one_eighth_s), (took, one_eighth_s)
     assert runner.stopped
     with pytest.raises(BackboneStopped):
         runner.embed(patches[:1])
