@@ -4,6 +4,7 @@
         ─(a window is complete)─▶ WindowBatcher ─▶ pipeline.estimate_batch (window pool) ─▶ apply_result ─▶ broker
     frames: decode + scene-change test (frame pool) ─▶ the serving policy: embed it? ─▶ latest-frame slot
         ─▶ embed + frame checks (visual pool, one at a time) ─▶ the scene's pooled visual input
+    a frame of another scene (any model) ─▶ the rendered entry's hysteresis settles again (HysteresisChooser.release)
 
 Tap blocks (the tap exploratory procedure): a model whose features include the taps group gets the
 surface's tap features from them, computed on admission by the same pure function the datasets use
