@@ -23,9 +23,7 @@ import contextlib
 import dataclasses
 import json
 import logging
-import os
 import secrets
-import sys
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -376,7 +374,8 @@ async def run_demo(
             log_level="warning",
             api_keys=api_key,
         )
-        server = DemoServer(uvicorn.Config(create_app(settings), **server_options(settings)))
+        app = create_app(settings)
+        server = DemoServer(uvicorn.Config(app, **server_options(settings)))
         serving = asyncio.create_task(server.serve())
         url = f"http://{host}:{port}"
         tour = ProbeTour(assets.probes, per_texture_s)
@@ -428,12 +427,20 @@ async def run_demo(
             if not done:
                 serving.cancel()
                 await asyncio.gather(serving, return_exceptions=True)
+            _stop_runtime(app)  # the lifespan's close did, unless serving had to be cancelled before it
             if report.summary():
                 print(report.summary(), flush=True)
             print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)
             if stop_asked:
                 print(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal", flush=True)
         print(f"robot stats: {robot.stats.as_dict()}")
+
+
+def _stop_runtime(app) -> None:
+    """Stop the service's runtime (an embedding in flight ends, later ones are refused); nothing if none started."""
+    state = getattr(app.state, "service", None)
+    if state is not None:
+        state.stop_runtime()
 
 
 def demo(
@@ -446,18 +453,10 @@ def demo(
 ) -> int:
     """The `hapticlink demo` entry: run the loop on prepared assets until Ctrl-C (or SIGTERM) or duration_s.
 
-    Returns the exit code (0). A service worker thread may still be busy when the loop has stopped (an
-    embedding under way cannot be interrupted, and the interpreter would join it at exit for seconds); then
-    the output is flushed and the process exits at once with that code, so one Ctrl-C is enough."""
+    Returns the exit code (0). The service's shutdown terminates an embedding under way (Runtime.stop), so the
+    worker threads the interpreter joins at exit are done within milliseconds: one Ctrl-C is enough."""
     try:
         asyncio.run(run_demo(assets, host=host, port=port, per_texture_s=per_texture_s, duration_s=duration_s))
     except (KeyboardInterrupt, asyncio.CancelledError):
         print("\nstopped.")
-    busy = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon and t.is_alive()]
-    if busy:
-        print(f"(not waiting for {len(busy)} worker thread(s) still computing)", flush=True)
-        logging.shutdown()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
     return 0

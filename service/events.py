@@ -104,8 +104,9 @@ class SelectionOut(BaseModel):
     reason: str = Field(description="one short sentence: why this entry")
     held_by_hysteresis: bool = Field(description="the rule's own pick this window is another entry; hysteresis holds")
     switch_margin: float | None = Field(
-        description="how much cheaper, in the rule's units, the best other entry must get before the choice "
-        "switches; null when the library holds one entry"
+        description="how much cheaper than now, in the rule's units, the best other entry must get for the choice "
+        "to switch at the next window (by the margin, or by its cumulative lead); null when the library holds one "
+        "entry"
     )
 
 

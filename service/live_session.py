@@ -4,6 +4,7 @@
         ─(a window is complete)─▶ WindowBatcher ─▶ pipeline.estimate_batch (window pool) ─▶ apply_result ─▶ broker
     frames: decode + scene-change test (frame pool) ─▶ the serving policy: embed it? ─▶ latest-frame slot
         ─▶ embed + frame checks (visual pool, one at a time) ─▶ the scene's pooled visual input
+    a frame of another scene (any model) ─▶ the rendered entry's hysteresis settles again (HysteresisChooser.release)
 
 Tap blocks (the tap exploratory procedure): a model whose features include the taps group gets the
 surface's tap features from them, computed on admission by the same pure function the datasets use
@@ -42,6 +43,7 @@ from drivers.blocks import Block, SampleBlock, TapBlock
 from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
+from models.visual.onnx_backbone import BackboneStopped
 from service.adaptive import SceneViews
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
@@ -130,6 +132,7 @@ class Session:
         self._told_waiting_taps = False
         self._taps: np.ndarray | None = None  # tap features of the surface now under the tool (taps models)
         self._tapped_scene: np.ndarray | None = None  # thumbnail of the tapped surface (its first frame after the taps)
+        self._chosen_scene: np.ndarray | None = None  # thumbnail of the scene the rendered entry was chosen on
         self._told_missing_taps = False
         self._embedder: asyncio.Task | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
@@ -339,6 +342,7 @@ class Session:
         `visual_done`); superseded: replaces a frame waiting for the running embedding job."""
         self.touch()
         self.counters.frames_received += 1
+        self._release_choice_on_new_scene(thumb)
         if self.runtime.needs_taps:
             self._watch_surface(thumb)
         if not self.runtime.needs_visual:
@@ -357,6 +361,16 @@ class Session:
         self._frame = (gray, changed)
         self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
         return "embedding"
+
+    def _release_choice_on_new_scene(self, thumb: np.ndarray) -> None:
+        """A frame of another scene: the tool is over another surface, so the entry chosen for the last one is not
+        held against the new one's by hysteresis (HysteresisChooser.release). Whatever the model reads: a
+        tactile-only model's choice changes with the surface too."""
+        if not scene_changed(self._chosen_scene, thumb, self.settings.frame_change):
+            return
+        if self._chosen_scene is not None:  # the first frame shows the surface the session started on
+            self.estimator.selector.release()
+        self._chosen_scene = thumb
 
     def _watch_surface(self, thumb: np.ndarray) -> None:
         """Taps models: the first frame after a tap block shows the tapped surface; a later frame of another scene
@@ -380,6 +394,8 @@ class Session:
                     vector, reasons = await loop.run_in_executor(
                         self._visual_pool, self.runtime.embed_and_inspect, gray
                     )
+                except BackboneStopped:
+                    return  # the service is shutting down: nothing failed
                 except Exception as exc:  # noqa: BLE001 - a frame that cannot be embedded must not end the session
                     log.exception("session %s: embedding a frame failed", self.id)
                     self.counters.pipeline_errors += 1

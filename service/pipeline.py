@@ -193,6 +193,7 @@ class SessionEstimator:
         hysteresis_margin: float,
         hysteresis_hold: int,
         hysteresis_settle: int = 0,
+        hysteresis_release_lead: float | None = None,
     ) -> None:
         self.runtime = runtime
         self.contract = contract
@@ -201,7 +202,9 @@ class SessionEstimator:
         self.smoother = ExponentialSmoother(alpha)
         self.steadiness = Steadiness(steadiness_windows)
         self.uncertainty = SessionUncertainty(alpha, runtime.interval_level)
-        self.selector = HysteresisChooser(runtime.selection, hysteresis_margin, hysteresis_hold, hysteresis_settle)
+        self.selector = HysteresisChooser(
+            runtime.selection, hysteresis_margin, hysteresis_hold, hysteresis_settle, hysteresis_release_lead
+        )
         self.alpha = alpha
         self.mismatch: np.ndarray | None = None  # EMA of the windows' vibration mismatch per entry, dB
         self.segment = -1
@@ -221,6 +224,7 @@ class SessionEstimator:
             hysteresis_margin=settings.hysteresis_margin,
             hysteresis_hold=settings.hysteresis_hold,
             hysteresis_settle=settings.hysteresis_settle_windows,
+            hysteresis_release_lead=settings.hysteresis_release_lead or None,
         )
 
     def smoothed_mismatch(self, mismatch: np.ndarray) -> np.ndarray:

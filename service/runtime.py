@@ -154,10 +154,21 @@ class Runtime:
             raise ValueError(f"not a readable image ({type(exc).__name__}: {exc})") from None
 
     def embed_frame(self, gray: np.ndarray) -> np.ndarray:
-        """(H, W) grayscale → the model's visual input (D,) float32: backbone ⊕ GLCM, columns per the card."""
+        """(H, W) grayscale → the model's visual input (D,) float32: backbone ⊕ GLCM, columns per the card.
+
+        BackboneStopped after `stop()`."""
         if self.backbone is None or self.visual_columns is None:
             raise ValueError("no visual backbone is configured (HAPTICLINK_BACKBONE_PATH)")
         return visual_features(gray, self.visual_config, self.backbone)[self.visual_columns].astype(np.float32)
+
+    def stop(self) -> None:
+        """At shutdown: end an embedding in flight within milliseconds and refuse later ones (BackboneStopped).
+
+        An embedding runs for up to seconds in a pool thread that the interpreter joins at exit; stopping the
+        backbone lets the process exit as soon as the service has stopped. The tactile models' runs take
+        milliseconds and are left to finish. Idempotent."""
+        if self.backbone is not None:
+            self.backbone.stop()
 
 
 def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:

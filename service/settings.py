@@ -141,6 +141,15 @@ class Settings(BaseSettings):
         12.0, ge=0, description="cost a challenger must gain to replace the choice, in the selection rule's units"
     )
     hysteresis_hold: int = Field(4, ge=1, description="windows in a row a challenger must win")
+    # 72 = 6 windows' worth of the margin: on steady one-minute strokes over the tests' library the largest lead a
+    # challenger reached was 55 (36 and 48 flipped such strokes), and after a change to the entry furthest away
+    # at most 2 windows are held (python -m benchmarks.hysteresis; docs/service.md, Events)
+    hysteresis_release_lead: float = Field(
+        72.0,
+        ge=0,
+        description="a challenger whose cost advantage summed over the consecutive windows it is the rule's pick "
+        "reaches this replaces the choice even if no window beat the margin, in the rule's units (0: off)",
+    )
     hysteresis_settle_windows: int = Field(
         6, ge=0, le=1000, description="a session's first windows, while its smoothed estimate settles: no hysteresis"
     )

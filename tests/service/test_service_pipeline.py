@@ -75,7 +75,11 @@ def test_events_equal_the_offline_features_and_model(kit, server, client, librar
     rule = SelectionRule(settings.selection_rule, settings.selection_weight)
     table = SpectralTable(lib.ids, [lib.model(i) for i in lib.ids])
     chooser = HysteresisChooser(
-        rule, settings.hysteresis_margin, settings.hysteresis_hold, settings.hysteresis_settle_windows
+        rule,
+        settings.hysteresis_margin,
+        settings.hysteresis_hold,
+        settings.hysteresis_settle_windows,
+        settings.hysteresis_release_lead,
     )
     pre = TactilePreprocessor(predictor.tactile_config, max_buffer_s=None)
     f32 = float32_recording(rec)

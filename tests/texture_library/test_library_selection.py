@@ -143,6 +143,53 @@ def test_settling_windows_follow_the_rule_and_say_so():
     assert held.id == "b" and held.held_by_hysteresis
 
 
+def test_a_cumulative_lead_releases_a_challenger_that_never_beats_the_margin():
+    ids = ["a", "b"]
+    ch = HysteresisChooser(SelectionRule("perceptual"), margin=10.0, hold=4, release_lead=12.0)
+    assert ch.choose(ids, np.array([1.0, 5.0])).id == "a"
+    first = ch.choose(ids, np.array([5.0, 0.0]))  # b cheaper by 5 < 10: held, lead 5 of 12
+    assert first.id == "a" and first.held_by_hysteresis and "lead 5.0 of 12" in first.reason
+    # next window: by the margin b needs 10 − 5 = 5 more; by the lead 12 − 5 − 5 = 2 more
+    assert first.switch_margin == pytest.approx(2.0)
+    second = ch.choose(ids, np.array([5.0, 0.0]))  # lead 10: one window short
+    assert second.id == "a" and second.switch_margin == 0.0  # the same advantage once more switches
+    third = ch.choose(ids, np.array([5.0, 0.0]))  # lead 15 ≥ 12, no window ever beat the margin
+    assert third.id == "b" and not third.held_by_hysteresis
+
+
+def test_a_pick_that_alternates_between_near_equal_entries_never_flips_the_choice():
+    ids = ["a", "b", "c"]
+    ch = HysteresisChooser(SelectionRule("perceptual"), margin=10.0, hold=4, release_lead=12.0)
+    assert ch.choose(ids, np.array([1.0, 2.0, 9.0])).id == "a"
+    for i in range(200):  # b and c take turns, each 8 cheaper than a: the lead restarts at every change
+        costs = np.array([9.0, 1.0, 9.0]) if i % 2 else np.array([9.0, 9.0, 1.0])
+        assert ch.choose(ids, costs).id == "a"
+    # without the lead, a steady sub-margin challenger sticks for ever
+    stuck = HysteresisChooser(SelectionRule("perceptual"), margin=10.0, hold=4)
+    stuck.choose(["a", "b"], np.array([1.0, 2.0]))
+    assert all(stuck.choose(["a", "b"], np.array([9.0, 1.0])).id == "a" for _ in range(100))
+
+
+def test_release_settles_again_after_a_scene_change():
+    ids = ["a", "b"]
+    ch = HysteresisChooser(SelectionRule("perceptual"), margin=100.0, hold=5, settle=2, release_lead=1000.0)
+    for _ in range(3):
+        ch.choose(ids, np.array([1.0, 2.0]))
+    assert ch.choose(ids, np.array([2.0, 1.0])).id == "a"  # settled: held
+    ch.release()
+    for _ in range(2):  # max(settle, 1) windows follow the rule
+        c = ch.choose(ids, np.array([2.0, 1.0]))
+        assert c.id == "b" and not c.held_by_hysteresis and "the scene changed" in c.reason and "settling" in c.reason
+    assert ch.choose(ids, np.array([1.0, 2.0])).held_by_hysteresis  # then hysteresis again
+    no_settle = HysteresisChooser(SelectionRule("perceptual"), margin=100.0, hold=5)
+    no_settle.choose(ids, np.array([1.0, 2.0]))
+    no_settle.release()
+    assert no_settle.choose(ids, np.array([2.0, 1.0])).id == "b"  # at least the next window
+    assert no_settle.choose(ids, np.array([1.0, 2.0])).held_by_hysteresis
+    with pytest.raises(ValueError, match="release_lead"):
+        HysteresisChooser(SelectionRule("perceptual"), release_lead=0.0)
+
+
 def test_one_entry_has_no_switch_margin_and_bad_costs_are_refused():
     ch = HysteresisChooser(SelectionRule("perceptual"))
     assert ch.choose(["only"], np.array([3.0])).switch_margin is None
