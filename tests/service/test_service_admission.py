@@ -1,10 +1,12 @@
-"""Refuse early, answer always, on a real uvicorn: admission by what the process can serve, and probes that
-answer from a thread of their own. Behaviour only (what is refused, how it is explained); speeds are measured
-by `python -m benchmarks.admission`."""
+"""Refuse early, answer always, on a real uvicorn: admission by what the process can serve (shedding in steps, newest
+first, back oldest first), and probes answered before routing on the service's port and from a thread of their own on
+the probe port. Behaviour only (what is refused, in what order, how it is explained); speeds are measured by
+`python -m benchmarks.admission`."""
 
 from __future__ import annotations
 
 import json
+import logging
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
@@ -157,9 +159,13 @@ def test_a_late_loop_that_is_not_the_processs_own_sheds_nothing():
     guard.admit_session(len(sessions))
 
 
-def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(kit, base_settings, library_dir):
+def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
+    kit, base_settings, library_dir, caplog
+):
     """Real WebSockets: over capacity, every session but the oldest is closed 4429 (reason, Retry-After) on its next
-    block; once the loop has caught up they stream again one step at a time, the older shed session first."""
+    block; once the loop has caught up they stream again one step at a time, the older shed session first. What
+    clients cause is never an ERROR, and no log line carries a token."""
+    caplog.set_level(logging.INFO)
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
     settings = base_settings.model_copy(update={"instance_id": "shedding"})
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
@@ -192,6 +198,9 @@ def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
         assert send(1) == 1 and isinstance(send(2), str)  # the older shed session is back first
         kit.wait_for(lambda: guard.shedding == 0, timeout_s=10)
         assert send(2) == 1
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "at capacity" in caplog.text  # one WARNING says why
+    assert not any(s[key] in caplog.text for s in sessions for key in ("robot_token", "operator_token"))
 
 
 # ---- probes answered before routing ------------------------------------------------------------------------------
