@@ -9,12 +9,15 @@ on). In order:
    max_sessions (503);
 3. `--robots` of the created sessions stream in real time (20 ms binary blocks over the ingest WebSocket,
    pre-encoded, from two generator processes): each block's acknowledgement time, and the blocks refused
-   (close 4429: the robot reconnects after Retry-After's 2 s and resends from its oldest unacknowledged block);
+   (close 4429: the robot reconnects after Retry-After's 2 s and resends from its oldest unacknowledged block),
+   by the reason the close and the service's counters give;
 4. every session is deleted; RSS again after 6 s.
 Meanwhile a process of its own polls GET /health and /ready on the service port and GET /health on the probe
 port every 20 ms. Reported: each probe's p50/p99/max, the robots' acknowledgement p50/p99 (the oldest half
 and the newest half of the streaming sessions apart: admission keeps the oldest at full speed), refusals,
-the loop lag and CPU share the service measured, and RSS idle / loaded / after. Writes
+the loop lag and CPU share the service measured, the windows admitted and lost (admitted, never published), the
+share of windows published within 100 ms of their last block's arrival, the window latency operators of the 10
+oldest and the 10 newest streaming sessions see (their events' latency_ms.total), and RSS idle / loaded / after. Writes
 reports/bench/admission.json. Timings on a shared machine are upper bounds: say what else ran.
 """
 
@@ -23,12 +26,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import multiprocessing as mp
 import os
 import platform
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import httpx
@@ -38,11 +43,24 @@ from benchmarks.service import memory_mb, percentile
 from drivers.blocks import encode_binary
 from drivers.protocol import bearer, session_path
 from service.launcher import ServerProcess, free_port
+from service.metrics import LATENCY_BUCKETS_S
 
 DEFAULT_OUT = Path("reports/bench/admission.json")
 API_KEY = "admission-benchmark-key-0123456789"
 BLOCK_S = 0.02
 POLL_EVERY_S = 0.02
+#: the end-to-end bound windows are held to (block arrival → window event published), s; a histogram bucket bound
+E2E_BOUND_S = 0.1
+#: operators subscribe to the events of this many of the oldest and of the newest streaming sessions
+WATCHED = 10
+
+
+def _merged(counts: Iterable[dict[str, int]]) -> dict[str, int]:
+    total: dict[str, int] = {}
+    for c in counts:
+        for key, n in c.items():
+            total[key] = total.get(key, 0) + n
+    return total
 
 
 def summary(values: list[float]) -> dict:
@@ -106,6 +124,7 @@ async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], s
     url = f"{ws_url}{session_path(session['session_id'], 'ingest')}?token={session['robot_token']}"
     acks: list[float] = []
     refused = reconnects = 0
+    closes: dict[str, int] = {}  # "code reason" of every close the service sent
     lag: list[float] = []  # how late the generator sent each block (its own health)
     seq = 0
     end = start + duration_s
@@ -116,7 +135,7 @@ async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], s
                     due = start + seq * BLOCK_S
                     now = time.perf_counter()
                     if now >= end:
-                        return {"rank": rank, "acks_ms": acks, "refused": refused, "reconnects": reconnects, "lag": lag}
+                        return _result(rank, acks, refused, reconnects, lag, closes)
                     if due > now:
                         await asyncio.sleep(due - now)
                     sent = time.perf_counter()
@@ -128,12 +147,52 @@ async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], s
                         seq += 1
         except ConnectionClosed as exc:
             refused += exc.rcvd is not None and exc.rcvd.code == 4429
+            if exc.rcvd is not None:
+                why = f"{exc.rcvd.code} {exc.rcvd.reason}"
+                closes[why] = closes.get(why, 0) + 1
             reconnects += 1
             await asyncio.sleep(2.0)  # the service's Retry-After
         except (InvalidStatus, OSError):
             reconnects += 1
             await asyncio.sleep(2.0)
-    return {"rank": rank, "acks_ms": acks, "refused": refused, "reconnects": reconnects, "lag": lag}
+    return _result(rank, acks, refused, reconnects, lag, closes)
+
+
+def _result(rank: int, acks: list[float], refused: int, reconnects: int, lag: list[float], closes: dict) -> dict:
+    return {"rank": rank, "acks_ms": acks, "refused": refused, "reconnects": reconnects, "lag": lag, "closes": closes}
+
+
+# ---- operators (a process of their own) ----------------------------------------------------------------------
+def operators(ws_url: str, watched: dict[str, list[dict]], duration_s: float, out) -> None:
+    """Subscribe to the events of each group's sessions for duration_s; out gets {group: [window latency_ms.total]}
+    (the service's own measure: the completing block's arrival → the window event published)."""
+    out.put(asyncio.run(_operators(ws_url, watched, duration_s)))
+
+
+async def _operators(ws_url: str, watched: dict[str, list[dict]], duration_s: float) -> dict[str, list[float]]:
+    end = time.perf_counter() + duration_s
+    groups = {g: await asyncio.gather(*(_operator(ws_url, s, end) for s in ss)) for g, ss in watched.items()}
+    return {g: [x for one in lists for x in one] for g, lists in groups.items()}
+
+
+async def _operator(ws_url: str, session: dict, end: float) -> list[float]:
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    url = f"{ws_url}{session_path(session['session_id'], 'events')}?token={session['operator_token']}"
+    totals: list[float] = []
+    try:
+        async with connect(url, max_size=None, compression=None) as ws:
+            while (left := end - time.perf_counter()) > 0:
+                try:
+                    event = json.loads(await asyncio.wait_for(ws.recv(), left))
+                except TimeoutError:
+                    break
+                if event.get("type") == "window":
+                    totals.append(event["latency_ms"]["total"])
+    except (ConnectionClosed, OSError):
+        pass
+    return totals
 
 
 def stream_payloads(library: Path, seconds: float) -> list[bytes]:
@@ -179,6 +238,48 @@ def metric(text: str, name: str, **labels: str) -> float:
             if rest.startswith((" ", "{")):
                 return float(line.rsplit(" ", 1)[1])
     return 0.0
+
+
+def labelled(text: str, name: str, label: str) -> dict[str, float]:
+    """{label value: sample} of a labelled counter or gauge in the metrics text."""
+    found: dict[str, float] = {}
+    prefix = f'{name}{{{label}="'
+    for line in text.splitlines():
+        if line.startswith(prefix):
+            found[line[len(prefix) :].split('"', 1)[0]] = float(line.rsplit(" ", 1)[1])
+    return found
+
+
+def latency_within(text: str, stage: str, bound_s: float) -> tuple[float, float]:
+    """(windows, the share of them published within bound_s of their last block's arrival) from the
+    hapticlink_window_latency_seconds histogram (bound_s must be one of its bucket bounds)."""
+    count = metric(text, "hapticlink_window_latency_seconds_count", stage=stage)
+    within = metric(text, "hapticlink_window_latency_seconds_bucket", stage=stage, le=f"{bound_s}")
+    return count, within / count if count else 1.0
+
+
+def p99_bucket_s(text: str, stage: str) -> float:
+    """The smallest bucket bound of hapticlink_window_latency_seconds that holds 99 % of the windows: an upper
+    bound of their p99 (inf when the largest finite bucket does not)."""
+    count = metric(text, "hapticlink_window_latency_seconds_count", stage=stage)
+    for bound in LATENCY_BUCKETS_S:
+        if (
+            count
+            and metric(text, "hapticlink_window_latency_seconds_bucket", stage=stage, le=f"{bound}") >= 0.99 * count
+        ):
+            return bound
+    return math.inf
+
+
+def drained(url: str, timeout_s: float = 15.0) -> str:
+    """The metrics text once every admitted window is published (or timeout_s passed: the rest are lost)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        text = httpx.get(f"{url}/metrics", timeout=30).text
+        done = metric(text, "hapticlink_windows_total") >= metric(text, "hapticlink_windows_admitted_total")
+        if done or time.monotonic() > deadline:
+            return text
+        time.sleep(0.25)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -230,6 +331,12 @@ def main(argv: list[str] | None = None) -> int:
             results = ctx.Queue()
             ws_url = server.url.replace("http://", "ws://")
             gens = [ctx.Process(target=robots, args=(ws_url, h, payloads, args.duration, results)) for h in halves]
+            # the operators of the WATCHED oldest and newest streaming sessions: their windows' latency
+            ordered = [s for _, s in streaming]
+            watched = {"oldest": ordered[:WATCHED], "newest": ordered[-WATCHED:]}
+            events = ctx.Queue()
+            watcher = ctx.Process(target=operators, args=(ws_url, watched, args.duration + 2, events))
+            watcher.start()
             lag_samples, cpu_samples, process_samples = [], [], []
             for g in gens:
                 g.start()
@@ -245,7 +352,9 @@ def main(argv: list[str] | None = None) -> int:
             per_robot = [r for _ in gens for r in results.get(timeout=120)]
             for g in gens:
                 g.join(timeout=30)
-            final = httpx.get(f"{server.url}/metrics", timeout=30).text
+            window_latency = events.get(timeout=60)
+            watcher.join(timeout=30)
+            final = drained(server.url)
             with httpx.Client(timeout=30) as client:
                 for s in created:
                     client.delete(server.url + session_path(s["session_id"]), headers=bearer(s["robot_token"]))
@@ -268,6 +377,7 @@ def main(argv: list[str] | None = None) -> int:
         "acks_ms_newest_half": summary([a for r in newest for a in r["acks_ms"]]),
         "blocks_acknowledged": sum(len(r["acks_ms"]) for r in per_robot),
         "closed_4429": sum(r["refused"] for r in per_robot),
+        "closes_by_reason": _merged(r["closes"] for r in per_robot),
         "reconnects": sum(r["reconnects"] for r in per_robot),
         "generator_lag_ms": summary([x for r in per_robot for x in r["lag"]]),
     }
@@ -276,11 +386,29 @@ def main(argv: list[str] | None = None) -> int:
         "loop_cpu_share_each_second": [round(x, 3) for x in cpu_samples],
         "process_cpu_share_each_second": [round(x, 3) for x in process_samples],
         "blocks_refused": metric(final, "hapticlink_blocks_total", outcome="refused"),
+        "blocks_refused_by_reason": labelled(final, "hapticlink_blocks_refused_total", "reason"),
         "sessions_refused_capacity": metric(final, "hapticlink_sessions_refused_total", reason="capacity"),
+        "sessions_shed": metric(final, "hapticlink_sessions_shed_total"),
     }
+    admitted = metric(final, "hapticlink_windows_admitted_total")
+    published = metric(final, "hapticlink_windows_total")
+    windows, within = latency_within(final, "total", E2E_BOUND_S)
+    report["windows"] = {
+        "admitted": admitted,
+        "published": published,
+        "admitted_lost": admitted - published,
+        # ingest → publish of every published window (the robots still streaming: the shed ones send nothing)
+        f"published_within_{E2E_BOUND_S * 1e3:g}_ms": round(within, 4),
+        "latency_p99_at_most_ms": {st: p99_bucket_s(final, st) * 1e3 for st in ("queue", "features", "model", "total")},
+        "latency_observed": windows,
+        # the service's latency of the windows the operators of the oldest / newest WATCHED sessions received
+        "e2e_ms_oldest": summary(window_latency["oldest"]),
+        "e2e_ms_newest": summary(window_latency["newest"]),
+    }
+    report["machine"]["load_average_after"] = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(json.dumps({k: report[k] for k in ("burst", "probes_ms", "robots", "rss_mb")}, indent=2))
+    print(json.dumps({k: report[k] for k in ("burst", "probes_ms", "robots", "windows", "rss_mb")}, indent=2))
     print(f"wrote {args.out}")
     return 0
 

@@ -1,5 +1,5 @@
 """The FastAPI application: `create_app(settings)` assembles the routers (service/routes: sessions, ingest,
-events, ops), the body-size and CORS middlewares and the error handlers.
+events, ops), the probe, body-size and CORS middlewares and the error handlers.
 
 Routes are thin: FastAPI dependencies (service/deps.py) hand them the state, the runtime and the
 session their token opens; ServiceError becomes a status and a readable `detail`. The app imports
@@ -20,6 +20,7 @@ from fastapi.responses import JSONResponse
 from service.errors import ServiceError
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
+from service.probes import ProbeAnswers
 from service.routes import events, ingest, library, ops, sessions
 from service.schemas import JsonBlock, JsonTapBlock
 from service.server import server_options
@@ -79,6 +80,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         allow_methods=["GET", "POST", "DELETE"],
         allow_headers=["Authorization", "Content-Type"],
         max_age=600,
+    )
+    # Added last, so outermost: probes are answered before CORS, routing and dependency resolution, which under
+    # load queue behind everything else (a probe needs none of them; a load balancer sends no Origin).
+    app.add_middleware(
+        ProbeAnswers,
+        live=lambda: app.state.service.health_report(),
+        ready=lambda: app.state.service.ready_report(),
     )
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]

@@ -19,14 +19,20 @@ the loop waits for it: the loop is late while using little CPU itself).
 Both are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). From them:
 
 - `admit_session(n)` refuses a new session (429 + Retry-After, the reason in the message) while
-  the lag is above `session_lag_s`, the loop's CPU share is above `cpu_budget` with two or more
-  sessions streaming, or (four or more streaming: enough to measure) one more session of the
-  measured loop CPU per streaming session would not fit the budget. The first session is always
-  admitted.
-- `admit_block(session)` refuses the blocks of the newest sessions (429 / WebSocket close 4429,
-  Retry-After) while the loop is over its CPU budget or its lag is above `shed_lag_s`: the
-  sessions the measured CPU per session says do not fit, newest first. The oldest sessions keep streaming
-  at full quality, and the refused robots back off and resend later (nothing accepted is lost).
+  any session is shed, while the lag is above `session_lag_s`, the loop's CPU share is above
+  `cpu_budget` with two or more sessions streaming, or (four or more streaming: enough to measure)
+  one more session of the measured loop CPU per streaming session would not fit the budget. The
+  first session is always admitted.
+- `admit_block(session)` refuses the blocks of shed sessions (429 / WebSocket close 4429,
+  Retry-After). While the loop is over its CPU budget or its lag is above `shed_lag_s`, every
+  `SHED_EVERY_S` one more step of the streaming sessions is shed, newest first: a quarter of them
+  (`STEP_SHARE`), or more when the measured CPU per session says more do not fit; the oldest is never
+  shed. Shedding in steps this fast acts before the loop saturates: with thresholds of a few tens of
+  milliseconds the loop never queues long enough to delay /health or the oldest sessions' windows.
+  Once under the thresholds with a margin, a step of the shed sessions streams again every
+  `READMIT_EVERY_S`, oldest first — so the shed sessions are always the newest ones. The oldest
+  sessions keep streaming at full quality, and the refused robots back off and resend later from
+  their oldest unacknowledged block (nothing accepted is lost).
 """
 
 from __future__ import annotations
@@ -50,6 +56,14 @@ SMOOTHING_S = 0.5
 #: a session that sent nothing for this long does not count as streaming (its CPU is not in the measure)
 STREAMING_WITHIN_S = 1.0
 RETRY_AFTER_S = 2.0
+#: while over capacity, one more step of sessions is shed this often (s): soon enough that the loop never queues
+#: a whole second of work, late enough that the lag measure (smoothed over SMOOTHING_S) sees the last step's effect
+SHED_EVERY_S = 0.25
+#: once under the thresholds with a margin, one step of shed sessions streams again this often (s): slower than
+#: shedding, so a replica near its limit does not swing between shedding and readmitting every step
+READMIT_EVERY_S = 2.0
+#: the share of the sessions (streaming or shed) one shedding or readmission step moves
+STEP_SHARE = 0.25
 #: at most one WARNING about shedding per this many seconds
 LOG_EVERY_S = 10.0
 
@@ -62,10 +76,13 @@ class AtCapacity(ServiceError):
 
 
 class CapacityGuard:
-    """See the module docstring. `start()` inside the event loop; `sessions` lists this replica's sessions in
-    creation order (oldest first)."""
+    """See the module docstring. `start()` inside the event loop; `sessions()` lists this replica's sessions in
+    creation order (oldest first). `update(now)` takes one shedding decision from the current measures (the
+    sampling task calls it after each sample)."""
 
-    def __init__(self, settings: Settings, metrics: ServiceMetrics) -> None:
+    def __init__(
+        self, settings: Settings, metrics: ServiceMetrics, sessions: Callable[[], Iterable[Session]] = lambda: ()
+    ) -> None:
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
@@ -74,13 +91,13 @@ class CapacityGuard:
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
         self._streaming = 0
         self._shed: set[str] = set()
-        self._sessions: Callable[[], Iterable[Session]] = lambda: ()
+        self._sessions = sessions
         self._task: asyncio.Task | None = None
         self._last_log = 0.0
+        self._last_shed = -math.inf  # time.monotonic() of the last shedding step
+        self._last_readmit = -math.inf
 
-    def start(self, sessions: Callable[[], Iterable[Session]] | None = None) -> None:
-        if sessions is not None:
-            self._sessions = sessions
+    def start(self) -> None:
         self._task = asyncio.create_task(self._sample(), name="capacity-guard")
 
     async def close(self) -> None:
@@ -110,42 +127,70 @@ class CapacityGuard:
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
-            self._update_shedding(now)
+            self.update(now)
 
-    def _update_shedding(self, now: float) -> None:
+    def update(self, now: float) -> None:
+        """One shedding decision at `now` (time.monotonic(), s) from the current measures: shed a step, readmit
+        a step, or nothing."""
         streaming = self.streaming(now)
         self._streaming = len(streaming)
         if self._shed:
             self._shed &= {s.id for s in self._sessions()}  # ended sessions leave
         if streaming:
             self.cpu_per_session = self.cpu_share / len(streaming)
-        over = self.cpu_share > self.settings.cpu_budget or (self._busy() and self.lag_s > self.settings.shed_lag_s)
-        if not over:
-            if (
-                self._shed
-                and self.cpu_share < 0.9 * self.settings.cpu_budget
-                and self.lag_s < self.settings.shed_lag_s / 2
-            ):
-                self._shed.clear()  # caught up with a margin: everyone streams again
-            return
-        if len(streaming) < 2:
+        if self._over():
+            if now - self._last_shed >= SHED_EVERY_S:
+                self._shed_newest(streaming, now)
+        elif self._shed and self._calm() and now - max(self._last_shed, self._last_readmit) >= READMIT_EVERY_S:
+            self._readmit_oldest(streaming, now)
+
+    def _over(self) -> bool:
+        """The loop is over its CPU budget, or late by more than shed_lag_s while the lateness is its own."""
+        return self.cpu_share > self.settings.cpu_budget or (self._busy() and self.lag_s > self.settings.shed_lag_s)
+
+    def _calm(self) -> bool:
+        """Under the shedding thresholds with a margin (90 % of the budget, half the shed lag): room for a step back."""
+        late = self._busy() and self.lag_s > self.settings.shed_lag_s / 2
+        return self.cpu_share < 0.9 * self.settings.cpu_budget and not late
+
+    def _step(self, streaming: list[Session]) -> int:
+        """Sessions one shedding or readmission step moves: STEP_SHARE of those streaming or shed, at least one."""
+        return max(1, math.ceil(STEP_SHARE * len(self._shed.union(s.id for s in streaming))))
+
+    def _shed_newest(self, streaming: list[Session], now: float) -> None:
+        """Refuse the blocks of one step of the newest streaming sessions not yet shed; the oldest always streams."""
+        candidates = [s.id for s in streaming[1:] if s.id not in self._shed]
+        if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it
-        fits = self.sessions_that_fit()
-        keep = max(1, min(len(streaming) - 1, fits))
-        newest = [s.id for s in streaming[keep:]]
-        if not set(newest) <= self._shed:
-            self._shed.update(newest)
-            if now - self._last_log > LOG_EVERY_S:
-                self._last_log = now
-                log.warning(
-                    "at capacity (event loop CPU %.2f of %.2f, lag %.0f ms): refusing the blocks of the %d newest "
-                    "of %d streaming sessions until it catches up",
-                    self.cpu_share,
-                    self.settings.cpu_budget,
-                    self.lag_s * 1e3,
-                    len(self._shed),
-                    len(streaming),
-                )
+        # at least a step; more when the measured CPU per session says more do not fit
+        count = max(self._step(streaming), len(streaming) - self.sessions_that_fit())
+        newest = candidates[-count:]
+        self._shed.update(newest)
+        self._last_shed = now
+        self.metrics.sessions_shed.inc(len(newest))
+        if now - self._last_log > LOG_EVERY_S:
+            self._last_log = now
+            log.warning(
+                "at capacity (event loop CPU %.2f of %.2f, lag %.0f ms): refusing the blocks of the %d newest "
+                "of %d sessions until it catches up",
+                self.cpu_share,
+                self.settings.cpu_budget,
+                self.lag_s * 1e3,
+                len(self._shed),
+                len(streaming) + len(self._shed) - len(newest),
+            )
+
+    def _readmit_oldest(self, streaming: list[Session], now: float) -> None:
+        """Let one step of the shed sessions stream again, oldest first (the reverse of the order they were shed)."""
+        shed = [s.id for s in self._sessions() if s.id in self._shed]  # creation order: oldest first
+        back = shed[: self._step(streaming)]
+        self._shed.difference_update(back)
+        self._last_readmit = now
+
+    @property
+    def shedding(self) -> int:
+        """Sessions whose blocks are refused now."""
+        return len(self._shed)
 
     def streaming(self, now: float) -> list[Session]:
         """Sessions that sent something within STREAMING_WITHIN_S, oldest first."""
@@ -169,7 +214,9 @@ class CapacityGuard:
             return
         why = None
         budget = self.settings.cpu_budget
-        if self._busy() and self.lag_s > self.settings.session_lag_s:
+        if self._shed:
+            why = f"it refuses the blocks of {len(self._shed)} of its sessions to keep up with the others"
+        elif self._busy() and self.lag_s > self.settings.session_lag_s:
             why = (
                 f"its event loop runs {self.lag_s * 1e3:.0f} ms late (limit {self.settings.session_lag_s * 1e3:.0f} ms)"
             )

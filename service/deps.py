@@ -1,7 +1,10 @@
 """FastAPI dependencies: the service state, the runtime once ready, and the session a request's token opens.
 
 Routes declare what they need (`state: State`, `session: RobotSession`, …) and never repeat the
-lookup or the authorisation inline. WebSocket routes use `socket_session`, which refuses the
+lookup or the authorisation inline. A dependency that does no blocking work is `async def`: FastAPI runs
+a plain `def` one in anyio's thread pool, where under load it queues behind every other request's
+(a hop to another thread and back, and the GIL, for an attribute read). `fleet_member` stays plain:
+it may re-read the API key file. WebSocket routes use `socket_session`, which refuses the
 handshake the protocol's way (`drivers.protocol.Close`) instead of raising.
 """
 
@@ -30,14 +33,14 @@ log = logging.getLogger("service.access")
 _refusals = LogThrottle(log)  # clients choose how often they are refused: at most one line per kind every 10 s
 
 
-def get_state(connection: HTTPConnection) -> ServiceState:
+async def get_state(connection: HTTPConnection) -> ServiceState:
     return connection.app.state.service
 
 
 State = Annotated[ServiceState, Depends(get_state)]
 
 
-def get_runtime(state: State) -> Runtime:
+async def get_runtime(state: State) -> Runtime:
     """The runtime, or 503 (Retry-After) until the model and library are loaded and warmed up."""
     return state.require_runtime()
 
@@ -49,7 +52,7 @@ _bearer = HTTPBearer(
 )
 
 
-def bearer_token(credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str | None:
+async def bearer_token(credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str | None:
     """The request's bearer token (absence is answered 401 by whoever needs one)."""
     return credentials.credentials if credentials is not None else None
 

@@ -48,6 +48,7 @@ class BlockIntake:
             self.capacity.admit_block(session)
         except ServiceError:
             self.metrics.block_outcome["refused"].inc()
+            self.metrics.block_refusal["capacity"].inc()
             session.counters.blocks_refused += 1
             raise
         try:
@@ -56,6 +57,7 @@ class BlockIntake:
         except ServiceError as exc:
             if exc.status == 429:
                 self.metrics.block_outcome["refused"].inc()  # the session counted it (its queue is full)
+                self.metrics.block_refusal["session_queue"].inc()
             else:
                 self.rejected(session)
             raise

@@ -16,6 +16,8 @@ disable_created_metrics()
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4  # what generate_latest writes
 LATENCY_BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 BLOCK_OUTCOMES = ("accepted", "duplicate", "rejected", "refused")
+#: why a block was refused (429 / close 4429): the replica sheds its session, or the session's own queue is full
+REFUSAL_REASONS = ("capacity", "session_queue")
 
 
 class ServiceMetrics:
@@ -29,6 +31,18 @@ class ServiceMetrics:
         )
         # on the per-block path: bound once, not looked up per block
         self.block_outcome = {outcome: self.blocks.labels(outcome=outcome) for outcome in BLOCK_OUTCOMES}
+        self.blocks_refused = Counter(
+            "hapticlink_blocks_refused_total",
+            "Blocks refused (429 / close 4429; nothing of them taken), by reason (capacity, session_queue).",
+            ("reason",),
+            registry=registry,
+        )
+        self.block_refusal = {reason: self.blocks_refused.labels(reason=reason) for reason in REFUSAL_REASONS}
+        self.sessions_shed = Counter(
+            "hapticlink_sessions_shed_total",
+            "Streaming sessions whose blocks the replica began refusing to keep up with its older sessions.",
+            registry=registry,
+        )
         self.windows = Counter("hapticlink_windows_total", "Windows estimated and published.", registry=registry)
         self.windows_admitted = Counter(
             "hapticlink_windows_admitted_total",

@@ -17,6 +17,8 @@ import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+from starlette.types import ASGIApp, Receive, Scope, Send
+
 from service.runtime import Runtime
 from service.schemas import HealthOut, ReadyOut
 
@@ -46,13 +48,45 @@ def readiness_report(readiness: tuple[bool, str], rt: Runtime | None) -> tuple[R
     return body, 200 if ok else 503
 
 
+Live = Callable[[], HealthOut]
+Ready = Callable[[], tuple[ReadyOut, int]]
+PATHS = ("/health", "/ready")
+
+
+def answer(path: str, live: Live, ready: Ready) -> tuple[bytes, int]:
+    """The JSON body and status of GET `path`, one of PATHS (both servers answer through this)."""
+    if path == "/health":
+        body, status = live().model_dump(), 200
+    else:
+        out, status = ready()
+        body = out.model_dump()
+    return json.dumps(body).encode(), status
+
+
+class ProbeAnswers:
+    """ASGI middleware: GET /health and GET /ready answered from `live()` / `ready()` without entering the app;
+    every other request (and every other method on those paths) goes on to `app` unchanged."""
+
+    def __init__(self, app: ASGIApp, live: Live, ready: Ready) -> None:
+        self.app = app
+        self.live = live
+        self.ready = ready
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "GET" or scope["path"] not in PATHS:
+            await self.app(scope, receive, send)
+            return
+        data, status = answer(scope["path"], self.live, self.ready)
+        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode())]
+        await send({"type": "http.response.start", "status": status, "headers": headers})
+        await send({"type": "http.response.body", "body": data})
+
+
 class ProbeServer:
     """GET /health and GET /ready on (host, port) from daemon threads; `port` 0 picks a free one (see `.port`).
     live / ready: build the two answers (called on the probe threads: they must only read)."""
 
-    def __init__(
-        self, live: Callable[[], HealthOut], ready: Callable[[], tuple[ReadyOut, int]], host: str, port: int
-    ) -> None:
+    def __init__(self, live: Live, ready: Ready, host: str, port: int) -> None:
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
@@ -61,14 +95,13 @@ class ProbeServer:
 
             def do_GET(self) -> None:  # noqa: N802 - the standard library's name
                 path = self.path.split("?", 1)[0]
-                if path == "/health":
-                    body, status = live().model_dump(), 200
-                elif path == "/ready":
-                    out, status = ready()
-                    body = out.model_dump()
+                if path in PATHS:
+                    data, status = answer(path, live, ready)
                 else:
-                    body, status = {"detail": "the probe port answers GET /health and GET /ready only"}, 404
-                data = json.dumps(body).encode()
+                    data, status = (
+                        json.dumps({"detail": "the probe port answers GET /health and GET /ready only"}).encode(),
+                        404,
+                    )
                 self.send_response(status)
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(data)))

@@ -210,16 +210,17 @@ class Settings(BaseSettings):
         "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); service/capacity.py",
     )
     session_lag_s: float = Field(
-        0.25,
+        0.015,
         gt=0,
-        description="event-loop lag (the queue delay every request and block waits, smoothed) above which new "
-        "sessions are refused (429 + Retry-After)",
+        description="event-loop lag, s (the queue delay every request and block waits, smoothed), above which new "
+        "sessions are refused (429 + Retry-After) while the process is busy",
     )
     shed_lag_s: float = Field(
-        0.5,
+        0.02,
         gt=0,
-        description="event-loop lag (smoothed) above which the blocks of the newest sessions are refused "
-        "(429 / close 4429) until the loop catches up; the oldest sessions keep streaming",
+        description="event-loop lag, s (smoothed), above which, while the process is busy, a quarter more of the "
+        "streaming sessions is shed every 0.25 s, newest first (their blocks refused: 429 / close 4429 + "
+        "Retry-After); they stream again oldest first, a quarter every 2 s once the loop has caught up",
     )
     probe_port: int | None = Field(
         None,

@@ -37,6 +37,7 @@ from service.live_session import Session
 from service.metrics import ServiceMetrics
 from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
+from service.schemas import HealthOut, ReadyOut
 from service.settings import Settings
 from service.warmup import warm_up
 
@@ -65,7 +66,7 @@ class ServiceState:
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool)
-        self.capacity = CapacityGuard(settings, self.metrics)
+        self.capacity = CapacityGuard(settings, self.metrics, lambda: self.directory.sessions.values())
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)
@@ -81,15 +82,15 @@ class ServiceState:
         sys.setswitchinterval(self.settings.gil_switch_interval_s)
         if self.settings.probe_port is not None:
             self.probes = ProbeServer(
-                lambda: health(self.settings.instance_id),
-                lambda: readiness_report(self.readiness(), self.runtime),
+                self.health_report,
+                self.ready_report,
                 self.settings.host,
                 self.settings.probe_port,
             )
             self.probes.start()
         await self.broker.start()
         self.batcher.start()
-        self.capacity.start(lambda: self.directory.sessions.values())
+        self.capacity.start()
         self._tasks = [
             asyncio.create_task(self._load(), name="load-runtime"),
             asyncio.create_task(self.directory.reap_idle(), name="reap-idle-sessions"),
@@ -157,6 +158,14 @@ class ServiceState:
         if self.runtime.problem is not None:
             return False, self.runtime.problem
         return True, "ready"
+
+    def health_report(self) -> HealthOut:
+        """GET /health: the process runs."""
+        return health(self.settings.instance_id)
+
+    def ready_report(self) -> tuple[ReadyOut, int]:
+        """GET /ready's answer and status (200 ready, 503 not), whichever port or route asks."""
+        return readiness_report(self.readiness(), self.runtime)
 
     def require_runtime(self) -> Runtime:
         ready, why = self.readiness()

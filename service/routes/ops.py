@@ -1,11 +1,15 @@
-"""What ops and operators read: liveness, readiness, metrics, the console page."""
+"""What ops and operators read: liveness, readiness, metrics, the console page.
+
+GET /health and GET /ready are answered before routing by `service.probes.ProbeAnswers` (installed by
+create_app); their routes here describe them in the OpenAPI schema and answer the same way for an app
+mounted without that middleware."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 
-from service import console, probes
+from service import console
 from service.deps import State
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from service.schemas import HealthOut, ReadyOut
@@ -15,7 +19,7 @@ router = APIRouter(tags=["service"])
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")
 async def health(state: State) -> HealthOut:
-    return probes.health(state.settings.instance_id)
+    return state.health_report()
 
 
 @router.get(
@@ -25,7 +29,7 @@ async def health(state: State) -> HealthOut:
     summary="Readiness: model and library loaded, checked and warmed up",
 )
 async def ready(state: State) -> JSONResponse:
-    body, status = probes.readiness_report(state.readiness(), state.runtime)
+    body, status = state.ready_report()
     return JSONResponse(body.model_dump(), status_code=status)
 
 

@@ -258,7 +258,9 @@ def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
 @pytest.fixture(scope="session")
 def base_settings(tactile_model, library_dir) -> Settings:
     # A generous window bound: tests post blocks as fast as they can, on a machine that may be busy;
-    # the backpressure tests set a tight one.
+    # the backpressure tests set a tight one. For the same reason the loop-lag limits of admission are out of
+    # reach (the default tens of milliseconds would shed sessions whenever the machine is busy): the admission
+    # tests set what they test.
     return Settings(
         model_path=tactile_model,
         library_dir=library_dir,
@@ -268,6 +270,8 @@ def base_settings(tactile_model, library_dir) -> Settings:
         session_queue_windows=64,
         api_keys=API_KEY,
         session_burst=10_000,
+        session_lag_s=600,
+        shed_lag_s=600,
     )
 
 

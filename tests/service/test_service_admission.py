@@ -1,11 +1,16 @@
-"""Refuse early, answer always, on a real uvicorn: admission by what the process can serve, and probes that
-answer from a thread of their own. Behaviour only (what is refused, how it is explained); speeds are measured
-by `python -m benchmarks.admission`."""
+"""Refuse early, answer always, on a real uvicorn: admission by what the process can serve (shedding in steps, newest
+first, back oldest first), and probes answered before routing on the service's port and from a thread of their own on
+the probe port. Behaviour only (what is refused, in what order, how it is explained); speeds are measured by
+`python -m benchmarks.admission`."""
 
 from __future__ import annotations
 
 import json
+import logging
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
+from types import SimpleNamespace
 
 import httpx
 import pytest
@@ -13,6 +18,11 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
+from service.capacity import READMIT_EVERY_S, SHED_EVERY_S, AtCapacity, CapacityGuard
+from service.metrics import ServiceMetrics
+from service.settings import Settings
+
+WORKER_THREADS = 40  # anyio's default thread limiter: the pool FastAPI runs plain-def dependencies and routes in
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +50,8 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
             return r if r.status_code == 429 else None
 
         r = kit.wait_for(refused_session, timeout_s=20)
-        assert "at capacity" in r.json()["detail"] and "over its budget" in r.json()["detail"]
+        detail = r.json()["detail"]
+        assert "at capacity" in detail and ("over its budget" in detail or "refuses the blocks of 1" in detail)
         assert float(r.headers["retry-after"]) > 0
         # the newest session's blocks are shed (nothing taken), the oldest streams on
         shed = kit.wait_for(lambda: (r := kit.post_block(client, newest, blocks[1])).status_code == 429 and r)
@@ -80,3 +91,150 @@ def test_probes_answer_on_their_own_port_as_on_the_service_port(kit, base_settin
             assert own.json() == main.json() and own.headers["content-type"] == "application/json"
         assert json.loads(client.get(f"http://127.0.0.1:{port}/ready").text)["ready"] is True
         assert client.get(f"http://127.0.0.1:{port}/sessions").status_code == 404
+
+
+# ---- shedding in steps: newest first, back oldest first -------------------------------------------------------
+def _guard(n: int) -> tuple[CapacityGuard, list[SimpleNamespace]]:
+    """A guard over n stub sessions s0 (oldest) … s{n-1}, all streaming, with default thresholds."""
+    sessions = [SimpleNamespace(id=f"s{i}", last_activity=0.0, last_seq=0) for i in range(n)]
+    return CapacityGuard(Settings(), ServiceMetrics(), lambda: sessions), sessions
+
+
+def _update(guard: CapacityGuard, sessions: list[SimpleNamespace], now: float) -> None:
+    """The robots not shed have just sent a block (a shed one's blocks are refused: it does not stream); then the
+    guard decides."""
+    shed = set(_shed_ids(guard, sessions))
+    for s in sessions:
+        if s.id not in shed:
+            s.last_activity = now
+    guard.update(now)
+
+
+def _shed_ids(guard: CapacityGuard, sessions: list[SimpleNamespace]) -> list[str]:
+    shed = []
+    for s in sessions:
+        try:
+            guard.admit_block(s)  # type: ignore[arg-type]
+        except AtCapacity:
+            shed.append(s.id)
+    return shed
+
+
+def test_over_the_lag_limit_a_quarter_of_the_sessions_is_shed_per_step_newest_first_and_comes_back_oldest_first():
+    guard, sessions = _guard(8)
+    # busy (loop over half its budget) and late beyond shed_lag_s: the process's own lag
+    guard.cpu_share, guard.lag_s = 0.6, 2 * guard.settings.shed_lag_s
+    _update(guard, sessions, 0.0)
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]  # a quarter of 8, the newest
+    _update(guard, sessions, 0.1)  # within the step's interval: nothing more
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+    _update(guard, sessions, 0.25)
+    assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
+    with pytest.raises(AtCapacity, match="refuses the blocks of 4 of its sessions"):
+        guard.admit_session(len(sessions))  # no new session while any is shed
+    for t in (0.5, 0.75, 1.0):
+        _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]  # never the oldest
+    # caught up: a quarter comes back every READMIT_EVERY_S, oldest first
+    guard.lag_s = 0.0
+    _update(guard, sessions, 1.0 + READMIT_EVERY_S / 2)
+    assert len(_shed_ids(guard, sessions)) == 7
+    _update(guard, sessions, 1.0 + READMIT_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
+    _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s5", "s6", "s7"]
+    # over again: the newest of those streaming are shed first again
+    guard.lag_s = 2 * guard.settings.shed_lag_s
+    _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S + SHED_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
+
+
+def test_a_late_loop_that_is_not_the_processs_own_sheds_nothing():
+    """Timers run late on a machine busy with other processes: refusing then would refuse the wrong thing."""
+    guard, sessions = _guard(8)
+    guard.cpu_share, guard.process_share, guard.lag_s = 0.1, 0.2, 1.0
+    for t in (0.0, 0.25, 0.5):
+        _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == []
+    guard.admit_session(len(sessions))
+
+
+def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
+    kit, base_settings, library_dir, caplog
+):
+    """Real WebSockets: over capacity, every session but the oldest is closed 4429 (reason, Retry-After) on its next
+    block; once the loop has caught up they stream again one step at a time, the older shed session first. What
+    clients cause is never an ERROR, and no log line carries a token."""
+    caplog.set_level(logging.INFO)
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
+    settings = base_settings.model_copy(update={"instance_id": "shedding"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        guard = srv.app.state.service.capacity
+        sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
+        sent = [0, 0, 0]
+
+        def send(i: int) -> int | str:
+            """Send robot i's next block on a fresh socket: the ack's seq, or the close code and reason."""
+            with connect(kit.socket_url(srv, sessions[i], "ingest")) as ws:
+                ws.send(encode_binary(blocks[sent[i]]))
+                try:
+                    ack = json.loads(ws.recv(timeout=10))
+                except ConnectionClosed as closed:
+                    assert closed.rcvd is not None
+                    return f"{closed.rcvd.code} {closed.rcvd.reason}"
+            sent[i] += 1
+            return ack["seq"]
+
+        for i in range(3):
+            assert send(i) == 0  # all three stream
+        guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})  # over capacity from now on
+        assert kit.wait_for(lambda: guard.shedding == 2, timeout_s=10)
+        for i in (1, 2):
+            closed = send(i)
+            assert isinstance(closed, str) and closed.startswith("4429") and "Retry-After" in closed
+        assert send(0) == 1  # the oldest streams on
+        guard.settings = settings.model_copy(update={"cpu_budget": 1.0})  # caught up
+        kit.wait_for(lambda: guard.shedding == 1, timeout_s=10)
+        assert send(1) == 1 and isinstance(send(2), str)  # the older shed session is back first
+        kit.wait_for(lambda: guard.shedding == 0, timeout_s=10)
+        assert send(2) == 1
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "at capacity" in caplog.text  # one WARNING says why
+    assert not any(s[key] in caplog.text for s in sessions for key in ("robot_token", "operator_token"))
+
+
+# ---- probes answered before routing ------------------------------------------------------------------------------
+def test_probes_and_session_reads_answer_while_every_worker_thread_is_held(kit, base_settings):
+    """FastAPI runs plain-`def` dependencies and routes in anyio's thread pool (40 threads): with every one of them
+    held by a deliberately slow handler, /health and /ready (answered before routing) and a session's status (only
+    `async` dependencies) still answer, while one more request needing a worker thread waits."""
+    release, entered = threading.Event(), threading.Semaphore(0)
+    held: list[int] = []
+
+    def slow() -> dict:  # a plain def: FastAPI runs it on a worker thread
+        held.append(1)
+        entered.release()
+        release.wait(30)
+        return {}
+
+    server = kit.ServerThread(base_settings.model_copy(update={"instance_id": "held"}))
+    server.app.add_api_route("/slow", slow)
+    server.start()
+    pool = ThreadPoolExecutor(WORKER_THREADS + 1)
+    waiting: list[Future] = []
+    try:
+        with httpx.Client(base_url=server.url, timeout=10) as client:
+            session = kit.create_session(client, "reader")
+            waiting += [pool.submit(httpx.get, f"{server.url}/slow", timeout=60) for _ in range(WORKER_THREADS + 1)]
+            for _ in range(WORKER_THREADS):
+                assert entered.acquire(timeout=30)
+            assert client.get("/health").json() == {"status": "ok", "instance": "held"}
+            assert client.get("/ready").json()["ready"] is True
+            assert kit.session_status(client, session)["session_id"] == session["session_id"]
+            assert len(held) == WORKER_THREADS  # the pool was full all along: one more request still waits for it
+    finally:
+        release.set()
+        for future in waiting:
+            assert future.result(timeout=60).status_code == 200
+        pool.shutdown()
+        server.stop()
