@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import numba
 import numpy as np
 import scipy.fft
 
@@ -118,6 +119,57 @@ def _band_sums(power: np.ndarray, bins: tuple[int, np.ndarray, np.ndarray]) -> n
     return sums
 
 
+@numba.njit(cache=True)
+def _cell_means(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_grid: int, gap: float) -> np.ndarray:
+    """Cell means on a dx_mm position grid: signal (c, n, L) float64, constant over each sample, whose
+    samples' edges lie at x_edges (n, L + 1) mm (strictly increasing, from 0) → (n, n_grid, c) float32,
+    the mean of each channel over grid cell k = [k·dx, (k + 1)·dx).
+
+    Each mean is the difference of the signal's running integral, linearly interpolated at the cell's
+    edges, over dx. The arithmetic is that of one np.interp over all windows laid end to end `gap` mm
+    apart (window i at i·gap, searched together), operation for operation, so the float64 means round
+    to the same float32 values; cells past a window's end read the segment to the next window's start
+    (the last window: its own last segment, extended) — values the taper zeroes. Compiled: one walk per
+    window replaces a cumulative sum, a sorted search and six array passes over the grid."""
+    c, n, length = signal.shape
+    out = np.empty((n, n_grid, c), np.float32)
+    integral = np.zeros(c)  # running integral of each channel up to edges[s]
+    before = np.zeros(c)  # … up to edges[s − 1]
+    at_last = np.zeros(c)
+    for i in range(n):
+        offset = i * gap
+        edges = x_edges[i]
+        s = 0  # the sample holding the current grid edge: edges[s] + offset ≤ grid < edges[s + 1] + offset
+        integral[:] = 0.0
+        before[:] = 0.0
+        for k in range(n_grid + 1):
+            grid = k * dx_mm + offset
+            while s < length and edges[s + 1] + offset <= grid:
+                step = edges[s + 1] - edges[s]
+                for ch in range(c):
+                    before[ch] = integral[ch]
+                    integral[ch] = integral[ch] + signal[ch, i, s] * step
+                s += 1
+            if s < length:
+                x0, x1 = edges[s] + offset, edges[s + 1] + offset
+            elif i < n - 1:  # past the end: towards the next window's first edge, where its integral is 0
+                x0, x1 = edges[length] + offset, (i + 1) * gap
+            else:  # past the end of the last window: its last segment, extended
+                x0, x1 = edges[length - 1] + offset, edges[length] + offset
+            for ch in range(c):
+                if s < length:
+                    y0, y1 = integral[ch], integral[ch] + signal[ch, i, s] * (edges[s + 1] - edges[s])
+                elif i < n - 1:
+                    y0, y1 = integral[ch], 0.0
+                else:
+                    y0, y1 = before[ch], integral[ch]
+                at = (y1 - y0) / (x1 - x0) * (grid - x0) + y0
+                if k > 0:
+                    out[i, k - 1, ch] = np.float32((at - at_last[ch]) / dx_mm)
+                at_last[ch] = at
+    return out
+
+
 def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int) -> np.ndarray:
     """One-sided power spectra over spatial frequency of signals against position, n windows at once.
 
@@ -127,38 +179,36 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     zero-padded to n_fft → power (n, n_fft//2 + 1, c), normalised to sum to the mean square;
     all zeros for a window covering fewer than MIN_CELLS cells.
     """
-    signal = np.asarray(signal, dtype=np.float64)
-    return channel_power(np.ascontiguousarray(signal.transpose(2, 0, 1)), x_edges, dx_mm, n_fft).transpose(1, 2, 0)
+    channels = np.ascontiguousarray(np.asarray(signal, dtype=np.float64).transpose(2, 0, 1))
+    power, norm = _raw_power(channels, np.asarray(x_edges, dtype=np.float64), dx_mm, n_fft)
+    return (power.astype(np.float64) * norm[:, None]).transpose(1, 2, 0)
 
 
-def channel_power(
-    signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int, bins: slice = slice(None)
-) -> np.ndarray:
-    """position_power with the channel axis first: signal (c, n, L) float64 → power (c, n, n_fft//2 + 1),
-    or only the `bins` of it (the band sums need the bins up to the shortest period's).
-
-    Channel-first keeps every step on contiguous rows (one searchsorted for all channels, the FFT along the
-    last axis), which is what makes the spatial group cheap per window."""
+def _raw_power(
+    signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft: int, n_bins: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """position_power before its normalisation, channel-first: signal (c, n, L) float64 and x_edges (n, L + 1) mm →
+    |spectrum|² (c, n, n_bins) float32 over the first n_bins bins (default all n_fft//2 + 1; the band sums
+    need only those up to the shortest period's), and each window's normalisation (n,) float64 (0 for a
+    window covering fewer than MIN_CELLS cells). Channel-first, so the taper and the FFT run along contiguous
+    rows; the normalisation is left to the caller, which applies it to a handful of band sums instead of
+    every bin."""
     c, n, length = signal.shape
+    if x_edges.shape != (n, length + 1):
+        raise ValueError(
+            f"x_edges must be (n, L + 1) = {(n, length + 1)} for signal {signal.shape}, got {x_edges.shape}"
+        )
     cells = np.minimum((x_edges[:, -1] / dx_mm).astype(np.int64), n_fft)  # (n,)
     n_grid = int(max(cells.max(initial=0), MIN_CELLS))  # the grid the longest window needs; zero-padded to n_fft
-    integral = np.zeros((c, n, length + 1))
-    np.cumsum(signal * np.diff(x_edges, axis=1)[None], axis=2, out=integral[:, :, 1:])
-    # linear interpolation of each integral at the cell edges (np.interp's arithmetic, one search for every
-    # channel): rows are laid end to end, `gap` mm apart
+    # the windows sit end to end, `gap` mm apart, as they did for one np.interp over all of them: the offsets
+    # set the rounding of every position, and with it the float32 means
     gap = float(x_edges[:, -1].max(initial=0.0)) + (n_grid + 2) * dx_mm
-    offset = (np.arange(n) * gap)[:, None]
-    grid = ((np.arange(n_grid + 1) * dx_mm)[None, :] + offset).ravel()  # (n·(n_grid + 1),) cell edges
-    xs = (x_edges + offset).ravel()
-    j = np.clip(np.searchsorted(xs, grid, side="right") - 1, 0, xs.size - 2)
-    x0 = xs[j]
-    frac = grid - x0
-    ys = integral.reshape(c, -1)
-    y0 = ys[:, j]
-    slope = (ys[:, j + 1] - y0) / (xs[j + 1] - x0)
-    at = slope * frac + y0
-    # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part
-    means = (np.diff(at.reshape(c, n, n_grid + 1), axis=2) / dx_mm).astype(np.float32)  # (c, n, n_grid)
+    # float32 from here: the spectra feed log-energies, and it halves the cost of the heavy part. The means'
+    # memory stays window-major with the channel innermost: the einsum sums below add in an order set by that
+    # layout, and this is the layout the straightforward formulation had (a parity test pins it)
+    means = _cell_means(np.ascontiguousarray(signal), np.ascontiguousarray(x_edges), dx_mm, n_grid, gap).transpose(
+        2, 0, 1
+    )  # (c, n, n_grid)
     k = np.arange(n_grid, dtype=np.float32)[None, :]
     m = np.maximum(cells, 2)[:, None].astype(np.float32)
     inside = k < cells[:, None]
@@ -174,10 +224,19 @@ def channel_power(
     det = np.where(s0 * s2 - s1 * s1 > 0, s0 * s2 - s1 * s1, 1.0)
     a = (s2 * y0s - s1 * y1s) / det
     b = (s0 * y1s - s1 * y0s) / det
-    tapered = w * (means - a[:, :, None] - b[:, :, None] * t)
-    spec = scipy.fft.rfft(tapered, n=n_fft, axis=2)[:, :, bins]
+    # the taper is written straight into the zero-padded FFT input (rfft's own padding would copy it again)
+    padded = np.zeros((c, n, n_fft), np.float32)
+    tapered = padded[:, :, :n_grid]
+    np.subtract(means, a[:, :, None], out=tapered)
+    tapered -= b[:, :, None] * t
+    tapered *= w
+    spec = scipy.fft.rfft(padded, axis=2)
+    n_bins = spec.shape[2] if n_bins is None else n_bins
+    # |X|² as float32 squares of the interleaved (re, im) pairs: the same roundings as re² + im², in two passes
+    squares = spec.view(np.float32)[:, :, : 2 * n_bins] ** 2
+    power = squares[:, :, 0::2] + squares[:, :, 1::2]
     norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
-    return (spec.real**2 + spec.imag**2).astype(np.float64) * norm[:, None]
+    return power, norm
 
 
 def spatial_features(
@@ -221,16 +280,20 @@ def spatial_features(
     x = np.zeros((n, length + 1))
     np.cumsum(step, axis=1, out=x[:, 1:])  # (n, L + 1) sample edges
     # position-weighted mean of v⁴ ((mm/s)⁴): the acceleration's power over a profile is |z''|²·v⁴
-    v4 = np.maximum(np.sum(v**4 * step, axis=1) / np.maximum(x[:, -1], 1e-12), min_speed**4)
-    signal = np.empty((4, n, length))  # channels first: accel x, y, z in mm/s², then normal force
+    v2 = v * v
+    v4 = np.maximum(np.einsum("nl,nl,nl->n", v2, v2, step) / np.maximum(x[:, -1], 1e-12), min_speed**4)
+    signal = np.empty((4, n, length))  # channels first: accel x, y, z in mm/s², then normal force, N
     np.multiply(accel.transpose(2, 0, 1), 1e3, out=signal[:3])
     signal[3] = force
-    used = slice(0, max(height_bins[0] + height_bins[1].size, force_bins[0] + force_bins[1].size))
-    power = channel_power(signal, x, dx_mm, n_fft, used)  # (4, n, bins up to the last band's)
+    n_bins = max(height_bins[0] + height_bins[1].size, force_bins[0] + force_bins[1].size)
+    power, norm = _raw_power(signal, x, dx_mm, n_fft, n_bins)  # (4, n, bins up to the last band's), (n,)
+    height = power[0].astype(np.float64)  # the three axes' power summed (orientation-free), in float64
+    height += power[1]
+    height += power[2]
     energy = np.concatenate(
         [
-            _band_sums(power[0] + power[1] + power[2], height_bins) / v4[:, None] + ENERGY_FLOOR_MM2,
-            _band_sums(power[3], force_bins) + FORCE_FLOOR_N2,
+            _band_sums(height, height_bins) * (norm / v4)[:, None] + ENERGY_FLOOR_MM2,
+            _band_sums(power[3].astype(np.float64), force_bins) * norm[:, None] + FORCE_FLOOR_N2,
         ],
         axis=1,
     )  # mm² per accel band, N² per force band
