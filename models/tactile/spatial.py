@@ -44,6 +44,7 @@ band then reads log10(floor) and the totals √(n_bands·floor) (documented fall
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -88,34 +89,57 @@ def _band_weights(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int
     return members * inv[:, None]
 
 
+class _BandBins(NamedTuple):
+    """The bands as runs of consecutive bins (bands are contiguous in k, so a band's energy is a sum over a
+    slice, np.add.reduceat, rather than a (bins × bands) product, which BLAS spreads over threads even at this
+    size): the first bin; per-bin weights 1/(2πk)^power from it to the last band's end; where each band's
+    run starts (clipped into the run, as reduceat needs); the bands that hold no bin, which read 0."""
+
+    first: int
+    weights: np.ndarray
+    starts: np.ndarray
+    empty: np.ndarray
+
+    @property
+    def stop(self) -> int:
+        """One past the last bin any band holds."""
+        return self.first + self.weights.size
+
+
 @lru_cache(maxsize=16)
-def _band_bins(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int) -> tuple[int, np.ndarray, np.ndarray]:
-    """The bands as runs of consecutive bins: (first bin, per-bin weights 1/(2πk)^power from it to the last
-    band's end, each band's start relative to the first bin). Bands are contiguous in k, so a band's energy
-    is a sum over a slice (np.add.reduceat) rather than a (bins × bands) product, which BLAS spreads over
-    threads even at this size."""
+def _band_bins(n_fft: int, dx_mm: float, edges: tuple[float, ...], power: int) -> _BandBins:
+    """The bands of `edges` (mm⁻¹) over the bins of an n_fft-point spectrum at dx_mm, weighted 1/(2πk)^power;
+    made once per configuration."""
     weights = _band_weights(n_fft, dx_mm, edges, power)
     k = scipy.fft.rfftfreq(n_fft, dx_mm)
     bounds = np.searchsorted(k, np.asarray(edges), side="left")  # band b holds bins bounds[b] … bounds[b+1] − 1
     first, stop = int(bounds[0]), int(bounds[-1])
     run = weights[first:stop].sum(axis=1)  # each bin is in at most one band
-    run.setflags(write=False)
     starts = bounds[:-1] - first
-    starts.setflags(write=False)
-    return first, run, starts
+    empty = np.diff(bounds) == 0
+    starts = np.minimum(starts, max(run.size - 1, 0))
+    for array in (run, starts, empty):
+        array.setflags(write=False)
+    return _BandBins(first, run, starts, empty)
 
 
-def _band_sums(power: np.ndarray, bins: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _feature_bands(
+    n_fft: int, dx_mm: float, min_period_mm: float, max_period_mm: float, n_bands: int
+) -> tuple[_BandBins, _BandBins]:
+    """spatial_features' two band sets, made once per configuration: height (weights 1/(2πk)⁴), force (1)."""
+    edges = tuple(float(e) for e in band_edges_per_mm(min_period_mm, max_period_mm, n_bands))
+    return _band_bins(n_fft, dx_mm, edges, 4), _band_bins(n_fft, dx_mm, edges, 0)
+
+
+def _band_sums(power: np.ndarray, bins: _BandBins) -> np.ndarray:
     """(n, n_bins) power → (n, n_bands): Σ over each band's bins of power × weight (0 for a band with no bin)."""
-    first, run, starts = bins
-    n_bands = starts.size
-    if run.size == 0:
-        return np.zeros((power.shape[0], n_bands))
-    weighted = power[:, first : first + run.size] * run
-    empty = np.diff(np.append(starts, run.size)) == 0
-    sums = np.add.reduceat(weighted, np.minimum(starts, run.size - 1), axis=1)
-    if empty.any():
-        sums[:, empty] = 0.0
+    if bins.weights.size == 0:
+        return np.zeros((power.shape[0], bins.starts.size))
+    weighted = power[:, bins.first : bins.stop] * bins.weights
+    sums = np.add.reduceat(weighted, bins.starts, axis=1)
+    if bins.empty.any():
+        sums[:, bins.empty] = 0.0
     return sums
 
 
@@ -269,9 +293,7 @@ def spatial_features(
         raise ValueError(f"rate_hz, dx_mm and min_speed must be > 0, got {rate_hz}, {dx_mm}, {min_speed}")
     if 2 * dx_mm > min_period_mm:
         raise ValueError(f"dx_mm={dx_mm} cannot resolve periods of {min_period_mm} mm (needs dx ≤ period/2)")
-    edges = tuple(band_edges_per_mm(min_period_mm, max_period_mm, n_bands))
-    height_bins = _band_bins(n_fft, dx_mm, edges, 4)
-    force_bins = _band_bins(n_fft, dx_mm, edges, 0)
+    height_bins, force_bins = _feature_bands(n_fft, dx_mm, min_period_mm, max_period_mm, n_bands)
     n, length = speed.shape
     if n == 0:
         return np.empty((0, 2 * n_bands + 2))
@@ -285,17 +307,17 @@ def spatial_features(
     signal = np.empty((4, n, length))  # channels first: accel x, y, z in mm/s², then normal force, N
     np.multiply(accel.transpose(2, 0, 1), 1e3, out=signal[:3])
     signal[3] = force
-    n_bins = max(height_bins[0] + height_bins[1].size, force_bins[0] + force_bins[1].size)
+    n_bins = max(height_bins.stop, force_bins.stop)
     power, norm = _raw_power(signal, x, dx_mm, n_fft, n_bins)  # (4, n, bins up to the last band's), (n,)
     height = power[0].astype(np.float64)  # the three axes' power summed (orientation-free), in float64
     height += power[1]
     height += power[2]
-    energy = np.concatenate(
-        [
-            _band_sums(height, height_bins) * (norm / v4)[:, None] + ENERGY_FLOOR_MM2,
-            _band_sums(power[3].astype(np.float64), force_bins) * norm[:, None] + FORCE_FLOOR_N2,
-        ],
-        axis=1,
-    )  # mm² per accel band, N² per force band
-    totals = np.sqrt(np.stack([energy[:, :n_bands].sum(axis=1), energy[:, n_bands:].sum(axis=1)], axis=1))
-    return np.concatenate([np.log10(energy), totals], axis=1)
+    energy = np.empty((n, 2, n_bands))  # mm² per accel band, N² per force band
+    np.multiply(_band_sums(height, height_bins), (norm / v4)[:, None], out=energy[:, 0])
+    np.multiply(_band_sums(power[3].astype(np.float64), force_bins), norm[:, None], out=energy[:, 1])
+    energy[:, 0] += ENERGY_FLOOR_MM2
+    energy[:, 1] += FORCE_FLOOR_N2
+    out = np.empty((n, 2 * n_bands + 2))
+    np.log10(energy.reshape(n, 2 * n_bands), out=out[:, : 2 * n_bands])
+    np.sqrt(energy.sum(axis=2), out=out[:, 2 * n_bands :])
+    return out
