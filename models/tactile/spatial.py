@@ -233,6 +233,48 @@ def _raw_power(
     means = _cell_means(np.ascontiguousarray(signal), np.ascontiguousarray(x_edges), dx_mm, n_grid, gap).transpose(
         2, 0, 1
     )  # (c, n, n_grid)
+    taper = _one_taper(int(cells[0]), n_grid, n_fft) if n == 1 else _tapers(cells, n_grid, n_fft)
+    # the least-squares line a + b·t through each row (weights w²), removed before the taper
+    y0s = np.einsum("nj,cnj->cn", taper.w2, means)
+    y1s = np.einsum("nj,cnj->cn", taper.w2t, means)
+    a = (taper.s2 * y0s - taper.s1 * y1s) / taper.det
+    b = (taper.s0 * y1s - taper.s1 * y0s) / taper.det
+    # the taper is written straight into the zero-padded FFT input (rfft's own padding would copy it again)
+    padded = np.zeros((c, n, n_fft), np.float32)
+    tapered = padded[:, :, :n_grid]
+    np.subtract(means, a[:, :, None], out=tapered)
+    tapered -= b[:, :, None] * taper.t
+    tapered *= taper.w
+    spec = scipy.fft.rfft(padded, axis=2)
+    n_bins = spec.shape[2] if n_bins is None else n_bins
+    # |X|² as float32 squares of the interleaved (re, im) pairs: the same roundings as re² + im², in two passes
+    squares = spec.view(np.float32)[:, :, : 2 * n_bins] ** 2
+    power = squares[:, :, 0::2] + squares[:, :, 1::2]
+    return power, taper.norm
+
+
+class _Taper(NamedTuple):
+    """Per-window constants of the taper and the least-squares line, float32 except norm: w (n, n_grid), the
+    Hann window over each window's cells (0 beyond); t (n, n_grid), the cells' positions in [−1, 1] (0
+    beyond); w2 = w², w2t = w²·t; s0, s1, s2 (n,), Σw², Σw²t, Σw²t²; det (n,), s0·s2 − s1² (1 where not
+    > 0); norm (n,) float64, what scales |X|² to a one-sided spectrum summing to the mean square (0 for a
+    window under MIN_CELLS cells)."""
+
+    w: np.ndarray
+    t: np.ndarray
+    w2: np.ndarray
+    w2t: np.ndarray
+    s0: np.ndarray
+    s1: np.ndarray
+    s2: np.ndarray
+    det: np.ndarray
+    norm: np.ndarray
+
+
+def _tapers(cells: np.ndarray, n_grid: int, n_fft: int) -> _Taper:
+    """The _Taper of windows covering `cells` (n,) grid cells each, on a grid of n_grid cells zero-padded to
+    n_fft. Each row depends on its own cells and on n_grid only (the sums add in blocks set by the row's
+    length), so one window's row is the same alone or in a batch."""
     k = np.arange(n_grid, dtype=np.float32)[None, :]
     m = np.maximum(cells, 2)[:, None].astype(np.float32)
     inside = k < cells[:, None]
@@ -240,27 +282,22 @@ def _raw_power(
         inside, np.sin(np.float32(np.pi) * (k + 1) / (m + 1)) ** 2, np.float32(0)
     )  # Hann without its zero ends
     t = np.where(inside, 2 * k / (m - 1) - 1, np.float32(0))
-    # weighted least-squares line a + b·t through each row (weights w²), removed before the taper
     w2 = w * w
-    s0, s1, s2 = w2.sum(axis=1), (w2 * t).sum(axis=1), (w2 * t * t).sum(axis=1)
-    y0s = np.einsum("nj,cnj->cn", w2, means)
-    y1s = np.einsum("nj,cnj->cn", w2 * t, means)
+    w2t = w2 * t
+    s0, s1, s2 = w2.sum(axis=1), w2t.sum(axis=1), (w2t * t).sum(axis=1)
     det = np.where(s0 * s2 - s1 * s1 > 0, s0 * s2 - s1 * s1, 1.0)
-    a = (s2 * y0s - s1 * y1s) / det
-    b = (s0 * y1s - s1 * y0s) / det
-    # the taper is written straight into the zero-padded FFT input (rfft's own padding would copy it again)
-    padded = np.zeros((c, n, n_fft), np.float32)
-    tapered = padded[:, :, :n_grid]
-    np.subtract(means, a[:, :, None], out=tapered)
-    tapered -= b[:, :, None] * t
-    tapered *= w
-    spec = scipy.fft.rfft(padded, axis=2)
-    n_bins = spec.shape[2] if n_bins is None else n_bins
-    # |X|² as float32 squares of the interleaved (re, im) pairs: the same roundings as re² + im², in two passes
-    squares = spec.view(np.float32)[:, :, : 2 * n_bins] ** 2
-    power = squares[:, :, 0::2] + squares[:, :, 1::2]
     norm = np.where(cells >= MIN_CELLS, 2.0 / (n_fft * np.maximum(w2.sum(axis=1, dtype=np.float64), 1e-300)), 0.0)
-    return power, norm
+    return _Taper(w, t, w2, w2t, s0, s1, s2, det, norm)
+
+
+@lru_cache(maxsize=256)
+def _one_taper(cells: int, n_grid: int, n_fft: int) -> _Taper:
+    """_tapers of a single window, kept: one window per call (the serving case) has n_grid = max(cells,
+    MIN_CELLS), so a handful of distances covered (≤ n_fft + 1 keys, ≤ 16 kB each) recur call after call."""
+    taper = _tapers(np.array([cells]), n_grid, n_fft)
+    for array in taper:
+        array.setflags(write=False)
+    return taper
 
 
 def spatial_features(
