@@ -204,7 +204,10 @@ def position_power(signal: np.ndarray, x_edges: np.ndarray, dx_mm: float, n_fft:
     all zeros for a window covering fewer than MIN_CELLS cells.
     """
     channels = np.ascontiguousarray(np.asarray(signal, dtype=np.float64).transpose(2, 0, 1))
-    power, norm = _raw_power(channels, np.asarray(x_edges, dtype=np.float64), dx_mm, n_fft)
+    x_edges = np.asarray(x_edges, dtype=np.float64)
+    if x_edges.ndim != 2 or np.any(x_edges[:, 0] != 0):
+        raise ValueError(f"x_edges must be (n, L + 1) positions starting at 0 mm, got shape {x_edges.shape}")
+    power, norm = _raw_power(channels, x_edges, dx_mm, n_fft)
     return (power.astype(np.float64) * norm[:, None]).transpose(1, 2, 0)
 
 
@@ -292,8 +295,9 @@ def _tapers(cells: np.ndarray, n_grid: int, n_fft: int) -> _Taper:
 
 @lru_cache(maxsize=256)
 def _one_taper(cells: int, n_grid: int, n_fft: int) -> _Taper:
-    """_tapers of a single window, kept: one window per call (the serving case) has n_grid = max(cells,
-    MIN_CELLS), so a handful of distances covered (≤ n_fft + 1 keys, ≤ 16 kB each) recur call after call."""
+    """_tapers of a single window, kept: with one window per call (the serving case) n_grid is max(cells,
+    MIN_CELLS), so the window's cell count alone is the key — at most n_fft + 1 of them, ≤ 16 kB each — and
+    strokes at similar speeds repeat it."""
     taper = _tapers(np.array([cells]), n_grid, n_fft)
     for array in taper:
         array.setflags(write=False)
