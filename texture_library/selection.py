@@ -78,11 +78,12 @@ def window_psd(accel: np.ndarray, rate_hz: float = 1000.0, segment: int = WELCH_
         raise ValueError("accel holds NaN or Inf")
     index, taper, win_power = _welch_plan(a.shape[0], segment)
     frames = a[:, :3][index]  # (n, segment, axes), a copy: its layout sets the order the mean adds in
-    frames -= frames.mean(axis=1, keepdims=True)
+    # means as sum / count, which is what ndarray.mean computes, without its Python-level wrapper
+    frames -= np.add.reduce(frames, axis=1, keepdims=True) / segment
     frames *= taper
     spectra = np.abs(np.fft.rfft(frames, axis=1))
     spectra **= 2
-    psd = spectra.mean(axis=0).sum(axis=1) / (rate_hz * win_power)
+    psd = (np.add.reduce(spectra, axis=0) / index.shape[0]).sum(axis=1) / (rate_hz * win_power)
     psd[1 : -1 if segment % 2 == 0 else None] *= 2.0  # one-sided: DC (and an even length's Nyquist) once
     return psd
 
@@ -117,7 +118,9 @@ def _whittle_db(p: np.ndarray, s: np.ndarray) -> np.ndarray:
     """whittle_mismatch_db without the checks, for spectra known to be finite, ≥ 0 and on the same bins."""
     r = np.maximum(s, _FLOOR)
     np.divide(np.maximum(p, _FLOOR), r, out=r)
-    return _DB * np.sqrt(2.0 * np.mean(r - np.log(r) - 1.0, axis=-1))
+    deviance = r - np.log(r)
+    deviance -= 1.0
+    return _DB * np.sqrt(2.0 * (np.add.reduce(deviance, axis=-1) / r.shape[-1]))
 
 
 def lsd_mismatch_db(psd: np.ndarray, model_psd: np.ndarray) -> np.ndarray:
