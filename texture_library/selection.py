@@ -202,7 +202,11 @@ class SpectralTable:
         for k, m in enumerate(models):
             psd = (arma_psd(m, ss.ravel(), ff.ravel(), self.freqs_hz) + self.noise_psd) * response
             table[k] = np.log10(np.maximum(psd, _FLOOR)).reshape(n_speeds, n_forces, -1)
+        table.setflags(write=False)
         self.log_psd = table
+        # a finite table gives finite spectra > 0 at every operating point: the per-window path then skips
+        # their checks (a non-finite one — a degenerate model — keeps them, and fails as it always did)
+        self._finite = bool(np.all(np.isfinite(table)))
 
     def at(self, speed: float, force: float) -> np.ndarray:
         """(M, n) spectra at one operating point (speed mm/s, force N; clamped to the grid), bilinear in log."""
@@ -230,11 +234,10 @@ class SpectralTable:
             raise ValueError(f"kind must be 'whittle' or 'lsd', got {kind!r}")
         full = window_psd(accel, self.rate_hz)
         psd = full[self._bins] if self._bins is not None else np.interp(self.freqs_hz, self._welch, full)
-        if not np.all(np.isfinite(psd)):
-            raise ValueError("the window's power spectrum is not finite")
-        # the table's spectra are finite and > 0 by construction: only the window's needed checking
         models = self.at(speed, force)
-        return _whittle_db(psd, models) if kind == "whittle" else _lsd_db(psd, models)
+        if self._finite and np.all(np.isfinite(psd)):
+            return _whittle_db(psd, models) if kind == "whittle" else _lsd_db(psd, models)
+        return whittle_mismatch_db(psd, models) if kind == "whittle" else lsd_mismatch_db(psd, models)
 
 
 def _cell(grid: Sequence[float], x: float) -> tuple[int, float]:

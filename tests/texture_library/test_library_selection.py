@@ -146,6 +146,15 @@ def test_mismatch_equals_the_straightforward_formulation_on_and_off_the_grid():
             )
 
 
+def test_a_table_with_non_finite_spectra_still_refuses_to_score_a_window():
+    """The per-window path skips the spectra's checks only for a finite table; a non-finite one fails as before."""
+    m = square_model()
+    table = SpectralTable(["a"], [m], freqs_hz=np.array([50.0, np.nan, 100.0]))
+    accel = render(m, np.full(500, 120.0), np.full(500, 1.5), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="finite"):
+        table.mismatch_db(accel, 120.0, 1.5)
+
+
 def test_window_psd_is_the_same_for_every_window_length_it_has_planned():
     """The Welch plan is cached per window length: a later window of another length gets its own."""
     from scipy.signal import welch
