@@ -196,6 +196,7 @@ def main(argv: list[str] | None = None) -> dict:
             "scipy": scipy.__version__,
             "librosa": librosa.__version__,
         },
+        "load_average_1_5_15_min": [round(v, 2) for v in os.getloadavg()],  # the machine is shared
         "command": "python -m benchmarks.features"
         + ("" if not (argv or sys.argv[1:]) else " " + " ".join(argv or sys.argv[1:])),
         "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -79,7 +81,8 @@ def main(argv: list[str] | None = None) -> dict:
         "hybrid_extra_us_p50": round(p50["hybrid"] - p50["perceptual"], 1),
         "window_budget_us": 500_000,
         "n": args.n,
-        "command": "python -m benchmarks.selection " + " ".join(argv or []),
+        "command": " ".join(["python -m benchmarks.selection", *(sys.argv[1:] if argv is None else argv)]),
+        "load_average_1_5_15_min": [round(v, 2) for v in os.getloadavg()],
         "note": "timings on a shared 2-core machine under load unless said otherwise",
     }
     print(json.dumps(result, indent=1))

@@ -16,9 +16,11 @@ challenger must be cheaper by `margin` (in the rule's units) for `hold` windows 
 
 from __future__ import annotations
 
+import bisect
 import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.signal import get_window
@@ -35,7 +37,8 @@ HIGHPASS_HZ = 20.0
 HIGHPASS_ORDER = 4
 #: per-axis white noise of the simulated robot's accelerometer, m/s² RMS (texture_library.stroke's default)
 SIMULATED_SENSOR_NOISE = float(inspect.signature(stroke).parameters["noise_std"].default)
-_DB = 10.0 / np.log(10.0)
+_LN10 = float(np.log(10.0))
+_DB = 10.0 / _LN10
 _FLOOR = 1e-12  # (m/s²)²/Hz under a spectrum before a log or a ratio
 
 
@@ -73,20 +76,31 @@ def window_psd(accel: np.ndarray, rate_hz: float = 1000.0, segment: int = WELCH_
         raise ValueError(f"accel must be (L,) or (L, k) with L ≥ {segment} samples, got shape {np.shape(accel)}")
     if not np.all(np.isfinite(a)):
         raise ValueError("accel holds NaN or Inf")
-    a = a[:, :3]
-    hop = segment // 2
-    starts = hop * np.arange((a.shape[0] - segment) // hop + 1)
-    frames = a[starts[:, None] + np.arange(segment)[None, :]]  # (n, segment, axes)
-    frames = frames - frames.mean(axis=1, keepdims=True)
-    win = _hann(segment)
-    spectra = np.abs(np.fft.rfft(frames * win[None, :, None], axis=1)) ** 2
-    psd = spectra.mean(axis=0).sum(axis=1) / (rate_hz * float(np.sum(win**2)))
+    index, taper, win_power = _welch_plan(a.shape[0], segment)
+    frames = a[:, :3][index]  # (n, segment, axes), a copy: its layout sets the order the mean adds in
+    # means as sum / count, which is what ndarray.mean computes, without its Python-level wrapper
+    frames -= np.add.reduce(frames, axis=1, keepdims=True) / segment
+    frames *= taper
+    spectra = np.abs(np.fft.rfft(frames, axis=1))
+    spectra **= 2
+    psd = (np.add.reduce(spectra, axis=0) / index.shape[0]).sum(axis=1) / (rate_hz * win_power)
     psd[1 : -1 if segment % 2 == 0 else None] *= 2.0  # one-sided: DC (and an even length's Nyquist) once
     return psd
 
 
-def _hann(n: int) -> np.ndarray:
-    return get_window("hann", n)  # periodic Hann, as scipy.signal.welch uses
+@lru_cache(maxsize=16)
+def _welch_plan(length: int, segment: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """What window_psd needs for windows of `length` samples, made once per length rather than per window:
+    the half-overlapping segments' sample indices (n, segment), the periodic Hann window as scipy.signal.welch
+    uses it, shaped (1, segment, 1) to taper (n, segment, axes) frames, and Σ window², its power."""
+    hop = segment // 2
+    starts = hop * np.arange((length - segment) // hop + 1)
+    index = starts[:, None] + np.arange(segment)[None, :]
+    win = get_window("hann", segment)
+    index.setflags(write=False)
+    taper = win[None, :, None]
+    taper.setflags(write=False)
+    return index, taper, float(np.sum(win**2))
 
 
 def whittle_mismatch_db(psd: np.ndarray, model_psd: np.ndarray) -> np.ndarray:
@@ -97,14 +111,25 @@ def whittle_mismatch_db(psd: np.ndarray, model_psd: np.ndarray) -> np.ndarray:
     r = psd / model (≈ ½ (ln r)² near r = 1); returned as (10 / ln 10)·√(2 · mean over bins), which
     is the RMS log-spectral distance in dB for small differences. Returns (M,) ≥ 0; lower is likelier.
     """
-    p, s = _checked_pair(psd, model_psd)
-    r = np.maximum(p, _FLOOR) / np.maximum(s, _FLOOR)
-    return _DB * np.sqrt(2.0 * np.mean(r - np.log(r) - 1.0, axis=-1))
+    return _whittle_db(*_checked_pair(psd, model_psd))
+
+
+def _whittle_db(p: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """whittle_mismatch_db without the checks, for spectra known to be finite, ≥ 0 and on the same bins."""
+    r = np.maximum(s, _FLOOR)
+    np.divide(np.maximum(p, _FLOOR), r, out=r)
+    deviance = r - np.log(r)
+    deviance -= 1.0
+    return _DB * np.sqrt(2.0 * (np.add.reduce(deviance, axis=-1) / r.shape[-1]))
 
 
 def lsd_mismatch_db(psd: np.ndarray, model_psd: np.ndarray) -> np.ndarray:
     """(M,) RMS difference of 10·log10 spectra, dB: psd (n,) against each row of model_psd (M, n)."""
-    p, s = _checked_pair(psd, model_psd)
+    return _lsd_db(*_checked_pair(psd, model_psd))
+
+
+def _lsd_db(p: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """lsd_mismatch_db without the checks, for spectra known to be finite, ≥ 0 and on the same bins."""
     d = 10.0 * (np.log10(np.maximum(p, _FLOOR)) - np.log10(np.maximum(s, _FLOOR)))
     return np.sqrt(np.mean(d**2, axis=-1))
 
@@ -166,6 +191,9 @@ class SpectralTable:
         self._bins = hits if np.allclose(self._welch[hits], self.freqs_hz) else None
         self.speeds = np.linspace(0.0, max(float(m.max_speed) for m in models), n_speeds)
         self.forces = np.linspace(0.0, max(float(m.max_force) for m in models), n_forces)
+        # the grids as Python floats: a window's cell is found with bisect, without numpy's per-call overhead
+        self._speed_grid = tuple(float(v) for v in self.speeds)
+        self._force_grid = tuple(float(v) for v in self.forces)
         ss, ff = np.meshgrid(self.speeds, self.forces, indexing="ij")
         response = np.ones_like(self.freqs_hz)
         if highpass_hz is not None:
@@ -174,14 +202,19 @@ class SpectralTable:
         for k, m in enumerate(models):
             psd = (arma_psd(m, ss.ravel(), ff.ravel(), self.freqs_hz) + self.noise_psd) * response
             table[k] = np.log10(np.maximum(psd, _FLOOR)).reshape(n_speeds, n_forces, -1)
+        table.setflags(write=False)
         self.log_psd = table
+        # a finite table gives finite spectra > 0 at every operating point: the per-window path then skips
+        # their checks (a non-finite one — a degenerate model — keeps them, and fails as it always did)
+        self._finite = bool(np.all(np.isfinite(table)))
 
     def at(self, speed: float, force: float) -> np.ndarray:
         """(M, n) spectra at one operating point (speed mm/s, force N; clamped to the grid), bilinear in log."""
         if not (np.isfinite(speed) and np.isfinite(force)):
             raise ValueError(f"speed and force must be finite, got {speed}, {force}")
-        i, a = _cell(self.speeds, speed)
-        j, b = _cell(self.forces, force)
+        i, a = _cell(self._speed_grid, speed)
+        j, b = _cell(self._force_grid, force)
+        a, b = np.float64(a), np.float64(b)  # float64 weights make the mix float64 (a Python float would not)
         t = self.log_psd
         mixed = (
             (1 - a) * (1 - b) * t[:, i, j]
@@ -189,7 +222,10 @@ class SpectralTable:
             + (1 - a) * b * t[:, i, j + 1]
             + a * b * t[:, i + 1, j + 1]
         )
-        return 10.0 ** mixed.astype(np.float64)
+        # 10^x as e^(x·ln 10): numpy's exp is vectorised, its pow is not (5× the cost here); the two agree to
+        # a few ulp, far inside what the float32 table holds
+        mixed *= _LN10
+        return np.exp(mixed, out=mixed)
 
     def mismatch_db(self, accel: np.ndarray, speed: float, force: float, kind: str = "whittle") -> np.ndarray:
         """(M,) dB: how far a window's acceleration (L, k) m/s² is from each entry at (speed, force);
@@ -199,12 +235,16 @@ class SpectralTable:
         full = window_psd(accel, self.rate_hz)
         psd = full[self._bins] if self._bins is not None else np.interp(self.freqs_hz, self._welch, full)
         models = self.at(speed, force)
+        if self._finite and np.all(np.isfinite(psd)):
+            return _whittle_db(psd, models) if kind == "whittle" else _lsd_db(psd, models)
         return whittle_mismatch_db(psd, models) if kind == "whittle" else lsd_mismatch_db(psd, models)
 
 
-def _cell(grid: np.ndarray, x: float) -> tuple[int, float]:
-    x = float(np.clip(x, grid[0], grid[-1]))
-    i = min(int(np.searchsorted(grid, x, side="right")) - 1, grid.size - 2)
+def _cell(grid: Sequence[float], x: float) -> tuple[int, float]:
+    """The grid cell holding x (clamped to the grid) and x's fraction of the way across it: (i, 0 ≤ t ≤ 1)
+    with grid[i] ≤ x ≤ grid[i + 1]; grid ascending, ≥ 2 points."""
+    x = min(max(float(x), grid[0]), grid[-1])
+    i = min(bisect.bisect_right(grid, x) - 1, len(grid) - 2)
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
 
 

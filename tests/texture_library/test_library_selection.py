@@ -12,6 +12,7 @@ from texture_library.selection import (
     HysteresisChooser,
     SelectionRule,
     SpectralTable,
+    band_mask,
     lsd_mismatch_db,
     sensor_noise_psd,
     welch_frequencies,
@@ -100,6 +101,69 @@ def test_a_rendered_window_is_most_likely_under_its_own_model():
         for kind in ("whittle", "lsd"):
             wins += int(np.argmin(table.mismatch_db(accel, 120.0, 1.5, kind)) == 1)
     assert wins == 40
+
+
+def _reference_mismatch_db(
+    table: SpectralTable, accel: np.ndarray, speed: float, force: float, kind: str
+) -> np.ndarray:
+    """The straightforward formulation the table's per-window path must equal: Welch spectrum, the table read
+    with np.searchsorted and 10**x, then the checked public mismatch."""
+    psd = window_psd(accel, table.rate_hz)[band_mask(welch_frequencies(table.rate_hz))]  # the table's default bins
+    weights = []
+    for grid, x in ((table.speeds, speed), (table.forces, force)):
+        x = float(np.clip(x, grid[0], grid[-1]))
+        i = min(int(np.searchsorted(grid, x, side="right")) - 1, grid.size - 2)
+        weights.append((i, (x - grid[i]) / (grid[i + 1] - grid[i])))
+    (i, a), (j, b) = weights
+    t = table.log_psd
+    mixed = (
+        (1 - a) * (1 - b) * t[:, i, j]
+        + a * (1 - b) * t[:, i + 1, j]
+        + (1 - a) * b * t[:, i, j + 1]
+        + a * b * t[:, i + 1, j + 1]
+    )
+    models = 10.0 ** mixed.astype(np.float64)
+    return whittle_mismatch_db(psd, models) if kind == "whittle" else lsd_mismatch_db(psd, models)
+
+
+def test_mismatch_equals_the_straightforward_formulation_on_and_off_the_grid():
+    """The per-window path (cached Welch plan, unchecked table spectra, 10^x as e^(x ln 10)) changes no result
+    beyond rounding: on grid points, between them, and clamped outside the grid, for both kinds."""
+    m = square_model()
+    library = [shifted(m, -40.0, "lower"), m, shifted(m, 40.0, "higher")]
+    table = SpectralTable(["lower", "own", "higher"], library)
+    rng = np.random.default_rng(7)
+    points = [(table.speeds[3], table.forces[2]), (37.3, 1.234), (0.0, 0.0), (250.0, -1.0), (199.99, 4.0)]
+    for speed, force in points:
+        accel = render(m, np.full(500, max(speed, 10.0)), np.full(500, max(force, 0.5)), rng)
+        accel = np.column_stack([accel, 0.1 * rng.standard_normal((500, 5))])  # derived columns: ignored
+        for kind in ("whittle", "lsd"):
+            np.testing.assert_allclose(
+                table.mismatch_db(accel, speed, force, kind),
+                _reference_mismatch_db(table, accel, speed, force, kind),
+                rtol=1e-12,
+                atol=1e-12,
+            )
+
+
+def test_a_table_with_non_finite_spectra_still_refuses_to_score_a_window():
+    """The per-window path skips the spectra's checks only for a finite table; a non-finite one fails as before."""
+    m = square_model()
+    table = SpectralTable(["a"], [m], freqs_hz=np.array([50.0, np.nan, 100.0]))
+    accel = render(m, np.full(500, 120.0), np.full(500, 1.5), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="finite"):
+        table.mismatch_db(accel, 120.0, 1.5)
+
+
+def test_window_psd_is_the_same_for_every_window_length_it_has_planned():
+    """The Welch plan is cached per window length: a later window of another length gets its own."""
+    from scipy.signal import welch
+
+    rng = np.random.default_rng(2)
+    for length in (500, 300, 500, 128, 1000):
+        accel = rng.standard_normal((length, 3))
+        _, ref = welch(accel, fs=1000.0, window="hann", nperseg=128, noverlap=64, axis=0)
+        np.testing.assert_allclose(window_psd(accel), ref.sum(axis=1), rtol=1e-10)
 
 
 # ---- rules ------------------------------------------------------------------------------------------

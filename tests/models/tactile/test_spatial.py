@@ -89,6 +89,15 @@ def test_position_power_sums_to_the_mean_square():
     assert np.all(power[1] == 0.0)
 
 
+def test_position_power_refuses_positions_that_do_not_start_at_zero_or_do_not_fit_the_signal():
+    signal = np.ones((2, 100, 1))
+    x_edges = np.tile(np.arange(101) * 0.3, (2, 1))
+    with pytest.raises(ValueError, match="starting at 0 mm"):
+        position_power(signal, x_edges + 1.0, 0.25, 1024)
+    with pytest.raises(ValueError, match=r"x_edges must be \(n, L \+ 1\)"):
+        position_power(signal, x_edges[:, :50], 0.25, 1024)
+
+
 def test_a_tool_at_rest_reads_the_floor_not_nan():
     speed = np.zeros((2, L))
     f = spatial_features(np.ones((2, L, 3)), np.full((2, L), 2.0), speed, RATE)
