@@ -29,7 +29,8 @@ def stable_polys(draw, max_order: int = 20, max_radius: float = 0.97) -> np.ndar
 def test_lsf_round_trip_recovers_the_polynomial(a):
     lsf = poly_to_lsf(a)
     assert lsf.shape == (a.size - 1,)
-    np.testing.assert_allclose(lsf_to_poly(lsf), a, atol=1e-7)
+    # clustered roots give coefficients in the hundreds; the round trip is accurate relative to them
+    np.testing.assert_allclose(lsf_to_poly(lsf), a, atol=1e-7 * max(1.0, float(np.abs(a).max())))
 
 
 @settings(max_examples=150, deadline=None)
