@@ -31,6 +31,8 @@ DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
 #: the image configuration the served models read: the one the speed–accuracy frontier's fixed rule picks
 #: (reports/tradeoffs: 2×2 patches at native size, no GLCM), so a frame costs the backbone on 4 patches
 SERVED_VISUAL = VisualConfig(grid=2, glcm=False)
+#: the int8 EfficientNet-Lite0 (models.offline.backbones.quantize): a backbone choice, not the served one
+INT8_BACKBONE = "efficientnet_lite0_int8"
 
 
 def cache_root() -> Path:
@@ -154,11 +156,28 @@ def backbone_onnx(config: VisualConfig) -> Path:
     from models.offline.backbones.cnn import resolve_backbone
     from models.offline.backbones.onnx_export import export_backbone_onnx
 
+    if config.backbone == INT8_BACKBONE:
+        return _int8_backbone_onnx(config)
     backbone = resolve_backbone(config)
     path = cache_root() / "backbones" / f"{backbone.name}-{backbone.fingerprint[:12]}-{config.hash()}.onnx"
     if not path.is_file():
         with atomic_path(path) as tmp:
             export_backbone_onnx(backbone, tmp, config_hash=config.hash())
+    return path
+
+
+def _int8_backbone_onnx(config: VisualConfig) -> Path:
+    """The int8 copy of the EfficientNet-Lite0 file for `config`, quantized once from it (deterministic: same
+    fp32 file and recipe, same bytes); its name holds the int8 fingerprint, so a changed recipe is a new file."""
+    from models.offline.backbones.quantize import int8_fingerprint, quantize_backbone_onnx
+    from models.visual.onnx_backbone import OnnxBackbone
+
+    fp32_path = backbone_onnx(config.model_copy(update={"backbone": "efficientnet_lite0"}))
+    fingerprint = int8_fingerprint(OnnxBackbone(fp32_path).fingerprint)
+    path = cache_root() / "backbones" / f"{INT8_BACKBONE}-{fingerprint[:12]}-{config.hash()}.onnx"
+    if not path.is_file():
+        with atomic_path(path) as tmp:
+            quantize_backbone_onnx(fp32_path, tmp)
     return path
 
 

@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0"]
+BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0", "efficientnet_lite0_int8"]
 
 # Fields that say how to *pick* the backbone on this machine, not what is computed:
 # "auto" resolves differently per machine and the weights path is local. The
@@ -43,7 +43,9 @@ class VisualConfig(BaseModel):
     glcm_levels      grey levels of the co-occurrence matrix (levels² features)
     glcm_distances   pixel offsets of the co-occurrence pairs
     glcm_angles_deg  directions of the pairs, degrees (0 = to the right)
-    backbone         "auto": ResNet-50 if its ImageNet weights are found, else EfficientNet-Lite0
+    backbone         "auto": ResNet-50 if its ImageNet weights are found, else EfficientNet-Lite0;
+                     "efficientnet_lite0_int8": EfficientNet-Lite0 quantized to int8 (ONNX only,
+                     models.offline.backbones.quantize)
     resnet50_weights path of a torchvision ResNet-50 checkpoint (else torch's hub cache is searched)
     resize           None: use the image as it comes; N: first scale it (antialiased, aspect kept) so its
                      shorter side is N pixels (≥ patch_size), then cut patches and compute the GLCM — a

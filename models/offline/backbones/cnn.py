@@ -139,7 +139,11 @@ def resolve_backbone(config: VisualConfig, *, batch_size: int = DEFAULT_BATCH_SI
                          `torch.hub.get_dir()/checkpoints/resnet50*.pth`, else EfficientNet-Lite0
     "resnet50"           ResNet-50; FileNotFoundError if no weights are found
     "efficientnet_lite0" EfficientNet-Lite0
+    "efficientnet_lite0_int8" ValueError: it exists only as ONNX (models.offline.featurize.backbone_onnx)
     """
+    if config.backbone == "efficientnet_lite0_int8":
+        # Without this it would fall through to "auto" and silently embed with another network.
+        raise ValueError("backbone 'efficientnet_lite0_int8' has no torch form: run its ONNX file (backbone_onnx)")
     if config.backbone == "efficientnet_lite0":
         return efficientnet_lite0_backbone(batch_size=batch_size)
     path = find_resnet50_weights(config.resnet50_weights)

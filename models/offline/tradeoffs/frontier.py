@@ -47,7 +47,13 @@ GRIDS = (7, 5, 3, 2, 1)
 RESIZES: tuple[int | None, ...] = (None, 640, 448)
 TARGET_FRAME_MS = 50.0
 TARGET_MAE_MARGIN = 0.3
-BACKBONE_NOTES = {"efficientnet_lite0": "ImageNet weights", "resnet50": "random weights: timing only"}
+BACKBONE_NOTES = {
+    "efficientnet_lite0": "ImageNet weights",
+    "efficientnet_lite0_int8": "ImageNet weights, int8 (calibrated on synthetic photos)",
+    "resnet50": "random weights: timing only",
+}
+# The backbones with real weights: the sweep scores their accuracy (ResNet-50 is timed only).
+SCORED_BACKBONES = ("efficientnet_lite0", "efficientnet_lite0_int8")
 
 
 @dataclass(frozen=True)
@@ -83,18 +89,22 @@ def sweep(
 
 
 def config_label(backbone: str, patching: Patching, glcm: bool) -> str:
-    short = {"efficientnet_lite0": "effnet-lite0", "resnet50": "resnet50"}.get(backbone, backbone)
+    short = {
+        "efficientnet_lite0": "effnet-lite0",
+        "efficientnet_lite0_int8": "effnet-lite0-int8",
+        "resnet50": "resnet50",
+    }.get(backbone, backbone)
     return f"{short} {patching.label}" + (" + GLCM" if glcm else "")
 
 
 # ---- backbones --------------------------------------------------------------------------------------
 def backbone_paths(names: tuple[str, ...]) -> dict[str, Path]:
-    """ONNX file per backbone: EfficientNet-Lite0 as the pipeline exports it; ResNet-50 with random
-    weights (seed 0) exported once into the cache."""
+    """ONNX file per backbone: EfficientNet-Lite0 as the pipeline exports it (and its int8 copy); ResNet-50
+    with random weights (seed 0) exported once into the cache."""
     out = {}
     for name in names:
-        if name == "efficientnet_lite0":
-            out[name] = backbone_onnx(VisualConfig(backbone="efficientnet_lite0"))
+        if name in SCORED_BACKBONES:
+            out[name] = backbone_onnx(VisualConfig(backbone=name))
         elif name == "resnet50":
             out[name] = _random_resnet_onnx()
         else:
@@ -312,33 +322,31 @@ def sweep_accuracy(
     embed_threads: int,
     glcm: tuple[bool, ...],
 ) -> Sweep:
-    """LOOCV of `model` on every EfficientNet configuration (patching × with/without GLCM); nothing when
-    EfficientNet is not among the backbones (ResNet-50 has random weights here: timing only)."""
+    """LOOCV of `model` on every EfficientNet configuration (backbone × patching × with/without GLCM); nothing
+    when no EfficientNet is among the backbones (ResNet-50 has random weights here: timing only)."""
     from models.visual.onnx_backbone import OnnxBackbone
 
     n_views = views_for(model)
     result = Sweep([], {}, {})
-    if "efficientnet_lite0" not in paths:
-        return result
-    embedder = OnnxBackbone(paths["efficientnet_lite0"], intra_op_threads=embed_threads)
-    for p in tqdm(patchings, desc=f"LOOCV {model} per configuration", unit="config"):
-        for with_glcm in glcm:
-            label = config_label("efficientnet_lite0", p, with_glcm)
-            config = p.visual_config(glcm=with_glcm)
-            d = with_visual(data0, root, config, n_views=n_views, part="both", backbone=embedder)
-            result.predictions[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
-            result.data[label] = d
-            result.rows.append(
-                {
-                    "label": label,
-                    "backbone": "efficientnet_lite0",
-                    "grid": p.grid,
-                    "resize": p.resize,
-                    "descriptors": list(p.descriptors),
-                    "glcm": with_glcm,
-                    "model_us": model_us,
-                }
-            )
+    jobs = [(b, p, g) for b in SCORED_BACKBONES if b in paths for p in patchings for g in glcm]
+    embedders = {b: OnnxBackbone(paths[b], intra_op_threads=embed_threads) for b in {j[0] for j in jobs}}
+    for backbone, p, with_glcm in tqdm(jobs, desc=f"LOOCV {model} per configuration", unit="config"):
+        label = config_label(backbone, p, with_glcm)
+        config = p.visual_config(backbone=backbone, glcm=with_glcm)
+        d = with_visual(data0, root, config, n_views=n_views, part="both", backbone=embedders[backbone])
+        result.predictions[label], model_us = config_accuracy(d, model, options, seeds, workers, backend)
+        result.data[label] = d
+        result.rows.append(
+            {
+                "label": label,
+                "backbone": backbone,
+                "grid": p.grid,
+                "resize": p.resize,
+                "descriptors": list(p.descriptors),
+                "glcm": with_glcm,
+                "model_us": model_us,
+            }
+        )
     return result
 
 
@@ -421,6 +429,7 @@ def recommendation(
     chosen = one[choice]
     out = {
         "config": choice,
+        "backbone": chosen["backbone"],
         "visual_config": Patching(chosen["grid"], chosen["resize"], tuple(chosen["descriptors"]))
         .visual_config(glcm=chosen["glcm"])
         .computation(),

@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from models.offline.tradeoffs.frontier import Patching, nested_rule_predictions, pick, sweep, time_frames
+from models.offline.tradeoffs.frontier import (
+    Patching,
+    backbone_paths,
+    config_label,
+    nested_rule_predictions,
+    pick,
+    sweep,
+    time_frames,
+)
 from models.visual.config import VisualConfig
 
 
@@ -26,6 +34,16 @@ def test_sweep_covers_grids_and_sizes_and_adds_the_whole_frame():
     assert len(configs) == 7
     assert Patching(2, 448).visual_config() == VisualConfig(grid=2, resize=448, backbone="efficientnet_lite0")
     assert Patching(7, None).visual_config().hash() == VisualConfig().hash()  # today's default, today's hash
+
+
+def test_the_int8_backbone_is_a_row_of_its_own():
+    # Its own label, so its LOOCV predictions and timing never overwrite the fp32 row's.
+    fp32 = config_label("efficientnet_lite0", Patching(2, None), glcm=False)
+    int8 = config_label("efficientnet_lite0_int8", Patching(2, None), glcm=False)
+    assert (fp32, int8) == ("effnet-lite0 2×2 @ native", "effnet-lite0-int8 2×2 @ native")
+    assert Patching(2, None).visual_config("efficientnet_lite0_int8").backbone == "efficientnet_lite0_int8"
+    with pytest.raises(ValueError, match="unknown backbone"):
+        backbone_paths(("mobilenet",))
 
 
 def test_timing_interleaves_every_configuration_and_reports_each_step():
