@@ -28,12 +28,16 @@ import threading
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.blocks import Frame, SampleBlock, TapBlock
 from drivers.stop_signals import on_stop_signals
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
+
+if TYPE_CHECKING:
+    from fastapi import FastAPI
 
 log = logging.getLogger("hapticlink.demo")
 SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream segment
@@ -436,7 +440,7 @@ async def run_demo(
         print(f"robot stats: {robot.stats.as_dict()}")
 
 
-def _stop_runtime(app) -> None:
+def _stop_runtime(app: FastAPI) -> None:
     """Stop the service's runtime (an embedding in flight ends, later ones are refused); nothing if none started."""
     state = getattr(app.state, "service", None)
     if state is not None:
