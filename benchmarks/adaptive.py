@@ -52,6 +52,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from benchmarks.report_file import write_report
+
 DEFAULT_OUT = Path("reports") / "tradeoffs" / "adaptive.json"
 HATT_DATASET = Path("data") / "hatt-texnet"
 HATT_SOURCE = Path("..") / "shared" / "data" / "hatt-texnet"  # the licensed raw data (its HaTT models: the library)
@@ -176,8 +178,7 @@ def main(argv: list[str] | None = None) -> dict:
         },
     }
     _print(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_report(args.out, result)
     print(f"wrote {args.out}", flush=True)
     return result
 

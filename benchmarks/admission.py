@@ -39,6 +39,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.report_file import write_report
 from benchmarks.service import memory_mb, percentile
 from drivers.blocks import encode_binary
 from drivers.protocol import bearer, session_path
@@ -406,8 +407,7 @@ def main(argv: list[str] | None = None) -> int:
         "e2e_ms_newest": summary(window_latency["newest"]),
     }
     report["machine"]["load_average_after"] = os.getloadavg()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, report)
     print(json.dumps({k: report[k] for k in ("burst", "probes_ms", "robots", "windows", "rss_mb")}, indent=2))
     print(f"wrote {args.out}")
     return 0

@@ -14,7 +14,6 @@ embeddings of those photos are compared with fp32's (cosine per patch and per fr
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import statistics
@@ -26,6 +25,8 @@ from time import perf_counter
 
 import numpy as np
 import onnxruntime as ort
+
+from benchmarks.report_file import write_report
 
 DEFAULT_OUT = Path("reports") / "bench" / "backbone_int8.json"
 BASELINE = "fp32 (served: ENABLE_ALL, batch of 4)"
@@ -170,8 +171,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.images is not None:
         photos = sorted(p for p in args.images.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
         result["fidelity"] = fidelity(photos, embedders[BASELINE], embedders["int8 (batch of 4)"])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_report(args.out, result)
     print(f"one served frame (decode + 2×2 patches, no GLCM), 1 thread, {source}, median of {args.repeats}:")
     for k, v in medians.items():
         print(f"  {k:40s} {v:7.1f} ms  ×{v / base:.2f}")

@@ -32,6 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.report_file import write_report
 from drivers import render_feed
 from drivers.operator.client import OperatorClient
 from drivers.operator.devices import SimulatedStroke
@@ -308,8 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         "answers (status line, headers, body); b_with_tcp_ip_headers adds 52 bytes per message and two segments per "
         "fetch (ACKs and the operator's requests travel the other way and are not counted)",
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_report(args.out, doc)
     if args.out == OUT:
         update_fidelity_results(doc, RESULTS, RENDERER_BENCH)
     print(json.dumps({k: doc[k] for k in ("session", "bps", "encoding", "switch_latency_ms")}, indent=1))

@@ -16,6 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.report_file import write_report
 from models.offline.datasets.check import check_dataset
 from models.offline.datasets.hatt_texnet import build_hatt
 from models.offline.featurize import tactile_table, visual_table
@@ -61,8 +62,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     print(json.dumps(result, indent=1))
     if args.limit is None:
-        OUT.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(json.dumps(result, indent=1))
+        write_report(OUT, result)
     return result
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import signal
@@ -29,6 +28,7 @@ import threading
 import time
 from pathlib import Path
 
+from benchmarks.report_file import write_report
 from service.demo import STOP_S, DemoAssets
 from service.launcher import free_port
 
@@ -190,8 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "cases": results,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, report)
     print(f"wrote {args.out} (load average {load[0]:.2f} before, {os.getloadavg()[0]:.2f} after)", flush=True)
     return 0
 

@@ -26,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.report_file import write_report
 from benchmarks.service import machine_cpu_seconds, process_cpu_seconds
 from deploy.local import Topology, synthetic_assets
 
@@ -181,8 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "result": result,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, report)
     print(f"wrote {args.out}")
     return 0
 

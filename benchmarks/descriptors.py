@@ -13,7 +13,6 @@ Median of `repeats` calls after one warm-up.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 from datetime import UTC, datetime
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.report_file import write_report
 from benchmarks.visual import benchmark_image, summarise, time_call
 
 DEFAULT_OUT = Path("reports") / "bench" / "descriptors.json"
@@ -91,8 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         "all_descriptors_median_ms": total,
         "ratio_all_to_glcm_floor": total / floor,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+    write_report(args.out, out)
     print(f"per frame, 1 thread (load average {os.getloadavg()[0]:.1f}):")
     for name, r in results.items():
         print(f"  {name:45s} {r['median_ms']:8.1f} ms")

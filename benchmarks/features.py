@@ -15,7 +15,6 @@ Checks that our MFCC equals librosa's and writes reports/bench/features.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -27,6 +26,7 @@ import librosa
 import numpy as np
 import scipy
 
+from benchmarks.report_file import write_report
 from models.tactile.config import TactileConfig
 from models.tactile.dft321 import dft321
 from models.tactile.features import window_features
@@ -201,8 +201,7 @@ def main(argv: list[str] | None = None) -> dict:
         + ("" if not (argv or sys.argv[1:]) else " " + " ".join(argv or sys.argv[1:])),
         "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, report)
     print(f"wrote {args.out}")
     return report
 

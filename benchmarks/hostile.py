@@ -30,6 +30,7 @@ import httpx
 import numpy as np
 
 from benchmarks.loadgen import frame_of, robot_streams
+from benchmarks.report_file import write_report
 from benchmarks.service import (
     DEFAULT_ASSETS,
     HOP_S,
@@ -212,8 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count")),
     }
     print(json.dumps(report, indent=2))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    write_report(args.out, report)
     print(f"wrote {args.out}")
     return 0
 

@@ -19,11 +19,12 @@ reports/bench/hysteresis.json.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.report_file import write_report
 
 DEFAULT_OUT = Path("reports/bench/hysteresis.json")
 STEADY_S = 60.0
@@ -214,8 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         "change": {"pairs": len(change), "seconds_each": SURFACE_S, "furthest_pair": list(far)},
         "leads": results,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, report)
     print(f"wrote {args.out}", flush=True)
     return 0
 

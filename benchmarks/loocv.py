@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.report_file import write_report
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import loocv_seeds, ray_init
@@ -108,8 +109,7 @@ def main(argv: list[str]) -> int:
     result = run(data, args.model, tuple(args.seeds), args.workers)
     print(json.dumps({k: result[k] for k in ("wall_s", "speedup_over_serial", "speedup_ray_with_start")}, indent=1))
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_report(out, result)
     print(f"wrote {out}")
     return 0
 

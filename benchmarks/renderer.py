@@ -13,7 +13,6 @@ least an ARMA renderer can cost in Python). Also `synthesis.render` of the whole
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
+from benchmarks.report_file import write_report
 from texture_library.procedural import make_world
 from texture_library.renderer import StreamRenderer
 from texture_library.synthesis import interpolate, render
@@ -116,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_1min_at_end": load,
         "rows": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_report(args.out, doc)
     print(f"wrote {args.out} (1-min load average {load})", flush=True)
     return 0
 

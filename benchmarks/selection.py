@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.report_file import write_report
+
 DEFAULT_OUT = Path("reports") / "bench" / "selection.json"
 
 
@@ -86,8 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
         "note": "timings on a shared 2-core machine under load unless said otherwise",
     }
     print(json.dumps(result, indent=1))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_report(args.out, result)
     return result
 
 

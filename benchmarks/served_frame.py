@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import json
 import os
 import random
 import statistics
@@ -24,6 +23,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.report_file import write_report
 
 DEFAULT_OUT = Path("reports") / "bench" / "served_frame.json"
 DEFAULT_IMAGE = Path("..") / "shared" / "data" / "hatt-texnet" / "images"
@@ -106,8 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
         "load_before": load_before,
         "load_after": list(os.getloadavg()),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_report(args.out, result)
     print(f"one frame, {args.threads} thread(s), {source} {gray.shape[1]}×{gray.shape[0]}, median of {args.repeats}:")
     for k, v in medians.items():
         print(f"  {k:32s} {v:8.1f} ms")

@@ -63,6 +63,7 @@ import numpy as np
 
 from benchmarks import loadgen
 from benchmarks.loadgen import STAGES, robot_streams
+from benchmarks.report_file import write_report
 from drivers.blocks import Block, Frame, TapBlock
 from drivers.protocol import ws_url
 from drivers.robot import RobotClient
@@ -699,8 +700,7 @@ def main(argv: list[str] | None = None) -> int:
         "profile_top": profile,
         "results": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    write_report(args.out, report)
     print(f"\nwrote {args.out}")
     return 0
 

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.report_file import write_report
+
 DEFAULT_OUT = Path("reports") / "bench" / "uncertainty.json"
 
 
@@ -78,8 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
         "loadavg_1_5_15": list(os.getloadavg()),
         "note": "single thread numpy; timed under whatever load the machine has",
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_report(args.out, result)
     for k, v in steps.items():
         print(f"{k:<40} p50 {v['p50_us']:9.1f} µs" + (f"   p90 {v['p90_us']:9.1f} µs" if "p90_us" in v else ""))
     print(f"detector + one calibration in the card: {card_bytes / 1e3:.0f} kB of JSON; wrote {args.out}")

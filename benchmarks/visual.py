@@ -13,7 +13,6 @@ torch/onnxruntime parity on the benchmark patches is recorded too.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -26,6 +25,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from benchmarks.report_file import write_report
 
 DEFAULT_OUT = Path("reports") / "bench" / "visual.json"
 
@@ -219,8 +220,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "backbones": rows,
         "loadavg_after": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_report(args.out, result)
     print_table(result)
     print(f"wrote {args.out}")
     return result
