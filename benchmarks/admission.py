@@ -165,23 +165,23 @@ def _result(rank: int, acks: list[float], refused: int, reconnects: int, lag: li
 
 # ---- operators (a process of their own) ----------------------------------------------------------------------
 def operators(ws_url: str, watched: dict[str, list[dict]], duration_s: float, out) -> None:
-    """Subscribe to the events of each group's sessions for duration_s; out gets {group: [window latency_ms.total]}
-    (the service's own measure: the completing block's arrival → the window event published)."""
+    """Subscribe to the events of each group's sessions for duration_s; out gets {group: [window latency_ms]} (the
+    service's own measure per stage; total: the completing block's arrival → the window event published)."""
     out.put(asyncio.run(_operators(ws_url, watched, duration_s)))
 
 
-async def _operators(ws_url: str, watched: dict[str, list[dict]], duration_s: float) -> dict[str, list[float]]:
+async def _operators(ws_url: str, watched: dict[str, list[dict]], duration_s: float) -> dict[str, list[dict]]:
     end = time.perf_counter() + duration_s
     groups = {g: await asyncio.gather(*(_operator(ws_url, s, end) for s in ss)) for g, ss in watched.items()}
     return {g: [x for one in lists for x in one] for g, lists in groups.items()}
 
 
-async def _operator(ws_url: str, session: dict, end: float) -> list[float]:
+async def _operator(ws_url: str, session: dict, end: float) -> list[dict[str, float]]:
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed
 
     url = f"{ws_url}{session_path(session['session_id'], 'events')}?token={session['operator_token']}"
-    totals: list[float] = []
+    totals: list[dict[str, float]] = []
     try:
         async with connect(url, max_size=None, compression=None) as ws:
             while (left := end - time.perf_counter()) > 0:
@@ -190,7 +190,7 @@ async def _operator(ws_url: str, session: dict, end: float) -> list[float]:
                 except TimeoutError:
                     break
                 if event.get("type") == "window":
-                    totals.append(event["latency_ms"]["total"])
+                    totals.append(event["latency_ms"])
     except (ConnectionClosed, OSError):
         pass
     return totals
@@ -403,8 +403,12 @@ def main(argv: list[str] | None = None) -> int:
         "latency_p99_at_most_ms": {st: p99_bucket_s(final, st) * 1e3 for st in ("queue", "features", "model", "total")},
         "latency_observed": windows,
         # the service's latency of the windows the operators of the oldest / newest WATCHED sessions received
-        "e2e_ms_oldest": summary(window_latency["oldest"]),
-        "e2e_ms_newest": summary(window_latency["newest"]),
+        "e2e_ms_oldest": summary([w["total"] for w in window_latency["oldest"]]),
+        "e2e_ms_newest": summary([w["total"] for w in window_latency["newest"]]),
+        # where the oldest sessions' windows spent their time (queue: arrival → their batch began)
+        "stages_ms_oldest": {
+            st: summary([w[st] for w in window_latency["oldest"]]) for st in ("queue", "features", "model", "lookup")
+        },
     }
     report["machine"]["load_average_after"] = os.getloadavg()
     write_report(args.out, report)

@@ -16,21 +16,28 @@ process's own only while the process is busy too: its loop thread over half its 
 threads together over the budget (then the pool threads hold the GIL, and every socket operation of
 the loop waits for it: the loop is late while using little CPU itself).
 
-Both are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). From them:
+- **window queue delay**: how long the session whose windows have waited longest for the window pool
+  has waited (service/batcher.py). The loop can keep up with every block while the pool threads, sharing
+  its GIL, fall behind on the windows: then every operator's view lags although the loop is punctual.
+
+All three are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). From them:
 
 - `admit_session(n)` refuses a new session (429 + Retry-After, the reason in the message) while
-  any session is shed, while the lag is above `session_lag_s`, the loop's CPU share is above
+  any session is shed, while the lag is above `session_lag_s` or the window queue delay above
+  `session_queue_s`, the loop's CPU share is above
   `cpu_budget` with two or more sessions streaming, or (four or more streaming: enough to measure)
   one more session of the measured loop CPU per streaming session would not fit the budget. The
   first session is always admitted.
 - `admit_block(session)` refuses the blocks of shed sessions (429 / WebSocket close 4429,
-  Retry-After). While the loop is over its CPU budget or its lag is above `shed_lag_s`, every
+  Retry-After). While the loop is over its CPU budget, its lag is above `shed_lag_s` or the window queue
+  delay above `shed_queue_s`, every
   `SHED_EVERY_S` one more step of the streaming sessions is shed, newest first: a quarter of them
   (`STEP_SHARE`), or more when the measured CPU per session says more do not fit; the oldest is never
   shed. Shedding in steps this fast acts before the loop saturates: with thresholds of a few tens of
   milliseconds the loop never queues long enough to delay /health or the oldest sessions' windows.
-  Once under the thresholds with a margin, a step of the shed sessions streams again every
-  `READMIT_EVERY_S`, oldest first — so the shed sessions are always the newest ones. The oldest
+  Once under the thresholds with a margin, a smaller step of the shed sessions (`READMIT_SHARE`: each
+  readmitted robot resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest first — so
+  the shed sessions are always the newest ones. The oldest
   sessions keep streaming at full quality, and the refused robots back off and resend later from
   their oldest unacknowledged block (nothing accepted is lost).
 """
@@ -62,8 +69,10 @@ SHED_EVERY_S = 0.25
 #: once under the thresholds with a margin, one step of shed sessions streams again this often (s): slower than
 #: shedding, so a replica near its limit does not swing between shedding and readmitting every step
 READMIT_EVERY_S = 2.0
-#: the share of the sessions (streaming or shed) one shedding or readmission step moves
+#: the share of the sessions (streaming or shed) one shedding step moves
 STEP_SHARE = 0.25
+#: the share one readmission step moves: a readmitted robot resends its backlog at once, so a large step is a burst
+READMIT_SHARE = 0.1
 #: at most one WARNING about shedding per this many seconds
 LOG_EVERY_S = 10.0
 
@@ -81,11 +90,18 @@ class CapacityGuard:
     sampling task calls it after each sample)."""
 
     def __init__(
-        self, settings: Settings, metrics: ServiceMetrics, sessions: Callable[[], Iterable[Session]] = lambda: ()
+        self,
+        settings: Settings,
+        metrics: ServiceMetrics,
+        sessions: Callable[[], Iterable[Session]] = lambda: (),
+        window_wait: Callable[[float], float] = lambda now: 0.0,
     ) -> None:
+        """window_wait(now): the window queue delay at `now` (time.monotonic()), s (WindowBatcher.oldest_wait_s)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
+        self.queue_s = 0.0  # window queue delay, smoothed
+        self._window_wait = window_wait
         self.cpu_share = 0.0
         self.process_share = 0.0  # cores the whole process used (all threads), smoothed
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
@@ -124,7 +140,9 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
+            self.queue_s += w * (self._window_wait(now) - self.queue_s)
             self.metrics.loop_lag.set(self.lag_s)
+            self.metrics.window_queue.set(self.queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
             self.update(now)
@@ -145,17 +163,23 @@ class CapacityGuard:
             self._readmit_oldest(streaming, now)
 
     def _over(self) -> bool:
-        """The loop is over its CPU budget, or late by more than shed_lag_s while the lateness is its own."""
-        return self.cpu_share > self.settings.cpu_budget or (self._busy() and self.lag_s > self.settings.shed_lag_s)
+        """The loop is over its CPU budget, or (while the lateness is the process's own) late by more than shed_lag_s
+        or its windows queued longer than shed_queue_s."""
+        return self.cpu_share > self.settings.cpu_budget or self._late(1.0)
 
     def _calm(self) -> bool:
-        """Under the shedding thresholds with a margin (90 % of the budget, half the shed lag): room for a step back."""
-        late = self._busy() and self.lag_s > self.settings.shed_lag_s / 2
-        return self.cpu_share < 0.9 * self.settings.cpu_budget and not late
+        """Under the shedding thresholds with a margin (90 % of the budget, half the shed lag and queue delay): room
+        for a step back."""
+        return self.cpu_share < 0.9 * self.settings.cpu_budget and not self._late(0.5)
 
-    def _step(self, streaming: list[Session]) -> int:
-        """Sessions one shedding or readmission step moves: STEP_SHARE of those streaming or shed, at least one."""
-        return max(1, math.ceil(STEP_SHARE * len(self._shed.union(s.id for s in streaming))))
+    def _late(self, share: float) -> bool:
+        """The process is busy and its loop lag or window queue delay is above `share` × its shedding limit."""
+        s = self.settings
+        return self._busy() and (self.lag_s > share * s.shed_lag_s or self.queue_s > share * s.shed_queue_s)
+
+    def _step(self, streaming: list[Session], share: float = STEP_SHARE) -> int:
+        """Sessions one shedding (or readmission) step moves: `share` of those streaming or shed, at least one."""
+        return max(1, math.ceil(share * len(self._shed.union(s.id for s in streaming))))
 
     def _shed_newest(self, streaming: list[Session], now: float) -> None:
         """Refuse the blocks of one step of the newest streaming sessions not yet shed; the oldest always streams."""
@@ -171,11 +195,12 @@ class CapacityGuard:
         if now - self._last_log > LOG_EVERY_S:
             self._last_log = now
             log.warning(
-                "at capacity (event loop CPU %.2f of %.2f, lag %.0f ms): refusing the blocks of the %d newest "
-                "of %d sessions until it catches up",
+                "at capacity (event loop CPU %.2f of %.2f, lag %.0f ms, windows queued %.0f ms): refusing the blocks "
+                "of the %d newest of %d sessions until it catches up",
                 self.cpu_share,
                 self.settings.cpu_budget,
                 self.lag_s * 1e3,
+                self.queue_s * 1e3,
                 len(self._shed),
                 len(streaming) + len(self._shed) - len(newest),
             )
@@ -183,7 +208,7 @@ class CapacityGuard:
     def _readmit_oldest(self, streaming: list[Session], now: float) -> None:
         """Let one step of the shed sessions stream again, oldest first (the reverse of the order they were shed)."""
         shed = [s.id for s in self._sessions() if s.id in self._shed]  # creation order: oldest first
-        back = shed[: self._step(streaming)]
+        back = shed[: self._step(streaming, READMIT_SHARE)]
         self._shed.difference_update(back)
         self._last_readmit = now
 
@@ -220,6 +245,11 @@ class CapacityGuard:
             why = (
                 f"its event loop runs {self.lag_s * 1e3:.0f} ms late (limit {self.settings.session_lag_s * 1e3:.0f} ms)"
             )
+        elif self._busy() and self.queue_s > self.settings.session_queue_s:
+            why = (
+                f"its windows wait {self.queue_s * 1e3:.0f} ms for estimation "
+                f"(limit {self.settings.session_queue_s * 1e3:.0f} ms)"
+            )
         elif self._streaming >= 2 and self.cpu_share > budget:
             why = f"its event loop uses {self.cpu_share:.2f} of a core, over its budget of {budget:g}"
         elif self._streaming >= 4 and self.cpu_share + self.cpu_per_session > budget:
@@ -237,6 +267,7 @@ class CapacityGuard:
         if session.id in self._shed:
             raise AtCapacity(
                 f"this replica is at capacity (event loop CPU {self.cpu_share:.2f} of {self.settings.cpu_budget:g}, "
-                f"loop lag {self.lag_s * 1e3:.0f} ms) and session {session.id} is among its newest; "
+                f"loop lag {self.lag_s * 1e3:.0f} ms, windows queued {self.queue_s * 1e3:.0f} ms) and session "
+                f"{session.id} is among its newest; "
                 "resend from the oldest unacknowledged block later"
             )

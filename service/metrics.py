@@ -104,6 +104,11 @@ class ServiceMetrics:
             "How late the event loop runs a timer (smoothed): the queue delay every request and block waits.",
             registry=registry,
         )
+        self.window_queue = Gauge(
+            "hapticlink_window_queue_seconds",
+            "How long the longest-waiting session's complete windows have waited for the window pool (smoothed).",
+            registry=registry,
+        )
         self.cpu_share = Gauge(
             "hapticlink_loop_cpu_share",
             "Share of one core the event-loop thread used (smoothed; 1 = always busy).",

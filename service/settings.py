@@ -220,7 +220,19 @@ class Settings(BaseSettings):
         gt=0,
         description="event-loop lag, s (smoothed), above which, while the process is busy, a quarter more of the "
         "streaming sessions is shed every 0.25 s, newest first (their blocks refused: 429 / close 4429 + "
-        "Retry-After); they stream again oldest first, a quarter every 2 s once the loop has caught up",
+        "Retry-After); they stream again oldest first, a tenth every 2 s once the loop has caught up",
+    )
+    session_queue_s: float = Field(
+        0.03,
+        gt=0,
+        description="window queue delay, s (how long complete windows wait for the window pool, smoothed), above "
+        "which new sessions are refused (429 + Retry-After) while the process is busy",
+    )
+    shed_queue_s: float = Field(
+        0.05,
+        gt=0,
+        description="window queue delay, s (smoothed), above which, while the process is busy, sessions are shed as "
+        "for shed_lag_s: the loop keeps up with the blocks but the window pool, sharing its GIL, does not",
     )
     probe_port: int | None = Field(
         None,

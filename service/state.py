@@ -66,7 +66,12 @@ class ServiceState:
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool)
-        self.capacity = CapacityGuard(settings, self.metrics, lambda: self.directory.sessions.values())
+        self.capacity = CapacityGuard(
+            settings,
+            self.metrics,
+            lambda: self.directory.sessions.values(),
+            lambda now: self.batcher.oldest_wait_s(now),
+        )
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)

@@ -272,6 +272,8 @@ def base_settings(tactile_model, library_dir) -> Settings:
         session_burst=10_000,
         session_lag_s=600,
         shed_lag_s=600,
+        session_queue_s=600,
+        shed_queue_s=600,
     )
 
 

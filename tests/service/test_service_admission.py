@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from types import SimpleNamespace
@@ -18,7 +19,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
-from service.capacity import READMIT_EVERY_S, SHED_EVERY_S, AtCapacity, CapacityGuard
+from service.capacity import READMIT_EVERY_S, READMIT_SHARE, SHED_EVERY_S, STEP_SHARE, AtCapacity, CapacityGuard
 from service.metrics import ServiceMetrics
 from service.settings import Settings
 
@@ -30,7 +31,14 @@ def over_budget(kit, base_settings):
     """A replica whose event-loop CPU budget is below what even an idle loop uses: it is always over capacity (its
     lag limits out of reach: the machine's own load must not decide what this test sees)."""
     settings = base_settings.model_copy(
-        update={"instance_id": "tight", "cpu_budget": 1e-6, "session_lag_s": 600, "shed_lag_s": 600}
+        update={
+            "instance_id": "tight",
+            "cpu_budget": 1e-6,
+            "session_lag_s": 600,
+            "shed_lag_s": 600,
+            "session_queue_s": 600,
+            "shed_queue_s": 600,
+        }
     )
     with kit.running(settings) as srv:
         yield srv
@@ -120,7 +128,7 @@ def _shed_ids(guard: CapacityGuard, sessions: list[SimpleNamespace]) -> list[str
     return shed
 
 
-def test_over_the_lag_limit_a_quarter_of_the_sessions_is_shed_per_step_newest_first_and_comes_back_oldest_first():
+def test_over_the_lag_limit_a_quarter_is_shed_per_step_newest_first_and_comes_back_oldest_first_in_smaller_steps():
     guard, sessions = _guard(8)
     # busy (loop over half its budget) and late beyond shed_lag_s: the process's own lag
     guard.cpu_share, guard.lag_s = 0.6, 2 * guard.settings.shed_lag_s
@@ -135,18 +143,66 @@ def test_over_the_lag_limit_a_quarter_of_the_sessions_is_shed_per_step_newest_fi
     for t in (0.5, 0.75, 1.0):
         _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]  # never the oldest
-    # caught up: a quarter comes back every READMIT_EVERY_S, oldest first
+    # caught up: a tenth (at least one) comes back every READMIT_EVERY_S, oldest first — smaller steps than
+    # shedding, since each readmitted robot resends its backlog at once
+    assert READMIT_SHARE < STEP_SHARE
     guard.lag_s = 0.0
     _update(guard, sessions, 1.0 + READMIT_EVERY_S / 2)
     assert len(_shed_ids(guard, sessions)) == 7
     _update(guard, sessions, 1.0 + READMIT_EVERY_S)
-    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
+    assert _shed_ids(guard, sessions) == ["s2", "s3", "s4", "s5", "s6", "s7"]
     _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S)
-    assert _shed_ids(guard, sessions) == ["s5", "s6", "s7"]
-    # over again: the newest of those streaming are shed first again
+    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
+    # over again: the newest of those streaming are shed first again (a quarter of 8: s1 and s2)
     guard.lag_s = 2 * guard.settings.shed_lag_s
     _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S + SHED_EVERY_S)
-    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
+    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]
+
+
+def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_while_the_loop_is_punctual():
+    """The loop keeps up with every block while the window pool, sharing its GIL, falls behind: the operators'
+    views lag although the loop is punctual. The window queue delay sheds as the lag does, and says so."""
+    guard, sessions = _guard(8)
+    limit = guard.settings.shed_queue_s
+    guard.cpu_share, guard.lag_s, guard.queue_s = 0.6, 0.0, 0.9 * limit  # busy, punctual, queue under the limit
+    _update(guard, sessions, 0.0)
+    assert _shed_ids(guard, sessions) == []
+    with pytest.raises(AtCapacity, match=r"its windows wait \d+ ms for estimation"):
+        guard.admit_session(len(sessions))  # above session_queue_s already: no new session
+    guard.queue_s = 2 * limit
+    _update(guard, sessions, 1.0)
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+    with pytest.raises(AtCapacity, match=r"windows queued \d+ ms"):
+        guard.admit_block(sessions[-1])  # type: ignore[arg-type]
+    # under half the limit again: one step comes back after READMIT_EVERY_S, the older first
+    guard.queue_s = 0.4 * limit
+    _update(guard, sessions, 1.0 + READMIT_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s7"]
+
+
+def test_windows_queued_on_a_machine_busy_with_others_shed_nothing():
+    """A slow window pool on a machine busy with other processes (the process itself mostly idle) is not this
+    process's overload: nothing is refused."""
+    guard, sessions = _guard(8)
+    guard.cpu_share, guard.process_share, guard.queue_s = 0.1, 0.2, 1.0
+    for t in (0.0, 0.25, 0.5):
+        _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == []
+    guard.admit_session(len(sessions))
+
+
+def test_the_batcher_reports_how_long_its_oldest_ready_session_has_waited():
+    from service.batcher import WindowBatcher
+
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1)
+    assert batcher.oldest_wait_s(time.monotonic()) == 0.0
+    a, b = SimpleNamespace(id="a"), SimpleNamespace(id="b")
+    batcher.notify(a)  # type: ignore[arg-type]
+    t_a = time.monotonic()
+    batcher.notify(b)  # type: ignore[arg-type]
+    batcher.notify(a)  # type: ignore[arg-type]  # ready again before its job: it keeps its place and its time
+    wait = batcher.oldest_wait_s(t_a + 0.5)
+    assert 0.5 <= wait < 0.6
 
 
 def test_a_late_loop_that_is_not_the_processs_own_sheds_nothing():
