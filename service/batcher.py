@@ -8,8 +8,8 @@ under heavy load jobs grow, and each window gets cheaper — up to 8 sessions: p
 about the same (0.94 ms at 8, 0.87 ms at 64 with the demo's tactile model, against 1.7 ms alone), while every
 session of a job waits for the whole job's lookups before any is published.
 
-`oldest_wait_s(now)` is how long the longest-waiting ready session has waited for a job: the window queue
-delay that admission (service/capacity.py) holds below its limit.
+`take_wait_s(now)` is the longest any session's windows waited for a job since the last call (or wait now): the
+window queue delay that admission (service/capacity.py) holds below its limit.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ class WindowBatcher:
         self.max_sessions_per_job = max_sessions_per_job
         self._ready: dict[str, Session] = {}  # insertion order = oldest first; bounded by the number of sessions
         self._ready_since: dict[str, float] = {}  # time.monotonic() when each ready session became ready
+        self._longest_wait = 0.0  # s, the longest a session taken into a job waited, since take_wait_s
         self._wake = asyncio.Event()
         self._jobs: set[asyncio.Task] = set()
         self._runner: asyncio.Task | None = None
@@ -60,12 +61,12 @@ class WindowBatcher:
             self._ready_since[session.id] = time.monotonic()
         self._wake.set()
 
-    def oldest_wait_s(self, now: float) -> float:
-        """How long (s) the session ready longest has waited for a job at `now` (time.monotonic()); 0 when none
-        waits. Its oldest complete window has waited at least this long."""
-        if not self._ready_since:
-            return 0.0
-        return max(0.0, now - next(iter(self._ready_since.values())))  # insertion order: the oldest first
+    def take_wait_s(self, now: float) -> float:
+        """The longest (s) a session's complete windows waited for a job since the last call, or have waited at
+        `now` (time.monotonic()) and still wait; 0 when none did. Resets the record."""
+        waiting = now - next(iter(self._ready_since.values())) if self._ready_since else 0.0  # the oldest first
+        longest, self._longest_wait = max(self._longest_wait, waiting, 0.0), 0.0
+        return longest
 
     async def _run(self) -> None:
         while True:
@@ -94,7 +95,7 @@ class WindowBatcher:
             if session.in_job:
                 continue  # picked up again when its job is done
             del self._ready[sid]
-            del self._ready_since[sid]
+            self._longest_wait = max(self._longest_wait, time.monotonic() - self._ready_since.pop(sid))
             job = session.take_job()
             if job is None:
                 if session.waiting_for_frame() or session.waiting_for_taps():

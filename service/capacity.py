@@ -16,11 +16,14 @@ process's own only while the process is busy too: its loop thread over half its 
 threads together over the budget (then the pool threads hold the GIL, and every socket operation of
 the loop waits for it: the loop is late while using little CPU itself).
 
-- **window queue delay**: how long the session whose windows have waited longest for the window pool
-  has waited (service/batcher.py). The loop can keep up with every block while the pool threads, sharing
-  its GIL, fall behind on the windows: then every operator's view lags although the loop is punctual.
+- **window queue delay**: the longest any session's complete windows waited for the window pool
+  (service/batcher.py). The loop can keep up with every block while the pool threads, sharing its GIL,
+  fall behind on the windows: then every operator's view lags although the loop is punctual.
 
-All three are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). From them:
+The first two are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). The queue delay is held
+at its peak, decaying with time constant `QUEUE_HOLD_S`: windows come in bursts (robots that started
+together complete their windows together, every hop), and an average over the quiet time between bursts
+would hide the delay of each burst's last windows. From them:
 
 - `admit_session(n)` refuses a new session (429 + Retry-After, the reason in the message) while
   any session is shed, while the lag is above `session_lag_s` or the window queue delay above
@@ -60,6 +63,9 @@ log = logging.getLogger(__name__)
 
 SAMPLE_EVERY_S = 0.05
 SMOOTHING_S = 0.5
+#: the window queue delay's peak decays with this time constant (s): longer than a window hop (0.5 s), so the
+#: peak of one burst of windows is still held when the next comes
+QUEUE_HOLD_S = 1.0
 #: a session that sent nothing for this long does not count as streaming (its CPU is not in the measure)
 STREAMING_WITHIN_S = 1.0
 RETRY_AFTER_S = 2.0
@@ -96,11 +102,11 @@ class CapacityGuard:
         sessions: Callable[[], Iterable[Session]] = lambda: (),
         window_wait: Callable[[float], float] = lambda now: 0.0,
     ) -> None:
-        """window_wait(now): the window queue delay at `now` (time.monotonic()), s (WindowBatcher.oldest_wait_s)."""
+        """window_wait(now): the longest windows waited since the last call, s (WindowBatcher.take_wait_s)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
-        self.queue_s = 0.0  # window queue delay, smoothed
+        self.queue_s = 0.0  # window queue delay, its peak held (QUEUE_HOLD_S)
         self._window_wait = window_wait
         self.cpu_share = 0.0
         self.process_share = 0.0  # cores the whole process used (all threads), smoothed
@@ -140,7 +146,7 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
-            self.queue_s += w * (self._window_wait(now) - self.queue_s)
+            self.queue_s = max(self._window_wait(now), self.queue_s * math.exp(-elapsed / QUEUE_HOLD_S))
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
             self.metrics.cpu_share.set(self.cpu_share)

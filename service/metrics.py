@@ -106,7 +106,7 @@ class ServiceMetrics:
         )
         self.window_queue = Gauge(
             "hapticlink_window_queue_seconds",
-            "How long the longest-waiting session's complete windows have waited for the window pool (smoothed).",
+            "The longest a session's complete windows waited for the window pool (its peak, decaying over ~1 s).",
             registry=registry,
         )
         self.cpu_share = Gauge(

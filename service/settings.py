@@ -225,13 +225,13 @@ class Settings(BaseSettings):
     session_queue_s: float = Field(
         0.03,
         gt=0,
-        description="window queue delay, s (how long complete windows wait for the window pool, smoothed), above "
-        "which new sessions are refused (429 + Retry-After) while the process is busy",
+        description="window queue delay, s (the longest complete windows waited for the window pool, its peak held "
+        "over ~1 s), above which new sessions are refused (429 + Retry-After) while the process is busy",
     )
     shed_queue_s: float = Field(
         0.05,
         gt=0,
-        description="window queue delay, s (smoothed), above which, while the process is busy, sessions are shed as "
+        description="window queue delay, s (its peak), above which, while the process is busy, sessions are shed as "
         "for shed_lag_s: the loop keeps up with the blocks but the window pool, sharing its GIL, does not",
     )
     probe_port: int | None = Field(

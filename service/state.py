@@ -70,7 +70,7 @@ class ServiceState:
             settings,
             self.metrics,
             lambda: self.directory.sessions.values(),
-            lambda now: self.batcher.oldest_wait_s(now),
+            lambda now: self.batcher.take_wait_s(now),
         )
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)

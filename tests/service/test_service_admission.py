@@ -5,6 +5,7 @@ the probe port. Behaviour only (what is refused, in what order, how it is explai
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import threading
@@ -191,18 +192,25 @@ def test_windows_queued_on_a_machine_busy_with_others_shed_nothing():
     guard.admit_session(len(sessions))
 
 
-def test_the_batcher_reports_how_long_its_oldest_ready_session_has_waited():
+def test_the_batcher_reports_the_longest_wait_for_a_job_since_it_was_last_asked():
+    """Ready sessions wait for a job; the longest wait, of those still waiting or of those taken since the last
+    call, is what admission reads (then the record starts again)."""
     from service.batcher import WindowBatcher
 
     batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1)
-    assert batcher.oldest_wait_s(time.monotonic()) == 0.0
-    a, b = SimpleNamespace(id="a"), SimpleNamespace(id="b")
+    assert batcher.take_wait_s(time.monotonic()) == 0.0
+    a = SimpleNamespace(id="a", in_job=False, take_job=lambda: None, waiting_for_frame=lambda: False)
+    a.waiting_for_taps = lambda: False
+    b = SimpleNamespace(id="b", in_job=True)  # in a job: stays ready, its wait goes on
     batcher.notify(a)  # type: ignore[arg-type]
     t_a = time.monotonic()
     batcher.notify(b)  # type: ignore[arg-type]
     batcher.notify(a)  # type: ignore[arg-type]  # ready again before its job: it keeps its place and its time
-    wait = batcher.oldest_wait_s(t_a + 0.5)
-    assert 0.5 <= wait < 0.6
+    assert 0.5 <= batcher.take_wait_s(t_a + 0.5) < 0.6  # a has waited half a second (as of t_a + 0.5)
+    time.sleep(0.05)
+    asyncio.run(batcher._gather())  # takes a (no job: nothing pending), leaves b
+    assert 0.05 <= batcher.take_wait_s(t_a) < 0.5  # a waited ≈ 0.05 s before it was taken; b only since t_a
+    assert batcher.take_wait_s(t_a) < 0.05  # the record restarted: b's wait as of t_a only
 
 
 def test_a_late_loop_that_is_not_the_processs_own_sheds_nothing():
