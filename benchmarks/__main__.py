@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from benchmarks import bandwidth, features, hostile, renderer, service, uncertainty, visual
+from benchmarks import bandwidth, features, hostile, renderer, service, uncertainty, visual, window_batch
 
 
 def main(argv: list[str]) -> int:
@@ -30,6 +30,8 @@ def main(argv: list[str]) -> int:
     renderer.main([])
     print("\n== the model-mediated link: bits per second to an operator's renderer ==", flush=True)
     bandwidth.main([])
+    print("\n== the window pool: CPU per window by job size ==", flush=True)
+    window_batch.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)

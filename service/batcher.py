@@ -4,9 +4,9 @@ One job estimates the windows of up to `max_sessions_per_job` sessions in a sing
 (pipeline.estimate_batch: one window_features and one model call for all of them). At most
 `max_jobs` jobs run at once (the pool's threads), a session is in at most one job, and sessions
 are served oldest-ready first. Under light load a job holds one session and starts at once;
-under heavy load jobs grow, and each window gets cheaper — up to 8 sessions: past that a window costs
-about the same (0.94 ms at 8, 0.87 ms at 64 with the demo's tactile model, against 1.7 ms alone), while every
-session of a job waits for the whole job's lookups before any is published.
+under heavy load jobs grow, and each window gets cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms
+against ≈ 1.0 at 16–64 and ≈ 2 alone (`python -m benchmarks.window_batch`, the demo's tactile model), while every
+session of a job waits for the whole job's lookups before any of its windows is published.
 
 `take_wait_s(now)` is the longest any session's windows waited for a job since the last call (or wait now): the
 window queue delay that admission (service/capacity.py) holds below its limit.
