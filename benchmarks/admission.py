@@ -1,14 +1,19 @@
 """Refuse early, answer always: /health and /ready under overload, what admission refused, memory after a burst.
 
 Run from the repository root:  python -m benchmarks.admission [--robots 150] [--burst 300] [--duration 20]
+                                   [--block-s 0.02] [--start together|spread]
 
 One service process (a ridge-tactile model on a small synthetic world, trained here first; the probe port
 on). In order:
 1. idle: RSS;
 2. a burst of `--burst` `POST /sessions` (50 at a time) — created, refused for capacity (429) or past
    max_sessions (503);
-3. `--robots` of the created sessions stream in real time (20 ms binary blocks over the ingest WebSocket,
-   pre-encoded, from two generator processes): each block's acknowledgement time, and the blocks refused
+3. `--robots` of the created sessions stream in real time (`--block-s` binary blocks, 20 ms by default, over the
+   ingest WebSocket, pre-encoded, from two generator processes; each robot sends a block once the previous one is
+   acknowledged or due, whichever is later). `--start together` (the default, the hostile case): every robot's
+   first block is due at one instant, so every robot completes its windows at the same moment, every hop;
+   `--start spread`: robot k starts at a random offset within one 0.5 s hop (seed 0), as robots that were not
+   started together would. Reported: each block's acknowledgement time, and the blocks refused
    (close 4429: the robot reconnects after Retry-After's 2 s and resends from its oldest unacknowledged block),
    by the reason the close and the service's counters give;
 4. every session is deleted; RSS again after 6 s.
@@ -48,7 +53,8 @@ from service.metrics import LATENCY_BUCKETS_S
 
 DEFAULT_OUT = Path("reports/bench/admission.json")
 API_KEY = "admission-benchmark-key-0123456789"
-BLOCK_S = 0.02
+BLOCK_S = 0.02  # the default block: the robot client's before it grew to 50 ms, the harder case
+HOP_S = 0.5  # the service's window hop: `--start spread` offsets robots within one
 POLL_EVERY_S = 0.02
 #: the end-to-end bound windows are held to (block arrival → window event published), s; a histogram bucket bound
 E2E_BOUND_S = 0.1
@@ -108,17 +114,26 @@ def poll(urls: dict[str, str], stop, out) -> None:
 
 
 # ---- robots (generator processes) ----------------------------------------------------------------------
-def robots(ws_url: str, sessions: list[tuple[int, dict]], payloads: list[bytes], duration_s: float, out) -> None:
-    """Stream `payloads` (pre-encoded blocks, seq 0…) to each session in real time; out gets per-robot results."""
-    out.put(asyncio.run(_robots(ws_url, sessions, payloads, duration_s)))
+def robots(
+    ws_url: str, sessions: list[tuple[int, dict, float]], payloads: list[bytes], block_s: float, duration_s: float, out
+) -> None:
+    """Stream `payloads` (pre-encoded blocks of block_s, seq 0…) to each (rank, session, start offset s) in real
+    time; out gets per-robot results."""
+    out.put(asyncio.run(_robots(ws_url, sessions, payloads, block_s, duration_s)))
 
 
-async def _robots(ws_url: str, sessions: list[tuple[int, dict]], payloads: list[bytes], duration_s: float) -> list:
+async def _robots(
+    ws_url: str, sessions: list[tuple[int, dict, float]], payloads: list[bytes], block_s: float, duration_s: float
+) -> list:
     start = time.perf_counter() + 0.5
-    return await asyncio.gather(*(_robot(ws_url, rank, s, payloads, start, duration_s) for rank, s in sessions))
+    return await asyncio.gather(
+        *(_robot(ws_url, rank, s, payloads, block_s, start + offset, duration_s) for rank, s, offset in sessions)
+    )
 
 
-async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], start: float, duration_s: float):
+async def _robot(
+    ws_url: str, rank: int, session: dict, payloads: list[bytes], block_s: float, start: float, duration_s: float
+):
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, InvalidStatus
 
@@ -133,7 +148,7 @@ async def _robot(ws_url: str, rank: int, session: dict, payloads: list[bytes], s
         try:
             async with connect(url, max_size=None, compression=None) as ws:
                 while seq < len(payloads):
-                    due = start + seq * BLOCK_S
+                    due = start + seq * block_s
                     now = time.perf_counter()
                     if now >= end:
                         return _result(rank, acks, refused, reconnects, lag, closes)
@@ -196,7 +211,7 @@ async def _operator(ws_url: str, session: dict, end: float) -> list[dict[str, fl
     return totals
 
 
-def stream_payloads(library: Path, seconds: float) -> list[bytes]:
+def stream_payloads(library: Path, seconds: float, block_s: float = BLOCK_S) -> list[bytes]:
     """One robot's blocks (the same stroke for every robot: the service's cost does not depend on it)."""
     from drivers.source import blocks_from_arrays
     from texture_library.library import Library
@@ -212,7 +227,7 @@ def stream_payloads(library: Path, seconds: float) -> list[bytes]:
         "force": (s.force, s.rate_hz, "N"),
         "speed": (s.speed, s.rate_hz, "mm/s"),
     }
-    return [encode_binary(b) for b in blocks_from_arrays(channels, BLOCK_S)][: int(seconds / BLOCK_S)]
+    return [encode_binary(b) for b in blocks_from_arrays(channels, block_s)][: int(seconds / block_s)]
 
 
 async def burst(url: str, n: int) -> tuple[list[dict], dict[int, int]]:
@@ -288,8 +303,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--robots", type=int, default=150)
     parser.add_argument("--burst", type=int, default=300)
     parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--block-s", type=float, default=BLOCK_S, help="seconds of stream per block (default 0.02)")
+    parser.add_argument(
+        "--start",
+        choices=("together", "spread"),
+        default="together",
+        help="robots' first blocks due at one instant (default), or each at a random offset within one hop",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
+    if not 0.001 <= args.block_s <= 1.0:
+        parser.error(f"--block-s must be within 0.001…1 s, got {args.block_s}")
 
     with tempfile.TemporaryDirectory() as tmp:
         model, library = prepare(Path(tmp))
@@ -303,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         cmd = [sys.executable, "-m", "service.cli", "serve", "--model", str(model), "--library", str(library)]
         server = ServerProcess(cmd, env)
-        payloads = stream_payloads(library, args.duration + 1)
+        payloads = stream_payloads(library, args.duration + 1, args.block_s)
         report: dict = {
             "command": "python -m benchmarks.admission " + " ".join(argv or sys.argv[1:]),
             "args": {**vars(args), "out": str(args.out)},
@@ -327,13 +351,18 @@ def main(argv: list[str] | None = None) -> int:
             poller.start()
             created, statuses = asyncio.run(burst(server.url, args.burst))
             report["burst"] = {"requests": args.burst, "statuses": statuses}
-            streaming = list(enumerate(created[: args.robots]))
+            rng = np.random.default_rng(0)
+            offsets = rng.uniform(0, HOP_S, len(created)) if args.start == "spread" else np.zeros(len(created))
+            streaming = [(k, s, float(offsets[k])) for k, s in enumerate(created[: args.robots])]
             halves = [streaming[0::2], streaming[1::2]]
             results = ctx.Queue()
             ws_url = server.url.replace("http://", "ws://")
-            gens = [ctx.Process(target=robots, args=(ws_url, h, payloads, args.duration, results)) for h in halves]
+            gens = [
+                ctx.Process(target=robots, args=(ws_url, h, payloads, args.block_s, args.duration, results))
+                for h in halves
+            ]
             # the operators of the WATCHED oldest and newest streaming sessions: their windows' latency
-            ordered = [s for _, s in streaming]
+            ordered = [s for _, s, _ in streaming]
             watched = {"oldest": ordered[:WATCHED], "newest": ordered[-WATCHED:]}
             events = ctx.Queue()
             watcher = ctx.Process(target=operators, args=(ws_url, watched, args.duration + 2, events))
