@@ -36,8 +36,9 @@ class WindowBatcher:
         self.pool = pool
         self.max_jobs = max_jobs
         self.max_sessions_per_job = max_sessions_per_job
-        self._ready: dict[str, Session] = {}  # insertion order = oldest first; bounded by the number of sessions
-        self._ready_since: dict[str, float] = {}  # time.monotonic() when each ready session became ready
+        # ready sessions and the time.monotonic() each became ready; insertion order = oldest first; bounded by the
+        # number of sessions
+        self._ready: dict[str, tuple[Session, float]] = {}
         self._longest_wait = 0.0  # s, the longest a session taken into a job waited, since take_wait_s
         self._wake = asyncio.Event()
         self._jobs: set[asyncio.Task] = set()
@@ -57,14 +58,13 @@ class WindowBatcher:
     def notify(self, session: Session) -> None:
         """`session` has complete windows (called on the event loop; never blocks)."""
         if session.id not in self._ready:
-            self._ready[session.id] = session
-            self._ready_since[session.id] = time.monotonic()
+            self._ready[session.id] = (session, time.monotonic())
         self._wake.set()
 
     def take_wait_s(self, now: float) -> float:
         """The longest (s) a session's complete windows waited for a job since the last call, or have waited at
         `now` (time.monotonic()) and still wait; 0 when none did. Resets the record."""
-        waiting = now - next(iter(self._ready_since.values())) if self._ready_since else 0.0  # the oldest first
+        waiting = now - next(iter(self._ready.values()))[1] if self._ready else 0.0  # the oldest first
         longest, self._longest_wait = max(self._longest_wait, waiting, 0.0), 0.0
         return longest
 
@@ -89,13 +89,13 @@ class WindowBatcher:
     async def _gather(self) -> list[tuple[Session, SessionJob]]:
         """Take up to max_sessions_per_job ready sessions that are not in a job, with their jobs."""
         batch: list[tuple[Session, SessionJob]] = []
-        for sid, session in list(self._ready.items()):
+        for sid, (session, since) in list(self._ready.items()):
             if len(batch) >= self.max_sessions_per_job:
                 break
             if session.in_job:
                 continue  # picked up again when its job is done
             del self._ready[sid]
-            self._longest_wait = max(self._longest_wait, time.monotonic() - self._ready_since.pop(sid))
+            self._longest_wait = max(self._longest_wait, time.monotonic() - since)
             job = session.take_job()
             if job is None:
                 if session.waiting_for_frame() or session.waiting_for_taps():
