@@ -44,6 +44,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.health_poll import poll
 from benchmarks.report_file import write_report
 from benchmarks.service import memory_mb, percentile
 from drivers.blocks import encode_binary
@@ -55,7 +56,6 @@ DEFAULT_OUT = Path("reports/bench/admission.json")
 API_KEY = "admission-benchmark-key-0123456789"
 BLOCK_S = 0.02  # the default block: the robot client's before it grew to 50 ms, the harder case
 HOP_S = 0.5  # the service's window hop: `--start spread` offsets robots within one
-POLL_EVERY_S = 0.02
 #: the end-to-end bound windows are held to (block arrival → window event published), s; a histogram bucket bound
 E2E_BOUND_S = 0.1
 #: operators subscribe to the events of this many of the oldest and of the newest streaming sessions
@@ -94,23 +94,6 @@ def prepare(root: Path) -> tuple[Path, Path]:
     model = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
     build_synthetic_library(root / "library", n_textures=6, image_size=256)
     return model, root / "library"
-
-
-# ---- the probe poller (a process of its own) -----------------------------------------------------------
-def poll(urls: dict[str, str], stop, out) -> None:
-    """GET each url in turn every POLL_EVERY_S until stop is set; out gets {name: [ms, ...]} (failures: -1)."""
-    times: dict[str, list[float]] = {name: [] for name in urls}
-    with httpx.Client(timeout=10) as client:
-        while not stop.is_set():
-            for name, url in urls.items():
-                t0 = time.perf_counter()
-                try:
-                    ok = client.get(url).status_code in (200, 503)
-                except httpx.HTTPError:
-                    ok = False
-                times[name].append((time.perf_counter() - t0) * 1e3 if ok else -1.0)
-            time.sleep(POLL_EVERY_S)
-    out.put(times)
 
 
 # ---- robots (generator processes) ----------------------------------------------------------------------

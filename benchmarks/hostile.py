@@ -1,18 +1,23 @@
 """The hostile-client probe's worst cases against a live service, beside well-behaved robots.
 
 Run from the repository root:  python -m benchmarks.hostile [--robots 20] [--burst-robots 150] [--duration 20]
+                                   [--lead-s 20]
 
 One service process (the `served` configuration of benchmarks/service.py: visual+tactile model,
-tactile-only fallback, camera frames at 1 fps). `--robots` well-behaved robots (the real RobotClient)
-stream in real time with an operator each, while, in this order:
+tactile-only fallback, camera frames at 1 fps). `--robots` well-behaved robots (the real RobotClient, in a
+process of their own) stream in real time with an operator each for `--duration` + `--lead-s` seconds, while,
+in this order:
 1. a client posts the probe's 2.8 MB block (10 Hz, 100 000 samples per channel) a few times;
 2. a client sends 300 `POST /sessions` within a second (with a valid key; its own address via
    X-Forwarded-For, since every robot here shares 127.0.0.1, whose budget is set to 200);
 3. a client sends a block with seq 2^62 into its own session, then good blocks;
-4. `--burst-robots` more robots start together, each with a camera frame at once.
-Meanwhile /health is polled every 20 ms. Reported: /health p50/p99/max, the well-behaved robots'
-windows lost and end-to-end p99, what was refused (and how), and whether the seq-2^62 session still
-produced windows. Writes reports/bench/hostile.json.
+4. `--burst-robots` more robots (another process) start within one hop of each other, each with a camera
+   frame at once, and stream for `--duration` seconds.
+Meanwhile a third process polls /health every 20 ms: no load generator's event loop sits between the probe
+and the service. Reported: /health p50/p99/max, the well-behaved robots' windows lost and end-to-end p50/p99
+(overall and while the burst streamed), each robots process's own send lag and event-loop lag (a generator
+that falls behind inflates the latencies it reports), what was refused (and how), and whether the seq-2^62
+session still produced windows. Writes reports/bench/hostile.json.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import argparse
 import asyncio
 import dataclasses
 import json
+import multiprocessing as mp
 import secrets
 import sys
 import time
@@ -29,11 +35,13 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.health_poll import poll
 from benchmarks.loadgen import frame_of, robot_streams
 from benchmarks.report_file import write_report
 from benchmarks.service import (
     DEFAULT_ASSETS,
     HOP_S,
+    Assets,
     ServerProcess,
     _metric_sum,
     _run,
@@ -47,17 +55,7 @@ from drivers.protocol import BINARY_CONTENT_TYPE, bearer, session_path
 DEFAULT_OUT = Path("reports/bench/hostile.json")
 
 
-async def poll_health(url: str, stop: asyncio.Event, out: list[float]) -> None:
-    async with httpx.AsyncClient(timeout=10) as client:
-        while not stop.is_set():
-            t0 = time.perf_counter()
-            r = await client.get(f"{url}/health")
-            if r.status_code == 200:
-                out.append((time.perf_counter() - t0) * 1e3)
-            await asyncio.sleep(0.02)
-
-
-async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
+async def attacks(url: str, api_key: str, assets: Assets, block_s: float, report: dict) -> None:
     """The probe's requests, one after another, each answer recorded."""
     async with httpx.AsyncClient(timeout=30) as client:
         session = (await client.post(f"{url}/sessions", json={"name": "attacker"}, headers=bearer(api_key))).json()
@@ -102,7 +100,7 @@ async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
         # (a taps model's stream opens with its tap block; seq numbers every block of it in order)
         good = [
             dataclasses.replace(b, seq=i)
-            for i, b in enumerate(robot_streams(_library[0], 1, 2.0, block_s, seed=7, taps=_taps[0])[0])
+            for i, b in enumerate(robot_streams(assets.library, 1, 2.0, block_s, seed=7, taps=assets.taps)[0])
         ]
         first = next(b for b in good if isinstance(b, SampleBlock))
         r = await client.post(
@@ -123,26 +121,103 @@ async def attacks(url: str, api_key: str, block_s: float, report: dict) -> None:
         }
 
 
-_library: list[Path] = []
-_taps: list[bool] = []
+def loop_lag(out: list[float], every_s: float = 0.01):
+    """A task that records how late this process's event loop wakes it (ms): the generator's own health."""
+
+    async def tick() -> None:
+        while True:
+            t0 = time.perf_counter()
+            await asyncio.sleep(every_s)
+            out.append(max(0.0, time.perf_counter() - t0 - every_s) * 1e3)
+
+    return asyncio.create_task(tick())
+
+
+def robots_process(
+    url: str, assets: Assets, ks: list[int], seconds: float, block_s: float, api_key: str, seed: int, conn
+) -> None:
+    """A process of robots: renders robots `ks`' streams (`seconds` long) and camera frames, sends ("ready",),
+    waits for "go", streams them in real time (real RobotClients, an operator each) while timing its own event
+    loop, and sends ("result", {...}) — or ("error", text)."""
+    streams = robot_streams(assets.library, len(ks), seconds, block_s, taps=assets.taps, indices=ks)
+    frames = [frame_of(assets.library, k) for k in ks]
+    conn.send(("ready", None))
+    conn.recv()
+
+    async def go():
+        lag: list[float] = []
+        ticking = loop_lag(lag)
+        try:
+            return await run_load([url], streams, frames, block_s, api_key, seed), lag
+        finally:
+            ticking.cancel()
+
+    try:
+        (stats, views, sources), lag = _run(go())
+    except Exception as exc:  # noqa: BLE001 - reported in the row
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    conn.send(
+        (
+            "result",
+            {
+                "windows": sum(v.windows for v in views),
+                "windows_tactile_only": sum(v.inputs.get("tactile", 0) for v in views),
+                "e2e": [(t, ms) for v in views for t, ms in zip(v.received_at, v.e2e_ms)],
+                "features_ms": [x for v in views for x in v.stages_ms["features"]],
+                "streaming": (min(s.start for s in sources), max(s.start for s in sources) + seconds),
+                "send_lag_ms": [x for s in sources for x in s.send_lag_ms],
+                "loop_lag_ms": lag,
+                "operator_errors": [v.error for v in views if v.error],
+                "robot_counts": {
+                    name: sum(getattr(st, name) for st in stats)
+                    for name in ("sent", "resent", "acked", "rejected", "lost", "reconnects", "saturated")
+                },
+            },
+        )
+    )
+
+
+def timeline(e2e: list[tuple[float, float]], t0: float, bin_s: float = 2.0) -> list[dict]:
+    """Windows received per `bin_s` bin from t0 (perf_counter, s) with their end-to-end p50 and p99 (ms)."""
+    bins: dict[int, list[float]] = {}
+    for t, ms in e2e:
+        bins.setdefault(int((t - t0) // bin_s), []).append(ms)
+    return [
+        {"t_s": k * bin_s, "windows": len(v), "e2e_p50": percentile(v, 50), "e2e_p99": percentile(v, 99)}
+        for k, v in sorted(bins.items())
+    ]
+
+
+def _receive(pipe, proc, expected: str):
+    try:
+        kind, value = pipe.recv()
+    except EOFError:
+        proc.join(timeout=5)
+        raise RuntimeError(f"a robots process exited (code {proc.exitcode}) before its {expected}") from None
+    if kind == "error":
+        raise RuntimeError(f"a robots process failed: {value}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=20, help="well-behaved robots streaming throughout")
     p.add_argument("--burst-robots", type=int, default=150, help="robots that start together, each with a frame")
-    p.add_argument("--duration", type=float, default=20.0)
+    p.add_argument("--duration", type=float, default=20.0, help="the burst robots' stream, s")
+    p.add_argument(
+        "--lead-s",
+        type=float,
+        default=20.0,
+        help="the well-behaved robots stream this much longer than the burst, s (the attacks and the burst's "
+        "set-up come first)",
+    )
     p.add_argument("--block-s", type=float, default=0.02)
     p.add_argument("--assets", type=Path, default=DEFAULT_ASSETS, help="the demo's assets (built when missing)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
     api_key = secrets.token_urlsafe(24)
     assets = prepare_assets(args.assets)["served"]
-    _library.append(assets.library)
-    _taps.append(assets.taps)
-    n = args.robots + args.burst_robots
-    streams = robot_streams(assets.library, n, args.duration, args.block_s, taps=assets.taps)
-    frames = [frame_of(assets.library, k) for k in range(n)]
     server = ServerProcess.service(
         assets,
         api_key,
@@ -150,66 +225,102 @@ def main(argv: list[str] | None = None) -> int:
         # every robot of this process is one address: a budget for them all
         extra={"HAPTICLINK_SESSION_BURST": "200", "HAPTICLINK_MAX_SESSIONS": "512"},
     )
-    report: dict = {"robots": args.robots, "burst_robots": args.burst_robots, "duration_s": args.duration}
-    health: list[float] = []
-
-    async def scenario():
-        stop = asyncio.Event()
-        poller = asyncio.create_task(poll_health(server.url, stop, health))
-        # the well-behaved robots open their sessions before the flood (the flood may not starve them)
-        steady = asyncio.create_task(
-            run_load([server.url], streams[: args.robots], frames[: args.robots], args.block_s, api_key, 0)
-        )
-        await asyncio.sleep(3.0)
-        await attacks(server.url, api_key, args.block_s, report)
-        burst = asyncio.create_task(
-            run_load(
-                [server.url], streams[args.robots :], frames[args.robots :], args.block_s, api_key, 1, realtime=True
-            )
-        )
-        steady_result, burst_result = await asyncio.gather(steady, burst, return_exceptions=True)
-        stop.set()
-        await poller
-        return steady_result, burst_result
-
+    steady_s = args.duration + args.lead_s
+    report: dict = {
+        "robots": args.robots,
+        "burst_robots": args.burst_robots,
+        "duration_s": args.duration,
+        "well_behaved_duration_s": steady_s,
+    }
+    ctx = mp.get_context("spawn")  # fresh interpreters: each loop measures only its own robots
+    roles = {
+        "well_behaved": (list(range(args.robots)), steady_s, 0),
+        "burst": (list(range(args.robots, args.robots + args.burst_robots)), args.duration, 1),
+    }
+    procs, pipes = {}, {}
+    stop, polled = ctx.Event(), ctx.Queue()
+    poller = ctx.Process(target=poll, args=({"health": f"{server.url}/health"}, stop, polled), daemon=True)
     try:
-        steady_result, burst_result = _run(scenario())
+        for role, (ks, seconds, seed) in roles.items():
+            pipes[role], child = ctx.Pipe()
+            procs[role] = ctx.Process(
+                target=robots_process,
+                args=(server.url, assets, ks, seconds, args.block_s, api_key, seed, child),
+                daemon=True,
+            )
+            procs[role].start()
+        for role in roles:
+            _receive(pipes[role], procs[role], "ready")
+        poller.start()
+        pipes["well_behaved"].send("go")
+        t_go = time.perf_counter()
+        time.sleep(3.0)  # the well-behaved robots open their sessions before the flood (it may not starve them)
+        _run(attacks(server.url, api_key, assets, args.block_s, report))
+        t_attacked = time.perf_counter()
+        pipes["burst"].send("go")
+        results = {role: _receive(pipes[role], procs[role], "result") for role in roles}
+        stop.set()
+        health = polled.get(timeout=30)["health"]
         metrics = httpx.get(f"{server.url}/metrics").text
     finally:
         server.stop()
-    if isinstance(steady_result, BaseException):
-        raise steady_result
-    _, views, _ = steady_result
-    expected = args.robots * int(args.duration / HOP_S + 1e-9)
-    e2e = [x for v in views for x in v.e2e_ms]
+        for proc in [*procs.values(), poller]:
+            if proc.pid is not None:
+                proc.join(timeout=10)
+                if proc.is_alive():
+                    proc.kill()
+    failed = [x for x in health if x < 0]
+    health = [x for x in health if x >= 0]
     report["health_ms"] = {
         "p50": percentile(health, 50),
         "p99": percentile(health, 99),
         "max": percentile(health, 100),
         "polls": len(health),
+        "failed": len(failed),
     }
+    steady, burst = results["well_behaved"], results["burst"]
+    b0, b1 = burst["streaming"]
+    expected = args.robots * int(steady_s / HOP_S + 1e-9)
+    e2e = [ms for _, ms in steady["e2e"]]
+    during = [ms for t, ms in steady["e2e"] if b0 <= t <= b1]
+    report["phases_s"] = {  # from the well-behaved robots' go
+        "attacks": [3.0, round(t_attacked - t_go, 1)],
+        "burst_streaming": [round(b0 - t_go, 1), round(b1 - t_go, 1)],
+        "well_behaved_streaming": [round(x - t_go, 1) for x in steady["streaming"]],
+    }
+    report["well_behaved_timeline"] = timeline(steady["e2e"], t_go)
     report["well_behaved"] = {
         "windows_expected": expected,
-        "windows_received": sum(v.windows for v in views),
-        "windows_lost": expected - sum(v.windows for v in views),
+        "windows_received": steady["windows"],
+        "windows_lost": expected - steady["windows"],
         "e2e_ms": {"p50": percentile(e2e, 50), "p99": percentile(e2e, 99)},
-        "features_ms_p99": percentile([x for v in views for x in v.stages_ms["features"]], 99),
+        "e2e_ms_during_burst": {"n": len(during), "p50": percentile(during, 50), "p99": percentile(during, 99)},
+        "features_ms_p99": percentile(steady["features_ms"], 99),
+        "generator_send_lag_ms_p99": percentile(steady["send_lag_ms"], 99),
+        "generator_loop_lag_ms_p99": percentile(steady["loop_lag_ms"], 99),
+        "operator_errors": steady["operator_errors"][:5],
+        "robot_counts": steady["robot_counts"],
     }
-    if isinstance(burst_result, BaseException):
-        report["burst"] = {"error": f"{type(burst_result).__name__}: {burst_result}"}
-    else:
-        _, bviews, _ = burst_result
-        bexpected = args.burst_robots * int(args.duration / HOP_S + 1e-9)
-        report["burst"] = {
-            "windows_expected": bexpected,
-            "windows_received": sum(v.windows for v in bviews),
-            "windows_tactile_only": sum(v.inputs.get("tactile", 0) for v in bviews),
-            "e2e_ms_p99": percentile([x for v in bviews for x in v.e2e_ms], 99),
-        }
+    bexpected = args.burst_robots * int(args.duration / HOP_S + 1e-9)
+    report["burst"] = {
+        "windows_expected": bexpected,
+        "windows_received": burst["windows"],
+        "windows_tactile_only": burst["windows_tactile_only"],
+        "e2e_ms_p99": percentile([ms for _, ms in burst["e2e"]], 99),
+        "generator_send_lag_ms_p99": percentile(burst["send_lag_ms"], 99),
+        "generator_loop_lag_ms_p99": percentile(burst["loop_lag_ms"], 99),
+        "robot_counts": burst["robot_counts"],
+    }
     report["refused"] = {
         "blocks": int(_metric_sum(metrics, "hapticlink_blocks_total", outcome="refused")),
         "frames": int(_metric_sum(metrics, "hapticlink_frames_total", outcome="refused")),
+        "blocks_shed": int(_metric_sum(metrics, "hapticlink_blocks_refused_total", reason="capacity")),
+        "blocks_session_queue_full": int(
+            _metric_sum(metrics, "hapticlink_blocks_refused_total", reason="session_queue")
+        ),
+        "sessions_shed": int(_metric_sum(metrics, "hapticlink_sessions_shed_total")),
         "sessions_rate": int(_metric_sum(metrics, "hapticlink_sessions_refused_total", reason="rate")),
+        "sessions_capacity": int(_metric_sum(metrics, "hapticlink_sessions_refused_total", reason="capacity")),
         "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count")),
     }
     print(json.dumps(report, indent=2))

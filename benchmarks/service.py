@@ -229,6 +229,7 @@ class PacedSource:
 class OperatorView:
     windows: int = 0
     e2e_ms: list[float] = field(default_factory=list)
+    received_at: list[float] = field(default_factory=list)  # perf_counter when each e2e_ms entry's window arrived
     first_features_ms: float | None = None
     stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     inputs: Counter = field(default_factory=Counter)
@@ -268,6 +269,7 @@ async def _operate(
                 yielded = source.yielded.get(event["block_seq"])
                 if yielded is not None:
                     view.e2e_ms.append((now - yielded) * 1e3)
+                    view.received_at.append(now)
                 for stage in STAGES:
                     view.stages_ms[stage].append(event["latency_ms"][stage])
                 if view.first_features_ms is None:
@@ -294,8 +296,8 @@ async def run_load(
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
     rng = random.Random(seed)
     offsets = [rng.uniform(0, HOP_S) if realtime else 0.0 for _ in streams]  # robots do not start in lockstep
-    start = time.perf_counter() + 2.0 + 0.02 * len(streams)  # time to open every session and connection first
-    sources = [PacedSource(s, block_s, start + off, f, 1.0, realtime) for s, f, off in zip(streams, frames, offsets)]
+    # the start is set once every session and operator is connected (a robot due before would send a backlog)
+    sources = [PacedSource(s, block_s, 0.0, f, 1.0, realtime) for s, f in zip(streams, frames)]
     clients = [
         RobotClient(u, src, api_key=api_key, session_name=f"bench-{k}", window=window, seed=k, drain_timeout_s=10)
         for k, (u, src) in enumerate(zip(robot_urls, sources))
@@ -310,6 +312,9 @@ async def run_load(
         for u, c, src, v, r in zip(robot_urls, clients, sources, views, readies)
     ]
     await asyncio.gather(*(r.wait() for r in readies))
+    start = time.perf_counter() + 1.0
+    for src, off in zip(sources, offsets):
+        src.start = start + off
     outcomes = await asyncio.gather(*(c.run() for c in clients), return_exceptions=True)
     for k, o in enumerate(outcomes):
         if isinstance(o, BaseException):
