@@ -2,14 +2,18 @@
 
 One job estimates the windows of up to `max_sessions_per_job` sessions in a single pool call
 (pipeline.estimate_batch: one window_features and one model call for all of them). At most
-`max_jobs` jobs run at once (the pool's threads), a session is in at most one job, and sessions
-are served oldest-ready first. Under light load a job holds one session and starts at once;
-under heavy load jobs grow, and each window gets cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms
-against ≈ 1.0 at 16–64 and ≈ 2 alone (`python -m benchmarks.window_batch`, the demo's tactile model), while every
-session of a job waits for the whole job's lookups before any of its windows is published.
+`max_jobs` jobs run at once (the pool's threads), a session is in at most one job, and the oldest
+sessions are served first: admission (service/capacity.py) keeps the oldest sessions at full speed, so a newer
+session's backlog (a robot back from an outage resends seconds of blocks at once) must not queue ahead of them.
+Under light load a job holds one session and starts at once; under heavy load jobs grow, and each window gets
+cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms against ≈ 1.0 at 16–64 and ≈ 2 alone
+(`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
+job's lookups before any of its windows is published.
 
-`take_wait_s(now)` is the longest any session's windows waited for a job since the last call (or wait now): the
-window queue delay that admission (service/capacity.py) holds below its limit.
+`take_wait_s(now, exclude)` is the longest the windows of any session not in `exclude` waited for a job since the
+last call (or wait now): the window queue delay that admission holds below its limit. Admission excludes the
+sessions it sheds: their windows admitted before they were shed are served last and wait, but refusing more
+sessions would not shorten that.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Container
 from concurrent.futures import Executor
 
 from service.live_session import Session
@@ -36,10 +41,9 @@ class WindowBatcher:
         self.pool = pool
         self.max_jobs = max_jobs
         self.max_sessions_per_job = max_sessions_per_job
-        # ready sessions and the time.monotonic() each became ready; insertion order = oldest first; bounded by the
-        # number of sessions
+        # ready sessions and the time.monotonic() each became ready; bounded by the number of sessions
         self._ready: dict[str, tuple[Session, float]] = {}
-        self._longest_wait = 0.0  # s, the longest a session taken into a job waited, since take_wait_s
+        self._waited: dict[str, float] = {}  # the longest each session taken into a job waited (s), since take_wait_s
         self._wake = asyncio.Event()
         self._jobs: set[asyncio.Task] = set()
         self._runner: asyncio.Task | None = None
@@ -61,12 +65,13 @@ class WindowBatcher:
             self._ready[session.id] = (session, time.monotonic())
         self._wake.set()
 
-    def take_wait_s(self, now: float) -> float:
-        """The longest (s) a session's complete windows waited for a job since the last call, or have waited at
-        `now` (time.monotonic()) and still wait; 0 when none did. Resets the record."""
-        waiting = now - next(iter(self._ready.values()))[1] if self._ready else 0.0  # the oldest first
-        longest, self._longest_wait = max(self._longest_wait, waiting, 0.0), 0.0
-        return longest
+    def take_wait_s(self, now: float, exclude: Container[str] = ()) -> float:
+        """The longest (s) the complete windows of a session not in `exclude` waited for a job since the last call,
+        or have waited at `now` (time.monotonic()) and still wait; 0 when none did. Resets the record."""
+        taken = (w for sid, w in self._waited.items() if sid not in exclude)
+        waiting = (now - since for sid, (_, since) in self._ready.items() if sid not in exclude)
+        self._waited = {}
+        return max([0.0, *taken, *waiting])
 
     async def _run(self) -> None:
         while True:
@@ -87,15 +92,16 @@ class WindowBatcher:
         self._wake.set()  # a slot is free; sessions may have become ready meanwhile
 
     async def _gather(self) -> list[tuple[Session, SessionJob]]:
-        """Take up to max_sessions_per_job ready sessions that are not in a job, with their jobs."""
+        """Take up to max_sessions_per_job ready sessions that are not in a job, the oldest sessions first, with their
+        jobs."""
         batch: list[tuple[Session, SessionJob]] = []
-        for sid, (session, since) in list(self._ready.items()):
+        for sid, (session, since) in sorted(self._ready.items(), key=lambda item: item[1][0].opened_at):
             if len(batch) >= self.max_sessions_per_job:
                 break
             if session.in_job:
                 continue  # picked up again when its job is done
             del self._ready[sid]
-            self._longest_wait = max(self._longest_wait, time.monotonic() - since)
+            self._waited[sid] = max(self._waited.get(sid, 0.0), time.monotonic() - since)
             job = session.take_job()
             if job is None:
                 if session.waiting_for_frame() or session.waiting_for_taps():

@@ -16,9 +16,12 @@ process's own only while the process is busy too: its loop thread over half its 
 threads together over the budget (then the pool threads hold the GIL, and every socket operation of
 the loop waits for it: the loop is late while using little CPU itself).
 
-- **window queue delay**: the longest any session's complete windows waited for the window pool
-  (service/batcher.py). The loop can keep up with every block while the pool threads, sharing its GIL,
-  fall behind on the windows: then every operator's view lags although the loop is punctual.
+- **window queue delay**: the longest the complete windows of any session not shed waited for the window pool
+  (service/batcher.py, which serves the oldest sessions first). The loop can keep up with every block while the
+  pool threads, sharing its GIL, fall behind on the windows: then operators' views lag although the loop is
+  punctual. The windows a shed session had admitted before it was shed are served last and wait; they do not
+  count, or one burst of backlog would shed session after session, the oldest in the end, for a delay that
+  refusing them cannot shorten.
 
 The first two are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). The queue delay is held
 at its peak, decaying with time constant `QUEUE_HOLD_S`: windows come in bursts (robots that started
@@ -31,18 +34,20 @@ would hide the delay of each burst's last windows. From them:
   `cpu_budget` with two or more sessions streaming, or (four or more streaming: enough to measure)
   one more session of the measured loop CPU per streaming session would not fit the budget. The
   first session is always admitted.
-- `admit_block(session)` refuses the blocks of shed sessions (429 / WebSocket close 4429,
-  Retry-After). While the loop is over its CPU budget, its lag is above `shed_lag_s` or the window queue
-  delay above `shed_queue_s`, every
-  `SHED_EVERY_S` one more step of the streaming sessions is shed, newest first: a quarter of them
-  (`STEP_SHARE`), or more when the measured CPU per session says more do not fit; the oldest is never
-  shed. Shedding in steps this fast acts before the loop saturates: with thresholds of a few tens of
-  milliseconds the loop never queues long enough to delay /health or the oldest sessions' windows.
-  Once under the thresholds with a margin, a smaller step of the shed sessions (`READMIT_SHARE`: each
-  readmitted robot resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest first — so
-  the shed sessions are always the newest ones. The oldest
-  sessions keep streaming at full quality, and the refused robots back off and resend later from
-  their oldest unacknowledged block (nothing accepted is lost).
+- `admit_block(session)` refuses the blocks of shed sessions (429 / WebSocket close 4429, Retry-After), and
+  `admit_frame(session)` their camera frames (429). While the loop is over its CPU budget, its lag is above
+  `shed_lag_s` or the window queue delay above `shed_queue_s`, one more step of the streaming sessions is shed,
+  newest first: a quarter of those still served (`STEP_SHARE`), or more when the measured CPU per session says more
+  do not fit, or every session that began streaming since the process was last within its limits (robots that start
+  together tip it over together); the oldest is never shed. A step follows the last after `SHED_EVERY_S` while the
+  process gets worse, after `SETTLE_S` while it gets no better (its pressure, the largest measure over its limit,
+  has not fallen by a fifth since that step), and not at all while it gets better: the measures show a step's effect
+  only after about a second. Shedding in steps this fast acts before the loop saturates: with thresholds of a few
+  tens of milliseconds the loop never queues long enough to delay /health or the oldest sessions' windows. Once
+  under the thresholds with a margin, a smaller step of the shed sessions (`READMIT_SHARE`: each readmitted robot
+  resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest first — so the shed sessions are always
+  the newest ones. The oldest sessions keep streaming at full quality, and the refused robots back off and resend
+  later from their oldest unacknowledged block (nothing accepted is lost).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Container, Iterable
 
 from service.errors import ServiceError
 from service.live_session import Session
@@ -69,15 +74,24 @@ QUEUE_HOLD_S = 1.0
 #: a session that sent nothing for this long does not count as streaming (its CPU is not in the measure)
 STREAMING_WITHIN_S = 1.0
 RETRY_AFTER_S = 2.0
-#: while over capacity, one more step of sessions is shed this often (s): soon enough that the loop never queues
-#: a whole second of work, late enough that the lag measure (smoothed over SMOOTHING_S) sees the last step's effect
+#: while over capacity and getting worse, one more step of sessions is shed this often (s): soon enough that the
+#: loop never queues a whole second of work
 SHED_EVERY_S = 0.25
+#: while over capacity but no worse than at the last step, the next step waits this long (s): the measures lag what
+#: they measure (the lag is smoothed over SMOOTHING_S, the queue delay's peak held over QUEUE_HOLD_S, and blocks
+#: of shed sessions already in the sockets still arrive), so a step's effect shows only after about a second;
+#: shedding on the old evidence meanwhile would shed session after session, the oldest in the end
+SETTLE_S = 1.0
+#: after SETTLE_S, no further step while the pressure has fallen below this share of its value at the last step:
+#: the last step is working (a backlog drains)
+IMPROVED = 0.8
 #: once under the thresholds with a margin, one step of shed sessions streams again this often (s): slower than
 #: shedding, so a replica near its limit does not swing between shedding and readmitting every step
 READMIT_EVERY_S = 2.0
-#: the share of the sessions (streaming or shed) one shedding step moves
+#: the share of the sessions still served one shedding step moves
 STEP_SHARE = 0.25
-#: the share one readmission step moves: a readmitted robot resends its backlog at once, so a large step is a burst
+#: the share of the sessions (streaming or shed) one readmission step moves: a readmitted robot resends its backlog
+#: at once, so a large step is a burst
 READMIT_SHARE = 0.1
 #: at most one WARNING about shedding per this many seconds
 LOG_EVERY_S = 10.0
@@ -100,9 +114,10 @@ class CapacityGuard:
         settings: Settings,
         metrics: ServiceMetrics,
         sessions: Callable[[], Iterable[Session]] = lambda: (),
-        window_wait: Callable[[float], float] = lambda now: 0.0,
+        window_wait: Callable[[float, Container[str]], float] = lambda now, exclude: 0.0,
     ) -> None:
-        """window_wait(now): the longest windows waited since the last call, s (WindowBatcher.take_wait_s)."""
+        """window_wait(now, exclude): the longest the windows of sessions not in `exclude` waited since the last
+        call, s (WindowBatcher.take_wait_s)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
@@ -117,6 +132,10 @@ class CapacityGuard:
         self._task: asyncio.Task | None = None
         self._last_log = 0.0
         self._last_shed = -math.inf  # time.monotonic() of the last shedding step
+        # (time.monotonic(), self.pressure()) at the last step, or at the last settling time over without one
+        self._reference = (-math.inf, 0.0)
+        # opened_at of the newest session streaming (and not shed) the last time the process was within its limits
+        self._newest_within_limits = math.inf
         self._last_readmit = -math.inf
 
     def start(self) -> None:
@@ -146,7 +165,7 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
-            self.queue_s = max(self._window_wait(now), self.queue_s * math.exp(-elapsed / QUEUE_HOLD_S))
+            self.queue_s = max(self._window_wait(now, self._shed), self.queue_s * math.exp(-elapsed / QUEUE_HOLD_S))
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
@@ -163,15 +182,30 @@ class CapacityGuard:
         if streaming:
             self.cpu_per_session = self.cpu_share / len(streaming)
         if self._over():
-            if now - self._last_shed >= SHED_EVERY_S:
+            pressure, (ref_t, ref_p) = self.pressure(), self._reference
+            if now - self._last_shed >= SHED_EVERY_S and pressure > ref_p:  # worse
                 self._shed_newest(streaming, now)
-        elif self._shed and self._calm() and now - max(self._last_shed, self._last_readmit) >= READMIT_EVERY_S:
+                self._reference = (now, pressure)
+            elif now - ref_t >= SETTLE_S:
+                if pressure > IMPROVED * ref_p:  # no better
+                    self._shed_newest(streaming, now)
+                self._reference = (now, pressure)
+            return
+        self._reference = (now, 0.0)  # the next time over is worse: a step at once
+        self._newest_within_limits = max((s.opened_at for s in streaming if s.id not in self._shed), default=-math.inf)
+        if self._shed and self._calm() and now - max(self._last_shed, self._last_readmit) >= READMIT_EVERY_S:
             self._readmit_oldest(streaming, now)
 
     def _over(self) -> bool:
         """The loop is over its CPU budget, or (while the lateness is the process's own) late by more than shed_lag_s
         or its windows queued longer than shed_queue_s."""
         return self.cpu_share > self.settings.cpu_budget or self._late(1.0)
+
+    def pressure(self) -> float:
+        """How far over its limits the process is: the largest of loop CPU ÷ budget, lag ÷ shed_lag_s and queue delay
+        ÷ shed_queue_s (above 1: over)."""
+        s = self.settings
+        return max(self.cpu_share / s.cpu_budget, self.lag_s / s.shed_lag_s, self.queue_s / s.shed_queue_s)
 
     def _calm(self) -> bool:
         """Under the shedding thresholds with a margin (90 % of the budget, half the shed lag and queue delay): room
@@ -183,18 +217,23 @@ class CapacityGuard:
         s = self.settings
         return self._busy() and (self.lag_s > share * s.shed_lag_s or self.queue_s > share * s.shed_queue_s)
 
-    def _step(self, streaming: list[Session], share: float = STEP_SHARE) -> int:
-        """Sessions one shedding (or readmission) step moves: `share` of those streaming or shed, at least one."""
-        return max(1, math.ceil(share * len(self._shed.union(s.id for s in streaming))))
+    @staticmethod
+    def _step(n: int, share: float) -> int:
+        """Sessions one step moves: `share` of n, at least one."""
+        return max(1, math.ceil(share * n))
 
     def _shed_newest(self, streaming: list[Session], now: float) -> None:
         """Refuse the blocks of one step of the newest streaming sessions not yet shed; the oldest always streams."""
-        candidates = [s.id for s in streaming[1:] if s.id not in self._shed]
+        candidates = [s for s in streaming[1:] if s.id not in self._shed]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it
-        # at least a step; more when the measured CPU per session says more do not fit
-        count = max(self._step(streaming), len(streaming) - self.sessions_that_fit())
-        newest = candidates[-count:]
+        # at least a step (of those still served: a step of all would overshoot into the oldest after a burst);
+        # more when the measured CPU per session says more do not fit, and every session that began streaming
+        # since the process was last within its limits (what tipped it over: robots that start together)
+        served = len(candidates) + 1
+        newcomers = sum(s.opened_at > self._newest_within_limits for s in candidates)
+        count = max(self._step(served, STEP_SHARE), served - self.sessions_that_fit(), newcomers)
+        newest = [s.id for s in candidates[-count:]]
         self._shed.update(newest)
         self._last_shed = now
         self.metrics.sessions_shed.inc(len(newest))
@@ -214,7 +253,7 @@ class CapacityGuard:
     def _readmit_oldest(self, streaming: list[Session], now: float) -> None:
         """Let one step of the shed sessions stream again, oldest first (the reverse of the order they were shed)."""
         shed = [s.id for s in self._sessions() if s.id in self._shed]  # creation order: oldest first
-        back = shed[: self._step(streaming, READMIT_SHARE)]
+        back = shed[: self._step(len(self._shed.union(s.id for s in streaming)), READMIT_SHARE)]
         self._shed.difference_update(back)
         self._last_readmit = now
 
@@ -266,6 +305,14 @@ class CapacityGuard:
         if why is not None:
             self.metrics.sessions_refused.labels(reason="capacity").inc()
             raise AtCapacity(f"this replica is at capacity: {why}; try later or another replica")
+
+    def admit_frame(self, session: Session) -> None:
+        """Raise ServiceError 429 (Retry-After) when `session` is among those shed: its frames wait with its blocks."""
+        if session.id in self._shed:
+            raise AtCapacity(
+                f"this replica is at capacity and session {session.id} is among its newest: it refuses that "
+                "session's blocks and frames for now; send the newest frame later"
+            )
 
     def admit_block(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed while the process is over

@@ -113,8 +113,11 @@ class FrameIntake:
 
     visual_load: frames being decoded or waiting for/in an embedding, all sessions (≤ settings.visual_queue)."""
 
-    def __init__(self, settings: Settings, metrics: ServiceMetrics, bus: EventBus, decode_pool: Executor) -> None:
+    def __init__(
+        self, settings: Settings, metrics: ServiceMetrics, bus: EventBus, decode_pool: Executor, capacity: CapacityGuard
+    ) -> None:
         self.settings = settings
+        self.capacity = capacity
         self.metrics = metrics
         self.bus = bus
         self.decode_pool = decode_pool
@@ -123,7 +126,14 @@ class FrameIntake:
     async def receive(self, session: Session, runtime: Runtime, payload: bytes) -> FrameAck:
         """One encoded frame (PNG/JPEG bytes): refused (429) when the visual queue is full or the session's previous
         frame is still decoding; 422 when it cannot be decoded; otherwise offered to the session, which embeds it
-        only if the scene changed."""
+        only if the scene changed. A session whose blocks the replica sheds has its frames refused too (429): a frame
+        costs more than a second of blocks."""
+        try:
+            self.capacity.admit_frame(session)
+        except ServiceError:
+            self.metrics.frames.labels(outcome="refused").inc()
+            session.counters.frames_refused += 1
+            raise
         if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
             self.metrics.frames.labels(outcome="refused").inc()
             session.counters.frames_refused += 1

@@ -65,13 +65,13 @@ class ServiceState:
         self.visual_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-visual")
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
-        self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool)
         self.capacity = CapacityGuard(
             settings,
             self.metrics,
             lambda: self.directory.sessions.values(),
-            lambda now: self.batcher.take_wait_s(now),
+            lambda now, exclude: self.batcher.take_wait_s(now, exclude),
         )
+        self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool, self.capacity)
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 
@@ -108,6 +109,10 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))
                 continue
             await websocket.send_text(ack_ok(ack["seq"], ack["duplicate"]))
+            # A robot's blocks queue up in its socket (a backlog resent at once, or a stall's worth): receiving
+            # them does not suspend, so without this one socket would hold the loop for all of them, and the
+            # capacity guard, /health and every other robot would wait.
+            await asyncio.sleep(0)
     except WebSocketDisconnect:
         return
     finally:

@@ -20,7 +20,16 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
-from service.capacity import READMIT_EVERY_S, READMIT_SHARE, SHED_EVERY_S, STEP_SHARE, AtCapacity, CapacityGuard
+from service.capacity import (
+    READMIT_EVERY_S,
+    READMIT_SHARE,
+    SAMPLE_EVERY_S,
+    SETTLE_S,
+    SHED_EVERY_S,
+    STEP_SHARE,
+    AtCapacity,
+    CapacityGuard,
+)
 from service.metrics import ServiceMetrics
 from service.settings import Settings
 
@@ -105,7 +114,7 @@ def test_probes_answer_on_their_own_port_as_on_the_service_port(kit, base_settin
 # ---- shedding in steps: newest first, back oldest first -------------------------------------------------------
 def _guard(n: int) -> tuple[CapacityGuard, list[SimpleNamespace]]:
     """A guard over n stub sessions s0 (oldest) … s{n-1}, all streaming, with default thresholds."""
-    sessions = [SimpleNamespace(id=f"s{i}", last_activity=0.0, last_seq=0) for i in range(n)]
+    sessions = [SimpleNamespace(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_seq=0) for i in range(n)]
     return CapacityGuard(Settings(), ServiceMetrics(), lambda: sessions), sessions
 
 
@@ -137,27 +146,72 @@ def test_over_the_lag_limit_a_quarter_is_shed_per_step_newest_first_and_comes_ba
     assert _shed_ids(guard, sessions) == ["s6", "s7"]  # a quarter of 8, the newest
     _update(guard, sessions, 0.1)  # within the step's interval: nothing more
     assert _shed_ids(guard, sessions) == ["s6", "s7"]
-    _update(guard, sessions, 0.25)
+    _update(guard, sessions, SHED_EVERY_S)  # no worse than at the last step: its effect has not shown yet
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+    guard.lag_s *= 1.5  # worse: the next step comes at once
+    _update(guard, sessions, 2 * SHED_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
     with pytest.raises(AtCapacity, match="refuses the blocks of 4 of its sessions"):
         guard.admit_session(len(sessions))  # no new session while any is shed
-    for t in (0.5, 0.75, 1.0):
+    _update(guard, sessions, 2 * SHED_EVERY_S + SETTLE_S / 2)  # still over, not worse: waits for SETTLE_S
+    assert len(_shed_ids(guard, sessions)) == 4
+    t = 2 * SHED_EVERY_S
+    for _ in range(3):  # a quarter of those still served, at least one: s3, s2, then s1
+        t += SETTLE_S
         _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]  # never the oldest
     # caught up: a tenth (at least one) comes back every READMIT_EVERY_S, oldest first — smaller steps than
     # shedding, since each readmitted robot resends its backlog at once
     assert READMIT_SHARE < STEP_SHARE
     guard.lag_s = 0.0
-    _update(guard, sessions, 1.0 + READMIT_EVERY_S / 2)
+    _update(guard, sessions, t + READMIT_EVERY_S / 2)
     assert len(_shed_ids(guard, sessions)) == 7
-    _update(guard, sessions, 1.0 + READMIT_EVERY_S)
+    _update(guard, sessions, t + READMIT_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s2", "s3", "s4", "s5", "s6", "s7"]
-    _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S)
+    _update(guard, sessions, t + 2 * READMIT_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
-    # over again: the newest of those streaming are shed first again (a quarter of 8: s1 and s2)
+    # over again: the newest of those streaming are shed first again (a quarter of the 3 served: s2)
     guard.lag_s = 2 * guard.settings.shed_lag_s
-    _update(guard, sessions, 1.0 + 2 * READMIT_EVERY_S + SHED_EVERY_S)
-    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]
+    _update(guard, sessions, t + 2 * READMIT_EVERY_S + SHED_EVERY_S)
+    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(2, 8)]
+    with pytest.raises(AtCapacity, match="blocks and frames"):
+        guard.admit_frame(sessions[2])  # type: ignore[arg-type]  # a shed session's frames wait with its blocks
+    guard.admit_frame(sessions[1])  # type: ignore[arg-type]
+
+
+def test_while_the_last_step_works_no_further_session_is_shed():
+    """The measures lag what they measure: after a burst, the lag and queue delay stay over their limits for a
+    second or more while they fall. Shedding on that old evidence would shed session after session, the oldest in
+    the end; while the pressure falls, nothing more is shed."""
+    guard, sessions = _guard(8)
+    guard.cpu_share, guard.queue_s = 0.6, 40 * guard.settings.shed_queue_s  # a stall's windows: 2 s queued
+    _update(guard, sessions, 0.0)
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+    t = 0.0
+    for _ in range(4):  # falling by more than a fifth each settling time, still over the limit
+        t += SETTLE_S
+        guard.queue_s *= 0.5
+        _update(guard, sessions, t)
+    assert guard.queue_s > guard.settings.shed_queue_s
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+    t += SETTLE_S  # stuck at the same level: the next step
+    _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
+
+
+def test_sessions_that_began_streaming_since_the_process_was_within_its_limits_are_shed_together():
+    """Robots that start together tip the process over together: the first step sheds every session that began
+    streaming since the process was last within its limits, not a quarter of them at a time."""
+    guard, sessions = _guard(8)
+    for s in sessions[4:]:
+        s.last_seq = -1  # s4 … s7 have not streamed yet
+    guard.cpu_share = 0.3
+    _update(guard, sessions, 0.0)  # within its limits: s0 … s3 stream
+    for s in sessions[4:]:
+        s.last_seq = 0
+    guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s
+    _update(guard, sessions, SAMPLE_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
 
 
 def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_while_the_loop_is_punctual():
@@ -181,6 +235,18 @@ def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_w
     assert _shed_ids(guard, sessions) == ["s7"]
 
 
+def _ready_session(sid: str, opened_at: float, in_job: bool = False) -> SimpleNamespace:
+    """A session stub as the batcher sees it: nothing pending (its job is None)."""
+    return SimpleNamespace(
+        id=sid,
+        opened_at=opened_at,
+        in_job=in_job,
+        take_job=lambda: None,
+        waiting_for_frame=lambda: False,
+        waiting_for_taps=lambda: False,
+    )
+
+
 def test_the_batcher_reports_the_longest_wait_for_a_job_since_it_was_last_asked():
     """Ready sessions wait for a job; the longest wait, of those still waiting or of those taken since the last
     call, is what admission reads (then the record starts again)."""
@@ -188,9 +254,8 @@ def test_the_batcher_reports_the_longest_wait_for_a_job_since_it_was_last_asked(
 
     batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1)
     assert batcher.take_wait_s(time.monotonic()) == 0.0
-    a = SimpleNamespace(id="a", in_job=False, take_job=lambda: None, waiting_for_frame=lambda: False)
-    a.waiting_for_taps = lambda: False
-    b = SimpleNamespace(id="b", in_job=True)  # in a job: stays ready, its wait goes on
+    a = _ready_session("a", 0.0)
+    b = _ready_session("b", 1.0, in_job=True)  # in a job: stays ready, its wait goes on
     batcher.notify(a)  # type: ignore[arg-type]
     t_a = time.monotonic()
     batcher.notify(b)  # type: ignore[arg-type]
@@ -200,6 +265,25 @@ def test_the_batcher_reports_the_longest_wait_for_a_job_since_it_was_last_asked(
     asyncio.run(batcher._gather())  # takes a (no job: nothing pending), leaves b
     assert 0.05 <= batcher.take_wait_s(t_a) < 0.5  # a waited ≈ 0.05 s before it was taken; b only since t_a
     assert batcher.take_wait_s(t_a) < 0.05  # the record restarted: b's wait as of t_a only
+
+
+def test_the_batcher_serves_the_oldest_sessions_first_and_leaves_shed_ones_out_of_the_wait():
+    """A newer session's backlog does not queue ahead of an older session's windows; the windows of sessions that
+    admission sheds (`exclude`) do not count in the wait it reads."""
+    from service.batcher import WindowBatcher
+
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, max_sessions_per_job=2)
+    taken: list[str] = []
+    sessions = [_ready_session(sid, opened) for sid, opened in (("new", 3.0), ("old", 1.0), ("mid", 2.0))]
+    for s in sessions:
+        s.take_job = lambda sid=s.id: taken.append(sid) or object()  # records the order; a job (opaque here)
+        batcher.notify(s)  # type: ignore[arg-type]  # ready in the order new, old, mid
+    now = time.monotonic()
+    assert batcher.take_wait_s(now + 1.0, exclude={"new"}) < batcher.take_wait_s(now + 1.0) <= 1.0 + 0.1
+    batch = asyncio.run(batcher._gather())
+    assert taken == ["old", "mid"] == [s.id for s, _ in batch]  # the oldest two, whatever order they became ready in
+    time.sleep(0.02)
+    assert batcher.take_wait_s(time.monotonic(), exclude={"new"}) < 0.02 <= batcher.take_wait_s(time.monotonic())
 
 
 @pytest.mark.parametrize("measure", ["lag_s", "queue_s"])
