@@ -38,16 +38,18 @@ would hide the delay of each burst's last windows. From them:
   `admit_frame(session)` their camera frames (429). While the loop is over its CPU budget, its lag is above
   `shed_lag_s` or the window queue delay above `shed_queue_s`, one more step of the streaming sessions is shed,
   newest first: a quarter of those still served (`STEP_SHARE`), or more when the measured CPU per session says more
-  do not fit, or every session that began streaming since the process was last within its limits (robots that start
-  together tip it over together); the oldest is never shed. A step follows the last after `SHED_EVERY_S` while the
-  process gets worse, after `SETTLE_S` while it gets no better (its pressure, the largest measure over its limit,
-  has not fallen by a fifth since that step), and not at all while it gets better: the measures show a step's effect
-  only after about a second. Shedding in steps this fast acts before the loop saturates: with thresholds of a few
-  tens of milliseconds the loop never queues long enough to delay /health or the oldest sessions' windows. Once
-  under the thresholds with a margin, a smaller step of the shed sessions (`READMIT_SHARE`: each readmitted robot
-  resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest first — so the shed sessions are always
-  the newest ones. The oldest sessions keep streaming at full quality, and the refused robots back off and resend
-  later from their oldest unacknowledged block (nothing accepted is lost).
+  do not fit, or every session that began streaming since the process was last a full `SETTLE_S` within its limits
+  (robots that start together tip it over together); the oldest is never shed, and for `PROTECT_S` into an overload
+  neither is any session it served well before (streaming while it was within its limits for `SETTLE_S`): the
+  newcomers tipped it over, and the backlog their refusal leaves takes seconds to drain. A step follows the last
+  after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S` while it gets no better (its pressure, the
+  largest measure over its limit, has not fallen by a fifth since that step), and not at all while it gets better:
+  the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
+  saturates: with thresholds of a few tens of milliseconds the loop never queues long enough to delay /health or the
+  oldest sessions' windows. Once under the thresholds with a margin, a smaller step of the shed sessions
+  (`READMIT_SHARE`: each readmitted robot resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest
+  first — so the shed sessions are always the newest ones. The oldest sessions keep streaming at full quality, and
+  the refused robots back off and resend later from their oldest unacknowledged block (nothing accepted is lost).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ import contextlib
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Container, Iterable
 
 from service.errors import ServiceError
@@ -88,6 +91,10 @@ IMPROVED = 0.8
 #: once under the thresholds with a margin, one step of shed sessions streams again this often (s): slower than
 #: shedding, so a replica near its limit does not swing between shedding and readmitting every step
 READMIT_EVERY_S = 2.0
+#: for this long into an overload (s), the sessions served well before it (streaming, the process within its limits
+#: for SETTLE_S) are not shed: the newcomers tipped it over, and the backlog their refusal leaves takes seconds to
+#: drain; past it, any session but the oldest may be shed (the machine itself may have slowed down)
+PROTECT_S = 10.0
 #: the share of the sessions still served one shedding step moves
 STEP_SHARE = 0.25
 #: the share of the sessions (streaming or shed) one readmission step moves: a readmitted robot resends its backlog
@@ -134,8 +141,11 @@ class CapacityGuard:
         self._last_shed = -math.inf  # time.monotonic() of the last shedding step
         # (time.monotonic(), self.pressure()) at the last step, or at the last settling time over without one
         self._reference = (-math.inf, 0.0)
-        # opened_at of the newest session streaming (and not shed) the last time the process was within its limits
-        self._newest_within_limits = math.inf
+        # opened_at of the newest session streaming (and not shed) when the process was within its limits for
+        # SETTLE_S on end: those up to it were served well (None until measured)
+        self._newest_within_limits: float | None = None
+        self._within: deque[tuple[float, float]] = deque()  # (time, newest streaming opened_at) of samples within
+        self._over_since: float | None = None  # when the current overload episode began
         self._last_readmit = -math.inf
 
     def start(self) -> None:
@@ -182,6 +192,9 @@ class CapacityGuard:
         if streaming:
             self.cpu_per_session = self.cpu_share / len(streaming)
         if self._over():
+            self._within.clear()  # within its limits again only after SETTLE_S more
+            if self._over_since is None:
+                self._over_since = now
             pressure, (ref_t, ref_p) = self.pressure(), self._reference
             if now - self._last_shed >= SHED_EVERY_S and pressure > ref_p:  # worse
                 self._shed_newest(streaming, now)
@@ -192,9 +205,20 @@ class CapacityGuard:
                 self._reference = (now, pressure)
             return
         self._reference = (now, 0.0)  # the next time over is worse: a step at once
-        self._newest_within_limits = max((s.opened_at for s in streaming if s.id not in self._shed), default=-math.inf)
+        self._record_within_limits(streaming, now)
         if self._shed and self._calm() and now - max(self._last_shed, self._last_readmit) >= READMIT_EVERY_S:
             self._readmit_oldest(streaming, now)
+
+    def _record_within_limits(self, streaming: list[Session], now: float) -> None:
+        """A sample within the limits: the sessions streaming a SETTLE_S ago, the process within its limits since,
+        were served well (they become the protected ones); an overload episode ends after SETTLE_S within them."""
+        self._within.append((now, max((s.opened_at for s in streaming if s.id not in self._shed), default=-math.inf)))
+        while len(self._within) > 1 and self._within[1][0] <= now - SETTLE_S:
+            self._within.popleft()
+        since, newest = self._within[0]
+        if since <= now - SETTLE_S:
+            self._newest_within_limits = newest
+            self._over_since = None
 
     def _over(self) -> bool:
         """The loop is over its CPU budget, or (while the lateness is the process's own) late by more than shed_lag_s
@@ -225,13 +249,17 @@ class CapacityGuard:
     def _shed_newest(self, streaming: list[Session], now: float) -> None:
         """Refuse the blocks of one step of the newest streaming sessions not yet shed; the oldest always streams."""
         candidates = [s for s in streaming[1:] if s.id not in self._shed]
+        boundary = self._newest_within_limits
+        if boundary is not None and self._over_since is not None and now - self._over_since < PROTECT_S:
+            # early in an overload: the sessions served well before it are not what tipped it over
+            candidates = [s for s in candidates if s.opened_at > boundary]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it
         # at least a step (of those still served: a step of all would overshoot into the oldest after a burst);
         # more when the measured CPU per session says more do not fit, and every session that began streaming
         # since the process was last within its limits (what tipped it over: robots that start together)
         served = len(candidates) + 1
-        newcomers = sum(s.opened_at > self._newest_within_limits for s in candidates)
+        newcomers = 0 if boundary is None else sum(s.opened_at > boundary for s in candidates)
         count = max(self._step(served, STEP_SHARE), served - self.sessions_that_fit(), newcomers)
         newest = [s.id for s in candidates[-count:]]
         self._shed.update(newest)

@@ -21,6 +21,7 @@ from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
 from service.capacity import (
+    PROTECT_S,
     READMIT_EVERY_S,
     READMIT_SHARE,
     SAMPLE_EVERY_S,
@@ -170,13 +171,14 @@ def test_over_the_lag_limit_a_quarter_is_shed_per_step_newest_first_and_comes_ba
     assert _shed_ids(guard, sessions) == ["s2", "s3", "s4", "s5", "s6", "s7"]
     _update(guard, sessions, t + 2 * READMIT_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
-    # over again: the newest of those streaming are shed first again (a quarter of the 3 served: s2)
+    # over again: the sessions readmitted since the process was last a full SETTLE_S within its limits (s1, s2) are
+    # newcomers, and shed together
     guard.lag_s = 2 * guard.settings.shed_lag_s
     _update(guard, sessions, t + 2 * READMIT_EVERY_S + SHED_EVERY_S)
-    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(2, 8)]
+    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]
     with pytest.raises(AtCapacity, match="blocks and frames"):
         guard.admit_frame(sessions[2])  # type: ignore[arg-type]  # a shed session's frames wait with its blocks
-    guard.admit_frame(sessions[1])  # type: ignore[arg-type]
+    guard.admit_frame(sessions[0])  # type: ignore[arg-type]
 
 
 def test_while_the_last_step_works_no_further_session_is_shed():
@@ -199,19 +201,30 @@ def test_while_the_last_step_works_no_further_session_is_shed():
     assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
 
 
-def test_sessions_that_began_streaming_since_the_process_was_within_its_limits_are_shed_together():
+def test_newcomers_are_shed_together_and_the_sessions_served_well_before_are_protected_for_a_while():
     """Robots that start together tip the process over together: the first step sheds every session that began
-    streaming since the process was last within its limits, not a quarter of them at a time."""
+    streaming since the process was last a full SETTLE_S within its limits, not a quarter of them at a time. The
+    sessions it served well before are not shed for PROTECT_S into the overload (the backlog the newcomers leave
+    takes seconds to drain); past it, they may be (the machine itself may have slowed down)."""
     guard, sessions = _guard(8)
     for s in sessions[4:]:
         s.last_seq = -1  # s4 … s7 have not streamed yet
     guard.cpu_share = 0.3
-    _update(guard, sessions, 0.0)  # within its limits: s0 … s3 stream
+    for t in (0.0, SETTLE_S / 2, SETTLE_S):
+        _update(guard, sessions, t)  # within its limits for SETTLE_S: s0 … s3 stream
     for s in sessions[4:]:
         s.last_seq = 0
     guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s
-    _update(guard, sessions, SAMPLE_EVERY_S)
+    t = SETTLE_S + SAMPLE_EVERY_S
+    _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
+    start = t
+    while t < start + PROTECT_S - SETTLE_S:  # still over, no better: s1 … s3 stay
+        t += SETTLE_S
+        _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]
+    _update(guard, sessions, start + PROTECT_S)
+    assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
 
 
 def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_while_the_loop_is_punctual():
