@@ -9,7 +9,17 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from benchmarks import bandwidth, features, hostile, renderer, service, uncertainty, visual, window_batch
+from benchmarks import (
+    bandwidth,
+    features,
+    hostile,
+    hostile_chart,
+    renderer,
+    service,
+    uncertainty,
+    visual,
+    window_batch,
+)
 
 
 def main(argv: list[str]) -> int:
@@ -36,6 +46,7 @@ def main(argv: list[str]) -> int:
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)
     hostile.main([])
+    hostile_chart.main([str(hostile.DEFAULT_OUT)])
     from deploy.local import find_program
 
     if find_program("nginx") and find_program("redis-server"):
