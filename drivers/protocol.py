@@ -53,8 +53,9 @@ FRAME_CONTENT_TYPES = ("image/png", "image/jpeg")
 RETRY_STATUSES = frozenset({408, 421, 425})
 #: HTTP status of a lost session: its replica is gone, and its state with it; final — open a new session
 SESSION_LOST = 410
-#: statuses a WebSocket handshake is refused with as HTTP, never as a close code: unknown session, lost session
-HANDSHAKE_REFUSALS = frozenset({404, SESSION_LOST})
+#: statuses a WebSocket handshake is refused with as HTTP, never as a close code: unknown session, lost session, and
+#: a session whose blocks the replica sheds (429 with Retry-After: the robot waits before it tries again)
+HANDSHAKE_REFUSALS = frozenset({404, SESSION_LOST, 429})
 
 
 class Close(IntEnum):

@@ -126,7 +126,8 @@ async def socket_session(
     """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
     raises Refused after refusing the handshake (one WARNING line):
 
-    unknown session → HTTP 404 at the handshake, lost session (its replica is gone) → HTTP 410; the robot's
+    unknown session → HTTP 404 at the handshake, lost session (its replica is gone) → HTTP 410, a robot whose
+    session the replica sheds → HTTP 429 with Retry-After; the robot's
     ingest socket closes 1008 on an auth failure, 4421 when misdirected, 1013 when not ready; the events socket
     answers the handshake with the HTTP status.
     The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`."""
@@ -136,6 +137,8 @@ async def socket_session(
         if robot:
             local = await state.directory.local(session_id, token, roles)
             state.require_runtime()
+            # a shed session's robot reconnecting: refused before the upgrade, not after its first block
+            state.capacity.admit_block(local)
             return local
         _, session = await state.directory.authorized(session_id, token, roles)
         return session
@@ -173,6 +176,8 @@ async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> Non
         await websocket.close(int(code), exc.detail[:120])
         return
     try:
-        await websocket.send_denial_response(JSONResponse({"detail": exc.detail}, status_code=exc.status))
+        await websocket.send_denial_response(
+            JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+        )
     except RuntimeError:  # the server cannot send HTTP denials: a close before accept becomes 403
         await websocket.close(int(Close.POLICY))

@@ -7,6 +7,7 @@ import json
 import math
 import random
 import time
+from typing import Any, Protocol
 
 import httpx
 
@@ -36,7 +37,14 @@ class Backoff:
         self._attempt = 0
 
 
-def retry_after(response: httpx.Response) -> float | None:
+class _Answer(Protocol):
+    """An HTTP answer: httpx's response, or the one a refused WebSocket handshake carries (websockets')."""
+
+    @property
+    def headers(self) -> Any: ...
+
+
+def retry_after(response: _Answer) -> float | None:
     """Seconds from a Retry-After header (delta-seconds, fractional accepted, or an HTTP date), capped."""
     value = response.headers.get("retry-after")
     if not value:

@@ -8,7 +8,7 @@ import logging
 from collections import deque
 
 from drivers.protocol import SESSION_LOST, Close, parse_ack, ws_url
-from drivers.robot.backoff import body_detail
+from drivers.robot.backoff import body_detail, retry_after
 from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
 from drivers.robot.outbox import Endpoint, Outbox
 
@@ -35,6 +35,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
     while True:
         if outbox.draining and not outbox.buffer:
             return
+        hinted = 0.0  # s, the service's Retry-After, when it gave one
         try:
             async with connect(
                 uri,
@@ -58,8 +59,9 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
                 raise ServiceRefused(f"the service has no session {endpoint.session_id!r} (HTTP 404)") from None
             if status == SESSION_LOST:
                 raise session_lost(endpoint.session_id, body_detail(exc.response.body)) from None
-            if status == 429:
+            if status == 429:  # the replica sheds this session: it says when to come back
                 outbox.stats.saturated += 1
+                hinted = retry_after(exc.response) or 0.0
             why = f"HTTP {status}"
         except Disconnected as exc:
             if exc.close_code == Close.POLICY:
@@ -76,7 +78,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
         except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as exc:
             why = f"{type(exc).__name__}: {exc}"
         failed = True
-        delay = outbox.block_backoff.next()
+        delay = max(hinted, outbox.block_backoff.next())
         log.warning(
             "WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)",
             endpoint.url,

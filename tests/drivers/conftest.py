@@ -2,8 +2,9 @@
 
 The fake service implements just the robot-facing contract (sessions, blocks over HTTP and
 WebSocket, frames) with switches that misbehave on purpose: reject a seq, answer 429 / close
-4429, process a block and then fail before acknowledging it, answer 503, restart the whole server, lose the
-session (410 / close 4410, as when the replica that held it is gone).
+4429 / refuse a handshake with 429 and Retry-After, process a block and then fail before acknowledging
+it, answer 503, restart the whole server, lose the session (410 / close 4410, as when the replica
+that held it is gone).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import itertools
 import json
 import socket
 import threading
+import time
 from collections import Counter
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -56,6 +58,8 @@ class FakeService:
         self._ids = itertools.count(1)
         self.reject_seqs: set[int] = set()  # 400 / ok:false for these seqs
         self.saturate: int = 0  # answer 429 (HTTP) or close 4429 (WS connect) this many times
+        self.shed_handshakes: int = 0  # refuse this many ingest handshakes with HTTP 429, Retry-After: 0.3
+        self.handshakes: list[float] = []  # time.monotonic() of every ingest handshake
         self.fail_after_accept: set[int] = set()  # process the block, then 503 / close 1011 without the ack
         self.fail_at: dict[int, list[int]] = {}  # seq → HTTP statuses to answer (one per try) before processing it
         self.ws_kill_every: int = 0  # close 1011 after processing every n-th message of a connection
@@ -144,6 +148,13 @@ class FakeService:
         return JSONResponse({"ok": True}, status_code=202)
 
     async def ingest(self, ws: WebSocket) -> None:
+        self.handshakes.append(time.monotonic())
+        if self.shed_handshakes > 0:  # the replica sheds this session: refused before the upgrade
+            self.shed_handshakes -= 1
+            await ws.send_denial_response(
+                JSONResponse({"detail": "at capacity"}, status_code=429, headers={"Retry-After": "0.3"})
+            )
+            return
         await ws.accept()
         sess = self._session(ws.path_params["sid"], ws.query_params.get("token"))
         if isinstance(sess, int):

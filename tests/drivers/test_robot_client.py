@@ -90,6 +90,26 @@ def test_every_sample_arrives_once_and_in_order_across_outages(kit, fake_service
     assert source.closed
 
 
+def test_a_robot_refused_at_the_handshake_waits_the_retry_after_the_service_gives(kit, fake_service):
+    """A replica that sheds a session refuses its ingest handshake with 429 and Retry-After; the robot waits that
+    long before it tries again (its own backoff is far shorter here), then delivers everything."""
+    blocks = list(blocks_from_arrays(kit.stroke_arrays(500, seed=3), 0.02))
+    fake_service.shed_handshakes = 2
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            return await RobotClient(server.url, kit.ListSource(blocks), transport="ws", **FAST).run()
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    waits = [b - a for a, b in zip(fake_service.handshakes, fake_service.handshakes[1:])]
+    assert stats.saturated == 2 and stats.acked == len(blocks)
+    assert len(waits) >= 2 and min(waits[:2]) >= 0.3  # Retry-After, not the 10–50 ms backoff
+
+
 @pytest.mark.parametrize("transport", ["ws", "http"])
 def test_a_refused_block_is_dropped_not_retried(kit, fake_service, transport):
     arrays = kit.stroke_arrays(1000, seed=2)

@@ -11,12 +11,11 @@ import logging
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import replace
 from types import SimpleNamespace
 
 import httpx
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
@@ -78,13 +77,12 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
         for block in blocks[1:10]:
             assert kit.post_block(client, oldest, block).status_code == 202
         assert kit.session_status(client, newest)["counters"]["blocks_refused"] >= 1
-        # over WebSocket: close 4429 with the reason, as for a saturated session
-        with connect(kit.socket_url(over_budget, newest, "ingest")) as ws:
-            ws.send(encode_binary(replace(blocks[2], seq=2)))
-            with pytest.raises(ConnectionClosed) as closed:
-                ws.recv(timeout=5)
-        assert closed.value.rcvd is not None and closed.value.rcvd.code == 4429
-        assert "capacity" in closed.value.rcvd.reason
+        # over WebSocket: the handshake refused before the upgrade (429, the reason, Retry-After)
+        with pytest.raises(InvalidStatus) as refused:
+            connect(kit.socket_url(over_budget, newest, "ingest"))
+        answer = refused.value.response
+        assert answer.status_code == 429 and float(answer.headers["Retry-After"]) > 0
+        assert "capacity" in json.loads(answer.body)["detail"]
         metrics = client.get("/metrics").text
         assert 'hapticlink_sessions_refused_total{reason="capacity"}' in metrics
         assert "hapticlink_loop_lag_seconds" in metrics and "hapticlink_loop_cpu_share" in metrics
@@ -326,25 +324,33 @@ def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
         sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
         sent = [0, 0, 0]
 
-        def send(i: int) -> int | str:
-            """Send robot i's next block on a fresh socket: the ack's seq, or the close code and reason."""
-            with connect(kit.socket_url(srv, sessions[i], "ingest")) as ws:
-                ws.send(encode_binary(blocks[sent[i]]))
-                try:
-                    ack = json.loads(ws.recv(timeout=10))
-                except ConnectionClosed as closed:
-                    assert closed.rcvd is not None
-                    return f"{closed.rcvd.code} {closed.rcvd.reason}"
+        def send(i: int, ws=None) -> int | str:
+            """Send robot i's next block (on `ws`, or a fresh socket): the ack's seq, the close code and reason, or
+            the refused handshake's status, Retry-After and detail."""
+            try:
+                with connect(kit.socket_url(srv, sessions[i], "ingest")) if ws is None else ws as ws:
+                    ws.send(encode_binary(blocks[sent[i]]))
+                    try:
+                        ack = json.loads(ws.recv(timeout=10))
+                    except ConnectionClosed as closed:
+                        assert closed.rcvd is not None
+                        return f"{closed.rcvd.code} {closed.rcvd.reason}"
+            except InvalidStatus as refused:
+                answer = refused.response
+                return f"HTTP {answer.status_code} Retry-After {answer.headers['Retry-After']}: {answer.body.decode()}"
             sent[i] += 1
             return ack["seq"]
 
         for i in range(3):
             assert send(i) == 0  # all three stream
+        open_socket = connect(kit.socket_url(srv, sessions[2], "ingest"))  # robot 2 is connected when it is shed
         guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})  # over capacity from now on
         assert kit.wait_for(lambda: guard.shedding == 2, timeout_s=10)
-        for i in (1, 2):
-            closed = send(i)
-            assert isinstance(closed, str) and closed.startswith("4429") and "Retry-After" in closed
+        closed = send(2, open_socket)  # its next block: closed 4429, with the reason
+        assert isinstance(closed, str) and closed.startswith("4429") and "Retry-After" in closed
+        for i in (1, 2):  # reconnecting: refused at the handshake, before the upgrade, with when to come back
+            refused = send(i)
+            assert isinstance(refused, str) and refused.startswith("HTTP 429 Retry-After 2") and "newest" in refused
         assert send(0) == 1  # the oldest streams on
         guard.settings = settings.model_copy(update={"cpu_budget": 1.0})  # caught up
         kit.wait_for(lambda: guard.shedding == 1, timeout_s=10)
