@@ -27,11 +27,15 @@ class Backoff:
         self._rng = rng or random.Random()
         self._attempt = 0
 
-    def next(self) -> float:
-        """Seconds to wait before the next attempt."""
+    def next(self, retry_after_s: float | None = None) -> float:
+        """Seconds to wait before the next attempt; with the service's Retry-After, at least that, spread over up to
+        half as much again: robots it refused together must not all come back at the same instant."""
         ceiling = min(self.cap_s, self.base_s * 2.0 ** min(self._attempt, 62))
         self._attempt += 1
-        return ceiling * self._rng.uniform(0.5, 1.0)
+        wait = ceiling * self._rng.uniform(0.5, 1.0)
+        if retry_after_s:
+            wait = max(wait, retry_after_s * self._rng.uniform(1.0, 1.5))
+        return wait
 
     def reset(self) -> None:
         self._attempt = 0

@@ -48,7 +48,7 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
             raise session_lost(endpoint.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
             outbox.stats.frames_refused += status == 429
-            delay = (retry_after(r) if status == 429 else None) or outbox.frame_backoff.next()
+            delay = outbox.frame_backoff.next(retry_after(r) if status == 429 else None)
             await asyncio.sleep(delay)
             continue
         if frames and frames[0] is frame:  # it may have been superseded meanwhile

@@ -66,7 +66,7 @@ async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
             outbox.settle(entry.seq, duplicate)
         elif status == 429:
             outbox.stats.saturated += 1
-            delay = retry_after(r) or outbox.block_backoff.next()
+            delay = outbox.block_backoff.next(retry_after(r))
             log.warning("session saturated (429); resending block %d in %.2f s", entry.seq, delay)
             await asyncio.sleep(delay)
         elif status in (401, 403):

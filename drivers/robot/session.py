@@ -71,7 +71,7 @@ async def open_session(
         if r.status_code == 503 and "API key" in detail(r):  # the service is not configured for fleets
             raise ServiceRefused(f"creating a session: HTTP 503: {detail(r)}")
         if r.status_code >= 500 or r.status_code == 429:
-            delay = retry_after(r) or backoff.next()
+            delay = backoff.next(retry_after(r))
             log.warning("creating a session: HTTP %d; retrying in %.1f s", r.status_code, delay)
             await wait(delay, f"the last answer was HTTP {r.status_code}: {detail(r)}")
             continue

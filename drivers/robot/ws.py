@@ -35,7 +35,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
     while True:
         if outbox.draining and not outbox.buffer:
             return
-        hinted = 0.0  # s, the service's Retry-After, when it gave one
+        hinted: float | None = None  # s, the service's Retry-After, when it gave one
         try:
             async with connect(
                 uri,
@@ -61,7 +61,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
                 raise session_lost(endpoint.session_id, body_detail(exc.response.body)) from None
             if status == 429:  # the replica sheds this session: it says when to come back
                 outbox.stats.saturated += 1
-                hinted = retry_after(exc.response) or 0.0
+                hinted = retry_after(exc.response)
             why = f"HTTP {status}"
         except Disconnected as exc:
             if exc.close_code == Close.POLICY:
@@ -78,7 +78,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
         except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as exc:
             why = f"{type(exc).__name__}: {exc}"
         failed = True
-        delay = max(hinted, outbox.block_backoff.next())
+        delay = outbox.block_backoff.next(hinted)
         log.warning(
             "WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)",
             endpoint.url,

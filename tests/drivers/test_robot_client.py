@@ -302,6 +302,11 @@ def test_backoff_grows_exponentially_with_jitter_and_caps():
     assert len(set(delays)) == len(delays), "jittered"
     b.reset()
     assert 0.05 <= b.next() <= 0.1
+    # the service's Retry-After is a floor, spread over up to half as much again (robots refused together)
+    b.reset()
+    hinted = [b.next(2.0) for _ in range(3)]
+    assert all(2.0 <= d <= 3.0 for d in hinted) and len(set(hinted)) == 3
+    assert 0.4 <= b.next(0.01) <= 0.8  # a short Retry-After does not cut the backoff grown meanwhile
 
 
 def test_resend_buffer_keeps_max_seconds_and_settles_cumulatively():
