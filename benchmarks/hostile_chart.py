@@ -46,7 +46,7 @@ def chart(reports: list[tuple[str, dict]], out: Path) -> Path:
         ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"{TARGET_MS:g} ms target")
         wb, health = r["well_behaved"], r["health_ms"]
         ax.set_title(
-            f"{label}: /health p99 {health['p99']:.0f} ms (max {health['max']:.0f}), "
+            f"{label}\n/health p99 {health['p99']:.0f} ms (max {health['max']:.0f}), "
             f"reconnects {wb['robot_counts']['reconnects']}",
             fontsize=9,
         )
