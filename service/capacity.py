@@ -334,21 +334,19 @@ class CapacityGuard:
             self.metrics.sessions_refused.labels(reason="capacity").inc()
             raise AtCapacity(f"this replica is at capacity: {why}; try later or another replica")
 
-    def admit_frame(self, session: Session) -> None:
-        """Raise ServiceError 429 (Retry-After) when `session` is among those shed: its frames wait with its blocks."""
-        if session.id in self._shed:
-            raise AtCapacity(
-                f"this replica is at capacity and session {session.id} is among its newest: it refuses that "
-                "session's blocks and frames for now; send the newest frame later"
-            )
-
     def admit_block(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed while the process is over
-        capacity; nothing of the block is taken."""
+        capacity (its blocks, and its ingest socket's handshake); nothing of the block is taken."""
+        self._refuse_if_shed(session, "resend from the oldest unacknowledged block later")
+
+    def admit_frame(self, session: Session) -> None:
+        """Raise ServiceError 429 (Retry-After) when `session` is among those shed: its frames wait with its blocks."""
+        self._refuse_if_shed(session, "send the newest frame later")
+
+    def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:
             raise AtCapacity(
                 f"this replica is at capacity (event loop CPU {self.cpu_share:.2f} of {self.settings.cpu_budget:g}, "
                 f"loop lag {self.lag_s * 1e3:.0f} ms, windows queued {self.queue_s * 1e3:.0f} ms) and session "
-                f"{session.id} is among its newest; "
-                "resend from the oldest unacknowledged block later"
+                f"{session.id} is among its newest; {then}"
             )

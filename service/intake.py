@@ -130,19 +130,17 @@ class FrameIntake:
         costs more than a second of blocks."""
         try:
             self.capacity.admit_frame(session)
+            if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
+                what = (
+                    f"session {session.id} is still decoding its previous frame"
+                    if session.decoding_frame
+                    else f"the visual queue is full ({self.settings.visual_queue} frames)"
+                )
+                raise saturated(f"{what}; send the newest frame later", RETRY_AFTER_S)
         except ServiceError:
             self.metrics.frames.labels(outcome="refused").inc()
             session.counters.frames_refused += 1
             raise
-        if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
-            self.metrics.frames.labels(outcome="refused").inc()
-            session.counters.frames_refused += 1
-            what = (
-                f"session {session.id} is still decoding its previous frame"
-                if session.decoding_frame
-                else f"the visual queue is full ({self.settings.visual_queue} frames)"
-            )
-            raise saturated(f"{what}; send the newest frame later", RETRY_AFTER_S)
         session.decoding_frame = True
         self.visual_load += 1
         try:

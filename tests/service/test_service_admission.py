@@ -77,6 +77,15 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
         for block in blocks[1:10]:
             assert kit.post_block(client, oldest, block).status_code == 202
         assert kit.session_status(client, newest)["counters"]["blocks_refused"] >= 1
+        # its camera frames too, before they are decoded
+        frame = client.post(
+            f"/sessions/{newest['session_id']}/frames",
+            content=kit.png(),
+            headers={"Authorization": f"Bearer {newest['robot_token']}", "Content-Type": "image/png"},
+        )
+        assert frame.status_code == 429 and "newest frame later" in frame.json()["detail"]
+        assert float(frame.headers["retry-after"]) > 0
+        assert kit.session_status(client, newest)["counters"]["frames_refused"] == 1
         # over WebSocket: the handshake refused before the upgrade (429, the reason, Retry-After)
         with pytest.raises(InvalidStatus) as refused:
             connect(kit.socket_url(over_budget, newest, "ingest"))
@@ -174,7 +183,7 @@ def test_over_the_lag_limit_a_quarter_is_shed_per_step_newest_first_and_comes_ba
     guard.lag_s = 2 * guard.settings.shed_lag_s
     _update(guard, sessions, t + 2 * READMIT_EVERY_S + SHED_EVERY_S)
     assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(1, 8)]
-    with pytest.raises(AtCapacity, match="blocks and frames"):
+    with pytest.raises(AtCapacity, match="among its newest; send the newest frame later"):
         guard.admit_frame(sessions[2])  # type: ignore[arg-type]  # a shed session's frames wait with its blocks
     guard.admit_frame(sessions[0])  # type: ignore[arg-type]
 
