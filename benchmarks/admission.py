@@ -14,7 +14,8 @@ on). In order:
    first block is due at one instant, so every robot completes its windows at the same moment, every hop;
    `--start spread`: robot k starts at a random offset within one 0.5 s hop (seed 0), as robots that were not
    started together would. Reported: each block's acknowledgement time, and the blocks refused
-   (close 4429: the robot reconnects after Retry-After's 2 s and resends from its oldest unacknowledged block),
+   (close 4429, or its reconnection refused at the handshake with HTTP 429: the robot tries again after Retry-After's
+   2 s and resends from its oldest unacknowledged block),
    by the reason the close and the service's counters give;
 4. every session is deleted; RSS again after 6 s.
 Meanwhile a process of its own polls GET /health and /ready on the service port and GET /health on the probe
@@ -151,7 +152,13 @@ async def _robot(
                 closes[why] = closes.get(why, 0) + 1
             reconnects += 1
             await asyncio.sleep(2.0)  # the service's Retry-After
-        except (InvalidStatus, OSError):
+        except InvalidStatus as exc:  # a shed session's reconnection is refused at the handshake (429)
+            status = exc.response.status_code
+            refused += status == 429
+            closes[f"HTTP {status}"] = closes.get(f"HTTP {status}", 0) + 1
+            reconnects += 1
+            await asyncio.sleep(2.0)
+        except OSError:
             reconnects += 1
             await asyncio.sleep(2.0)
     return _result(rank, acks, refused, reconnects, lag, closes)
