@@ -40,8 +40,9 @@ would hide the delay of each burst's last windows. From them:
   newest first: a quarter of those still served (`STEP_SHARE`), or more when the measured CPU per session says more
   do not fit, or every session that began streaming since the process was last a full `SETTLE_S` within its limits
   (robots that start together tip it over together); the oldest is never shed, and for `PROTECT_S` into an overload
-  neither is any session it served well before (streaming while it was within its limits for `SETTLE_S`): the
-  newcomers tipped it over, and the backlog their refusal leaves takes seconds to drain. A step follows the last
+  neither is any session it served well before (streaming while it was within its limits for `SETTLE_S`), as long as
+  the windows of the sessions still served are on time: the newcomers tipped it over, and the backlog their refusal
+  leaves takes seconds to drain. A step follows the last
   after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S` while it gets no better (its pressure, the
   largest measure over its limit, has not fallen by a fifth since that step), and not at all while it gets better:
   the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
@@ -217,7 +218,8 @@ class CapacityGuard:
             self._within.popleft()
         since, newest = self._within[0]
         if since <= now - SETTLE_S:
-            self._newest_within_limits = newest
+            # none streaming then: no session was served well, and none is a newcomer
+            self._newest_within_limits = newest if newest > -math.inf else None
             self._over_since = None
 
     def _over(self) -> bool:
@@ -250,8 +252,10 @@ class CapacityGuard:
         """Refuse the blocks of one step of the newest streaming sessions not yet shed; the oldest always streams."""
         candidates = [s for s in streaming[1:] if s.id not in self._shed]
         boundary = self._newest_within_limits
-        if boundary is not None and self._over_since is not None and now - self._over_since < PROTECT_S:
-            # early in an overload: the sessions served well before it are not what tipped it over
+        early = self._over_since is not None and now - self._over_since < PROTECT_S
+        if boundary is not None and early and self.queue_s <= self.settings.shed_queue_s:
+            # early in an overload, while their windows are on time: the sessions served well before it are not what
+            # tipped it over (the load of the newcomers' refusals is)
             candidates = [s for s in candidates if s.opened_at > boundary]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it

@@ -234,6 +234,21 @@ def test_newcomers_are_shed_together_and_the_sessions_served_well_before_are_pro
     assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
 
 
+def test_the_sessions_served_well_are_not_protected_once_their_own_windows_are_late():
+    """Robots that ramp up together can look served well for a second and then overload the replica themselves:
+    once the windows of the sessions still served wait past shed_queue_s, the protection lapses."""
+    guard, sessions = _guard(8)
+    guard.cpu_share = 0.3
+    for t in (0.0, SETTLE_S / 2, SETTLE_S):
+        _update(guard, sessions, t)  # all eight stream within its limits for SETTLE_S: all served well
+    guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s  # over on the loop only: they stay
+    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
+    assert _shed_ids(guard, sessions) == []
+    guard.queue_s = 4 * guard.settings.shed_queue_s  # their own windows late (and worse): a step, newest first
+    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S + SHED_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s6", "s7"]
+
+
 def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_while_the_loop_is_punctual():
     """The loop keeps up with every block while the window pool, sharing its GIL, falls behind: the operators'
     views lag although the loop is punctual. The window queue delay sheds as the lag does, and says so."""
