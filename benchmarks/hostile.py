@@ -36,7 +36,7 @@ import httpx
 import numpy as np
 
 from benchmarks.health_poll import poll
-from benchmarks.loadgen import frame_of, robot_streams
+from benchmarks.loadgen import frame_of, receive, robot_streams
 from benchmarks.report_file import write_report
 from benchmarks.service import (
     DEFAULT_ASSETS,
@@ -191,17 +191,6 @@ def timeline(e2e: list[tuple[float, float]], t0: float, bin_s: float = 2.0) -> l
     ]
 
 
-def _receive(pipe, proc, expected: str):
-    try:
-        kind, value = pipe.recv()
-    except EOFError:
-        proc.join(timeout=5)
-        raise RuntimeError(f"a robots process exited (code {proc.exitcode}) before its {expected}") from None
-    if kind == "error":
-        raise RuntimeError(f"a robots process failed: {value}")
-    return value
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=20, help="well-behaved robots streaming throughout")
@@ -252,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             procs[role].start()
         for role in roles:
-            _receive(pipes[role], procs[role], "ready")
+            receive(pipes[role], procs[role], "ready")
         poller.start()
         pipes["well_behaved"].send("go")
         t_go = time.perf_counter()
@@ -260,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         _run(attacks(server.url, api_key, assets, args.block_s, report))
         t_attacked = time.perf_counter()
         pipes["burst"].send("go")
-        results = {role: _receive(pipes[role], procs[role], "result") for role in roles}
+        results = {role: receive(pipes[role], procs[role], "result") for role in roles}
         stop.set()
         health = polled.get(timeout=30)["health"]
         metrics = httpx.get(f"{server.url}/metrics").text

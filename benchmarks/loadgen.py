@@ -306,6 +306,21 @@ def _main(plan: Plan, ks: list[int], conn) -> None:
     conn.close()
 
 
+def receive(pipe, proc, expected: str):
+    """The value of a child process's next ("kind", value) message, which must be of kind `expected`; RuntimeError
+    naming what happened when the process exited first, reported ("error", text), or sent something else."""
+    try:
+        kind, value = pipe.recv()
+    except EOFError:
+        proc.join(timeout=5)
+        raise RuntimeError(f"a load-generator process exited (code {proc.exitcode}) before its {expected}") from None
+    if kind == "error":
+        raise RuntimeError(f"a load-generator process failed: {value}")
+    if kind != expected:
+        raise RuntimeError(f"a load-generator process sent {kind!r} instead of its {expected}")
+    return value
+
+
 def run_generators(
     plan: Plan, on_start: Callable[[], None] = lambda: None, on_end: Callable[[], None] = lambda: None
 ) -> list[GeneratorResult]:
@@ -323,17 +338,6 @@ def run_generators(
         proc.start()
         procs.append(proc)
         pipes.append(parent)
-
-    def receive(pipe, proc, expected: str):
-        try:
-            kind, value = pipe.recv()
-        except EOFError:
-            proc.join(timeout=5)
-            code = proc.exitcode
-            raise RuntimeError(f"a load-generator process exited (code {code}) before its {expected}") from None
-        if kind != expected:
-            raise RuntimeError(f"a load-generator process sent {kind!r} instead of its {expected}")
-        return value
 
     try:
         for pipe, proc in zip(pipes, procs):
