@@ -191,6 +191,11 @@ def _visual_args(parser: argparse.ArgumentParser) -> None:
         "--no-glcm", action="store_true", help="compute no GLCM: the frame costs the backbone (and descriptors) alone"
     )
     parser.add_argument(
+        "--backbone-layer",
+        choices=["head", "last_block"],
+        help="where the backbone is read (default head; last_block: EfficientNet-Lite0's last block, mean ⊕ std)",
+    )
+    parser.add_argument(
         "--descriptors",
         nargs="*",
         default=[],
@@ -208,6 +213,8 @@ def _visual_config(args: argparse.Namespace):
         fields["grid"] = args.visual_grid
     if getattr(args, "no_glcm", False):
         fields["glcm"] = False
+    if getattr(args, "backbone_layer", None) is not None:
+        fields["backbone_layer"] = args.backbone_layer
     return VisualConfig(**fields)
 
 

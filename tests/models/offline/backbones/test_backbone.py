@@ -67,3 +67,11 @@ def test_grey_is_replicated_then_normalised_per_channel(resnet_random_backbone):
     with torch.no_grad():
         torch.testing.assert_close(encoder(patches), encoder.trunk.net.features(manual))
     assert resnet_random_backbone.weights == "random(seed=0)"
+
+
+def test_last_block_layer_is_efficientnet_only(empty_hub, resnet_checkpoint):
+    chosen = resolve_backbone(VisualConfig(backbone="efficientnet_lite0", backbone_layer="last_block"))
+    assert (chosen.name, chosen.dim) == ("efficientnet_lite0", 640)
+    assert chosen.embed(_patches(2)).shape == (2, 640)
+    with pytest.raises(ValueError, match="backbone_layer 'last_block' is read from EfficientNet-Lite0 only"):
+        resolve_backbone(VisualConfig(backbone_layer="last_block", resnet50_weights=str(resnet_checkpoint)))

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from models.offline.backbones.efficientnet import (
@@ -34,3 +35,29 @@ def test_encoder_applies_lite_normalisation(efficientnet_backbone):
     grey = torch.full((1, 224, 224), 127.0 / 255.0)
     with torch.no_grad():
         torch.testing.assert_close(encoder(grey), encoder.trunk(torch.zeros(1, 3, 224, 224)), atol=1e-5, rtol=0)
+
+
+def test_last_block_reads_the_block_the_head_convolves():
+    """last_block = mean ⊕ std over space of what the last MBConv block hands the head (caught by a hook
+    inside the package's own extract_features)."""
+    from models.offline.backbones.efficientnet import EfficientNetLite0Trunk, load_efficientnet_lite0
+
+    net = load_efficientnet_lite0()
+    x = torch.randn(2, 3, 224, 224, generator=torch.Generator().manual_seed(0))
+    seen = []
+    hook = net._blocks[-1].register_forward_hook(lambda module, args, out: seen.append(out.detach()))
+    with torch.no_grad():
+        net.extract_features(x)
+        hook.remove()
+        out = EfficientNetLite0Trunk(net, "last_block")(x)
+    block = seen[0].numpy().reshape(2, 320, -1)  # (n, 320, 7·7)
+    assert seen[0].shape == (2, 320, 7, 7) and out.shape == (2, 640)
+    np.testing.assert_allclose(out[:, :320].numpy(), block.mean(axis=2), atol=1e-5, rtol=1e-5)
+    np.testing.assert_allclose(out[:, 320:].numpy(), block.std(axis=2), atol=1e-5, rtol=1e-5)
+
+
+def test_trunk_refuses_an_unknown_layer():
+    from models.offline.backbones.efficientnet import EfficientNetLite0Trunk, load_efficientnet_lite0
+
+    with pytest.raises(ValueError, match="layer must be one of"):
+        EfficientNetLite0Trunk(load_efficientnet_lite0(), "stem")
