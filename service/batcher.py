@@ -10,10 +10,10 @@ cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms against ≈ 1
 (`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
 job's lookups before any of its windows is published.
 
-`take_wait_s(now, exclude)` is the longest the windows of any session not in `exclude` waited for a job since the
-last call (or wait now): the window queue delay that admission holds below its limit. Admission excludes the
-sessions it sheds: their windows admitted before they were shed are served last and wait, but refusing more
-sessions would not shorten that.
+`take_waits(now)` is, per session, the longest its windows waited for a job since the last call (or wait now):
+admission reads from it the window queue delay it holds below its limit, of the sessions it serves (the windows a
+shed session admitted before it was shed are served last and wait, but refusing more sessions would not shorten
+that), and apart that of the sessions it protects.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Container
 from concurrent.futures import Executor
 
 from service.live_session import Session
@@ -43,7 +42,7 @@ class WindowBatcher:
         self.max_sessions_per_job = max_sessions_per_job
         # ready sessions and the time.monotonic() each became ready; bounded by the number of sessions
         self._ready: dict[str, tuple[Session, float]] = {}
-        self._waited: dict[str, float] = {}  # the longest each session taken into a job waited (s), since take_wait_s
+        self._waited: dict[str, float] = {}  # the longest each session taken into a job waited (s), since take_waits
         self._wake = asyncio.Event()
         self._jobs: set[asyncio.Task] = set()
         self._runner: asyncio.Task | None = None
@@ -65,13 +64,14 @@ class WindowBatcher:
             self._ready[session.id] = (session, time.monotonic())
         self._wake.set()
 
-    def take_wait_s(self, now: float, exclude: Container[str] = ()) -> float:
-        """The longest (s) the complete windows of a session not in `exclude` waited for a job since the last call,
-        or have waited at `now` (time.monotonic()) and still wait; 0 when none did. Resets the record."""
-        taken = (w for sid, w in self._waited.items() if sid not in exclude)
-        waiting = (now - since for sid, (_, since) in self._ready.items() if sid not in exclude)
+    def take_waits(self, now: float) -> dict[str, float]:
+        """Session id → the longest (s) its complete windows waited for a job since the last call, or have waited at
+        `now` (time.monotonic()) and still wait; sessions whose windows did neither are absent. Resets the record."""
+        waits = self._waited
+        for sid, (_, since) in self._ready.items():
+            waits[sid] = max(waits.get(sid, 0.0), now - since)
         self._waited = {}
-        return max([0.0, *taken, *waiting])
+        return waits
 
     async def _run(self) -> None:
         while True:

@@ -21,7 +21,8 @@ the loop waits for it: the loop is late while using little CPU itself).
   pool threads, sharing its GIL, fall behind on the windows: then operators' views lag although the loop is
   punctual. The windows a shed session had admitted before it was shed are served last and wait; they do not
   count, or one burst of backlog would shed session after session, the oldest in the end, for a delay that
-  refusing them cannot shorten.
+  refusing them cannot shorten. The same delay of the protected sessions alone (below) is held apart: served
+  first, their windows are late only when they themselves are more than the process can serve.
 
 The first two are smoothed (an exponential average, time constant ≈ `SMOOTHING_S`). The queue delay is held
 at its peak, decaying with time constant `QUEUE_HOLD_S`: windows come in bursts (robots that started
@@ -41,8 +42,8 @@ would hide the delay of each burst's last windows. From them:
   do not fit, or every session that began streaming since the process was last a full `SETTLE_S` within its limits
   (robots that start together tip it over together); the oldest is never shed, and for `PROTECT_S` into an overload
   neither is any session it served well before (streaming while it was within its limits for `SETTLE_S`), as long as
-  the windows of the sessions still served are on time: the newcomers tipped it over, and the backlog their refusal
-  leaves takes seconds to drain. A step follows the last
+  their own windows are on time: the newcomers tipped it over, and the backlog their refusal leaves, and the
+  refusals themselves, take seconds to drain. A step follows the last
   after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S` while it gets no better (its pressure, the
   largest measure over its limit, has not fallen by a fifth since that step), and not at all while it gets better:
   the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
@@ -61,7 +62,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Container, Iterable
+from collections.abc import Callable, Iterable, Mapping
 
 from service.errors import ServiceError
 from service.live_session import Session
@@ -122,15 +123,16 @@ class CapacityGuard:
         settings: Settings,
         metrics: ServiceMetrics,
         sessions: Callable[[], Iterable[Session]] = lambda: (),
-        window_wait: Callable[[float, Container[str]], float] = lambda now, exclude: 0.0,
+        window_waits: Callable[[float], Mapping[str, float]] = lambda now: {},
     ) -> None:
-        """window_wait(now, exclude): the longest the windows of sessions not in `exclude` waited since the last
-        call, s (WindowBatcher.take_wait_s)."""
+        """window_waits(now): session id → the longest its windows waited since the last call, s
+        (WindowBatcher.take_waits)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
-        self.queue_s = 0.0  # window queue delay, its peak held (QUEUE_HOLD_S)
-        self._window_wait = window_wait
+        self.queue_s = 0.0  # window queue delay of the sessions not shed, its peak held (QUEUE_HOLD_S)
+        self.protected_queue_s = 0.0  # the same of the sessions served well before an overload (not shed)
+        self._window_waits = window_waits
         self.cpu_share = 0.0
         self.process_share = 0.0  # cores the whole process used (all threads), smoothed
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
@@ -176,12 +178,21 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
-            self.queue_s = max(self._window_wait(now, self._shed), self.queue_s * math.exp(-elapsed / QUEUE_HOLD_S))
+            self._hold_queue_delays(self._window_waits(now), math.exp(-elapsed / QUEUE_HOLD_S))
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
             self.update(now)
+
+    def _hold_queue_delays(self, waits: Mapping[str, float], decay: float) -> None:
+        """Take the windows' latest waits (session id → s) into the held peaks: that of every session served, and
+        that of the protected ones; each peak decays by `decay` since the last sample."""
+        boundary = self._newest_within_limits
+        served = [(sid, w) for sid, w in waits.items() if sid not in self._shed]
+        protected = set() if boundary is None else {s.id for s in self._sessions() if s.opened_at <= boundary}
+        self.queue_s = max([self.queue_s * decay, *(w for _, w in served)])
+        self.protected_queue_s = max([self.protected_queue_s * decay, *(w for sid, w in served if sid in protected)])
 
     def update(self, now: float) -> None:
         """One shedding decision at `now` (time.monotonic(), s) from the current measures: shed a step, readmit
@@ -253,9 +264,9 @@ class CapacityGuard:
         candidates = [s for s in streaming[1:] if s.id not in self._shed]
         boundary = self._newest_within_limits
         early = self._over_since is not None and now - self._over_since < PROTECT_S
-        if boundary is not None and early and self.queue_s <= self.settings.shed_queue_s:
-            # early in an overload, while their windows are on time: the sessions served well before it are not what
-            # tipped it over (the load of the newcomers' refusals is)
+        if boundary is not None and early and self.protected_queue_s <= self.settings.shed_queue_s:
+            # early in an overload, while their own windows are on time (they are served first): the sessions served
+            # well before it are not what tipped it over (the newcomers, and the load of their refusals, are)
             candidates = [s for s in candidates if s.opened_at > boundary]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it

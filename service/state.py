@@ -69,7 +69,7 @@ class ServiceState:
             settings,
             self.metrics,
             lambda: self.directory.sessions.values(),
-            lambda now, exclude: self.batcher.take_wait_s(now, exclude),
+            lambda now: self.batcher.take_waits(now),
         )
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool, self.capacity)
         self.blocks = BlockIntake(self.metrics, self.capacity)

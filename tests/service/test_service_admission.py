@@ -244,8 +244,12 @@ def test_the_sessions_served_well_are_not_protected_once_their_own_windows_are_l
     guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s  # over on the loop only: they stay
     _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
     assert _shed_ids(guard, sessions) == []
-    guard.queue_s = 4 * guard.settings.shed_queue_s  # their own windows late (and worse): a step, newest first
+    guard.queue_s = 4 * guard.settings.shed_queue_s  # some session's windows late (and worse): but not theirs
     _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S + SHED_EVERY_S)
+    assert _shed_ids(guard, sessions) == []
+    guard.protected_queue_s = guard.queue_s  # their own windows late: a step, newest first
+    guard.queue_s *= 1.5
+    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S + 2 * SHED_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s6", "s7"]
 
 
@@ -282,29 +286,31 @@ def _ready_session(sid: str, opened_at: float, in_job: bool = False) -> SimpleNa
     )
 
 
-def test_the_batcher_reports_the_longest_wait_for_a_job_since_it_was_last_asked():
-    """Ready sessions wait for a job; the longest wait, of those still waiting or of those taken since the last
-    call, is what admission reads (then the record starts again)."""
+def test_the_batcher_reports_each_sessions_longest_wait_for_a_job_since_it_was_last_asked():
+    """Ready sessions wait for a job; per session, the longest wait, still waiting or taken since the last call, is
+    what admission reads (then the record starts again)."""
     from service.batcher import WindowBatcher
 
     batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1)
-    assert batcher.take_wait_s(time.monotonic()) == 0.0
+    assert batcher.take_waits(time.monotonic()) == {}
     a = _ready_session("a", 0.0)
     b = _ready_session("b", 1.0, in_job=True)  # in a job: stays ready, its wait goes on
     batcher.notify(a)  # type: ignore[arg-type]
     t_a = time.monotonic()
     batcher.notify(b)  # type: ignore[arg-type]
     batcher.notify(a)  # type: ignore[arg-type]  # ready again before its job: it keeps its place and its time
-    assert 0.5 <= batcher.take_wait_s(t_a + 0.5) < 0.6  # a has waited half a second (as of t_a + 0.5)
+    waits = batcher.take_waits(t_a + 0.5)  # both have waited about half a second (as of t_a + 0.5)
+    assert waits.keys() == {"a", "b"} and 0.5 <= waits["a"] < 0.6 and 0.49 <= waits["b"] <= 0.5
     time.sleep(0.05)
     asyncio.run(batcher._gather())  # takes a (no job: nothing pending), leaves b
-    assert 0.05 <= batcher.take_wait_s(t_a) < 0.5  # a waited ≈ 0.05 s before it was taken; b only since t_a
-    assert batcher.take_wait_s(t_a) < 0.05  # the record restarted: b's wait as of t_a only
+    waits = batcher.take_waits(t_a)
+    assert 0.05 <= waits["a"] < 0.5  # a waited ≈ 0.05 s before it was taken
+    assert waits["b"] <= 0.0  # b only since t_a
+    assert batcher.take_waits(t_a).keys() == {"b"}  # the record restarted: a is served, b still waits
 
 
-def test_the_batcher_serves_the_oldest_sessions_first_and_leaves_shed_ones_out_of_the_wait():
-    """A newer session's backlog does not queue ahead of an older session's windows; the windows of sessions that
-    admission sheds (`exclude`) do not count in the wait it reads."""
+def test_the_batcher_serves_the_oldest_sessions_first():
+    """A newer session's backlog does not queue ahead of an older session's windows."""
     from service.batcher import WindowBatcher
 
     batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, max_sessions_per_job=2)
@@ -313,12 +319,27 @@ def test_the_batcher_serves_the_oldest_sessions_first_and_leaves_shed_ones_out_o
     for s in sessions:
         s.take_job = lambda sid=s.id: taken.append(sid) or object()  # records the order; a job (opaque here)
         batcher.notify(s)  # type: ignore[arg-type]  # ready in the order new, old, mid
-    now = time.monotonic()
-    assert batcher.take_wait_s(now + 1.0, exclude={"new"}) < batcher.take_wait_s(now + 1.0) <= 1.0 + 0.1
     batch = asyncio.run(batcher._gather())
     assert taken == ["old", "mid"] == [s.id for s, _ in batch]  # the oldest two, whatever order they became ready in
-    time.sleep(0.02)
-    assert batcher.take_wait_s(time.monotonic(), exclude={"new"}) < 0.02 <= batcher.take_wait_s(time.monotonic())
+    assert batcher.take_waits(time.monotonic()).keys() == {"old", "mid", "new"}
+
+
+def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_apart():
+    """The windows a shed session admitted before it was shed are served last; refusing more cannot shorten their
+    wait, so it does not count. The protected sessions' own wait is held apart: the newcomers' windows may wait
+    while theirs, served first, are on time."""
+    waits: dict[str, float] = {}
+    sessions = [SimpleNamespace(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_seq=0) for i in range(6)]
+    guard = CapacityGuard(Settings(), ServiceMetrics(), lambda: sessions, lambda now: dict(waits))
+    guard._newest_within_limits = 2.0  # s0 … s2 served well before
+    guard._shed = {"s5"}
+    waits.update(s1=0.01, s4=0.3, s5=5.0)
+    guard._hold_queue_delays(guard._window_waits(0.0), 1.0)
+    assert (guard.queue_s, guard.protected_queue_s) == (0.3, 0.01)
+    waits.clear()
+    waits.update(s0=0.002)
+    guard._hold_queue_delays(guard._window_waits(0.0), 0.5)  # the peaks decay, a new wait lower still
+    assert (guard.queue_s, guard.protected_queue_s) == (0.15, 0.005)
 
 
 @pytest.mark.parametrize("measure", ["lag_s", "queue_s"])
