@@ -39,11 +39,12 @@ would hide the delay of each burst's last windows. From them:
   `admit_frame(session)` their camera frames (429). While the loop is over its CPU budget, its lag is above
   `shed_lag_s` or the window queue delay above `shed_queue_s`, one more step of the streaming sessions is shed,
   newest first: a quarter of those still served (`STEP_SHARE`), or more when the measured CPU per session says more
-  do not fit, or every session that began streaming since the process was last a full `SETTLE_S` within its limits
-  (robots that start together tip it over together); the oldest is never shed, and for `PROTECT_S` into an overload
-  neither is any session it served well before (streaming while it was within its limits for `SETTLE_S`), as long as
-  their own windows are on time: the newcomers tipped it over, and the backlog their refusal leaves, and the
-  refusals themselves, take seconds to drain. A step follows the last
+  do not fit, or every newcomer at once (robots that start together tip it over together). A session is *served
+  well* when it was streaming while the process was last a full `SETTLE_S` within its limits and it was not
+  readmitted within `PROTECT_S` (a readmitted robot resends its backlog at once: a second within the limits before
+  says nothing); the others are newcomers. The oldest session is never shed, and for `PROTECT_S` into an overload
+  neither is any session served well, as long as their own windows are on time: the newcomers tipped it over, and
+  the backlog their refusal leaves, and the refusals themselves, take seconds to drain. A step follows the last
   after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S` while it gets no better (its pressure, the
   largest measure over its limit, has not fallen by a fifth since that step), and not at all while it gets better:
   the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
@@ -148,6 +149,9 @@ class CapacityGuard:
         # SETTLE_S on end: those up to it were served well (None until measured)
         self._newest_within_limits: float | None = None
         self._within: deque[tuple[float, float]] = deque()  # (time, newest streaming opened_at) of samples within
+        # session id → time.monotonic() it was readmitted, for PROTECT_S: a readmitted robot resends its backlog at
+        # once, and a second within the limits before that says nothing of how it is served
+        self._readmitted: dict[str, float] = {}
         self._over_since: float | None = None  # when the current overload episode began
         self._last_readmit = -math.inf
 
@@ -178,29 +182,40 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
-            self._hold_queue_delays(self._window_waits(now), math.exp(-elapsed / QUEUE_HOLD_S))
+            self._hold_queue_delays(self._window_waits(now), math.exp(-elapsed / QUEUE_HOLD_S), now)
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
             self.update(now)
 
-    def _hold_queue_delays(self, waits: Mapping[str, float], decay: float) -> None:
+    def _hold_queue_delays(self, waits: Mapping[str, float], decay: float, now: float) -> None:
         """Take the windows' latest waits (session id → s) into the held peaks: that of every session served, and
-        that of the protected ones; each peak decays by `decay` since the last sample."""
-        boundary = self._newest_within_limits
+        that of the ones served well (protected); each peak decays by `decay` since the last sample."""
         served = [(sid, w) for sid, w in waits.items() if sid not in self._shed]
-        protected = set() if boundary is None else {s.id for s in self._sessions() if s.opened_at <= boundary}
+        protected = {s.id for s in self._sessions() if self._served_well(s, now)}
         self.queue_s = max([self.queue_s * decay, *(w for _, w in served)])
         self.protected_queue_s = max([self.protected_queue_s * decay, *(w for sid, w in served if sid in protected)])
+
+    def _served_well(self, session: Session, now: float) -> bool:
+        """Streaming before the process was last within its limits for SETTLE_S, and not readmitted within PROTECT_S."""
+        boundary = self._newest_within_limits
+        readmitted = self._readmitted.get(session.id)
+        return (
+            boundary is not None
+            and session.opened_at <= boundary
+            and (readmitted is None or now - readmitted >= PROTECT_S)
+        )
 
     def update(self, now: float) -> None:
         """One shedding decision at `now` (time.monotonic(), s) from the current measures: shed a step, readmit
         a step, or nothing."""
         streaming = self.streaming(now)
         self._streaming = len(streaming)
-        if self._shed:
-            self._shed &= {s.id for s in self._sessions()}  # ended sessions leave
+        if self._shed or self._readmitted:
+            ids = {s.id for s in self._sessions()}  # ended sessions leave
+            self._shed &= ids
+            self._readmitted = {sid: t for sid, t in self._readmitted.items() if sid in ids and now - t < PROTECT_S}
         if streaming:
             self.cpu_per_session = self.cpu_share / len(streaming)
         if self._over():
@@ -267,14 +282,14 @@ class CapacityGuard:
         if boundary is not None and early and self.protected_queue_s <= self.settings.shed_queue_s:
             # early in an overload, while their own windows are on time (they are served first): the sessions served
             # well before it are not what tipped it over (the newcomers, and the load of their refusals, are)
-            candidates = [s for s in candidates if s.opened_at > boundary]
+            candidates = [s for s in candidates if not self._served_well(s, now)]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it
         # at least a step (of those still served: a step of all would overshoot into the oldest after a burst);
         # more when the measured CPU per session says more do not fit, and every session that began streaming
         # since the process was last within its limits (what tipped it over: robots that start together)
         served = len(candidates) + 1
-        newcomers = 0 if boundary is None else sum(s.opened_at > boundary for s in candidates)
+        newcomers = 0 if boundary is None else sum(not self._served_well(s, now) for s in candidates)
         count = max(self._step(served, STEP_SHARE), served - self.sessions_that_fit(), newcomers)
         newest = [s.id for s in candidates[-count:]]
         self._shed.update(newest)
@@ -298,6 +313,7 @@ class CapacityGuard:
         shed = [s.id for s in self._sessions() if s.id in self._shed]  # creation order: oldest first
         back = shed[: self._step(len(self._shed.union(s.id for s in streaming)), READMIT_SHARE)]
         self._shed.difference_update(back)
+        self._readmitted.update(dict.fromkeys(back, now))
         self._last_readmit = now
 
     @property

@@ -334,11 +334,11 @@ def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_ap
     guard._newest_within_limits = 2.0  # s0 … s2 served well before
     guard._shed = {"s5"}
     waits.update(s1=0.01, s4=0.3, s5=5.0)
-    guard._hold_queue_delays(guard._window_waits(0.0), 1.0)
+    guard._hold_queue_delays(guard._window_waits(0.0), 1.0, 0.0)
     assert (guard.queue_s, guard.protected_queue_s) == (0.3, 0.01)
     waits.clear()
     waits.update(s0=0.002)
-    guard._hold_queue_delays(guard._window_waits(0.0), 0.5)  # the peaks decay, a new wait lower still
+    guard._hold_queue_delays(guard._window_waits(0.0), 0.5, 0.0)  # the peaks decay, a new wait lower still
     assert (guard.queue_s, guard.protected_queue_s) == (0.15, 0.005)
 
 
@@ -442,3 +442,24 @@ def test_probes_and_session_reads_answer_while_every_worker_thread_is_held(kit, 
             assert future.result(timeout=60).status_code == 200
         pool.shutdown()
         server.stop()
+
+
+def test_readmitted_sessions_are_newcomers_until_protect_s_has_passed():
+    """A readmitted robot resends its backlog at once: a second within the limits before it says nothing of how it
+    is served. Until PROTECT_S after its readmission it is a newcomer: shed with the others, and its windows' wait is
+    not the protected sessions' wait."""
+    guard, sessions = _guard(4)
+    guard.cpu_share = 0.3
+    guard._shed = {"s3"}
+    guard._readmit_oldest(guard.streaming(0.0), 0.0)  # s3 streams again
+    for t in (0.0, SETTLE_S / 2, SETTLE_S):
+        _update(guard, sessions, t)  # all four stream within the limits for SETTLE_S
+    assert guard._newest_within_limits == 3.0
+    assert [guard._served_well(s, SETTLE_S) for s in sessions] == [True, True, True, False]
+    assert [guard._served_well(s, PROTECT_S) for s in sessions] == [True] * 4
+    guard._window_waits = lambda now: {"s1": 0.01, "s3": 1.0}
+    guard._hold_queue_delays(guard._window_waits(SETTLE_S), 1.0, SETTLE_S)
+    assert (guard.queue_s, guard.protected_queue_s) == (1.0, 0.01)
+    guard.cpu_share = 0.6  # over: the backlog of s3 tipped it over; s1 and s2 stay protected
+    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s3"]
