@@ -8,7 +8,10 @@ session's backlog (a robot back from an outage resends seconds of blocks at once
 Under light load a job holds one session and starts at once; under heavy load jobs grow, and each window gets
 cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms against ≈ 1.0 at 16–64 and ≈ 2 alone
 (`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
-job's lookups before any of its windows is published.
+job's lookups before any of its windows is published. A job also holds at most `max_windows_per_job` windows (a
+session's oldest; the rest of its backlog waits for a later job): a robot back from an outage resends seconds of
+blocks at once, and a job of eight such backlogs would hold a pool thread, and the windows of the oldest sessions
+that wait for one, for a tenth of a second.
 
 `take_waits(now)` is, per session, the longest its windows waited for a job since the last call (or wait now):
 admission reads from it the window queue delay it holds below its limit, of the sessions it serves (the windows a
@@ -31,15 +34,27 @@ from service.runtime import Runtime
 log = logging.getLogger(__name__)
 
 MAX_SESSIONS_PER_JOB = 8
+#: ≈ 20 ms of a pool thread (≈ 1.1–1.2 ms a window in jobs of 8 sessions)
+MAX_WINDOWS_PER_JOB = 16
 
 
 class WindowBatcher:
-    def __init__(self, pool: Executor, max_jobs: int, max_sessions_per_job: int = MAX_SESSIONS_PER_JOB) -> None:
-        if max_jobs < 1 or max_sessions_per_job < 1:
-            raise ValueError(f"max_jobs and max_sessions_per_job must be ≥ 1, got {max_jobs}, {max_sessions_per_job}")
+    def __init__(
+        self,
+        pool: Executor,
+        max_jobs: int,
+        max_sessions_per_job: int = MAX_SESSIONS_PER_JOB,
+        max_windows_per_job: int = MAX_WINDOWS_PER_JOB,
+    ) -> None:
+        if min(max_jobs, max_sessions_per_job, max_windows_per_job) < 1:
+            raise ValueError(
+                "max_jobs, max_sessions_per_job and max_windows_per_job must be ≥ 1, got "
+                f"{max_jobs}, {max_sessions_per_job}, {max_windows_per_job}"
+            )
         self.pool = pool
         self.max_jobs = max_jobs
         self.max_sessions_per_job = max_sessions_per_job
+        self.max_windows_per_job = max_windows_per_job
         # ready sessions and the time.monotonic() each became ready; bounded by the number of sessions
         self._ready: dict[str, tuple[Session, float]] = {}
         self._waited: dict[str, float] = {}  # the longest each session taken into a job waited (s), since take_waits
@@ -93,21 +108,23 @@ class WindowBatcher:
 
     async def _gather(self) -> list[tuple[Session, SessionJob]]:
         """Take up to max_sessions_per_job ready sessions that are not in a job, the oldest sessions first, with their
-        jobs."""
+        jobs, until the jobs hold max_windows_per_job windows."""
         batch: list[tuple[Session, SessionJob]] = []
+        room = self.max_windows_per_job
         for sid, (session, since) in sorted(self._ready.items(), key=lambda item: item[1][0].opened_at):
-            if len(batch) >= self.max_sessions_per_job:
+            if len(batch) >= self.max_sessions_per_job or room <= 0:
                 break
             if session.in_job:
                 continue  # picked up again when its job is done
             del self._ready[sid]
             self._waited[sid] = max(self._waited.get(sid, 0.0), time.monotonic() - since)
-            job = session.take_job()
+            job = session.take_job(room)
             if job is None:
                 if session.waiting_for_frame() or session.waiting_for_taps():
                     await session.tell_waiting()
                 continue
             session.in_job = True
+            room -= job.windows
             batch.append((session, job))
         return batch
 

@@ -124,6 +124,7 @@ class Session:
         self._notify = notify
         self._visual_done = visual_done
         self._pending: list[AdmittedBlock] = []
+        self._pending_added: list[int] = []  # windows each pending block completes
         self._pending_windows = 0  # windows the pending blocks complete
         self._windows_admitted = 0  # complete windows admitted, all segments
         self._windows_done = 0  # of those, estimated and published (or lost to a failed job)
@@ -190,6 +191,7 @@ class Session:
                 self._taps,
             )
         )
+        self._pending_added.append(advance.windows_added)
         self._pending_windows += advance.windows_added
         self._windows_admitted += advance.windows_added
         if advance.windows_added:
@@ -250,14 +252,25 @@ class Session:
         """True when a pending block's surface has not been tapped (a taps model)."""
         return self.runtime.needs_taps and any(b.taps is None for b in self._pending)
 
-    def take_job(self) -> SessionJob | None:
+    def take_job(self, max_windows: int | None = None) -> SessionJob | None:
         """Hand the pending blocks to an estimation job; None when there is nothing to do or windows wait for
         the first frame or for the surface's taps (the blocks then stay, counting against the bounds: the wait
-        ends in 429s, not memory)."""
+        ends in 429s, not memory). max_windows: take only the oldest blocks, those that complete at most that many
+        windows (at least the first window's); the rest stay pending, in order, for the next job."""
         if self.closed or not self._pending or self.waiting_for_frame() or self.waiting_for_taps():
             return None
-        blocks, windows = self._pending, self._pending_windows
-        self._pending, self._pending_windows = [], 0
+        cut = len(self._pending)
+        if max_windows is not None and self._pending_windows > max_windows:
+            done = 0
+            for i, added in enumerate(self._pending_added):
+                if done and done + added > max_windows:
+                    cut = i
+                    break
+                done += added
+        blocks, self._pending = self._pending[:cut], self._pending[cut:]
+        windows = sum(self._pending_added[:cut])
+        self._pending_added = self._pending_added[cut:]
+        self._pending_windows -= windows
         return SessionJob(self.estimator, blocks, self.visual, windows, self.frame_checks)
 
     async def tell_waiting(self) -> None:

@@ -280,7 +280,7 @@ def _ready_session(sid: str, opened_at: float, in_job: bool = False) -> SimpleNa
         id=sid,
         opened_at=opened_at,
         in_job=in_job,
-        take_job=lambda: None,
+        take_job=lambda max_windows=None: None,
         waiting_for_frame=lambda: False,
         waiting_for_taps=lambda: False,
     )
@@ -317,11 +317,30 @@ def test_the_batcher_serves_the_oldest_sessions_first():
     taken: list[str] = []
     sessions = [_ready_session(sid, opened) for sid, opened in (("new", 3.0), ("old", 1.0), ("mid", 2.0))]
     for s in sessions:
-        s.take_job = lambda sid=s.id: taken.append(sid) or object()  # records the order; a job (opaque here)
+        # records the order; a job of one window
+        s.take_job = lambda max_windows=None, sid=s.id: taken.append(sid) or SimpleNamespace(windows=1)
         batcher.notify(s)  # type: ignore[arg-type]  # ready in the order new, old, mid
     batch = asyncio.run(batcher._gather())
     assert taken == ["old", "mid"] == [s.id for s, _ in batch]  # the oldest two, whatever order they became ready in
     assert batcher.take_waits(time.monotonic()).keys() == {"old", "mid", "new"}
+
+
+def test_a_job_holds_at_most_max_windows_per_job_windows_the_oldest_sessions_first():
+    """A robot back from an outage resends seconds of blocks at once: a job takes only what fits its windows, so a
+    pool thread is never held long by backlogs while the oldest sessions' windows wait for it."""
+    from service.batcher import WindowBatcher
+
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, max_sessions_per_job=8, max_windows_per_job=3)
+    asked: list[tuple[str, int | None]] = []
+    for sid, opened in (("new", 3.0), ("old", 1.0), ("mid", 2.0)):
+        s = _ready_session(sid, opened)
+        # two windows pending each; a job takes at most what it is asked for
+        s.take_job = lambda max_windows=None, sid=sid: (
+            asked.append((sid, max_windows)) or SimpleNamespace(windows=min(2, max_windows or 2))
+        )
+        batcher.notify(s)  # type: ignore[arg-type]
+    batch = asyncio.run(batcher._gather())
+    assert asked == [("old", 3), ("mid", 1)] and [j.windows for _, j in batch] == [2, 1]
 
 
 def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_apart():

@@ -178,3 +178,35 @@ def test_websocket_ingest_acknowledges_each_block_and_survives_bad_ones(kit, ser
         assert json.loads(ws.recv(timeout=5)) == {"seq": blocks[3].seq, "ok": True, "duplicate": True}
         windows, _ = read_windows(sub, 2)
     assert [w["window_index"] for w in windows] == [0, 1]
+
+
+def test_a_backlog_taken_in_capped_jobs_gives_the_windows_of_one_job(kit, base_settings, library_dir):
+    """A session's backlog is estimated a few windows per job (the batcher caps a job's windows), oldest first: the
+    same windows, in the same order, with the same ratings as one job of it all."""
+    import time
+
+    from service.live_session import Session
+    from service.metrics import ServiceMetrics
+    from service.pipeline import estimate_batch
+    from service.runtime import load_runtime
+
+    runtime = load_runtime(base_settings)
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 3.2), block_s=0.05)
+
+    def session() -> Session:
+        s = Session("s", "s", None, runtime, base_settings, None, None, ServiceMetrics(), lambda s: None)  # type: ignore[arg-type]
+        for b in blocks:
+            s.ingest(b, time.perf_counter_ns())
+        return s
+
+    whole = session().take_job()
+    capped, jobs = session(), []
+    while (job := capped.take_job(max_windows=2)) is not None and job.windows:
+        jobs.append(job)
+    assert whole is not None and whole.windows == 6 and [j.windows for j in jobs] == [2, 2, 2]
+    assert sum(len(j.blocks) for j in jobs) <= len(whole.blocks)  # blocks after the last window may stay pending
+    one = estimate_batch(runtime, [whole])[0].estimates
+    split = [e for j in jobs for e in estimate_batch(runtime, [j])[0].estimates]
+    assert [e.index for e in split] == [e.index for e in one] == list(range(6))
+    assert [e.completed_by for e in split] == [e.completed_by for e in one]
+    np.testing.assert_allclose([e.raw for e in split], [e.raw for e in one], atol=1e-9)
