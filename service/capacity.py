@@ -50,7 +50,8 @@ would hide the delay of each burst's last windows. From them:
   the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
   saturates: with thresholds of a few tens of milliseconds the loop never queues long enough to delay /health or the
   oldest sessions' windows. Once under the thresholds with a margin, a smaller step of the shed sessions
-  (`READMIT_SHARE`: each readmitted robot resends its backlog at once) streams again every `READMIT_EVERY_S`, oldest
+  (`READMIT_SHARE` of those served: each readmitted robot resends its backlog at once, and a step sized by the shed
+  ones would, after a flood, readmit more at once than the process serves) streams again every `READMIT_EVERY_S`, oldest
   first — so the shed sessions are always the newest ones. The oldest sessions keep streaming at full quality, and
   the refused robots back off and resend later from their oldest unacknowledged block (nothing accepted is lost).
 """
@@ -98,10 +99,14 @@ READMIT_EVERY_S = 2.0
 #: for SETTLE_S) are not shed: the newcomers tipped it over, and the backlog their refusal leaves takes seconds to
 #: drain; past it, any session but the oldest may be shed (the machine itself may have slowed down)
 PROTECT_S = 10.0
+#: the protected sessions' own windows may wait this many times shed_queue_s before the protection lapses: their wait
+#: also grows with load that shedding them cannot remove (a flood of requests, refusals, the newcomers' frames), so
+#: only a wait well over the limit says that they themselves are more than the process can serve
+PROTECTED_QUEUE_FACTOR = 2.0
 #: the share of the sessions still served one shedding step moves
 STEP_SHARE = 0.25
-#: the share of the sessions (streaming or shed) one readmission step moves: a readmitted robot resends its backlog
-#: at once, so a large step is a burst
+#: one readmission step moves this share of the sessions still served (at least one): a readmitted robot resends its
+#: backlog at once, so a large step is a burst
 READMIT_SHARE = 0.1
 #: at most one WARNING about shedding per this many seconds
 LOG_EVERY_S = 10.0
@@ -244,8 +249,10 @@ class CapacityGuard:
             self._within.popleft()
         since, newest = self._within[0]
         if since <= now - SETTLE_S:
-            # none streaming then: no session was served well, and none is a newcomer
-            self._newest_within_limits = newest if newest > -math.inf else None
+            if newest == -math.inf:  # none streaming then: no session was served well, and none is a newcomer
+                self._newest_within_limits = None
+            else:  # a session shed since (not streaming) was still served well before
+                self._newest_within_limits = max(newest, self._newest_within_limits or -math.inf)
             self._over_since = None
 
     def _over(self) -> bool:
@@ -279,7 +286,11 @@ class CapacityGuard:
         candidates = [s for s in streaming[1:] if s.id not in self._shed]
         boundary = self._newest_within_limits
         early = self._over_since is not None and now - self._over_since < PROTECT_S
-        if boundary is not None and early and self.protected_queue_s <= self.settings.shed_queue_s:
+        if (
+            boundary is not None
+            and early
+            and self.protected_queue_s <= PROTECTED_QUEUE_FACTOR * self.settings.shed_queue_s
+        ):
             # early in an overload, while their own windows are on time (they are served first): the sessions served
             # well before it are not what tipped it over (the newcomers, and the load of their refusals, are)
             candidates = [s for s in candidates if not self._served_well(s, now)]
@@ -311,7 +322,8 @@ class CapacityGuard:
     def _readmit_oldest(self, streaming: list[Session], now: float) -> None:
         """Let one step of the shed sessions stream again, oldest first (the reverse of the order they were shed)."""
         shed = [s.id for s in self._sessions() if s.id in self._shed]  # creation order: oldest first
-        back = shed[: self._step(len(self._shed.union(s.id for s in streaming)), READMIT_SHARE)]
+        served = sum(s.id not in self._shed for s in streaming)
+        back = shed[: self._step(served, READMIT_SHARE)]
         self._shed.difference_update(back)
         self._readmitted.update(dict.fromkeys(back, now))
         self._last_readmit = now

@@ -482,3 +482,35 @@ def test_readmitted_sessions_are_newcomers_until_protect_s_has_passed():
     guard.cpu_share = 0.6  # over: the backlog of s3 tipped it over; s1 and s2 stay protected
     _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s3"]
+
+
+def test_after_a_flood_readmission_steps_are_a_tenth_of_the_sessions_served_not_of_those_shed():
+    """150 shed beside 20 served: a step of a tenth of all would readmit 17 robots, each resending its backlog at
+    once — more than the process serves, and it tips over again; a tenth of those served readmits 2."""
+    guard, sessions = _guard(170)
+    guard._shed = {s.id for s in sessions[20:]}
+    _update(guard, sessions, 0.0)  # calm: a step comes back
+    assert _shed_ids(guard, sessions) == [f"s{i}" for i in range(22, 170)]
+
+
+def test_the_protected_sessions_own_windows_may_wait_up_to_twice_the_limit_and_stay_served_well_once_shed():
+    """Load that shedding them cannot remove (a flood of requests, the newcomers' refusals) also delays the protected
+    sessions' windows: only a wait well over the limit lifts their protection. And a served-well session shed since
+    (so not streaming now) was served well all the same: the boundary does not move back."""
+    guard, sessions = _guard(8)
+    for s in sessions[4:]:
+        s.last_seq = -1
+    guard.cpu_share = 0.3
+    for t in (0.0, SETTLE_S / 2, SETTLE_S):
+        _update(guard, sessions, t)  # s0 … s3 served well
+    for s in sessions[4:]:
+        s.last_seq = 0
+    guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s
+    guard.protected_queue_s = 1.5 * guard.settings.shed_queue_s
+    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
+    assert _shed_ids(guard, sessions) == ["s4", "s5", "s6", "s7"]  # the newcomers only
+    guard._shed.add("s3")  # say s3 was shed as well, then the process is calm for a while
+    guard.cpu_share, guard.lag_s, guard.protected_queue_s = 0.3, 0.0, 0.0
+    for t in (3.0, 3.5, 4.0, 4.5):
+        _update(guard, sessions, t)
+    assert guard._newest_within_limits == 3.0  # s3 does not stream, yet was served well
