@@ -221,7 +221,7 @@ class Settings(BaseSettings):
         description="event-loop lag, s (smoothed), above which, while the process is busy, a quarter of the sessions "
         "still served is shed, newest first, every 0.25 s while it gets worse and every 1 s while it gets no better "
         "(their blocks and frames refused: 429 / close 4429 + Retry-After); they stream again oldest first, a tenth "
-        "every 2 s once the loop has caught up",
+        "of those served every 2 s once the loop has caught up",
     )
     session_queue_s: float = Field(
         0.03,
