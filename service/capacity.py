@@ -190,6 +190,7 @@ class CapacityGuard:
             self._hold_queue_delays(self._window_waits(now), math.exp(-elapsed / QUEUE_HOLD_S), now)
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
+            self.metrics.protected_window_queue.set(self.protected_queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
             self.update(now)

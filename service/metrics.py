@@ -109,6 +109,12 @@ class ServiceMetrics:
             "The longest a session's complete windows waited for the window pool (its peak, decaying over ~1 s).",
             registry=registry,
         )
+        self.protected_window_queue = Gauge(
+            "hapticlink_protected_window_queue_seconds",
+            "The same of the sessions admission protects (served well before an overload); over twice "
+            "HAPTICLINK_SHED_QUEUE_S, their protection lapses.",
+            registry=registry,
+        )
         self.cpu_share = Gauge(
             "hapticlink_loop_cpu_share",
             "Share of one core the event-loop thread used (smoothed; 1 = always busy).",

@@ -514,3 +514,21 @@ def test_the_protected_sessions_own_windows_may_wait_up_to_twice_the_limit_and_s
     for t in (3.0, 3.5, 4.0, 4.5):
         _update(guard, sessions, t)
     assert guard._newest_within_limits == 3.0  # s3 does not stream, yet was served well
+
+
+def test_the_sampler_publishes_both_queue_delays_as_gauges():
+    """Ops see the protected sessions' own queue delay beside everybody's (the one the protection reads)."""
+    sessions = [SimpleNamespace(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_seq=-1) for i in range(3)]
+    metrics = ServiceMetrics()
+    guard = CapacityGuard(Settings(), metrics, lambda: sessions, lambda now: {"s0": 0.02, "s2": 0.3})
+    guard._newest_within_limits = 1.0  # s0 and s1 served well
+
+    async def main():
+        guard.start()
+        await asyncio.sleep(3 * SAMPLE_EVERY_S)
+        await guard.close()
+
+    asyncio.run(main())
+    read = metrics.registry.get_sample_value
+    assert read("hapticlink_window_queue_seconds") == pytest.approx(0.3, rel=0.1)
+    assert read("hapticlink_protected_window_queue_seconds") == pytest.approx(0.02, rel=0.1)
