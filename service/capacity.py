@@ -199,7 +199,8 @@ class CapacityGuard:
         """Take the windows' latest waits (session id → s) into the held peaks: that of every session served, and
         that of the ones served well (protected); each peak decays by `decay` since the last sample."""
         served = [(sid, w) for sid, w in waits.items() if sid not in self._shed]
-        protected = {s.id for s in self._sessions() if self._served_well(s, now)}
+        # who is protected is asked only when some window waited: most samples of a quiet replica have none
+        protected = {s.id for s in self._sessions() if self._served_well(s, now)} if served else set()
         self.queue_s = max([self.queue_s * decay, *(w for _, w in served)])
         self.protected_queue_s = max([self.protected_queue_s * decay, *(w for sid, w in served if sid in protected)])
 

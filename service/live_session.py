@@ -259,16 +259,15 @@ class Session:
         windows (at least the first window's); the rest stay pending, in order, for the next job."""
         if self.closed or not self._pending or self.waiting_for_frame() or self.waiting_for_taps():
             return None
-        cut = len(self._pending)
-        if max_windows is not None and self._pending_windows > max_windows:
-            done = 0
+        cut, windows = len(self._pending), self._pending_windows
+        if max_windows is not None and windows > max_windows:
+            windows = 0
             for i, added in enumerate(self._pending_added):
-                if done and done + added > max_windows:
+                if windows and windows + added > max_windows:
                     cut = i
                     break
-                done += added
+                windows += added
         blocks, self._pending = self._pending[:cut], self._pending[cut:]
-        windows = sum(self._pending_added[:cut])
         self._pending_added = self._pending_added[cut:]
         self._pending_windows -= windows
         return SessionJob(self.estimator, blocks, self.visual, windows, self.frame_checks)

@@ -184,7 +184,9 @@ def _feature_args(parser: argparse.ArgumentParser) -> None:
 
 
 def _visual_args(parser: argparse.ArgumentParser) -> None:
-    from models.visual.config import DESCRIPTOR_NAMES
+    from typing import get_args
+
+    from models.visual.config import DESCRIPTOR_NAMES, BackboneLayer
 
     parser.add_argument("--visual-grid", type=int, help="patches per side of the backbone grid (default 7)")
     parser.add_argument(
@@ -192,7 +194,7 @@ def _visual_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--backbone-layer",
-        choices=["head", "last_block"],
+        choices=list(get_args(BackboneLayer)),
         help="where the backbone is read (default head; last_block: EfficientNet-Lite0's last block, mean ⊕ std)",
     )
     parser.add_argument(
