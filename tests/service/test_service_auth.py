@@ -97,3 +97,14 @@ def test_ingest_socket_closes_1008_on_a_bad_token(server, two_sessions):
     with pytest.raises(InvalidStatus) as err:  # unknown session: refused at the handshake
         connect(f"{server.ws_url}/sessions/test-a.nosuchsession/ingest?token={a['robot_token']}")
     assert err.value.response.status_code == 404
+
+
+def test_a_token_never_begins_with_a_dash(monkeypatch):
+    """`hapticlink operator --token -abc…` would be read as an option: such a draw is drawn again."""
+    import secrets
+
+    from service.auth import new_token
+
+    draws = iter(["-starts-with-a-dash", "fine-token"])
+    monkeypatch.setattr(secrets, "token_urlsafe", lambda n: next(draws))
+    assert new_token() == "fine-token"
