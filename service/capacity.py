@@ -33,10 +33,14 @@ would hide the delay of each burst's last windows. From them:
   any session is shed, while the lag is above `session_lag_s` or the window queue delay above
   `session_queue_s`, the loop's CPU share is above
   `cpu_budget` with two or more sessions streaming, or (four or more streaming: enough to measure)
-  one more session of the measured loop CPU per streaming session would not fit the budget. The
-  first session is always admitted.
+  one more session of the measured loop CPU per streaming session would not fit the budget — counting as streaming
+  the sessions opened or let start within `STARTING_WITHIN_S`, beyond the first `STARTING_UNCOUNTED` (robots that
+  start together ask within a second, each before the measures show any of the others). The first session is always
+  admitted. A robot that has not streamed yet starts under the same rule (below).
 - `admit_block(session)` refuses the blocks of shed sessions (429 / WebSocket close 4429, Retry-After), and
-  `admit_frame(session)` their camera frames (429). While the loop is over its CPU budget, its lag is above
+  `admit_frame(session)` their camera frames (429); both refuse a session whose robot has not streamed yet while
+  `admit_session` would refuse a new one (sessions opened earlier may start together), while anything streams.
+  While the loop is over its CPU budget, its lag is above
   `shed_lag_s` or the window queue delay above `shed_queue_s`, one more step of the streaming sessions is shed,
   newest first: a quarter of those still served (`STEP_SHARE`), or more when the measured CPU per session says more
   do not fit, or every newcomer at once (robots that start together tip it over together). A session is *served
@@ -81,6 +85,15 @@ QUEUE_HOLD_S = 1.0
 #: a session that sent nothing for this long does not count as streaming (its CPU is not in the measure)
 STREAMING_WITHIN_S = 1.0
 RETRY_AFTER_S = 2.0
+#: a session opened, or let start streaming, this recently counts in admission as one more streaming: robots that
+#: start together ask within a second, and the measures (smoothed over SMOOTHING_S) show none of their load until it
+#: has tipped the loop over (150 at once stalled it for 200 ms); past this, a session that never streamed stops
+#: counting (a client that opens sessions and sends nothing must not hold admission shut)
+STARTING_WITHIN_S = 2.0
+#: so many sessions may start within STARTING_WITHIN_S on the measures alone (only those beyond count as load): a
+#: few cannot take the loop far past its budget in the half second its measures lag, and a small fleet's robots
+#: starting one after another are not held back by a measure that robots streaming faster than real time inflate
+STARTING_UNCOUNTED = 8
 #: while over capacity and getting worse, one more step of sessions is shed this often (s): soon enough that the
 #: loop never queues a whole second of work
 SHED_EVERY_S = 0.25
@@ -158,6 +171,8 @@ class CapacityGuard:
         # once, and a second within the limits before that says nothing of how it is served
         self._readmitted: dict[str, float] = {}
         self._over_since: float | None = None  # when the current overload episode began
+        # session id → time.monotonic() its robot was let start streaming, for STARTING_WITHIN_S (load not measured yet)
+        self._started: dict[str, float] = {}
         self._last_readmit = -math.inf
 
     def start(self) -> None:
@@ -219,12 +234,17 @@ class CapacityGuard:
         a step, or nothing."""
         streaming = self.streaming(now)
         self._streaming = len(streaming)
+        if self._started:
+            self._started = {sid: t for sid, t in self._started.items() if now - t < STARTING_WITHIN_S}
         if self._shed or self._readmitted:
             ids = {s.id for s in self._sessions()}  # ended sessions leave
             self._shed &= ids
             self._readmitted = {sid: t for sid, t in self._readmitted.items() if sid in ids and now - t < PROTECT_S}
-        if streaming:
-            self.cpu_per_session = self.cpu_share / len(streaming)
+        # the sessions just let start stream, but their load is not in the smoothed share yet: counted, they would
+        # lower the cost per session and make room for more of them
+        measured = [s for s in streaming if s.id not in self._started] or streaming
+        if measured:
+            self.cpu_per_session = self.cpu_share / len(measured)
         if self._over():
             self._within.clear()  # within its limits again only after SETTLE_S more
             if self._over_since is None:
@@ -339,6 +359,18 @@ class CapacityGuard:
         """Sessions that sent something within STREAMING_WITHIN_S, oldest first."""
         return [s for s in self._sessions() if now - s.last_activity < STREAMING_WITHIN_S and s.last_seq >= 0]
 
+    def starting(self, now: float) -> int:
+        """Admitted load that no measure shows yet: the sessions whose robot was let start streaming within
+        STARTING_WITHIN_S, and the sessions opened within it that have not, beyond the first STARTING_UNCOUNTED
+        (so few cannot take the loop far past its budget before the measures show them)."""
+        opened = sum(
+            1
+            for s in self._sessions()
+            if s.last_seq < 0 and s.id not in self._started and now - s.opened_at < STARTING_WITHIN_S
+        )
+        began = sum(1 for t in self._started.values() if now - t < STARTING_WITHIN_S)
+        return max(0, opened + began - STARTING_UNCOUNTED)
+
     def _busy(self) -> bool:
         """The lag is the process's own: its loop is busy, or its threads together keep the interpreter busy (pool
         threads holding the GIL make every socket operation of the loop wait for it)."""
@@ -355,38 +387,66 @@ class CapacityGuard:
         """Raise ServiceError 429 (Retry-After) when a new session would not be served well."""
         if open_sessions == 0:
             return
-        why = None
-        budget = self.settings.cpu_budget
-        if self._shed:
-            why = f"it refuses the blocks of {len(self._shed)} of its sessions to keep up with the others"
-        elif self._busy() and self.lag_s > self.settings.session_lag_s:
-            why = (
-                f"its event loop runs {self.lag_s * 1e3:.0f} ms late (limit {self.settings.session_lag_s * 1e3:.0f} ms)"
-            )
-        elif self._busy() and self.queue_s > self.settings.session_queue_s:
-            why = (
-                f"its windows wait {self.queue_s * 1e3:.0f} ms for estimation "
-                f"(limit {self.settings.session_queue_s * 1e3:.0f} ms)"
-            )
-        elif self._streaming >= 2 and self.cpu_share > budget:
-            why = f"its event loop uses {self.cpu_share:.2f} of a core, over its budget of {budget:g}"
-        elif self._streaming >= 4 and self.cpu_share + self.cpu_per_session > budget:
-            why = (
-                f"one more session ({self.cpu_per_session:.3f} of a core each) would take its event loop over its "
-                f"budget of {budget:g} (now {self.cpu_share:.2f})"
-            )
+        why = self._why_no_room(time.monotonic())
         if why is not None:
             self.metrics.sessions_refused.labels(reason="capacity").inc()
             raise AtCapacity(f"this replica is at capacity: {why}; try later or another replica")
 
+    def _why_no_room(self, now: float) -> str | None:
+        """Why one more streaming session would not be served well now, or None when it would."""
+        budget = self.settings.cpu_budget
+        if self._shed:
+            return f"it refuses the blocks of {len(self._shed)} of its sessions to keep up with the others"
+        if self._busy() and self.lag_s > self.settings.session_lag_s:
+            return (
+                f"its event loop runs {self.lag_s * 1e3:.0f} ms late (limit {self.settings.session_lag_s * 1e3:.0f} ms)"
+            )
+        if self._busy() and self.queue_s > self.settings.session_queue_s:
+            return (
+                f"its windows wait {self.queue_s * 1e3:.0f} ms for estimation "
+                f"(limit {self.settings.session_queue_s * 1e3:.0f} ms)"
+            )
+        if self._streaming >= 2 and self.cpu_share > budget:
+            return f"its event loop uses {self.cpu_share:.2f} of a core, over its budget of {budget:g}"
+        if self._streaming < 4:  # too few to measure a session's cost by
+            return None
+        starting = self.starting(now)
+        if self.cpu_share + (starting + 1) * self.cpu_per_session > budget:
+            return (
+                f"one more session ({self.cpu_per_session:.3f} of a core each) would take its event loop over its "
+                f"budget of {budget:g} (now {self.cpu_share:.2f}"
+                + (f", with {starting} session(s) admitted and not measured yet" if starting else "")
+                + ")"
+            )
+        return None
+
     def admit_block(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed while the process is over
-        capacity (its blocks, and its ingest socket's handshake); nothing of the block is taken."""
+        capacity, or has not streamed yet while one more streaming session would not be served well (robots whose
+        sessions were opened earlier may start together): its blocks, and its ingest socket's handshake; nothing of
+        the block is taken."""
         self._refuse_if_shed(session, "resend from the oldest unacknowledged block later")
+        self._refuse_until_started(session, "it starts when there is room: send its first block later", start=True)
 
     def admit_frame(self, session: Session) -> None:
-        """Raise ServiceError 429 (Retry-After) when `session` is among those shed: its frames wait with its blocks."""
+        """Raise ServiceError 429 (Retry-After) when `session` is among those shed, or waits to start: its frames
+        wait with its blocks."""
         self._refuse_if_shed(session, "send the newest frame later")
+        self._refuse_until_started(session, "its frames wait with its first block: send the newest frame later")
+
+    def _refuse_until_started(self, session: Session, then: str, start: bool = False) -> None:
+        """Refuse a session whose robot has not streamed yet while there is no room for one more streaming session;
+        `start`: when there is, it starts (counted in `starting` until the measures show its load)."""
+        if session.last_seq >= 0 or session.id in self._started:
+            return
+        now = time.monotonic()
+        # with nothing streaming there is no one to keep at full speed (and nothing measured): it starts
+        why = self._why_no_room(now) if self._streaming else None
+        if why is not None:
+            session.touch()  # its robot is there, waiting for room: not an abandoned session
+            raise AtCapacity(f"this replica is at capacity: {why}; session {session.id} has not streamed yet: {then}")
+        if start:
+            self._started[session.id] = now
 
     def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:

@@ -172,7 +172,10 @@ class Settings(BaseSettings):
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
     session_idle_s: float = Field(60.0, gt=0, description="a session with no traffic for this long is ended")
     session_first_block_s: float = Field(
-        15.0, gt=0, description="a session that has received no block this long after its creation is ended (abandoned)"
+        15.0,
+        gt=0,
+        description="a session that has received no block this long after its creation, or its robot's last try (a "
+        "frame, or a first block refused for capacity), is ended (abandoned)",
     )
     max_block_s: float = Field(1.0, gt=0, le=60, description="stream time one block may span, s (422 beyond it)")
     max_block_windows: int = Field(

@@ -26,6 +26,8 @@ from service.capacity import (
     SAMPLE_EVERY_S,
     SETTLE_S,
     SHED_EVERY_S,
+    STARTING_UNCOUNTED,
+    STARTING_WITHIN_S,
     STEP_SHARE,
     AtCapacity,
     CapacityGuard,
@@ -60,6 +62,7 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 1.0))
     with httpx.Client(base_url=over_budget.url, timeout=10) as client:
         oldest, newest = kit.create_session(client, "oldest"), kit.create_session(client, "newest")
+        waiting = kit.create_session(client, "waiting")  # opened before the others stream; its robot starts later
 
         def refused_session() -> httpx.Response | None:
             for session in (oldest, newest):  # both stream, so both count as load
@@ -86,6 +89,17 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
         assert frame.status_code == 429 and "newest frame later" in frame.json()["detail"]
         assert float(frame.headers["retry-after"]) > 0
         assert kit.session_status(client, newest)["counters"]["frames_refused"] == 1
+        # a robot that has not streamed yet starts when there is room: its first block and frames wait
+        first = kit.post_block(client, waiting, blocks[0])
+        assert first.status_code == 429 and "has not streamed yet" in first.json()["detail"]
+        assert float(first.headers["retry-after"]) > 0
+        frame = client.post(
+            f"/sessions/{waiting['session_id']}/frames",
+            content=kit.png(),
+            headers={"Authorization": f"Bearer {waiting['robot_token']}", "Content-Type": "image/png"},
+        )
+        assert frame.status_code == 429 and "frames wait with its first block" in frame.json()["detail"]
+        assert kit.session_status(client, waiting)["counters"]["blocks_refused"] == 1
         # over WebSocket: the handshake refused before the upgrade (429, the reason, Retry-After)
         with pytest.raises(InvalidStatus) as refused:
             connect(kit.socket_url(over_budget, newest, "ingest"))
@@ -532,3 +546,55 @@ def test_the_sampler_publishes_both_queue_delays_as_gauges():
     read = metrics.registry.get_sample_value
     assert read("hapticlink_window_queue_seconds") == pytest.approx(0.3, rel=0.1)
     assert read("hapticlink_protected_window_queue_seconds") == pytest.approx(0.02, rel=0.1)
+
+
+class _Robot(SimpleNamespace):
+    """A stub session with Session's touch()."""
+
+    def touch(self) -> None:
+        self.last_activity = time.monotonic()
+
+
+def _waiting(name: str, opened_at: float) -> _Robot:
+    """A session opened at `opened_at` (time.monotonic()) whose robot has sent nothing yet."""
+    return _Robot(id=name, opened_at=opened_at, last_activity=opened_at, last_seq=-1)
+
+
+def test_sessions_opened_and_not_streaming_yet_count_as_load_when_a_session_is_asked_for():
+    """Robots that start together open their sessions within a second, before any streams: each asks while the
+    measures show none of the others' load. Those opened within STARTING_WITHIN_S, beyond the first
+    STARTING_UNCOUNTED, count as streaming."""
+    guard, sessions = _guard(8)
+    now = time.monotonic()
+    guard.cpu_share = 0.41  # 0.05125 a session: 0.41 + 8 more fits the budget of 0.85, 9 more does not
+    _update(guard, sessions, now)
+    for i in range(STARTING_UNCOUNTED + 8):
+        guard.admit_session(len(sessions))
+        sessions.append(_waiting(f"new{i}", time.monotonic()))
+    with pytest.raises(AtCapacity, match=r"with 8 session\(s\) admitted and not measured yet"):
+        guard.admit_session(len(sessions))
+    for s in sessions[8:]:  # opened long enough ago and never streamed: no longer counted (nor holding admission)
+        s.opened_at -= STARTING_WITHIN_S
+    guard.admit_session(len(sessions))
+
+
+def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frames_waiting_with_it():
+    """Sessions opened earlier may start streaming together (150 robots at once stalled the loop for 200 ms). A robot
+    that has not streamed starts (its ingest socket, its first block) only while one more streaming session would be
+    served well; refused, its robot is there (not an abandoned session), and its frames wait with it."""
+    guard, sessions = _guard(8)
+    now = time.monotonic()
+    guard.cpu_share = 0.8  # 0.1 a session: one more would take the loop over its budget of 0.85
+    _update(guard, sessions, now)
+    robot = _waiting("w", now - 60)
+    sessions.append(robot)
+    with pytest.raises(AtCapacity, match=r"has not streamed yet: it starts when there is room") as refused:
+        guard.admit_block(robot)  # type: ignore[arg-type]
+    assert "one more session (0.100 of a core each)" in str(refused.value)
+    assert robot.last_activity > now - 1  # touched: the reaper counts from its robot's last try
+    with pytest.raises(AtCapacity, match="its frames wait with its first block"):
+        guard.admit_frame(robot)  # type: ignore[arg-type]
+    guard.cpu_share = 0.4
+    _update(guard, sessions, now + SAMPLE_EVERY_S)
+    guard.admit_frame(robot)  # type: ignore[arg-type]
+    guard.admit_block(robot)  # type: ignore[arg-type]

@@ -84,7 +84,13 @@ def test_sessions_that_never_stream_are_reclaimed_before_idle_ones():
         def __init__(self, sid, opened, last_seq, activity):
             self.id, self.opened_at, self.last_seq, self.last_activity = sid, opened, last_seq, activity
 
-    sessions = [S("fresh", 95, -1, 95), S("abandoned", 80, -1, 80), S("streaming", 0, 40, 99), S("idle", 0, 40, 30)]
+    sessions = [
+        S("fresh", 95, -1, 95),
+        S("abandoned", 80, -1, 80),
+        S("waiting for room", 80, -1, 95),  # its first block refused for capacity 5 s ago: its robot is there
+        S("streaming", 0, 40, 99),
+        S("idle", 0, 40, 30),
+    ]
     due = dict(reap_due(sessions, 100.0, settings))
     assert set(due) == {"abandoned", "idle"}
     assert "no block within 10 s" in due["abandoned"] and "no traffic for 60 s" in due["idle"]
