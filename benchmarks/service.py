@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import os
 import platform
 import random
@@ -196,6 +197,7 @@ class PacedSource:
         self.realtime = realtime
         self.yielded: dict[int, float] = {}
         self.send_lag_ms: list[float] = []
+        self.finished = math.nan  # perf_counter when its robot had sent and settled every block (run_load)
 
     async def _items(self):
         n = 0  # sample blocks so far (a tap block holds no stream time: it leaves at once)
@@ -290,16 +292,28 @@ async def run_load(
     seed: int,
     realtime: bool = True,
     window: int = 64,
+    max_buffer_s: float | None = None,
 ) -> tuple[list, list[OperatorView], list[PacedSource]]:
     """Robot k (a real RobotClient) streams to replica k mod R; an operator per session. Returns stats, views,
-    sources."""
+    sources (each with `finished`: perf_counter when its robot had sent and settled everything). max_buffer_s: the
+    robots' resend buffer (None: the client's default); a source that is not real time yields every block at once,
+    so it must hold the whole stream, or the client drops the oldest."""
     robot_urls = [urls[k % len(urls)] for k in range(len(streams))]
     rng = random.Random(seed)
     offsets = [rng.uniform(0, HOP_S) if realtime else 0.0 for _ in streams]  # robots do not start in lockstep
     # the start is set once every session and operator is connected (a robot due before would send a backlog)
     sources = [PacedSource(s, block_s, 0.0, f, 1.0, realtime) for s, f in zip(streams, frames)]
     clients = [
-        RobotClient(u, src, api_key=api_key, session_name=f"bench-{k}", window=window, seed=k, drain_timeout_s=10)
+        RobotClient(
+            u,
+            src,
+            api_key=api_key,
+            session_name=f"bench-{k}",
+            window=window,
+            seed=k,
+            drain_timeout_s=10,
+            **({} if max_buffer_s is None else {"max_buffer_s": max_buffer_s}),
+        )
         for k, (u, src) in enumerate(zip(robot_urls, sources))
     ]
     for c in clients:
@@ -316,6 +330,8 @@ async def run_load(
     for src, off in zip(sources, offsets):
         src.start = start + off
     outcomes = await asyncio.gather(*(c.run() for c in clients), return_exceptions=True)
+    for src in sources:
+        src.finished = time.perf_counter()
     for k, o in enumerate(outcomes):
         if isinstance(o, BaseException):
             print(f"  robot {k} stopped: {type(o).__name__}: {o}", flush=True)
@@ -480,19 +496,29 @@ def measure(
 
 # ---- capacity: the service against the framework's floor -----------------------------------------
 def _pump(server: ServerProcess, blocks: list[Block], api_key: str, block_s: float) -> tuple[int, float, float]:
-    """One RobotClient (+ operator) sending `blocks` as fast as acknowledged → (blocks acked, server CPU s, wall s)."""
+    """One RobotClient (+ operator) sending `blocks` as fast as acknowledged → (blocks acked, server CPU s, wall s).
+    The robot holds the whole stream (its blocks are all read at once): none is dropped, and every one is acked."""
+    stream_s = block_s * len(blocks)
     cpu0 = server.cpu_seconds()
-    stats, _, sources = _run(run_load([server.url], [blocks], [None], block_s, api_key, 0, realtime=False, window=32))
+    stats, _, sources = _run(
+        run_load(
+            [server.url], [blocks], [None], block_s, api_key, 0, realtime=False, window=32, max_buffer_s=stream_s + 1
+        )
+    )
     cpu1 = server.cpu_seconds()
-    yielded = sources[0].yielded.values()
-    return stats[0].acked, cpu1 - cpu0, max(yielded) - min(yielded)  # the streaming itself, not the set-up
+    if stats[0].acked != len(blocks):
+        raise RuntimeError(f"the capacity pump had {stats[0].acked} of {len(blocks)} blocks acknowledged: {stats[0]}")
+    first = min(sources[0].yielded.values())  # not real time: the source does not wait for its start
+    return stats[0].acked, cpu1 - cpu0, sources[0].finished - first  # the streaming, not the set-up
 
 
 def measure_capacity(
     assets: Assets, blocks: list[Block], api_key: str, block_s: float, profile_out: Path | None = None
 ) -> dict:
     """Server CPU per block of the service (windows, features, model, publishing included) and of the floor."""
-    service = ServerProcess.service(assets, api_key, extra={"HAPTICLINK_SESSION_QUEUE_WINDOWS": "1000"})
+    # every window of the stream may queue at once (the robot sends faster than real time)
+    windows = int(block_s * len(blocks) / HOP_S) + 8
+    service = ServerProcess.service(assets, api_key, extra={"HAPTICLINK_SESSION_QUEUE_WINDOWS": str(windows)})
     profiler = None
     try:
         if profile_out is not None:
