@@ -581,7 +581,8 @@ def test_sessions_opened_and_not_streaming_yet_count_as_load_when_a_session_is_a
 def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frames_waiting_with_it():
     """Sessions opened earlier may start streaming together (150 robots at once stalled the loop for 200 ms). A robot
     that has not streamed starts (its ingest socket, its first block) only while one more streaming session would be
-    served well; refused, its robot is there (not an abandoned session), and its frames wait with it."""
+    served well; refused, its robot is there (not an abandoned session), and its frames wait with it. Once it
+    starts, its load is not taken for measured until STARTING_WITHIN_S has passed."""
     guard, sessions = _guard(8)
     now = time.monotonic()
     guard.cpu_share = 0.8  # 0.1 a session: one more would take the loop over its budget of 0.85
@@ -598,3 +599,8 @@ def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frame
     _update(guard, sessions, now + SAMPLE_EVERY_S)
     guard.admit_frame(robot)  # type: ignore[arg-type]
     guard.admit_block(robot)  # type: ignore[arg-type]
+    robot.last_seq = 0  # it streams; its load is not in the smoothed share yet: the cost per session holds
+    _update(guard, sessions, now + 2 * SAMPLE_EVERY_S)
+    assert guard.cpu_per_session == pytest.approx(0.4 / 8)
+    _update(guard, sessions, now + STARTING_WITHIN_S + SAMPLE_EVERY_S)  # measured since
+    assert guard.cpu_per_session == pytest.approx(0.4 / 9)
