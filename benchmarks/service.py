@@ -662,6 +662,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
+    load_before = os.getloadavg()  # a number means little unless the machine was quiet
     if min(args.replicas) < 1 or min(args.robots) < 1 or (args.generators is not None and args.generators < 1):
         p.error("--robots, --replicas and --generators must be ≥ 1")
     api_key = secrets.token_urlsafe(24)  # this run's fleet key
@@ -708,7 +709,14 @@ def main(argv: list[str] | None = None) -> int:
     print_table(rows)
     report = {
         "benchmark": "service",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "command": " ".join(["python -m benchmarks.service", *(argv if argv is not None else sys.argv[1:])]),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "load_average_before": [round(x, 2) for x in load_before],
+            "load_average_after": [round(x, 2) for x in os.getloadavg()],
+        },
         "config": {
             "block_s": args.block_s,
             "duration_s": args.duration,
