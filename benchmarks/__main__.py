@@ -14,6 +14,7 @@ from benchmarks import (
     features,
     hostile,
     hostile_chart,
+    refusals,
     renderer,
     service,
     uncertainty,
@@ -44,6 +45,8 @@ def main(argv: list[str]) -> int:
     window_batch.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
+    print("\n== service: what a refused request costs ==", flush=True)
+    refusals.main([])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)
     hostile.main([])
     hostile_chart.main([str(hostile.DEFAULT_OUT)])
