@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import platform
 import secrets
 import sys
 import time
@@ -30,7 +29,7 @@ import httpx
 import websockets
 
 from benchmarks.loadgen import frame_of
-from benchmarks.report_file import write_report
+from benchmarks.report_file import command_line, machine, write_report
 from benchmarks.service import DEFAULT_ASSETS, ServerProcess, prepare_assets
 from drivers.protocol import ws_url
 
@@ -120,14 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         server.stop()
     report = {
         "benchmark": "refusals",
-        "command": " ".join(["python -m benchmarks.refusals", *(argv if argv is not None else sys.argv[1:])]),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "load_average_before": [round(x, 2) for x in load_before],
-            "load_average_after": [round(x, 2) for x in os.getloadavg()],
-        },
+        "command": command_line("benchmarks.refusals", argv if argv is not None else sys.argv[1:]),
+        "machine": machine(load_before),
         "frame_bytes": len(frame),
         "results": rows,
     }

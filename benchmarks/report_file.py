@@ -1,8 +1,11 @@
-"""Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline."""
+"""Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline; and what
+a report says about its run (the command, the machine and how busy it was)."""
 
 from __future__ import annotations
 
 import json
+import os
+import platform
 from pathlib import Path
 from typing import Any
 
@@ -13,3 +16,20 @@ def write_report(path: str | Path, report: dict[str, Any]) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")
     return out
+
+
+def command_line(module: str, argv: list[str]) -> str:
+    """The command that reproduces a run: `python -m <module>` with its arguments."""
+    return " ".join([f"python -m {module}", *argv])
+
+
+def machine(load_before: tuple[float, float, float]) -> dict[str, Any]:
+    """The machine a run used, with its load average before (os.getloadavg() at the start) and now: a number means
+    little unless the machine was quiet."""
+    return {
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "load_average_before": [round(x, 2) for x in load_before],
+        "load_average_after": [round(x, 2) for x in os.getloadavg()],
+    }

@@ -47,7 +47,6 @@ import asyncio
 import json
 import math
 import os
-import platform
 import random
 import secrets
 import shutil
@@ -64,7 +63,7 @@ import numpy as np
 
 from benchmarks import loadgen
 from benchmarks.loadgen import STAGES, robot_streams
-from benchmarks.report_file import write_report
+from benchmarks.report_file import command_line, machine, write_report
 from drivers.blocks import Block, Frame, TapBlock
 from drivers.protocol import ws_url
 from drivers.robot import RobotClient
@@ -662,7 +661,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    load_before = os.getloadavg()  # a number means little unless the machine was quiet
+    load_before = os.getloadavg()
     if min(args.replicas) < 1 or min(args.robots) < 1 or (args.generators is not None and args.generators < 1):
         p.error("--robots, --replicas and --generators must be ≥ 1")
     api_key = secrets.token_urlsafe(24)  # this run's fleet key
@@ -709,14 +708,8 @@ def main(argv: list[str] | None = None) -> int:
     print_table(rows)
     report = {
         "benchmark": "service",
-        "command": " ".join(["python -m benchmarks.service", *(argv if argv is not None else sys.argv[1:])]),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "load_average_before": [round(x, 2) for x in load_before],
-            "load_average_after": [round(x, 2) for x in os.getloadavg()],
-        },
+        "command": command_line("benchmarks.service", argv if argv is not None else sys.argv[1:]),
+        "machine": machine(load_before),
         "config": {
             "block_s": args.block_s,
             "duration_s": args.duration,
