@@ -47,17 +47,19 @@ would hide the delay of each burst's last windows. From them:
   well* when it was streaming while the process was last a full `SETTLE_S` within its limits and it was not
   readmitted within `PROTECT_S` (a readmitted robot resends its backlog at once: a second within the limits before
   says nothing); the others are newcomers. The oldest session is never shed, and for `PROTECT_S` into an overload
-  neither is any session served well, as long as their own windows are on time: the newcomers tipped it over, and
-  the backlog their refusal leaves, and the refusals themselves, take seconds to drain. A step follows the last
-  after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S` while it gets no better (its pressure, the
-  largest measure over its limit, has not fallen by a fifth since that step), and not at all while it gets better:
-  the measures show a step's effect only after about a second. Shedding in steps this fast acts before the loop
-  saturates: with thresholds of a few tens of milliseconds the loop never queues long enough to delay /health or the
-  oldest sessions' windows. Once under the thresholds with a margin, a smaller step of the shed sessions
-  (`READMIT_SHARE` of those served: each readmitted robot resends its backlog at once, and a step sized by the shed
-  ones would, after a flood, readmit more at once than the process serves) streams again every `READMIT_EVERY_S`, oldest
-  first — so the shed sessions are always the newest ones. The oldest sessions keep streaming at full quality, and
-  the refused robots back off and resend later from their oldest unacknowledged block (nothing accepted is lost).
+  neither is any session served well, unless their own windows have waited past twice `shed_queue_s` for a full
+  `SETTLE_S`: the newcomers tipped it over, and the backlog their refusal leaves, and the refusals themselves, take
+  seconds to drain. A step follows the last after `SHED_EVERY_S` while the process gets worse, after `SETTLE_S`
+  while it gets no better (its pressure, the largest measure over its limit, has not fallen by a fifth since that
+  step), and not at all while it gets better: the measures show a step's effect only after about a second. Shedding
+  in steps this fast acts before the loop saturates: with thresholds of a few tens of milliseconds the loop never
+  queues long enough to delay /health or the oldest sessions' windows. Once under the thresholds with a margin, a
+  smaller step of the shed sessions (`READMIT_SHARE` of those served: each readmitted robot resends its backlog at
+  once, and a step sized by the shed ones would, after a flood, readmit more at once than the process serves)
+  streams again every `READMIT_EVERY_S`, oldest first — so the shed sessions are always the newest ones. The oldest
+  sessions keep streaming at full quality, and the refused robots back off and resend later from their oldest
+  unacknowledged block (nothing accepted is lost). A refused robot is told to come back (`retry_after`) after the
+  readmission steps of the refused sessions older than its own.
 """
 
 from __future__ import annotations
@@ -84,7 +86,12 @@ SMOOTHING_S = 0.5
 QUEUE_HOLD_S = 1.0
 #: a session that sent nothing for this long does not count as streaming (its CPU is not in the measure)
 STREAMING_WITHIN_S = 1.0
+#: the Retry-After of a refusal with no refused session older than the refused one (s); one more for each
+#: readmission step of those older (they come back first), up to MAX_RETRY_AFTER_S: 150 robots refused together and
+#: all told 2 s would come back together every 2–3 s, each wave of handshakes costing the loop ≈ 1 ms apiece while a
+#: step of two or three of them is let in
 RETRY_AFTER_S = 2.0
+MAX_RETRY_AFTER_S = 10.0
 #: a session opened, or let start streaming, this recently counts in admission as one more streaming: robots that
 #: start together ask within a second, and the measures (smoothed over SMOOTHING_S) show none of their load until it
 #: has tipped the loop over (150 at once stalled it for 200 ms); past this, a session that never streamed stops
@@ -114,7 +121,10 @@ READMIT_EVERY_S = 2.0
 PROTECT_S = 10.0
 #: the protected sessions' own windows may wait this many times shed_queue_s before the protection lapses: their wait
 #: also grows with load that shedding them cannot remove (a flood of requests, refusals, the newcomers' frames), so
-#: only a wait well over the limit says that they themselves are more than the process can serve
+#: only a wait well over the limit says that they themselves are more than the process can serve — and only when it
+#: lasts SETTLE_S: on a machine shared with other processes one window can wait 100 ms when the scheduler parks a pool
+#: thread, and shedding robots served well for that costs each of them seconds (it waits to be readmitted, then
+#: resends its backlog at once)
 PROTECTED_QUEUE_FACTOR = 2.0
 #: the share of the sessions still served one shedding step moves
 STEP_SHARE = 0.25
@@ -128,8 +138,9 @@ LOG_EVERY_S = 10.0
 class AtCapacity(ServiceError):
     """429: the replica is at capacity (a new session, or a block of one of its newest sessions)."""
 
-    def __init__(self, detail: str) -> None:
-        super().__init__(429, detail, {"Retry-After": f"{RETRY_AFTER_S:g}"})
+    def __init__(self, detail: str, retry_after_s: float = RETRY_AFTER_S) -> None:
+        super().__init__(429, detail, {"Retry-After": f"{retry_after_s:g}"})
+        self.retry_after_s = retry_after_s
 
 
 class CapacityGuard:
@@ -171,9 +182,13 @@ class CapacityGuard:
         # once, and a second within the limits before that says nothing of how it is served
         self._readmitted: dict[str, float] = {}
         self._over_since: float | None = None  # when the current overload episode began
+        # since when the protected sessions' own queue delay has been over PROTECTED_QUEUE_FACTOR × shed_queue_s
+        self._protected_late_since: float | None = None
         # session id → time.monotonic() its robot was let start streaming, for STARTING_WITHIN_S (load not measured yet)
         self._started: dict[str, float] = {}
         self._last_readmit = -math.inf
+        # session id → time.monotonic() its robot was last refused a start (for retry_after)
+        self._waiting: dict[str, float] = {}
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._sample(), name="capacity-guard")
@@ -245,6 +260,10 @@ class CapacityGuard:
         measured = [s for s in streaming if s.id not in self._started] or streaming
         if measured:
             self.cpu_per_session = self.cpu_share / len(measured)
+        if self.protected_queue_s <= PROTECTED_QUEUE_FACTOR * self.settings.shed_queue_s:
+            self._protected_late_since = None
+        elif self._protected_late_since is None:
+            self._protected_late_since = now
         if self._over():
             self._within.clear()  # within its limits again only after SETTLE_S more
             if self._over_since is None:
@@ -308,13 +327,11 @@ class CapacityGuard:
         candidates = [s for s in streaming[1:] if s.id not in self._shed]
         boundary = self._newest_within_limits
         early = self._over_since is not None and now - self._over_since < PROTECT_S
-        if (
-            boundary is not None
-            and early
-            and self.protected_queue_s <= PROTECTED_QUEUE_FACTOR * self.settings.shed_queue_s
-        ):
-            # early in an overload, while their own windows are on time (they are served first): the sessions served
-            # well before it are not what tipped it over (the newcomers, and the load of their refusals, are)
+        late = self._protected_late_since
+        if boundary is not None and early and (late is None or now - late < SETTLE_S):
+            # early in an overload, while their own windows are on time (they are served first), or have been late
+            # for less than SETTLE_S: the sessions served well before it are not what tipped it over (the newcomers,
+            # the load of their refusals, or other processes on the machine are)
             candidates = [s for s in candidates if not self._served_well(s, now)]
         if not candidates:
             return  # one session is never shed for being alone: its own queue bounds it
@@ -444,14 +461,34 @@ class CapacityGuard:
         why = self._why_no_room(now) if self._streaming else None
         if why is not None:
             session.touch()  # its robot is there, waiting for room: not an abandoned session
-            raise AtCapacity(f"this replica is at capacity: {why}; session {session.id} has not streamed yet: {then}")
+            self._waiting[session.id] = now
+            raise AtCapacity(
+                f"this replica is at capacity: {why}; session {session.id} has not streamed yet: {then}",
+                self.retry_after(session, now),
+            )
         if start:
             self._started[session.id] = now
+            self._waiting.pop(session.id, None)
 
     def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:
             raise AtCapacity(
                 f"this replica is at capacity (event loop CPU {self.cpu_share:.2f} of {self.settings.cpu_budget:g}, "
                 f"loop lag {self.lag_s * 1e3:.0f} ms, windows queued {self.queue_s * 1e3:.0f} ms) and session "
-                f"{session.id} is among its newest; {then}"
+                f"{session.id} is among its newest; {then}",
+                self.retry_after(session, time.monotonic()),
             )
+
+    def retry_after(self, session: Session, now: float) -> float:
+        """Seconds the robot of a refused session should wait (s): RETRY_AFTER_S, and as much again for each
+        readmission step of the refused sessions older than it, up to MAX_RETRY_AFTER_S. Refused: shed, or waiting
+        to start (its robot refused within the longest Retry-After and its spread). Room comes back oldest first and
+        about one step per READMIT_EVERY_S, so a robot told to come back sooner would only be refused again."""
+        self._waiting = {sid: t for sid, t in self._waiting.items() if now - t < 1.5 * MAX_RETRY_AFTER_S}
+        ahead = sum(
+            1
+            for s in self._sessions()
+            if s.opened_at < session.opened_at and (s.id in self._shed or s.id in self._waiting)
+        )
+        step = self._step(max(1, self._streaming), READMIT_SHARE)
+        return min(MAX_RETRY_AFTER_S, RETRY_AFTER_S * (1 + ahead // step))

@@ -16,8 +16,8 @@ log = logging.getLogger("drivers.robot")
 
 
 async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
-    """Send the outbox's queued frames in order until drained; 429 (visual queue full) waits Retry-After and
-    sends the newest."""
+    """Send the outbox's queued frames in order until drained, each once the service takes the robot's blocks
+    (`Outbox.ingest_open`); 429 (visual queue full) waits Retry-After and sends the newest."""
     http = outbox.http
     assert http is not None
     url = endpoint.url + session_path(str(endpoint.session_id), "frames")
@@ -29,6 +29,9 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
                 return
             await outbox.frames_changed.wait()
             continue
+        if not outbox.ingest_open.is_set():
+            await outbox.ingest_open.wait()
+            continue  # newer frames may have superseded it meanwhile
         frame = frames[0]
         try:
             r = await http.post(

@@ -41,6 +41,7 @@ async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
             if not isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout)):
                 outbox.count_send(entry.seq)  # it may have arrived: the resend will tell
             outage = True
+            outbox.ingest_open.clear()
             delay = outbox.block_backoff.next()
             log.warning(
                 "POST block %d: %s: %s; retrying in %.2f s (%d block(s) buffered)",
@@ -63,8 +64,10 @@ async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
                 duplicate = bool(r.json().get("duplicate", False))
             except (ValueError, AttributeError):
                 duplicate = False
+            outbox.ingest_open.set()
             outbox.settle(entry.seq, duplicate)
         elif status == 429:
+            outbox.ingest_open.clear()
             outbox.stats.saturated += 1
             delay = outbox.block_backoff.next(retry_after(r))
             log.warning("session saturated (429); resending block %d in %.2f s", entry.seq, delay)
@@ -79,6 +82,7 @@ async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
             outbox.reject(entry.seq, f"HTTP {status}: {detail(r)}")
         else:  # 5xx, 408, 421, 425: the service cannot take it now
             outage = True
+            outbox.ingest_open.clear()
             delay = outbox.block_backoff.next()
             log.warning("POST block %d: HTTP %d; retrying in %.2f s", entry.seq, status, delay)
             await asyncio.sleep(delay)

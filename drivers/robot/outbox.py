@@ -72,7 +72,10 @@ class Outbox:
     Blocks wait, encoded, in `buffer` (seq order) until acknowledged (`settle`) or refused (`reject`);
     frames wait in `frames` (only the FRAME_QUEUE newest). `blocks_changed` / `frames_changed` wake a
     waiting transport; `draining` says the source has ended (deliver what is left, then return). Counters
-    go to `stats`; transports wait `block_backoff` / `frame_backoff` between attempts.
+    go to `stats`; transports wait `block_backoff` / `frame_backoff` between attempts. `ingest_open` is set while
+    the service takes the robot's blocks (its ingest socket accepted, or its last block accepted): frames go only
+    then. A session the service has not let start, or sheds, refuses its frames too, and a robot that kept posting
+    them would double the requests a replica at capacity has to refuse.
     """
 
     def __init__(self, max_buffer_s: float, backoff: tuple[float, float], rng, start_seq: int = 0) -> None:
@@ -80,6 +83,7 @@ class Outbox:
         self.frames: deque[Frame] = deque()
         self.blocks_changed = asyncio.Event()
         self.frames_changed = asyncio.Event()
+        self.ingest_open = asyncio.Event()
         self.block_backoff = Backoff(*backoff, rng=rng)
         self.frame_backoff = Backoff(*backoff, rng=rng)
         self.stats = RobotStats()

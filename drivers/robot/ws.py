@@ -49,6 +49,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
                     outbox.stats.reconnects += 1
                     log.info("reconnected to %s; resending from block %s", endpoint.url, outbox.buffer.oldest_seq)
                 failed = False
+                outbox.ingest_open.set()
                 await _stream(endpoint, outbox, ws)
                 return
         except InvalidStatus as exc:
@@ -78,6 +79,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
         except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as exc:
             why = f"{type(exc).__name__}: {exc}"
         failed = True
+        outbox.ingest_open.clear()
         delay = outbox.block_backoff.next(hinted)
         log.warning(
             "WebSocket to %s: %s; reconnecting in %.2f s (%d block(s) buffered)",

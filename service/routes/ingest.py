@@ -11,7 +11,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
 from service.auth import ROBOT_ONLY
-from service.capacity import RETRY_AFTER_S, AtCapacity
+from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
 from service.routes.common import errors, try_later
@@ -100,7 +100,7 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 if exc.status == 429:
                     why = "saturated"
                     reason = (
-                        f"replica at capacity; reconnect after Retry-After {RETRY_AFTER_S:g} s and resend"
+                        f"replica at capacity; reconnect after Retry-After {exc.retry_after_s:g} s and resend"
                         if isinstance(exc, AtCapacity)
                         else "session saturated; reconnect and resend"
                     )

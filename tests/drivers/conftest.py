@@ -60,6 +60,8 @@ class FakeService:
         self.saturate: int = 0  # answer 429 (HTTP) or close 4429 (WS connect) this many times
         self.shed_handshakes: int = 0  # refuse this many ingest handshakes with HTTP 429, Retry-After: 0.3
         self.handshakes: list[float] = []  # time.monotonic() of every ingest handshake
+        self.frame_posts: list[float] = []  # time.monotonic() of every frame request
+        self.block_answers: list[tuple[float, int]] = []  # (time.monotonic(), status) of every block POST answered
         self.fail_after_accept: set[int] = set()  # process the block, then 503 / close 1011 without the ack
         self.fail_at: dict[int, list[int]] = {}  # seq → HTTP statuses to answer (one per try) before processing it
         self.ws_kill_every: int = 0  # close 1011 after processing every n-th message of a connection
@@ -125,7 +127,9 @@ class FakeService:
             return JSONResponse({"detail": LOST_DETAIL if sess == SESSION_LOST else "no"}, status_code=sess)
         if self.saturate > 0:
             self.saturate -= 1
+            self.block_answers.append((time.monotonic(), 429))
             return JSONResponse({"detail": "saturated"}, status_code=429, headers={"Retry-After": "0.02"})
+        self.block_answers.append((time.monotonic(), 202))
         payload = await request.body()
         seq = peek_seq(payload, request.headers.get("content-type", "") == BINARY_CONTENT_TYPE)
         if self.fail_at.get(seq):
@@ -137,6 +141,7 @@ class FakeService:
         return JSONResponse(body, status_code=status)
 
     async def post_frame(self, request: Request) -> Response:
+        self.frame_posts.append(time.monotonic())
         auth = request.headers.get("authorization", "")
         sess = self._session(request.path_params["sid"], auth.removeprefix("Bearer "))
         if isinstance(sess, int):

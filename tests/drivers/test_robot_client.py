@@ -111,6 +111,35 @@ def test_a_robot_refused_at_the_handshake_waits_the_retry_after_the_service_give
 
 
 @pytest.mark.parametrize("transport", ["ws", "http"])
+def test_frames_wait_until_the_service_takes_the_robots_blocks(kit, fake_service, transport):
+    """A replica that has not let a session start, or sheds it, refuses its frames too: the robot holds its frames
+    until its ingest socket is accepted (ws) or a block is (http), so a refused robot costs the replica one request
+    per retry, not two. The frame then goes, once."""
+    items = [Frame(0.0, b"\x89PNG\r\n\x1a\n", "image/png"), *blocks_from_arrays(kit.stroke_arrays(500, seed=5), 0.02)]
+    if transport == "ws":
+        fake_service.shed_handshakes = 2
+    else:
+        fake_service.saturate = 2
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            return await RobotClient(server.url, kit.ListSource(items), transport=transport, **FAST).run()
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    if transport == "ws":
+        admitted = fake_service.handshakes[2]  # the first handshake accepted
+    else:
+        admitted = next(t for t, status in fake_service.block_answers if status == 202)
+    assert stats.saturated == 2 and stats.acked == 25
+    assert len(fake_service.frame_posts) == 1 and fake_service.frame_posts[0] > admitted
+    assert stats.frames_sent == 1 and stats.frames_refused == 0
+
+
+@pytest.mark.parametrize("transport", ["ws", "http"])
 def test_a_refused_block_is_dropped_not_retried(kit, fake_service, transport):
     arrays = kit.stroke_arrays(1000, seed=2)
     blocks = list(blocks_from_arrays(arrays, 0.02))

@@ -20,9 +20,11 @@ from websockets.sync.client import connect
 
 from drivers.blocks import encode_binary
 from service.capacity import (
+    MAX_RETRY_AFTER_S,
     PROTECT_S,
     READMIT_EVERY_S,
     READMIT_SHARE,
+    RETRY_AFTER_S,
     SAMPLE_EVERY_S,
     SETTLE_S,
     SHED_EVERY_S,
@@ -248,23 +250,62 @@ def test_newcomers_are_shed_together_and_the_sessions_served_well_before_are_pro
     assert _shed_ids(guard, sessions) == ["s3", "s4", "s5", "s6", "s7"]
 
 
-def test_the_sessions_served_well_are_not_protected_once_their_own_windows_are_late():
-    """Robots that ramp up together can look served well for a second and then overload the replica themselves:
-    once the windows of the sessions still served wait past shed_queue_s, the protection lapses."""
-    guard, sessions = _guard(8)
+def _served_well_then_over(n: int) -> tuple[CapacityGuard, list[SimpleNamespace], float]:
+    """n sessions, all streaming within the limits for SETTLE_S (all served well), then the loop over its budget and
+    late (not a queue): none is shed. Returns the guard, the sessions and the time of that update."""
+    guard, sessions = _guard(n)
     guard.cpu_share = 0.3
     for t in (0.0, SETTLE_S / 2, SETTLE_S):
-        _update(guard, sessions, t)  # all eight stream within its limits for SETTLE_S: all served well
-    guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s  # over on the loop only: they stay
-    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
+        _update(guard, sessions, t)
+    guard.cpu_share, guard.lag_s = 0.6, 3 * guard.settings.shed_lag_s
+    t = SETTLE_S + SAMPLE_EVERY_S
+    _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == []
+    return guard, sessions, t
+
+
+def test_the_sessions_served_well_are_not_protected_once_their_own_windows_are_late_for_a_second():
+    """Robots that ramp up together can look served well for a second and then overload the replica themselves:
+    once the windows of the sessions still served have waited past twice shed_queue_s for SETTLE_S, the protection
+    lapses."""
+    guard, sessions, t = _served_well_then_over(8)
     guard.queue_s = 4 * guard.settings.shed_queue_s  # some session's windows late (and worse): but not theirs
-    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S + SHED_EVERY_S)
+    t += SHED_EVERY_S
+    _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == []
-    guard.protected_queue_s = guard.queue_s  # their own windows late: a step, newest first
+    guard.protected_queue_s = guard.queue_s  # their own windows late: not yet a second
     guard.queue_s *= 1.5
-    _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S + 2 * SHED_EVERY_S)
+    t += SHED_EVERY_S
+    late = t
+    _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == []
+    while t < late + SETTLE_S:  # late all along, and no better: after SETTLE_S a step, newest first
+        t += SAMPLE_EVERY_S
+        _update(guard, sessions, t)
     assert _shed_ids(guard, sessions) == ["s6", "s7"]
+
+
+def test_one_late_window_of_the_sessions_served_well_sheds_none_of_them():
+    """On a machine shared with other processes the scheduler can park a pool thread: one of the protected sessions'
+    windows waits 112 ms (past twice shed_queue_s), and 250 ms later they are on time again. Shedding a quarter of
+    them for it cost each shed robot seconds (readmitted 2 s later, it resends its backlog at once; the hostile
+    probe's well-behaved end-to-end p99 7.4 s); nothing is shed, and the episode ends."""
+    guard, sessions = _guard(20)
+    guard.cpu_share = 0.4
+    for t in (0.0, SETTLE_S / 2, SETTLE_S):
+        _update(guard, sessions, t)  # all twenty served well
+    guard.cpu_share, guard.lag_s = 0.47, 0.011  # the hostile probe's run, at the sample that shed five of them
+    guard.queue_s = guard.protected_queue_s = 0.112
+    t += SAMPLE_EVERY_S
+    _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == []
+    guard.queue_s = guard.protected_queue_s = 0.085  # decaying: back under twice the limit
+    for _ in range(int(2 * SETTLE_S / SAMPLE_EVERY_S)):
+        t += SAMPLE_EVERY_S
+        guard.queue_s = guard.protected_queue_s = 0.8 * guard.queue_s
+        _update(guard, sessions, t)
+    assert _shed_ids(guard, sessions) == []
+    assert guard._over_since is None  # the overload episode is over
 
 
 def test_windows_queued_past_the_limit_shed_the_newest_and_refuse_new_sessions_while_the_loop_is_punctual():
@@ -428,7 +469,12 @@ def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
         assert isinstance(closed, str) and closed.startswith("4429") and "Retry-After" in closed
         for i in (1, 2):  # reconnecting: refused at the handshake, before the upgrade, with when to come back
             refused = send(i)
-            assert isinstance(refused, str) and refused.startswith("HTTP 429 Retry-After 2") and "newest" in refused
+            # robot 2 after robot 1, which is older and comes back first: a step (one session) later
+            assert (
+                isinstance(refused, str)
+                and refused.startswith(f"HTTP 429 Retry-After {2 * i}:")
+                and "newest" in refused
+            )
         assert send(0) == 1  # the oldest streams on
         guard.settings = settings.model_copy(update={"cpu_budget": 1.0})  # caught up
         kit.wait_for(lambda: guard.shedding == 1, timeout_s=10)
@@ -496,6 +542,34 @@ def test_readmitted_sessions_are_newcomers_until_protect_s_has_passed():
     guard.cpu_share = 0.6  # over: the backlog of s3 tipped it over; s1 and s2 stay protected
     _update(guard, sessions, SETTLE_S + SAMPLE_EVERY_S)
     assert _shed_ids(guard, sessions) == ["s3"]
+
+
+def _retry_after(guard: CapacityGuard, session: SimpleNamespace) -> float:
+    """The Retry-After (s) of the refusal of `session`'s next block."""
+    with pytest.raises(AtCapacity) as refused:
+        guard.admit_block(session)  # type: ignore[arg-type]
+    return float(refused.value.headers["Retry-After"])
+
+
+def test_a_refused_robot_is_told_to_come_back_after_the_steps_that_readmit_those_older_than_it():
+    """Room comes back oldest first, a step at a time: 150 robots refused together and all told 2 s would come back
+    together every 2–3 s, a wave of refused handshakes each time. Each is told RETRY_AFTER_S more for every step of
+    refused sessions older than it, up to MAX_RETRY_AFTER_S: the shed ones, and those waiting to start."""
+    sessions = [_Robot(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_seq=0) for i in range(40)]
+    guard = CapacityGuard(Settings(), ServiceMetrics(), lambda: sessions)
+    _update(guard, sessions[:10], 5.0)  # ten stream within the limits: a readmission step is one session
+    guard._shed = {s.id for s in sessions[10:30]}
+    assert [_retry_after(guard, s) for s in sessions[10:16]] == [
+        RETRY_AFTER_S * k for k in (1, 2, 3, 4, MAX_RETRY_AFTER_S / RETRY_AFTER_S, MAX_RETRY_AFTER_S / RETRY_AFTER_S)
+    ]
+    guard._shed = {s.id for s in sessions[10:12]}
+    for s in sessions[12:]:
+        s.last_seq = -1  # not streamed yet: they wait to start
+    guard.queue_s = 4 * guard.settings.session_queue_s
+    guard.cpu_share = 0.6  # busy, its windows late: no room to start
+    assert _retry_after(guard, sessions[12]) == 3 * RETRY_AFTER_S  # behind the two shed
+    assert _retry_after(guard, sessions[13]) == 4 * RETRY_AFTER_S  # and the one refused a start before it
+    assert _retry_after(guard, sessions[11]) == 2 * RETRY_AFTER_S  # older than those waiting: behind one
 
 
 def test_after_a_flood_readmission_steps_are_a_tenth_of_the_sessions_served_not_of_those_shed():
