@@ -58,7 +58,12 @@ DEFAULT_OUT = Path("reports/bench/hostile.json")
 async def attacks(url: str, api_key: str, assets: Assets, block_s: float, report: dict) -> None:
     """The probe's requests, one after another, each answer recorded."""
     async with httpx.AsyncClient(timeout=30) as client:
-        session = (await client.post(f"{url}/sessions", json={"name": "attacker"}, headers=bearer(api_key))).json()
+        while (
+            r := await client.post(f"{url}/sessions", json={"name": "attacker"}, headers=bearer(api_key))
+        ).status_code == 429:
+            await asyncio.sleep(float(r.headers.get("Retry-After", "1")))  # the replica is busy with the robots' start
+        r.raise_for_status()
+        session = r.json()
         robot = {**bearer(session["robot_token"]), "Content-Type": BINARY_CONTENT_TYPE}
         blocks_url = url + session_path(session["session_id"], "blocks")
         # 1. the 2.8 MB, 10 Hz block

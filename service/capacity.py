@@ -1,15 +1,16 @@
 """Admission by what the process can serve: refuse early instead of slowing every session down.
 
 A replica is one Python process: one event loop, one GIL, about one core. `CapacityGuard` measures,
-every `SAMPLE_EVERY_S`, two things that say how close the process is to saturation:
+every `SAMPLE_EVERY_S`, what says how close the process is to saturation:
 
 - **loop lag**: how late the event loop runs a timer. Every request, block and acknowledgement
   waits this long before the loop gets to it; it grows without bound once the loop has more work
   than time.
 - **loop CPU share**: the event-loop thread's CPU time per wall second (0…1). The loop thread is
   what saturates first: it parses every request and WebSocket frame, decodes and admits every
-  block and publishes every event, under one GIL shared with the pool threads. (The process's
-  total CPU would also count whatever else shares the process, e.g. a test client.)
+  block and publishes every event, under one GIL shared with the pool threads.
+- **threads' CPU share**: the loop's and its pools' threads together (`threads_cpu`, service/thread_cpu.py: not the
+  process's total, which would count whatever else shares it, e.g. a test's client).
 
 A late timer alone may mean the machine is busy with other processes; the lag counts as the
 process's own only while the process is busy too: its loop thread over half its budget, or all its
@@ -154,9 +155,11 @@ class CapacityGuard:
         metrics: ServiceMetrics,
         sessions: Callable[[], Iterable[Session]] = lambda: (),
         window_waits: Callable[[float], Mapping[str, float]] = lambda now: {},
+        threads_cpu: Callable[[], float] = time.process_time,
     ) -> None:
         """window_waits(now): session id → the longest its windows waited since the last call, s
-        (WindowBatcher.take_waits)."""
+        (WindowBatcher.take_waits). threads_cpu(): CPU seconds the service's threads have used, the loop's and its
+        pools' (ThreadCpu.seconds; the whole process's by default)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
@@ -164,8 +167,10 @@ class CapacityGuard:
         self.protected_queue_s = 0.0  # the same of the sessions served well before an overload (not shed)
         self._window_waits = window_waits
         self.cpu_share = 0.0
-        self.process_share = 0.0  # cores the whole process used (all threads), smoothed
+        self.process_share = 0.0  # cores the service's threads used together (the loop and its pools), smoothed
+        self._threads_cpu = threads_cpu
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
+        self.process_per_session = 0.0  # the whole process's CPU per streaming session (0 until measured)
         self._streaming = 0
         self._shed: set[str] = set()
         self._sessions = sessions
@@ -203,14 +208,15 @@ class CapacityGuard:
     async def _sample(self) -> None:
         weight = 1 - math.exp(-SAMPLE_EVERY_S / SMOOTHING_S)
         wall, cpu = time.monotonic(), time.thread_time()  # this runs on the loop thread: its CPU clock
-        process_cpu = time.process_time()
+        process_cpu = self._threads_cpu()
         while True:
             await asyncio.sleep(SAMPLE_EVERY_S)
-            now, now_cpu, now_process = time.monotonic(), time.thread_time(), time.process_time()
+            now, now_cpu, now_process = time.monotonic(), time.thread_time(), self._threads_cpu()
             elapsed = now - wall
             lag = max(0.0, elapsed - SAMPLE_EVERY_S)
             share = (now_cpu - cpu) / elapsed if elapsed > 0 else 0.0
-            process = (now_process - process_cpu) / elapsed if elapsed > 0 else 0.0
+            # (a pool thread that ended takes its time out of the sum)
+            process = max(0.0, now_process - process_cpu) / elapsed if elapsed > 0 else 0.0
             wall, cpu, process_cpu = now, now_cpu, now_process
             # a late timer means the loop was busy for all of it: weigh it by how long it stood
             w = min(1.0, weight * elapsed / SAMPLE_EVERY_S)
@@ -260,6 +266,7 @@ class CapacityGuard:
         measured = [s for s in streaming if s.id not in self._started] or streaming
         if measured:
             self.cpu_per_session = self.cpu_share / len(measured)
+            self.process_per_session = self.process_share / len(measured)
         if self.protected_queue_s <= PROTECTED_QUEUE_FACTOR * self.settings.shed_queue_s:
             self._protected_late_since = None
         elif self._protected_late_since is None:
@@ -428,13 +435,19 @@ class CapacityGuard:
         if self._streaming < 4:  # too few to measure a session's cost by
             return None
         starting = self.starting(now)
-        if self.cpu_share + (starting + 1) * self.cpu_per_session > budget:
-            return (
-                f"one more session ({self.cpu_per_session:.3f} of a core each) would take its event loop over its "
-                f"budget of {budget:g} (now {self.cpu_share:.2f}"
-                + (f", with {starting} session(s) admitted and not measured yet" if starting else "")
-                + ")"
-            )
+        # the loop, and its threads together: the window and frame pools share its GIL, and a robot streaming with a
+        # camera costs them half as much again as the loop (its windows, its frames' decoding and embedding)
+        for what, share, per_session in (
+            ("its event loop", self.cpu_share, self.cpu_per_session),
+            ("its threads together", self.process_share, self.process_per_session),
+        ):
+            if share + (starting + 1) * per_session > budget:
+                return (
+                    f"one more session ({per_session:.3f} of a core each) would take {what} over the budget of "
+                    f"{budget:g} (now {share:.2f}"
+                    + (f", with {starting} session(s) admitted and not measured yet" if starting else "")
+                    + ")"
+                )
         return None
 
     def admit_block(self, session: Session) -> None:

@@ -122,7 +122,7 @@ class ServiceMetrics:
         )
         self.process_cpu_share = Gauge(
             "hapticlink_process_cpu_share",
-            "Cores the whole process used, all threads (smoothed).",
+            "Cores the service's threads used together, the event loop and its pools (smoothed).",
             registry=registry,
         )
         self.latency = Histogram(

@@ -210,7 +210,9 @@ class Settings(BaseSettings):
         gt=0,
         le=1,
         description="share of one core the event-loop thread may use (smoothed over ~1 s) before the replica refuses "
-        "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); service/capacity.py",
+        "new sessions (429) and sheds the blocks of its newest sessions (429 / close 4429); a new session, or a "
+        "robot's start, is also refused when one more at the measured CPU per session would take the service's "
+        "threads together over it; service/capacity.py",
     )
     session_lag_s: float = Field(
         0.015,

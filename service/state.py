@@ -39,6 +39,7 @@ from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
 from service.schemas import HealthOut, ReadyOut
 from service.settings import Settings
+from service.thread_cpu import ThreadCpu
 from service.warmup import warm_up
 
 log = logging.getLogger(__name__)
@@ -58,11 +59,19 @@ class ServiceState:
         )
         self.runtime: Runtime | None = None
         self.load_error: str | None = None
-        self.window_pool = ThreadPoolExecutor(settings.pool_threads, thread_name_prefix="hapticlink-window")
+        # admission measures the CPU of these pools' threads with the loop's (they share its GIL)
+        self.threads = ThreadCpu()
+        self.window_pool = ThreadPoolExecutor(
+            settings.pool_threads, thread_name_prefix="hapticlink-window", initializer=self.threads.register
+        )
         # the visual path has pools of its own, never the window pool: windows do not wait behind images.
         # Decoding (milliseconds) has its own thread so that it never waits behind an embedding (up to a second).
-        self.frame_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-frames")
-        self.visual_pool = ThreadPoolExecutor(1, thread_name_prefix="hapticlink-visual")
+        self.frame_pool = ThreadPoolExecutor(
+            1, thread_name_prefix="hapticlink-frames", initializer=self.threads.register
+        )
+        self.visual_pool = ThreadPoolExecutor(
+            1, thread_name_prefix="hapticlink-visual", initializer=self.threads.register
+        )
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
         self.capacity = CapacityGuard(
@@ -70,6 +79,7 @@ class ServiceState:
             self.metrics,
             lambda: self.directory.sessions.values(),
             lambda now: self.batcher.take_waits(now),
+            self.threads.seconds,
         )
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool, self.capacity)
         self.blocks = BlockIntake(self.metrics, self.capacity)

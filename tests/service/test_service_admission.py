@@ -659,7 +659,7 @@ def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frame
     starts, its load is not taken for measured until STARTING_WITHIN_S has passed."""
     guard, sessions = _guard(8)
     now = time.monotonic()
-    guard.cpu_share = 0.8  # 0.1 a session: one more would take the loop over its budget of 0.85
+    guard.cpu_share = guard.process_share = 0.8  # 0.1 a session: one more would take the loop over its budget of 0.85
     _update(guard, sessions, now)
     robot = _waiting("w", now - 60)
     sessions.append(robot)
@@ -669,7 +669,11 @@ def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frame
     assert robot.last_activity > now - 1  # touched: the reaper counts from its robot's last try
     with pytest.raises(AtCapacity, match="its frames wait with its first block"):
         guard.admit_frame(robot)  # type: ignore[arg-type]
-    guard.cpu_share = 0.4
+    guard.cpu_share = 0.4  # the loop has room, its threads together do not (0.1 a session)
+    _update(guard, sessions, now + SAMPLE_EVERY_S)
+    with pytest.raises(AtCapacity, match=r"would take its threads together over the budget of 0.85 \(now 0.80\)"):
+        guard.admit_block(robot)  # type: ignore[arg-type]
+    guard.process_share = 0.6
     _update(guard, sessions, now + SAMPLE_EVERY_S)
     guard.admit_frame(robot)  # type: ignore[arg-type]
     guard.admit_block(robot)  # type: ignore[arg-type]
