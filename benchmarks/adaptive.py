@@ -289,12 +289,12 @@ def _camera_frame(photo: np.ndarray, rng: np.random.Generator) -> bytes:
 # ---- one policy over the stream --------------------------------------------------------------------
 def _replay(settings, stream: Stream, name: str) -> dict:
     """Everything the service computes for this stream under `settings`, in time order (see the docstring)."""
+    from drivers.scene_change import thumbnail
     from models.visual.config import VisualConfig  # noqa: F401 - imported before timing
     from service.adaptive import SceneViews
     from service.live_session import canonical_channels, stream_contract
     from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, estimate_batch
     from service.runtime import load_runtime
-    from service.scene_change import thumbnail
     from service.warmup import warm_up
 
     runtime = load_runtime(settings)

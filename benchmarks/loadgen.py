@@ -5,9 +5,11 @@ blocks encoded before the clock starts, and each process's own send lag measured
 encodes every block (binary format, seq from 0) and, before the common start instant, opens the robots'
 sessions (the fleet key), their ingest WebSockets and an operator's events WebSocket per session. From the
 start instant each robot sends block k when its span has ended (start + offset + k·block_s; a tap block, when
-the model reads taps, at once), a camera frame every `frame_every_s` by HTTP POST when the configuration has
-frames, and reads its acknowledgements; the operator stamps every window event against the moment the block
-that completed it left the generator (one clock: CLOCK_MONOTONIC, shared by the processes).
+the model reads taps, at once), a camera frame every `frame_every_s` when the configuration has frames — by HTTP
+POST when the robot client's `FrameGate` lets it go (its scene changed, or `frame_refresh_s` passed; a robot's
+photo never changes, so its thumbnail is computed once) — and reads its acknowledgements; the operator stamps
+every window event against the moment the block that completed it left the generator (one clock:
+CLOCK_MONOTONIC, shared by the processes).
 
 What comes back, per process: the send lag of every block (ms: how late after its due instant it went out —
 the generator's own delay, which a valid measurement keeps small), end-to-end latencies (ms), the windows'
@@ -33,6 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from drivers.blocks import Block, encode_binary
+from drivers.robot.backoff import retry_after
+from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail
+from drivers.scene_change import FRAME_CHANGE
 from drivers.simulated import tap_block
 from drivers.source import blocks_from_arrays
 from texture_library.library import Library
@@ -60,6 +65,8 @@ class Plan:
     taps: bool = False
     frames: bool = False
     frame_every_s: float = 1.0
+    frame_change: float = FRAME_CHANGE  # the robot client's FrameGate; 0: every frame goes
+    frame_refresh_s: float = FRAME_REFRESH_S
     hop_s: float = 0.5
 
 
@@ -79,6 +86,7 @@ class GeneratorResult:
     blocks_refused: int = 0  # ok:false answers (a refused block is not resent here)
     saturated_closes: int = 0  # ingest sockets closed 4429
     frames_sent: int = 0
+    frames_unchanged: int = 0  # kept back by the robot's FrameGate
     frames_refused: int = 0
     failures: list[str] = field(default_factory=list)
     cpu_s: float = 0.0  # this process's CPU time over the streaming phase
@@ -138,6 +146,8 @@ class Robot:
 
     def __init__(self, k: int, payloads: list[bytes], taps: bool, frame: bytes | None) -> None:
         self.k, self.payloads, self.taps, self.frame = k, payloads, taps, frame
+        # the scene-change thumbnail of its one photo, before the clock starts
+        self.frame_thumb = frame_thumbnail(frame) if frame is not None else None
         self.sent_at: dict[int, float] = {}
         self.session: dict | None = None
         self.ingest = None
@@ -233,15 +243,23 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
     assert robot.session is not None and robot.frame is not None
     target = url + session_path(robot.session["session_id"], "frames")
     headers = {**bearer(robot.session["robot_token"]), "Content-Type": "image/png"}
+    gate = FrameGate(plan.frame_change, plan.frame_refresh_s)
     k = 0
     while (due := start + k * plan.frame_every_s) < start + plan.duration_s:
         delay = due - time.perf_counter()
         if delay > 0:
             await asyncio.sleep(delay)
-        r = await http.post(target, content=robot.frame, headers=headers)
-        out.frames_sent += 1
-        out.frames_refused += r.status_code == 429
         k += 1
+        if not gate.admit(robot.frame_thumb, due):
+            out.frames_unchanged += 1
+            continue
+        # as the robot client does: a frame refused with 429 (the visual queue was full) goes again after Retry-After
+        while (r := await http.post(target, content=robot.frame, headers=headers)).status_code == 429:
+            out.frames_refused += 1
+            if time.perf_counter() >= start + plan.duration_s:
+                break
+            await asyncio.sleep(retry_after(r) or 1.0)
+        out.frames_sent += 1
 
 
 async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:

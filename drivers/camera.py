@@ -46,6 +46,17 @@ def png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def frame_gray(data: bytes) -> np.ndarray:
+    """Encoded image → (H, W) float32 grey in [0, 1] (8-bit luma); ValueError when Pillow cannot read it."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            return np.asarray(img.convert("L"), dtype=np.float32) / np.float32(255.0)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise ValueError(f"not a readable image ({exc})") from None
+
+
 def encode_image(data: bytes, label: str = "image") -> tuple[bytes, str]:
     """(bytes, content type) ready to send: complete PNG/JPEG as is, other formats as PNG.
 

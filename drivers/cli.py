@@ -7,6 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from drivers.robot.frames import FRAME_REFRESH_S
+from drivers.scene_change import FRAME_CHANGE
 from drivers.source import DEFAULT_BLOCK_S
 
 SOURCE_SPECS = (
@@ -83,6 +85,21 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
         default=60.0,
         metavar="S",
         help="seconds of unacknowledged data kept for resending (default 60)",
+    )
+    p.add_argument(
+        "--frame-change",
+        type=float,
+        default=FRAME_CHANGE,
+        metavar="D",
+        help=f"send a camera frame only when its scene changed by more than D since the last one sent (default "
+        f"{FRAME_CHANGE:g}, the service's own scene-change threshold; 0: send every frame)",
+    )
+    p.add_argument(
+        "--frame-refresh-s",
+        type=float,
+        default=FRAME_REFRESH_S,
+        metavar="S",
+        help=f"… or once S seconds have passed since it (default {FRAME_REFRESH_S:g})",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)
@@ -208,6 +225,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         session_name=args.name,
         start_seq=args.start_seq,
         api_key=args.api_key,
+        frame_change=args.frame_change,
+        frame_refresh_s=args.frame_refresh_s,
     )
     try:
         stats = asyncio.run(_stream(client, args.duration))

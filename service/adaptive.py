@@ -4,7 +4,7 @@ Two modes (`HAPTICLINK_SERVING_POLICY`):
 
 * ``always-full`` — every camera frame is embedded and the session's visual input is the newest
   frame's embedding; every window is estimated by the full (served) model.
-* ``adaptive`` — a frame is embedded only when the scene changed (`service/scene_change.py`: its
+* ``adaptive`` — a frame is embedded only when the scene changed (`drivers/scene_change.py`: its
   thumbnail differs from the scene's first frame by more than `frame_change`), and then the next
   `pool_frames − 1` frames of that scene too; the scene's embeddings are pooled
   (`models/visual/pooling.py`'s `pool_views`, the mean) into the session's visual input, so several views of one
@@ -26,8 +26,8 @@ from typing import Literal
 
 import numpy as np
 
+from drivers.scene_change import scene_changed
 from models.visual.pooling import ViewPool
-from service.scene_change import scene_changed
 
 PolicyMode = Literal["always-full", "adaptive"]
 POLICY_MODES: tuple[str, ...] = ("always-full", "adaptive")

@@ -18,6 +18,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from drivers.blocks import Block, decode_binary, decode_json
+from drivers.scene_change import thumbnail
 from service.bus import EventBus
 from service.capacity import CapacityGuard
 from service.errors import ServiceError, saturated, session_not_found
@@ -25,7 +26,6 @@ from service.events import status_event
 from service.live_session import RETRY_AFTER_S, Session
 from service.metrics import ServiceMetrics
 from service.runtime import Runtime
-from service.scene_change import thumbnail
 from service.schemas import FrameAck
 from service.settings import Settings
 

@@ -40,6 +40,7 @@ from typing import Literal
 import numpy as np
 
 from drivers.blocks import Block, SampleBlock, TapBlock
+from drivers.scene_change import scene_changed
 from models.inference.ood import FrameCheck
 from models.tactile.stream import StreamContract
 from models.tactile.taps import tap_features
@@ -51,7 +52,6 @@ from service.events import status_event, window_event
 from service.metrics import ServiceMetrics
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
-from service.scene_change import scene_changed
 from service.schemas import SessionCounters
 from service.settings import Settings
 from texture_library.channels import UNIT_SCALE

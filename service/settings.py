@@ -15,6 +15,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from drivers.scene_change import FRAME_CHANGE
+
 ENV_PREFIX = "HAPTICLINK_"
 _INSTANCE_ID = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
 
@@ -191,12 +193,12 @@ class Settings(BaseSettings):
         4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429"
     )
     frame_change: float = Field(
-        0.015,
+        FRAME_CHANGE,
         ge=0,
         le=2,
         description="a new scene (embedded) when a frame's thumbnail — block means and block standard "
         "deviations — differs from the scene's first frame by more than this (mean absolute grey difference of "
-        "each, summed; service/scene_change.py)",
+        "each, summed; drivers/scene_change.py)",
     )
     timeout_keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this, s")
     request_read_timeout_s: float = Field(

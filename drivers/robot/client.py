@@ -22,14 +22,16 @@ from typing import Literal
 from urllib.parse import urlsplit
 
 import httpx
+import numpy as np
 
 from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, encode_json
 from drivers.robot.backoff import Backoff
-from drivers.robot.frames import send_frames
+from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail, send_frames
 from drivers.robot.http import send_http
 from drivers.robot.outbox import Endpoint, Outbox, RobotStats
 from drivers.robot.session import SessionInfo, api_key_from_env, open_session
 from drivers.robot.ws import send_ws
+from drivers.scene_change import FRAME_CHANGE
 from drivers.source import SensorSource, check_positive
 
 log = logging.getLogger("drivers.robot")
@@ -49,7 +51,9 @@ class RobotClient:
     first block (when resuming a session that already has blocks, pass more than its last seq).
     api_key: the fleet API key that opens sessions (default $HAPTICLINK_API_KEY). open_timeout_s: how long
     opening a session may keep retrying an unreachable or not-ready service before ServiceUnavailable (None:
-    for ever). `run()` closes the source when it returns.
+    for ever). frame_change, frame_refresh_s: a camera frame is sent only when its scene changed by more than
+    frame_change since the last frame sent, or frame_refresh_s after it (drivers/robot/frames.py's `FrameGate`;
+    frame_change=0 sends every frame). `run()` closes the source when it returns.
 
     What the transports share with the client — the resend buffer, the frame queue, acknowledgements,
     counters and backoffs — is `outbox` (drivers/robot/outbox.py); `stats` is its counters.
@@ -74,6 +78,8 @@ class RobotClient:
         seed: int | None = None,
         api_key: str | None = None,
         open_timeout_s: float | None = 60.0,
+        frame_change: float = FRAME_CHANGE,
+        frame_refresh_s: float = FRAME_REFRESH_S,
     ) -> None:
         parts = urlsplit(url)
         if parts.scheme not in ("http", "https") or not parts.netloc:
@@ -104,6 +110,8 @@ class RobotClient:
         self.request_timeout_s = request_timeout_s
         self.open_timeout_s = open_timeout_s
         self.outbox = Outbox(max_buffer_s, backoff, random.Random(seed), start_seq)
+        self.frame_gate = FrameGate(frame_change, frame_refresh_s)
+        self._thumbnailed: tuple[bytes, np.ndarray | None] | None = None  # the last frame decoded, and its thumbnail
         self._stopping = False
         self._ran = False
         self._reader: asyncio.Task | None = None
@@ -227,7 +235,7 @@ class RobotClient:
             if isinstance(item, (SampleBlock, TapBlock)):
                 self._enqueue_block(item)
             elif isinstance(item, Frame):
-                self._enqueue_frame(item)
+                await self._enqueue_frame(item)
             else:
                 log.warning("source %s yielded a %s; ignored", getattr(self.source, "name", "?"), type(item).__name__)
 
@@ -239,5 +247,17 @@ class RobotClient:
         duration = 0.0 if isinstance(block, TapBlock) else max(c.duration_s for c in block.channels.values())
         self.outbox.add_block(payload, duration)
 
-    def _enqueue_frame(self, frame: Frame) -> None:
-        self.outbox.add_frame(frame)
+    async def _enqueue_frame(self, frame: Frame) -> None:
+        """Queue a frame for sending if its scene changed (or is due again); decoded in a thread, off the loop, unless
+        its bytes repeat the last frame's (a file or a simulated camera)."""
+        self.stats.frames_read += 1
+        gate = self.frame_gate
+        thumb = None
+        if gate.reads_frames:
+            if self._thumbnailed is None or self._thumbnailed[0] != frame.image:
+                self._thumbnailed = (frame.image, await asyncio.to_thread(frame_thumbnail, frame.image))
+            thumb = self._thumbnailed[1]
+        if gate.admit(thumb, asyncio.get_running_loop().time()):
+            self.outbox.add_frame(frame)
+        else:
+            self.stats.frames_unchanged += 1

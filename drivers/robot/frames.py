@@ -1,4 +1,5 @@
-"""Camera frames: `POST /sessions/{id}/frames`; only the few newest wait out an outage or a busy visual queue."""
+"""Camera frames: which ones go (`FrameGate`: only a changed scene), and `POST /sessions/{id}/frames`; only the few
+newest wait out an outage or a busy visual queue."""
 
 from __future__ import annotations
 
@@ -6,13 +7,63 @@ import asyncio
 import logging
 
 import httpx
+import numpy as np
 
+from drivers.camera import frame_gray
 from drivers.protocol import RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
 from drivers.robot.errors import RobotAuthError, session_lost
 from drivers.robot.outbox import Endpoint, Outbox
+from drivers.scene_change import FRAME_CHANGE, scene_changed, thumbnail
 
 log = logging.getLogger("drivers.robot")
+
+FRAME_REFRESH_S = 10.0
+
+
+class FrameGate:
+    """Which camera frames a robot sends: one whose scene changed since the last frame sent (drivers/scene_change.py:
+    its thumbnail differs by more than `change`), or any once `refresh_s` seconds have passed since then, so that a
+    service that did not keep the scene (a frame it rejected, a replica that took the session over) sees it again.
+    change=0 sends every frame.
+
+    Why on the robot: the service embeds only a changed scene anyway, but it would decode every frame to find out — a
+    robot that looks at one surface at 1 fps would cost it a decode a second for nothing. The service runs its own
+    test on what arrives, so the gate saves work and decides nothing.
+
+    `admit(thumb, now)`: thumb is `frame_thumbnail(frame.image)` (None: unreadable, or change=0), now in seconds of
+    a monotonic clock. An unreadable frame goes: the service's answer says what is wrong with it."""
+
+    def __init__(self, change: float = FRAME_CHANGE, refresh_s: float = FRAME_REFRESH_S) -> None:
+        if not 0 <= change <= 2:
+            raise ValueError(f"frame change must lie in [0, 2] (0: send every frame), got {change!r}")
+        if not refresh_s > 0:
+            raise ValueError(f"frame refresh must be a positive number of seconds, got {refresh_s!r}")
+        self.change = change
+        self.refresh_s = refresh_s
+        self._sent: np.ndarray | None = None  # thumbnail of the last frame let through
+        self._sent_at: float | None = None
+
+    @property
+    def reads_frames(self) -> bool:
+        """Whether admit needs the frames' thumbnails (not when every frame goes)."""
+        return self.change > 0
+
+    def admit(self, thumb: np.ndarray | None, now: float) -> bool:
+        """Send this frame? Remembers it as the scene sent when it goes."""
+        due = self._sent_at is None or now - self._sent_at >= self.refresh_s
+        if self.reads_frames and thumb is not None and not due and not scene_changed(self._sent, thumb, self.change):
+            return False
+        self._sent, self._sent_at = thumb, now
+        return True
+
+
+def frame_thumbnail(image: bytes) -> np.ndarray | None:
+    """An encoded frame's scene-change thumbnail (drivers/scene_change.py), or None when it cannot be decoded."""
+    try:
+        return thumbnail(frame_gray(image))
+    except ValueError:
+        return None
 
 
 async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
@@ -54,8 +105,10 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
             delay = outbox.frame_backoff.next(retry_after(r) if status == 429 else None)
             await asyncio.sleep(delay)
             continue
-        if frames and frames[0] is frame:  # it may have been superseded meanwhile
+        if frames and frames[0] is frame:
             frames.popleft()
+        else:  # add_frame superseded it while it was on its way, and counted it dropped; but it arrived
+            outbox.stats.frames_dropped -= 1
         if 200 <= status < 300:
             outbox.stats.frames_sent += 1
             outbox.frame_backoff.reset()

@@ -42,6 +42,7 @@ class RobotStats:
     reconnects: int = 0  # recoveries after a failed connection or outage
     saturated: int = 0  # times the service said the session was saturated (429 / close 4429)
     frames_read: int = 0
+    frames_unchanged: int = 0  # not sent: the scene had not changed since the last frame sent (FrameGate)
     frames_sent: int = 0
     frames_dropped: int = 0  # superseded by newer frames during an outage
     frames_rejected: int = 0
@@ -120,7 +121,6 @@ class Outbox:
 
     def add_frame(self, frame: Frame) -> None:
         """Queue a frame for sending; past FRAME_QUEUE the oldest is superseded (stats.frames_dropped)."""
-        self.stats.frames_read += 1
         if len(self.frames) >= FRAME_QUEUE:
             self.frames.popleft()
             self.stats.frames_dropped += 1

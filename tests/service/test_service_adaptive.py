@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
+from drivers.scene_change import thumbnail
 from service.adaptive import SceneViews, ServingPolicy
-from service.scene_change import thumbnail
 from texture_library.nearest import PerceptualIndex, decision_margin
 
 

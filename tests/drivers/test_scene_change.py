@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.scene_change import frame_difference, scene_changed, thumbnail
+from drivers.scene_change import frame_difference, scene_changed, thumbnail
 
 
 def test_thumbnail_is_the_block_means_and_standard_deviations():

@@ -10,8 +10,11 @@ HaTT photos of equal brightness differ in them (with means alone, 42 % of pairs 
 textures differed by less than 0.05; with both, 1.3 % by less than 0.02). Sensor noise and JPEG
 artefacts of one camera average out over a block: successive frames of one surface, shifted by a
 few pixels, differ by ≤ 0.011 there (`benchmarks/adaptive.py`'s camera model), hence the default
-threshold 0.015 (HAPTICLINK_FRAME_CHANGE). A camera whose noise level jumps changes the standard
-deviations, and counts as a new scene.
+threshold `FRAME_CHANGE` = 0.015 (the service's HAPTICLINK_FRAME_CHANGE, the robot's --frame-change). A camera
+whose noise level jumps changes the standard deviations, and counts as a new scene.
+
+Both sides run it: the robot client sends a frame only when its scene changed (drivers/robot/frames.py's
+`FrameGate`), and the service embeds only such frames (service/adaptive.py).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 THUMBNAIL_SIZE = 16
+FRAME_CHANGE = 0.015  # above successive frames of one surface (≤ 0.011), below two surfaces (see above)
 
 
 def thumbnail(gray: np.ndarray, size: int = THUMBNAIL_SIZE) -> np.ndarray:
