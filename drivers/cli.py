@@ -59,7 +59,7 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=DEFAULT_BLOCK_S,
         metavar="S",
-        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: 10 blocks per 500 ms window)",
+        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: {0.5 / DEFAULT_BLOCK_S:.0f} blocks per 500 ms window)",
     )
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")

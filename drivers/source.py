@@ -29,11 +29,13 @@ log = logging.getLogger(__name__)
 
 Item = SampleBlock | TapBlock | Frame
 
-#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 50 ms, ten
+#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 100 ms, five
 #: blocks per 500 ms window. The service's cost is mostly per block (a WebSocket message, its acknowledgement,
-#: decoding, admission), so 50 ms blocks cost it about half the CPU per robot-second of 20 ms ones, for at most
-#: 30 ms more before a window's last samples leave the robot (benchmarks/service.py, docs/service.md).
-DEFAULT_BLOCK_S = 0.05
+#: decoding, admission), so 100 ms blocks cost it a fifth less CPU per robot-second than 50 ms ones, and half
+#: of 20 ms ones. A window still completes with the block that ends where it ends (a divisor of the 500 ms hop,
+#: channels at 1 kHz or above); a channel resampled up from a slower rate holds its last samples back until the
+#: next block, one block later (benchmarks/service.py, docs/drivers.md).
+DEFAULT_BLOCK_S = 0.1
 
 
 @runtime_checkable
