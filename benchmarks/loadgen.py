@@ -85,7 +85,7 @@ class GeneratorResult:
     blocks_acked: int = 0
     blocks_refused: int = 0  # ok:false answers (a refused block is not resent here)
     saturated_closes: int = 0  # ingest sockets closed 4429
-    frames_sent: int = 0
+    frames_sent: int = 0  # let through by the gate and answered other than 429
     frames_unchanged: int = 0  # kept back by the robot's FrameGate
     frames_refused: int = 0
     failures: list[str] = field(default_factory=list)
@@ -259,7 +259,8 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
             if time.perf_counter() >= start + plan.duration_s:
                 break
             await asyncio.sleep(retry_after(r) or 1.0)
-        out.frames_sent += 1
+        else:
+            out.frames_sent += 1
 
 
 async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:
