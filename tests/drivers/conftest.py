@@ -351,6 +351,21 @@ async def take(source, n: int | None = None, *, samples: int | None = None) -> l
     return out
 
 
+def stream(app, items, **options):
+    """Serve `app` on loopback and stream `items` to it with a RobotClient(**options) → its stats."""
+    from drivers.robot import RobotClient
+
+    async def main():
+        server = LoopbackServer(app)
+        await server.start()
+        try:
+            return await RobotClient(server.url, ListSource(items), **options).run()
+        finally:
+            await server.stop()
+
+    return asyncio.run(main())
+
+
 @pytest.fixture
 def kit() -> SimpleNamespace:
     """The helpers above, for test modules (conftest is not importable under --import-mode=importlib)."""
@@ -364,4 +379,5 @@ def kit() -> SimpleNamespace:
         stroke_arrays=stroke_arrays,
         concat=concat,
         take=take,
+        stream=stream,
     )

@@ -95,16 +95,7 @@ def test_a_robot_refused_at_the_handshake_waits_the_retry_after_the_service_give
     long before it tries again (its own backoff is far shorter here), then delivers everything."""
     blocks = list(blocks_from_arrays(kit.stroke_arrays(500, seed=3), 0.02))
     fake_service.shed_handshakes = 2
-    server = kit.LoopbackServer(fake_service.app)
-
-    async def main():
-        await server.start()
-        try:
-            return await RobotClient(server.url, kit.ListSource(blocks), transport="ws", **FAST).run()
-        finally:
-            await server.stop()
-
-    stats = asyncio.run(main())
+    stats = kit.stream(fake_service.app, blocks, transport="ws", **FAST)
     waits = [b - a for a, b in zip(fake_service.handshakes, fake_service.handshakes[1:])]
     assert stats.saturated == 2 and stats.acked == len(blocks)
     assert len(waits) >= 2 and min(waits[:2]) >= 0.3  # Retry-After, not the 10–50 ms backoff
@@ -120,16 +111,7 @@ def test_frames_wait_until_the_service_takes_the_robots_blocks(kit, fake_service
         fake_service.shed_handshakes = 2
     else:
         fake_service.saturate = 2
-    server = kit.LoopbackServer(fake_service.app)
-
-    async def main():
-        await server.start()
-        try:
-            return await RobotClient(server.url, kit.ListSource(items), transport=transport, **FAST).run()
-        finally:
-            await server.stop()
-
-    stats = asyncio.run(main())
+    stats = kit.stream(fake_service.app, items, transport=transport, **FAST)
     if transport == "ws":
         admitted = fake_service.handshakes[2]  # the first handshake accepted
     else:
@@ -144,16 +126,7 @@ def test_a_refused_block_is_dropped_not_retried(kit, fake_service, transport):
     arrays = kit.stroke_arrays(1000, seed=2)
     blocks = list(blocks_from_arrays(arrays, 0.02))
     fake_service.reject_seqs = {7}
-    server = kit.LoopbackServer(fake_service.app)
-
-    async def main():
-        await server.start()
-        try:
-            return await RobotClient(server.url, kit.ListSource(blocks), transport=transport, **FAST).run()
-        finally:
-            await server.stop()
-
-    stats = asyncio.run(main())
+    stats = kit.stream(fake_service.app, blocks, transport=transport, **FAST)
     sess = fake_service.only_session()
     assert sess.deliveries[7] == 1, "a 400 block is not sent again"
     assert [b.seq for b in sess.accepted] == [s for s in range(len(blocks)) if s != 7]

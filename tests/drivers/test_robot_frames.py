@@ -3,14 +3,11 @@ sends what the gate lets through, against a fake service on loopback."""
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 import pytest
 
 from drivers.blocks import Frame
 from drivers.camera import frame_gray, png_bytes
-from drivers.robot import RobotClient
 from drivers.robot.frames import FrameGate, frame_thumbnail
 from drivers.scene_change import thumbnail
 from drivers.source import blocks_from_arrays
@@ -78,17 +75,7 @@ def test_the_robot_sends_a_frame_when_its_scene_changes(kit, fake_service, chang
     arrays = kit.stroke_arrays(600, seed=4)
     blocks = list(blocks_from_arrays(arrays, 0.1))
     items = [x for pair in zip(blocks, (Frame(0.1 * i, p, "image/png") for i, p in enumerate(photos))) for x in pair]
-    server = kit.LoopbackServer(fake_service.app)
-
-    async def main():
-        await server.start()
-        try:
-            client = RobotClient(server.url, kit.ListSource(items), frame_change=change, frame_refresh_s=60, **FAST)
-            return await client.run()
-        finally:
-            await server.stop()
-
-    stats = asyncio.run(main())
+    stats = kit.stream(fake_service.app, items, frame_change=change, frame_refresh_s=60, **FAST)
     sent = [body for _, body in fake_service.only_session().frames]
     assert stats.frames_read == 6 and stats.acked == len(blocks)
     if change:
