@@ -97,3 +97,27 @@ def test_stateful_rejects_bad_shapes():
         f.process(np.zeros((10, 2)))
     with pytest.raises(ValueError, match="shape"):
         StatefulSOS(design_lowpass(25.0, 1000.0, 2)).process(np.zeros((2, 2, 2)))
+
+
+@pytest.mark.parametrize("kernel", ["compiled", "public"])
+def test_blocks_match_scipy_sosfilt_exactly(kernel, monkeypatch):
+    # the compiled kernel is scipy's own, behind signal.sosfilt: the same numbers to the bit, either way
+    if kernel == "public":
+        monkeypatch.setattr("models.tactile.filters._sos_kernel", None)
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((700, 3)) + np.array([9.81, 0.0, -1.0])
+    sos = design_highpass(20.0, 1000.0, 4)
+    zi = signal.sosfilt_zi(sos)[:, :, None] * x[0][None, None, :]
+    ref, _ = signal.sosfilt(sos, x, axis=0, zi=zi)
+    f = StatefulSOS(sos, init="steady")
+    out = np.concatenate([f.process(x[:100]), f.process(x[100:101]), f.process(x[101:])])
+    np.testing.assert_array_equal(out, ref)
+    one = StatefulSOS(sos, init="steady")
+    np.testing.assert_array_equal(np.concatenate([one.process(x[:250, 0]), one.process(x[250:, 0])]), ref[:, 0])
+
+
+def test_stateful_rejects_unnormalised_sections():
+    sos = design_lowpass(25.0, 1000.0, 2)
+    sos[0] *= 2.0  # a0 = 2: the kernel assumes every section divided through by a0
+    with pytest.raises(ValueError, match="a0"):
+        StatefulSOS(sos)

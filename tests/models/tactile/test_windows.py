@@ -31,3 +31,22 @@ def test_bad_arguments():
         n_windows(10, 0, 1)
     with pytest.raises(ValueError, match="a window needs 4"):
         sliding_windows(np.zeros(3), 4, 1)
+
+
+@pytest.mark.parametrize(("shape", "axis"), [((37,), 0), ((37, 3), 0), ((2, 37), 1), ((2, 37, 3), -2), ((37, 2), -2)])
+@pytest.mark.parametrize(("length", "hop"), [(5, 1), (8, 3), (18, 2)])
+@pytest.mark.parametrize("step", [1, 2])  # 2: a strided (non-contiguous) input
+def test_sliding_windows_match_numpys_view(shape, axis, length, hop, step):
+    big = list(shape)
+    big[axis % len(shape)] *= step
+    base = np.arange(np.prod(big), dtype=float).reshape(big)
+    index = [slice(None)] * base.ndim
+    index[axis % base.ndim] = slice(None, None, step)
+    x = base[tuple(index)]
+    ref = np.lib.stride_tricks.sliding_window_view(x, length, axis=axis)
+    every = [slice(None)] * ref.ndim
+    every[axis % x.ndim] = slice(None, None, hop)
+    w = sliding_windows(x, length, hop, axis=axis)
+    np.testing.assert_array_equal(w, ref[tuple(every)])
+    assert np.shares_memory(w, base)
+    assert not w.flags.writeable
