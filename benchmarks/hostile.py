@@ -48,6 +48,7 @@ from benchmarks.service import (
     percentile,
     prepare_assets,
     run_load,
+    timeline,
 )
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary
 from drivers.protocol import BINARY_CONTENT_TYPE, bearer, session_path
@@ -181,19 +182,6 @@ def robots_process(
             },
         )
     )
-
-
-def timeline(e2e: list[tuple[float, float]], t0: float, bin_s: float = 2.0) -> list[dict]:
-    """Windows received per `bin_s` bin from t0 (perf_counter, s) with their end-to-end p50 and p99 (ms; None in a
-    bin no window reached: every robot shed, or the service stalled)."""
-    bins: dict[int, list[float]] = {}
-    for t, ms in e2e:
-        bins.setdefault(int((t - t0) // bin_s), []).append(ms)
-    return [
-        {"t_s": k * bin_s, "windows": len(v), "e2e_p50": percentile(v, 50), "e2e_p99": percentile(v, 99)}
-        for k in range(min(bins, default=0), max(bins, default=-1) + 1)
-        for v in [bins.get(k, [])]
-    ]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,15 +6,16 @@ encodes every block (binary format, seq from 0) and, before the common start ins
 sessions (the fleet key), their ingest WebSockets and an operator's events WebSocket per session. From the
 start instant each robot sends block k when its span has ended (start + offset + k·block_s; a tap block, when
 the model reads taps, at once), a camera frame every `frame_every_s` when the configuration has frames — by HTTP
-POST when the robot client's `FrameGate` lets it go (its scene changed, or `frame_refresh_s` passed; a robot's
-photo never changes, so its thumbnail is computed once) — and reads its acknowledgements; the operator stamps
-every window event against the moment the block that completed it left the generator (one clock:
+POST when the robot client's `FrameGate` lets it go (its scene changed, or its jittered `frame_refresh_s` passed;
+a robot's photo never changes, so its thumbnail is computed once) — and reads its acknowledgements; the operator
+stamps every window event against the moment the block that completed it left the generator (one clock:
 CLOCK_MONOTONIC, shared by the processes).
 
 What comes back, per process: the send lag of every block (ms: how late after its due instant it went out —
-the generator's own delay, which a valid measurement keeps small), end-to-end latencies (ms), the windows'
-stage latencies, windows received, acknowledgements, refusals (ok:false answers, 4429 closes, frame 429s),
-failures, and the process's CPU time over the streaming phase.
+the generator's own delay, which a valid measurement keeps small), end-to-end latencies (ms) and when each
+window's block left (s after the start), the windows' stage latencies, windows received, acknowledgements,
+refusals (ok:false answers, 4429 closes, frame 429s), failures, and the process's CPU time over the streaming
+phase.
 
 Lean on purpose: no RobotClient (its per-block encoding, buffering and resend logic are the robot's cost, not
 the service's); a robot whose connection fails stops, and its remaining windows count as lost.
@@ -36,7 +37,7 @@ import numpy as np
 
 from drivers.blocks import Block, encode_binary
 from drivers.robot.backoff import retry_after
-from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail
+from drivers.robot.frames import FRAME_REFRESH_S, REFRESH_JITTER, FrameGate, frame_thumbnail
 from drivers.scene_change import FRAME_CHANGE
 from drivers.simulated import tap_block
 from drivers.source import blocks_from_arrays
@@ -67,6 +68,7 @@ class Plan:
     frame_every_s: float = 1.0
     frame_change: float = FRAME_CHANGE  # the robot client's FrameGate; 0: every frame goes
     frame_refresh_s: float = FRAME_REFRESH_S
+    frame_refresh_jitter: float = REFRESH_JITTER
     hop_s: float = 0.5
 
 
@@ -77,6 +79,7 @@ class GeneratorResult:
     robots: int = 0
     send_lag_ms: list[float] = field(default_factory=list)
     e2e_ms: list[float] = field(default_factory=list)
+    e2e_sent_s: list[float] = field(default_factory=list)  # when each e2e_ms window's block left, s after the start
     stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     first_features_ms: list[float] = field(default_factory=list)
     windows: int = 0
@@ -213,7 +216,7 @@ async def _acks(robot: Robot, out: GeneratorResult) -> None:
         pass
 
 
-async def _operate(robot: Robot, out: GeneratorResult) -> None:
+async def _operate(robot: Robot, start: float, out: GeneratorResult) -> None:
     from websockets.exceptions import ConnectionClosed
 
     first = True
@@ -228,6 +231,7 @@ async def _operate(robot: Robot, out: GeneratorResult) -> None:
             sent = robot.sent_at.get(event["block_seq"])
             if sent is not None:
                 out.e2e_ms.append((now - sent) * 1e3)
+                out.e2e_sent_s.append(sent - start)
             for stage in STAGES:
                 out.stages_ms[stage].append(event["latency_ms"][stage])
             if first:
@@ -243,7 +247,10 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
     assert robot.session is not None and robot.frame is not None
     target = url + session_path(robot.session["session_id"], "frames")
     headers = {**bearer(robot.session["robot_token"]), "Content-Type": "image/png"}
-    gate = FrameGate(plan.frame_change, plan.frame_refresh_s)
+    # as a robot's own gate, with its refresh jitter seeded per robot
+    gate = FrameGate(
+        plan.frame_change, plan.frame_refresh_s, plan.frame_refresh_jitter, random.Random(f"{plan.seed}:{robot.k}")
+    )
     k = 0
     while (due := start + k * plan.frame_every_s) < start + plan.duration_s:
         delay = due - time.perf_counter()
@@ -291,7 +298,7 @@ async def _generate(plan: Plan, ks: list[int], conn) -> GeneratorResult:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         senders = [asyncio.create_task(_send(r, start + off, plan.block_s, out)) for r, off in zip(robots, offsets)]
         readers = [asyncio.create_task(_acks(r, out)) for r in robots]
-        operators = [asyncio.create_task(_operate(r, out)) for r in robots]
+        operators = [asyncio.create_task(_operate(r, start, out)) for r in robots]
         framers = [
             asyncio.create_task(_frames(r, u, http, start + off, plan, out))
             for r, u, off in zip(robots, urls, offsets)

@@ -6,12 +6,17 @@ One job estimates the windows of up to `max_sessions_per_job` sessions in a sing
 sessions are served first: admission (service/capacity.py) keeps the oldest sessions at full speed, so a newer
 session's backlog (a robot back from an outage resends seconds of blocks at once) must not queue ahead of them.
 Under light load a job holds one session and starts at once; under heavy load jobs grow, and each window gets
-cheaper — up to 8 sessions: a window then costs ≈ 1.1–1.2 ms against ≈ 1.0 at 16–64 and ≈ 2 alone
+cheaper — up to 8 sessions: a window then costs ≈ 0.8–1.1 ms against ≈ 0.7–0.8 at 32–64 and ≈ 2 alone
 (`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
 job's lookups before any of its windows is published. A job also holds at most `max_windows_per_job` windows (a
 session's oldest; the rest of its backlog waits for a later job): a robot back from an outage resends seconds of
 blocks at once, and a job of eight such backlogs would hold a pool thread, and the windows of the oldest sessions
 that wait for one, for a tenth of a second.
+
+Jobs beyond the first start only once a ready session has waited `spill_after_s` for one. Two jobs at once share the
+GIL with each other and the event loop, so each takes about twice as long; under moderate load one job at a time
+publishes sooner and spends less CPU (60 `served` robots on one replica, three interleaved pairs: e2e p50, p99 and
+CPU lower in each; docs/service.md), and the second thread joins when one cannot keep up.
 
 `take_waits(now)` is, per session, the longest its windows waited for a job since the last call (or wait now):
 admission reads from it the window queue delay it holds below its limit, of the sessions it serves (the windows a
@@ -36,6 +41,8 @@ log = logging.getLogger(__name__)
 MAX_SESSIONS_PER_JOB = 8
 #: ≈ 20 ms of a pool thread (≈ 1.1–1.2 ms a window in jobs of 8 sessions)
 MAX_WINDOWS_PER_JOB = 16
+#: how long a ready session waits for a running job before a second one starts beside it (s; Settings.pool_spill_s)
+SPILL_AFTER_S = 0.01
 
 
 class WindowBatcher:
@@ -45,27 +52,35 @@ class WindowBatcher:
         max_jobs: int,
         max_sessions_per_job: int = MAX_SESSIONS_PER_JOB,
         max_windows_per_job: int = MAX_WINDOWS_PER_JOB,
+        spill_after_s: float = SPILL_AFTER_S,
     ) -> None:
         if min(max_jobs, max_sessions_per_job, max_windows_per_job) < 1:
             raise ValueError(
                 "max_jobs, max_sessions_per_job and max_windows_per_job must be ≥ 1, got "
                 f"{max_jobs}, {max_sessions_per_job}, {max_windows_per_job}"
             )
+        if not spill_after_s >= 0:
+            raise ValueError(f"spill_after_s must be ≥ 0 s, got {spill_after_s}")
         self.pool = pool
         self.max_jobs = max_jobs
         self.max_sessions_per_job = max_sessions_per_job
         self.max_windows_per_job = max_windows_per_job
+        self.spill_after_s = spill_after_s
         # ready sessions and the time.monotonic() each became ready; bounded by the number of sessions
         self._ready: dict[str, tuple[Session, float]] = {}
         self._waited: dict[str, float] = {}  # the longest each session taken into a job waited (s), since take_waits
         self._wake = asyncio.Event()
         self._jobs: set[asyncio.Task] = set()
         self._runner: asyncio.Task | None = None
+        self._spill_timer: asyncio.TimerHandle | None = None
+        self._spill_due = 0.0  # time.monotonic() the timer wakes the runner at
 
     def start(self) -> None:
         self._runner = asyncio.create_task(self._run(), name="window-batcher")
 
     async def close(self) -> None:
+        if self._spill_timer is not None:
+            self._spill_timer.cancel()
         tasks = [t for t in (self._runner, *self._jobs) if t is not None]
         for task in tasks:
             task.cancel()
@@ -92,13 +107,38 @@ class WindowBatcher:
         while True:
             await self._wake.wait()
             self._wake.clear()
-            while len(self._jobs) < self.max_jobs:
+            while self._may_start_job():
                 batch = await self._gather()
                 if not batch:
                     break
                 job = asyncio.create_task(self._estimate(batch))
                 self._jobs.add(job)
                 job.add_done_callback(self._job_done)
+
+    def _may_start_job(self) -> bool:
+        """A free thread takes a job when none runs, or when a ready session has waited spill_after_s for one (else
+        the runner is woken when the longest-waiting one will have)."""
+        if len(self._jobs) >= self.max_jobs:
+            return False
+        if not self._jobs or not self._ready:
+            return True
+        waiting = [since for session, since in self._ready.values() if not session.in_job]
+        if not waiting:
+            return False
+        due = min(waiting) + self.spill_after_s
+        now = time.monotonic()
+        if now >= due:
+            return True
+        if self._spill_timer is None or self._spill_due > due:
+            if self._spill_timer is not None:
+                self._spill_timer.cancel()
+            self._spill_due = due
+            self._spill_timer = asyncio.get_running_loop().call_later(due - now, self._spill)
+        return False
+
+    def _spill(self) -> None:
+        self._spill_timer = None
+        self._wake.set()
 
     def _job_done(self, job: asyncio.Task) -> None:
         self._jobs.discard(job)

@@ -253,6 +253,13 @@ class Settings(BaseSettings):
     pool_threads: int = Field(
         2, ge=1, le=64, description="threads estimating windows, each running one batch of sessions at a time"
     )
+    pool_spill_s: float = Field(
+        0.01,
+        ge=0,
+        le=1,
+        description="a window job starts beside a running one only once a session's windows have waited this long "
+        "for it (s): two jobs at once slow each other down through the GIL; 0: whenever a thread is free",
+    )
     visual_threads: int = Field(
         1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)"
     )

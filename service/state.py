@@ -85,7 +85,9 @@ class ServiceState:
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)
-        self.batcher = WindowBatcher(self.window_pool, max_jobs=settings.pool_threads)
+        self.batcher = WindowBatcher(
+            self.window_pool, max_jobs=settings.pool_threads, spill_after_s=settings.pool_spill_s
+        )
         self._tasks: list[asyncio.Task] = []
         self._warming: Runtime | None = None
         self.probes: ProbeServer | None = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import random
 
 import httpx
 import numpy as np
@@ -19,6 +20,8 @@ from drivers.scene_change import FRAME_CHANGE, scene_changed, thumbnail
 log = logging.getLogger("drivers.robot")
 
 FRAME_REFRESH_S = 10.0
+#: each refresh comes after refresh_s × (1 + u·REFRESH_JITTER), u uniform in [0, 1) drawn anew
+REFRESH_JITTER = 0.25
 
 
 class FrameGate:
@@ -31,18 +34,33 @@ class FrameGate:
     robot that looks at one surface at 1 fps would cost it a decode a second for nothing. The service runs its own
     test on what arrives, so the gate saves work and decides nothing.
 
+    The refresh comes `refresh_s` to `refresh_s` × (1 + `jitter`) after the last frame sent, drawn anew each time from
+    `rng` (None: seeded by the OS): robots started together would otherwise refresh together, every `refresh_s`,
+    and the service would decode a fleet's frames at once.
+
     `admit(thumb, now)`: thumb is `frame_thumbnail(frame.image)` (None: unreadable, or change=0), now in seconds of
     a monotonic clock. An unreadable frame goes: the service's answer says what is wrong with it."""
 
-    def __init__(self, change: float = FRAME_CHANGE, refresh_s: float = FRAME_REFRESH_S) -> None:
+    def __init__(
+        self,
+        change: float = FRAME_CHANGE,
+        refresh_s: float = FRAME_REFRESH_S,
+        jitter: float = REFRESH_JITTER,
+        rng: random.Random | None = None,
+    ) -> None:
         if not 0 <= change <= 2:
             raise ValueError(f"frame change must lie in [0, 2] (0: send every frame), got {change!r}")
         if not refresh_s > 0:
             raise ValueError(f"frame refresh must be a positive number of seconds, got {refresh_s!r}")
+        if not 0 <= jitter <= 1:
+            raise ValueError(f"frame refresh jitter must lie in [0, 1], got {jitter!r}")
         self.change = change
         self.refresh_s = refresh_s
+        self.jitter = jitter
+        self._rng = rng if rng is not None else random.Random()
         self._sent: np.ndarray | None = None  # thumbnail of the last frame let through
         self._sent_at: float | None = None
+        self._refresh_after = refresh_s  # s after the last frame sent, drawn when it went
 
     @property
     def reads_frames(self) -> bool:
@@ -51,10 +69,11 @@ class FrameGate:
 
     def admit(self, thumb: np.ndarray | None, now: float) -> bool:
         """Send this frame? Remembers it as the scene sent when it goes."""
-        due = self._sent_at is None or now - self._sent_at >= self.refresh_s
+        due = self._sent_at is None or now - self._sent_at >= self._refresh_after
         if self.reads_frames and thumb is not None and not due and not scene_changed(self._sent, thumb, self.change):
             return False
         self._sent, self._sent_at = thumb, now
+        self._refresh_after = self.refresh_s * (1.0 + self.jitter * self._rng.random())
         return True
 
 

@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from benchmarks.hostile import timeline
 from benchmarks.hostile_chart import chart, parse_report
+from benchmarks.service import timeline
 
 
 def test_the_timeline_bins_windows_by_arrival_with_their_percentiles():

@@ -3,6 +3,8 @@ sends what the gate lets through, against a fake service on loopback."""
 
 from __future__ import annotations
 
+import random
+
 import numpy as np
 import pytest
 
@@ -29,7 +31,7 @@ def _photo(surface: np.ndarray, seed: int, noise: float = 0.02) -> bytes:
 
 def test_the_gate_lets_a_new_scene_through_and_holds_back_the_same_one():
     a, other = thumbnail(_surface(0)), thumbnail(_surface(1))
-    gate = FrameGate(change=0.015, refresh_s=10.0)
+    gate = FrameGate(change=0.015, refresh_s=10.0, jitter=0.0)
     assert gate.admit(a, 0.0), "the first frame goes"
     assert not gate.admit(a, 1.0) and not gate.admit(a + 0.001, 2.0), "the same scene waits"
     assert gate.admit(other, 3.0), "another surface goes"
@@ -38,6 +40,22 @@ def test_the_gate_lets_a_new_scene_through_and_holds_back_the_same_one():
     assert gate.admit(a, 13.5) and not gate.admit(a, 14.0)
     assert gate.admit(None, 14.5), "an unreadable frame goes: the service says what is wrong with it"
     assert gate.admit(a, 15.0), "and the next readable one too"
+
+
+def test_robots_started_together_refresh_apart():
+    """Each refresh comes 10–12.5 s after the last frame sent, drawn anew: a fleet started at one instant does not
+    send its refreshes at one instant."""
+    a = thumbnail(_surface(0))
+    gates = [FrameGate(change=0.015, refresh_s=10.0, rng=random.Random(k)) for k in range(50)]
+    firsts = []
+    for gate in gates:
+        assert gate.admit(a, 0.0)
+        t = next(t for t in np.arange(0.0, 20.0, 0.05) if gate.admit(a, float(t)))
+        firsts.append(t)
+    assert 10.0 <= min(firsts) and max(firsts) < 12.5 + 0.05
+    assert max(firsts) - min(firsts) > 1.5, "the refreshes spread over the jitter's span"
+    again = FrameGate(change=0.015, refresh_s=10.0, rng=random.Random(0))
+    assert again.admit(a, 0.0) and not again.admit(a, firsts[0] - 0.05) and again.admit(a, firsts[0])  # seeded
 
 
 def test_change_zero_sends_every_frame_without_reading_it():
@@ -50,7 +68,12 @@ def test_change_zero_sends_every_frame_without_reading_it():
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
-    [({"change": -0.1}, "frame change must lie in"), ({"change": 2.5}, "frame change"), ({"refresh_s": 0}, "refresh")],
+    [
+        ({"change": -0.1}, "frame change must lie in"),
+        ({"change": 2.5}, "frame change"),
+        ({"refresh_s": 0}, "refresh"),
+        ({"jitter": 1.5}, "jitter"),
+    ],
 )
 def test_the_gate_refuses_bad_settings(kwargs, message):
     with pytest.raises(ValueError, match=message):

@@ -398,6 +398,66 @@ def test_a_job_holds_at_most_max_windows_per_job_windows_the_oldest_sessions_fir
     assert asked == [("old", 3), ("mid", 1)] and [j.windows for _, j in batch] == [2, 1]
 
 
+def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float, gap_s: float = 0.0) -> list[tuple[str, float]]:
+    """Two sessions, b ready `gap_s` after a, each with one window, through a batcher whose jobs hold their thread
+    for 0.25 s: (session id, seconds after b was ready its job started), in the order the jobs started."""
+    from service import batcher as batcher_module
+    from service.batcher import WindowBatcher
+    from service.pipeline import SessionResult
+
+    started: list[tuple[str, float]] = []
+    ready_b = [0.0]
+
+    def estimate(runtime, jobs):
+        started.append((jobs[0].sid, time.monotonic() - ready_b[0]))
+        time.sleep(0.25)
+        return [SessionResult([], job.windows, None) for job in jobs]
+
+    monkeypatch.setattr(batcher_module, "estimate_batch", estimate)
+
+    def stub(sid: str, opened_at: float) -> SimpleNamespace:
+        jobs = [SimpleNamespace(sid=sid, windows=1)]
+
+        async def apply_result(result):
+            return None
+
+        return SimpleNamespace(
+            id=sid,
+            opened_at=opened_at,
+            in_job=False,
+            runtime=None,
+            take_job=lambda max_windows=None: jobs.pop() if jobs else None,
+            has_work=lambda: bool(jobs),
+            apply_result=apply_result,
+            waiting_for_frame=lambda: False,
+            waiting_for_taps=lambda: False,
+        )
+
+    async def scenario() -> None:
+        batcher = WindowBatcher(ThreadPoolExecutor(2), max_jobs=max_jobs, spill_after_s=spill_after_s)
+        batcher.start()
+        batcher.notify(stub("a", 0.0))  # type: ignore[arg-type]
+        await asyncio.sleep(0.02)  # a's job is running
+        ready_b[0] = time.monotonic()
+        batcher.notify(stub("b", 1.0))  # type: ignore[arg-type]
+        await asyncio.sleep(0.6)
+        await batcher.close()
+
+    asyncio.run(scenario())
+    return started
+
+
+def test_a_second_job_starts_only_once_a_session_has_waited_spill_after_s(monkeypatch):
+    """Two jobs at once slow each other down through the GIL: b's job waits for a's to end, unless b has waited
+    spill_after_s, when the second thread takes it."""
+    (a, _), (b, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.1)
+    assert (a, b) == ("a", "b") and 0.1 <= waited < 0.2  # a's job holds its thread for 0.25 s
+    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.0)
+    assert waited < 0.05  # 0: the free thread takes it at once
+    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=1, spill_after_s=0.0)
+    assert waited >= 0.2  # one thread: after a's job, whatever the spill
+
+
 def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_apart():
     """The windows a shed session admitted before it was shed are served last; refusing more cannot shorten their
     wait, so it does not count. The protected sessions' own wait is held apart: the newcomers' windows may wait
