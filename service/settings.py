@@ -263,6 +263,13 @@ class Settings(BaseSettings):
     visual_threads: int = Field(
         1, ge=1, le=64, description="onnxruntime threads of the visual backbone (one frame at a time)"
     )
+    visual_nice: int = Field(
+        15,
+        ge=0,
+        le=19,
+        description="how much lower the embedding thread's OS priority is than the loop's and the window threads' "
+        "(Linux nice): a burst of frames to embed then takes the CPU the windows leave; 0: the same",
+    )
     gil_switch_interval_s: float = Field(
         0.0005,
         gt=0,

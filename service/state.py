@@ -39,7 +39,7 @@ from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
 from service.schemas import HealthOut, ReadyOut
 from service.settings import Settings
-from service.thread_cpu import ThreadCpu
+from service.thread_cpu import ThreadCpu, lower_priority
 from service.warmup import warm_up
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ class ServiceState:
             1, thread_name_prefix="hapticlink-frames", initializer=self.threads.register
         )
         self.visual_pool = ThreadPoolExecutor(
-            1, thread_name_prefix="hapticlink-visual", initializer=self.threads.register
+            1, thread_name_prefix="hapticlink-visual", initializer=self._start_visual_thread
         )
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
@@ -159,6 +159,13 @@ class ServiceState:
             pool.shutdown(wait=False, cancel_futures=True)
         if self.probes is not None:
             self.probes.stop()
+
+    def _start_visual_thread(self) -> None:
+        """The embedding thread, as it starts: counted with the service's own, and behind the tactile path when the
+        cores are contended (a burst of first frames would otherwise slow every session's windows)."""
+        self.threads.register()
+        if not lower_priority(self.settings.visual_nice):
+            log.warning("could not lower the embedding thread's priority (HAPTICLINK_VISUAL_NICE); it runs as the rest")
 
     def stop_runtime(self) -> None:
         """End an embedding in flight (a session's, or the warm-up's) and refuse later ones, so that the pools'

@@ -1,5 +1,6 @@
-"""The CPU time of the service's own Python threads: its event loop and its pools, not whatever else shares the
-process (a test's client, an embedding application) nor the native threads of a library that never hold the GIL.
+"""The CPU of the service's own Python threads: the time its event loop and its pools use, not whatever else shares
+the process (a test's client, an embedding application) nor the native threads of a library that never hold the GIL;
+and the share the OS gives a background pool when the cores are contended (`lower_priority`).
 
 The pools' threads register themselves (`ThreadCpu.register`, a ThreadPoolExecutor initializer); `seconds()`, called
 on the event-loop thread, adds that thread's own CPU clock to theirs. Where a thread's CPU clock cannot be read
@@ -9,6 +10,8 @@ on the event-loop thread, adds that thread's own CPU clock to theirs. Where a th
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
 import threading
 import time
 
@@ -41,3 +44,21 @@ class ThreadCpu:
                 with self._lock, contextlib.suppress(KeyError):
                     del self._clocks[ident]
         return total
+
+
+def lower_priority(niceness: int) -> bool:
+    """Raise the calling thread's nice value by `niceness` (capped at 19), so that when the cores are contended the
+    OS runs the other threads first (Linux schedules each thread on its own nice value). False where that cannot be
+    done here (not Linux, or the OS refused); nothing changes then. niceness 0 changes nothing and returns True."""
+    if niceness < 0:
+        raise ValueError(f"niceness must be ≥ 0 (lowering a thread's priority only), got {niceness}")
+    if niceness == 0:
+        return True
+    if not sys.platform.startswith("linux"):
+        return False
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + niceness))
+    except OSError:
+        return False
+    return True
