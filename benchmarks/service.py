@@ -357,8 +357,9 @@ def percentile(values: list[float], q: float) -> float | None:
 
 
 def timeline(e2e: list[tuple[float, float]], t0: float, bin_s: float = 2.0) -> list[dict]:
-    """Windows received per `bin_s` bin from t0 (perf_counter, s) with their end-to-end p50 and p99 (ms; None in a
-    bin no window reached: every robot shed, or the service stalled)."""
+    """Windows per `bin_s` bin from t0 with their end-to-end p50 and p99 (ms; None in a bin no window reached: every
+    robot shed, or the service stalled). e2e: (t, ms) pairs, t in seconds on t0's clock (when the window arrived, or
+    when its block left)."""
     bins: dict[int, list[float]] = {}
     for t, ms in e2e:
         bins.setdefault(int((t - t0) // bin_s), []).append(ms)

@@ -99,7 +99,8 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=FRAME_REFRESH_S,
         metavar="S",
-        help=f"… or once S seconds have passed since it (default {FRAME_REFRESH_S:g})",
+        help=f"… or once S seconds, up to a quarter more, drawn anew each time, have passed since it (default "
+        f"{FRAME_REFRESH_S:g})",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)

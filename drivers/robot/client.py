@@ -52,8 +52,8 @@ class RobotClient:
     api_key: the fleet API key that opens sessions (default $HAPTICLINK_API_KEY). open_timeout_s: how long
     opening a session may keep retrying an unreachable or not-ready service before ServiceUnavailable (None:
     for ever). frame_change, frame_refresh_s: a camera frame is sent only when its scene changed by more than
-    frame_change since the last frame sent, or frame_refresh_s after it (drivers/robot/frames.py's `FrameGate`;
-    frame_change=0 sends every frame). `run()` closes the source when it returns.
+    frame_change since the last frame sent, or frame_refresh_s after it, up to a quarter more (drawn anew each time;
+    drivers/robot/frames.py's `FrameGate`; frame_change=0 sends every frame). `run()` closes the source when it returns.
 
     What the transports share with the client — the resend buffer, the frame queue, acknowledgements,
     counters and backoffs — is `outbox` (drivers/robot/outbox.py); `stats` is its counters.
