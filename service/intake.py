@@ -5,7 +5,7 @@ decoded and validated once, in one place, whichever way it came, and outcomes ar
 
     block bytes ─▶ BlockIntake: capacity (shed?) ─▶ decode_block: SampleBlock | TapBlock ─▶ Session.ingest
         (admission) ─▶ acknowledgement
-    frame bytes ─▶ FrameIntake: refused early (429) when the visual queue is full ─▶ decode + thumbnail
+    frame bytes ─▶ FrameIntake: refused early (429) when the visual queue's pixels are spent ─▶ decode + thumbnail
         (frame pool) ─▶ Session.offer_frame (the serving policy: embed it?) ─▶ frame_received event
 """
 
@@ -25,7 +25,7 @@ from service.errors import ServiceError, saturated, session_not_found
 from service.events import status_event
 from service.live_session import RETRY_AFTER_S, Session
 from service.metrics import ServiceMetrics
-from service.runtime import Runtime
+from service.runtime import Runtime, frame_pixels
 from service.schemas import FrameAck
 from service.settings import Settings
 
@@ -108,10 +108,11 @@ FRAME_MESSAGES = {
 
 
 class FrameIntake:
-    """Camera frames of every session: a bounded visual queue, decoding on its own pool (a thread that never waits
-    behind an embedding), and the frame_received event.
+    """Camera frames of every session: a visual queue bounded in pixels, decoding on its own pool (a thread that never
+    waits behind an embedding), and the frame_received event.
 
-    visual_load: frames being decoded or waiting for/in an embedding, all sessions (≤ settings.visual_queue)."""
+    visual_pixels: pixels of the frames being decoded or embedded, all sessions together (≤ settings.visual_queue_mpx
+    megapixels, but for a single frame, which is taken whatever its size when the queue is empty)."""
 
     def __init__(
         self, settings: Settings, metrics: ServiceMetrics, bus: EventBus, decode_pool: Executor, capacity: CapacityGuard
@@ -121,43 +122,55 @@ class FrameIntake:
         self.metrics = metrics
         self.bus = bus
         self.decode_pool = decode_pool
-        self.visual_load = 0
+        self.visual_pixels = 0
 
     async def receive(self, session: Session, runtime: Runtime, payload: bytes) -> FrameAck:
-        """One encoded frame (PNG/JPEG bytes): refused (429) when the visual queue is full or the session's previous
-        frame is still decoding; 422 when it cannot be decoded; otherwise offered to the session, which embeds it
-        only if the scene changed. A session whose blocks the replica sheds has its frames refused too (429): a frame
-        costs more than a second of blocks."""
+        """One encoded frame (PNG/JPEG bytes): refused (429) when the session's previous frame is still decoding or
+        its pixels would overfill the visual queue; 422 when it cannot be decoded; otherwise offered to the session,
+        which embeds it only if the scene changed. A session whose blocks the replica sheds has its frames refused
+        too (429): a frame costs more than a second of blocks.
+
+        The queue is bounded in pixels, not frames: what a frame costs to hold and to decode grows with its size,
+        and a fleet whose robots all send their first frame at once must not be refused (each refused robot sends
+        again, and every resent body costs the loop as much as the first)."""
         try:
             self.capacity.admit_frame(session)
-            if self.visual_load >= self.settings.visual_queue or session.decoding_frame:
-                what = (
-                    f"session {session.id} is still decoding its previous frame"
-                    if session.decoding_frame
-                    else f"the visual queue is full ({self.settings.visual_queue} frames)"
+            if session.decoding_frame:
+                raise saturated(
+                    f"session {session.id} is still decoding its previous frame; send the newest frame later",
+                    RETRY_AFTER_S,
                 )
-                raise saturated(f"{what}; send the newest frame later", RETRY_AFTER_S)
+            pixels = frame_pixels(payload)
+            budget = round(self.settings.visual_queue_mpx * 1e6)
+            if self.visual_pixels and self.visual_pixels + pixels > budget:
+                raise saturated(
+                    f"the visual queue is full ({self.visual_pixels / 1e6:.1f} of {self.settings.visual_queue_mpx:g} "
+                    f"megapixels held; this frame has {pixels / 1e6:.2f}); send the newest frame later",
+                    RETRY_AFTER_S,
+                )
         except ServiceError:
             self.metrics.frames.labels(outcome="refused").inc()
             session.counters.frames_refused += 1
             raise
+        except ValueError as exc:  # its header declares more pixels than are ever decoded
+            self.rejected(session)
+            raise ServiceError(422, f"frame: {exc}") from None
         session.decoding_frame = True
-        self.visual_load += 1
+        self.visual_pixels += pixels
         try:
             loop = asyncio.get_running_loop()
             gray, thumb = await loop.run_in_executor(self.decode_pool, decode_frame, runtime, payload)
         except ValueError as exc:
-            session.counters.frames_rejected += 1
-            self.metrics.frames.labels(outcome="rejected").inc()
+            self.rejected(session)
             raise ServiceError(422, f"frame: {exc}") from None
         finally:
             session.decoding_frame = False
-            self.visual_load -= 1
+            self.visual_pixels -= pixels
         if session.closed:  # ended while the frame was decoded
             raise session_not_found(session.id)
         outcome = session.offer_frame(gray, thumb)
         if outcome == "embedding":
-            self.visual_load += 1  # released by visual_done when the embedding ends
+            self.visual_pixels += gray.size  # given back by visual_done when the session's embedding job ends
         self.metrics.frames.labels(outcome=outcome).inc()
         height, width = gray.shape
         used = outcome != "ignored"
@@ -174,9 +187,9 @@ class FrameIntake:
         session.counters.frames_rejected += 1
         self.metrics.frames.labels(outcome="rejected").inc()
 
-    def visual_done(self) -> None:
-        """An embedding job ended (a session's embedder calls it)."""
-        self.visual_load -= 1
+    def visual_done(self, pixels: int) -> None:
+        """A session's embedding job ended: the pixels of the frame that started it leave the visual queue."""
+        self.visual_pixels -= pixels
 
 
 def decode_frame(runtime: Runtime, payload: bytes) -> tuple[np.ndarray, np.ndarray]:

@@ -101,7 +101,7 @@ class Session:
         publish: Publish,
         metrics: ServiceMetrics,
         notify: Notify,
-        visual_done: Callable[[], None] = lambda: None,
+        visual_done: Callable[[int], None] = lambda pixels: None,
     ) -> None:
         self.id = session_id
         self.name = name
@@ -123,6 +123,7 @@ class Session:
         self._metrics = metrics
         self._notify = notify
         self._visual_done = visual_done
+        self._embedding_pixels = 0  # the frame that started the running embedding job: what visual_done releases
         self._pending: list[AdmittedBlock] = []
         self._pending_added: list[int] = []  # windows each pending block completes
         self._pending_windows = 0  # windows the pending blocks complete
@@ -350,8 +351,8 @@ class Session:
         a changed scene and its first pool_frames frames; always-full: every frame).
 
         ignored: the model reads no images; unchanged: the policy does not embed it (same scene, already
-        pooled); embedding: an embedding job starts (the caller counts it against the visual queue until
-        `visual_done`); superseded: replaces a frame waiting for the running embedding job."""
+        pooled); embedding: an embedding job starts (the caller charges the frame's pixels to the visual queue until
+        `visual_done` gives them back); superseded: replaces a frame waiting for the running embedding job."""
         self.touch()
         self.counters.frames_received += 1
         self._release_choice_on_new_scene(thumb)
@@ -371,6 +372,7 @@ class Session:
             self._frame = (gray, new_scene)
             return "superseded"
         self._frame = (gray, changed)
+        self._embedding_pixels = gray.size
         self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
         return "embedding"
 
@@ -431,7 +433,7 @@ class Session:
                 if self.has_work():
                     self._notify(self)
         finally:
-            self._visual_done()
+            self._visual_done(self._embedding_pixels)
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def close(self) -> None:

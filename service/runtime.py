@@ -137,15 +137,7 @@ class Runtime:
     def decode_frame(self, image: bytes) -> np.ndarray:
         """Encoded image → (H, W) float32 grayscale in [0, 1]; ValueError if unreadable, smaller than a patch or
         larger than MAX_FRAME_PIXELS."""
-        try:
-            with Image.open(io.BytesIO(image)) as probe:  # reads the header only
-                width, height = probe.size
-        except Image.DecompressionBombError as exc:
-            raise ValueError(f"image is too large: {exc}") from None
-        except Exception:  # noqa: BLE001 - not an image: load_image below says so
-            width = height = 0
-        if width * height > MAX_FRAME_PIXELS:
-            raise ValueError(f"image is {width}×{height} pixels; at most {MAX_FRAME_PIXELS} pixels are decoded")
+        frame_pixels(image)
         try:
             return load_image(image, min_size=self.visual_config.patch_size)
         except ValueError:
@@ -169,6 +161,22 @@ class Runtime:
         milliseconds and are left to finish. Idempotent."""
         if self.backbone is not None:
             self.backbone.stop()
+
+
+def frame_pixels(image: bytes) -> int:
+    """An encoded frame's width × height, read from its header alone (nothing is decoded, ≈ 20 µs); 0 when the bytes
+    are not an image Pillow recognises (decoding them says why); ValueError when it is larger than
+    MAX_FRAME_PIXELS."""
+    try:
+        with Image.open(io.BytesIO(image)) as probe:
+            width, height = probe.size
+    except Image.DecompressionBombError as exc:
+        raise ValueError(f"image is too large: {exc}") from None
+    except Exception:  # noqa: BLE001 - not an image: decoding says why
+        return 0
+    if width * height > MAX_FRAME_PIXELS:
+        raise ValueError(f"image is {width}×{height} pixels; at most {MAX_FRAME_PIXELS} pixels are decoded")
+    return width * height
 
 
 def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:

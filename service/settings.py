@@ -189,8 +189,13 @@ class Settings(BaseSettings):
         description="largest jump of seq over the last accepted one (≈ 5.5 h of 20 ms blocks); a larger "
         "jump is refused (422) instead of making every later block a duplicate",
     )
-    visual_queue: int = Field(
-        4, ge=1, description="frames waiting for the visual pool, all sessions together; beyond it frames answer 429"
+    visual_queue_mpx: float = Field(
+        32.0,
+        gt=0,
+        le=4096,
+        description="megapixels of camera frames being decoded or embedded, all sessions together (4 bytes each while "
+        "decoded: 32 = 128 MB, the first frames of 160 robots at 448 × 448); a frame beyond it answers 429, and a "
+        "single frame is taken whatever its size when none is held",
     )
     frame_change: float = Field(
         FRAME_CHANGE,

@@ -176,6 +176,18 @@ def _png_header(width: int, height: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b"")
 
 
+def test_frame_pixels_reads_the_size_from_the_header_alone(kit):
+    from service.runtime import MAX_FRAME_PIXELS, frame_pixels
+
+    assert frame_pixels(kit.png(300)) == 300 * 300
+    assert frame_pixels(_png_header(4096, 4096)) == MAX_FRAME_PIXELS  # declared, never decoded: the largest taken
+    assert frame_pixels(b"\x89PNG\r\n\x1a\n garbage") == 0  # not an image: decoding says why
+    with pytest.raises(ValueError, match="4097×4096 pixels; at most 16777216"):
+        frame_pixels(_png_header(4097, 4096))
+    with pytest.raises(ValueError, match="too large"):
+        frame_pixels(_png_header(30_000, 30_000))
+
+
 @pytest.mark.parametrize(
     "body, ctype, status, words",
     [

@@ -155,37 +155,61 @@ def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
         assert status["counters"]["frames_unchanged"] == 5 and status["counters"]["frames_received"] == 7
 
 
-def test_frames_are_refused_early_when_the_visual_queue_is_full(kit, visual_model, library_dir):
+def _post_frame(url: str, session: dict, image: bytes) -> httpx.Response:
+    with httpx.Client(base_url=url, timeout=30) as client:
+        return client.post(
+            f"/sessions/{session['session_id']}/frames",
+            content=image,
+            headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
+        )
+
+
+def test_the_visual_queue_takes_frames_up_to_its_pixels_refuses_beyond_and_gives_them_back(
+    kit, visual_model, library_dir
+):
     import threading
 
+    from service.runtime import frame_pixels
+
     image = (library_dir / "images" / "synth_003.png").read_bytes()
-    with (
-        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue=1)) as srv,
-        httpx.Client(base_url=srv.url, timeout=30) as client,
-    ):
+    pixels = frame_pixels(image)
+    room = 2.5 * pixels / 1e6  # two frames fit, a third does not
+    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue_mpx=room)
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
         state = srv.app.state.service
         release = threading.Event()
         stall = state.frame_pool.submit(release.wait, 60)  # the frame decoder is busy
-        first, second = kit.create_session(client, "first"), kit.create_session(client, "second")
-
-        def post(session) -> httpx.Response:
-            with httpx.Client(base_url=srv.url, timeout=30) as c:
-                return c.post(
-                    f"/sessions/{session['session_id']}/frames",
-                    content=image,
-                    headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"},
-                )
-
+        sessions = [kit.create_session(client, name) for name in ("first", "second", "third")]
         answers: list[httpx.Response] = []
-        waiting = threading.Thread(target=lambda: answers.append(post(first)))
-        waiting.start()
-        kit.wait_for(lambda: state.frames.visual_load == 1, timeout_s=10)
-        refused = post(second)
+        waiting = [
+            threading.Thread(target=lambda s=s: answers.append(_post_frame(srv.url, s, image))) for s in sessions[:2]
+        ]
+        for thread in waiting:
+            thread.start()
+        kit.wait_for(lambda: state.frames.visual_pixels == 2 * pixels, timeout_s=10)
+        refused = _post_frame(srv.url, sessions[2], image)
         assert refused.status_code == 429 and "visual queue is full" in refused.json()["detail"]
         assert refused.headers["retry-after"] == "1"
         release.set()
         stall.result(timeout=10)
-        waiting.join(timeout=30)
-        assert answers[0].status_code == 202
-        assert kit.session_status(client, second)["counters"]["frames_refused"] == 1
+        for thread in waiting:
+            thread.join(timeout=30)
+        assert [a.status_code for a in answers] == [202, 202]
+        assert all(a.json()["outcome"] == "embedding" for a in answers)
+        kit.wait_for(lambda: state.frames.visual_pixels == 0, timeout_s=60)  # both embeddings gave their pixels back
+        assert kit.session_status(client, sessions[2])["counters"]["frames_refused"] == 1
         assert 'hapticlink_frames_total{outcome="refused"} 1' in client.get("/metrics").text
+        # the queue is free again: the refused robot's newest frame goes through
+        assert _post_frame(srv.url, sessions[2], image).status_code == 202
+
+
+def test_a_frame_larger_than_the_visual_queue_is_taken_when_none_is_held(kit, visual_model, library_dir):
+    from service.runtime import frame_pixels
+
+    image = (library_dir / "images" / "synth_003.png").read_bytes()
+    tiny = 0.5 * frame_pixels(image) / 1e6
+    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vbig", visual_queue_mpx=tiny)
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+        answer = _post_frame(srv.url, kit.create_session(client), image)
+        assert answer.status_code == 202 and answer.json()["outcome"] == "embedding"
+        kit.wait_for(lambda: srv.app.state.service.frames.visual_pixels == 0, timeout_s=60)
