@@ -92,7 +92,9 @@ def pil_to_gray(image: Image.Image) -> np.ndarray:
     if image.mode != "L":
         # Alpha is dropped: a texture photo's transparency says nothing about the surface.
         image = image.convert("L")
-    return (np.asarray(image, dtype=np.float32) / 255.0).astype(np.float32)
+    gray = np.array(image, dtype=np.float32)  # one conversion pass, divided in place: every served frame pays it
+    gray /= 255.0
+    return gray
 
 
 def array_to_gray(array: np.ndarray) -> np.ndarray:

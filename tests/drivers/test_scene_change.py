@@ -16,6 +16,14 @@ def test_thumbnail_is_the_block_means_and_standard_deviations():
     t = thumbnail(gray, size=2)
     assert t.shape == (2, 2, 2)
     assert np.allclose(t[0], [[1, 0], [0, 0.5]]) and np.allclose(t[1], [[0, 0], [0, 0.5]])
+    rng = np.random.default_rng(0)
+    for shape, size in (((448, 448), 16), ((481, 307), 16), ((64, 64), 4)):  # the rows and columns that do not fill
+        image = rng.uniform(0, 1, shape).astype(np.float32)  # a block are left out
+        h, w = shape[0] // size * size, shape[1] // size * size
+        blocks = image[:h, :w].reshape(size, h // size, size, w // size)
+        expected = np.stack([blocks.mean(axis=(1, 3)), blocks.std(axis=(1, 3))])
+        np.testing.assert_allclose(thumbnail(image, size), expected, rtol=0, atol=1e-6)
+    assert thumbnail(gray.astype(np.float64), size=2).dtype == np.float32
     with pytest.raises(ValueError, match="H, W ≥ 16"):
         thumbnail(np.zeros((8, 300)))
     with pytest.raises(ValueError, match="shape"):
