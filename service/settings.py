@@ -272,8 +272,8 @@ class Settings(BaseSettings):
         15,
         ge=0,
         le=19,
-        description="how much lower the embedding thread's OS priority is than the loop's and the window threads' "
-        "(Linux nice): a burst of frames to embed then takes the CPU the windows leave; 0: the same",
+        description="how much lower the visual threads' OS priority (decoding, embedding) is than the loop's and the "
+        "window threads' (Linux nice): a burst of frames then takes the CPU the windows leave; 0: the same",
     )
     gil_switch_interval_s: float = Field(
         0.0005,

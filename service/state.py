@@ -67,7 +67,7 @@ class ServiceState:
         # the visual path has pools of its own, never the window pool: windows do not wait behind images.
         # Decoding (milliseconds) has its own thread so that it never waits behind an embedding (up to a second).
         self.frame_pool = ThreadPoolExecutor(
-            1, thread_name_prefix="hapticlink-frames", initializer=self.threads.register
+            1, thread_name_prefix="hapticlink-frames", initializer=self._start_visual_thread
         )
         self.visual_pool = ThreadPoolExecutor(
             1, thread_name_prefix="hapticlink-visual", initializer=self._start_visual_thread
@@ -161,11 +161,11 @@ class ServiceState:
             self.probes.stop()
 
     def _start_visual_thread(self) -> None:
-        """The embedding thread, as it starts: counted with the service's own, and behind the tactile path when the
-        cores are contended (a burst of first frames would otherwise slow every session's windows)."""
+        """A visual-path thread (decoding, embedding), as it starts: counted with the service's own, and behind the
+        tactile path when the cores are contended (a burst of frames would otherwise slow every session's windows)."""
         self.threads.register()
         if not lower_priority(self.settings.visual_nice):
-            log.warning("could not lower the embedding thread's priority (HAPTICLINK_VISUAL_NICE); it runs as the rest")
+            log.warning("could not lower a visual thread's priority (HAPTICLINK_VISUAL_NICE); it runs as the rest")
 
     def stop_runtime(self) -> None:
         """End an embedding in flight (a session's, or the warm-up's) and refuse later ones, so that the pools'

@@ -71,8 +71,8 @@ def test_lower_priority_lowers_only_the_calling_thread():
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
-def test_the_services_embedding_thread_runs_behind_its_window_threads():
-    """A burst of first frames to embed takes the CPU the tactile path leaves (HAPTICLINK_VISUAL_NICE)."""
+def test_the_services_decoding_and_embedding_threads_run_behind_its_window_threads():
+    """A burst of frames to decode and embed takes the CPU the tactile path leaves (HAPTICLINK_VISUAL_NICE)."""
     from service.settings import Settings
     from service.state import ServiceState
 
@@ -84,6 +84,7 @@ def test_the_services_embedding_thread_runs_behind_its_window_threads():
         base = nice()
         assert state.window_pool.submit(nice).result() == base
         assert state.visual_pool.submit(nice).result() == min(19, base + 7)
+        assert state.frame_pool.submit(nice).result() == min(19, base + 7)
     finally:
         for pool in (state.window_pool, state.frame_pool, state.visual_pool):
             pool.shutdown()
