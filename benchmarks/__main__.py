@@ -12,6 +12,7 @@ from pathlib import Path
 from benchmarks import (
     bandwidth,
     features,
+    frame_post,
     hostile,
     hostile_chart,
     refusals,
@@ -45,6 +46,8 @@ def main(argv: list[str]) -> int:
     window_batch.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
+    print("\n== service: what a posted frame costs, against a /health GET ==", flush=True)
+    frame_post.main([])
     print("\n== service: what a refused request costs ==", flush=True)
     refusals.main([])
     print("\n== service: the hostile-client probe's worst cases beside well-behaved robots ==", flush=True)
