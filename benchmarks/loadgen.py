@@ -6,8 +6,9 @@ encodes every block (binary format, seq from 0) and, before the common start ins
 sessions (the fleet key), their ingest WebSockets and an operator's events WebSocket per session. From the
 start instant each robot sends block k when its span has ended (start + offset + k·block_s; a tap block, when
 the model reads taps, at once), a camera frame every `frame_every_s` when the configuration has frames — by HTTP
-POST when the robot client's `FrameGate` lets it go (its scene changed, or its jittered `frame_refresh_s` passed;
-a robot's photo never changes, so its thumbnail is computed once) — and reads its acknowledgements; the operator
+POST when the robot client's `FrameGate` lets it go (its scene changed; or, at the moment it is due and as the
+client does, its jittered `frame_refresh_s` refresh; a robot's photo never changes, so its thumbnail is computed
+once) — and reads its acknowledgements; the operator
 stamps every window event against the moment the block that completed it left the generator (one clock:
 CLOCK_MONOTONIC, shared by the processes).
 
@@ -252,11 +253,17 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
         plan.frame_change, plan.frame_refresh_s, plan.frame_refresh_jitter, random.Random(f"{plan.seed}:{robot.k}")
     )
     k = 0
-    while (due := start + k * plan.frame_every_s) < start + plan.duration_s:
+    while True:
+        # the camera's next frame, or the refresh the robot client sends on time with its newest frame
+        tick = start + k * plan.frame_every_s
+        refresh = gate.refresh_at
+        due = tick if refresh is None else min(tick, refresh)
+        if due >= start + plan.duration_s:
+            break
         delay = due - time.perf_counter()
         if delay > 0:
             await asyncio.sleep(delay)
-        k += 1
+        k += due == tick
         if not gate.admit(robot.frame_thumb, due):
             out.frames_unchanged += 1
             continue

@@ -112,6 +112,8 @@ class RobotClient:
         self.outbox = Outbox(max_buffer_s, backoff, random.Random(seed), start_seq)
         self.frame_gate = FrameGate(frame_change, frame_refresh_s)
         self._thumbnailed: tuple[bytes, np.ndarray | None] | None = None  # the last frame decoded, and its thumbnail
+        self._newest: tuple[Frame, np.ndarray | None] | None = None  # the newest frame read, and its thumbnail
+        self._refresh: asyncio.TimerHandle | None = None  # sends the newest frame when the gate's refresh is due
         self._stopping = False
         self._ran = False
         self._reader: asyncio.Task | None = None
@@ -231,13 +233,20 @@ class RobotClient:
 
     # ---- source → buffer ------------------------------------------------------------------------
     async def _read_source(self) -> None:
-        async for item in self.source:
-            if isinstance(item, (SampleBlock, TapBlock)):
-                self._enqueue_block(item)
-            elif isinstance(item, Frame):
-                await self._enqueue_frame(item)
-            else:
-                log.warning("source %s yielded a %s; ignored", getattr(self.source, "name", "?"), type(item).__name__)
+        try:
+            async for item in self.source:
+                if isinstance(item, (SampleBlock, TapBlock)):
+                    self._enqueue_block(item)
+                elif isinstance(item, Frame):
+                    await self._enqueue_frame(item)
+                else:
+                    log.warning(
+                        "source %s yielded a %s; ignored", getattr(self.source, "name", "?"), type(item).__name__
+                    )
+        finally:  # no refresh of a camera that has stopped
+            if self._refresh is not None:
+                self._refresh.cancel()
+                self._refresh = None
 
     def _enqueue_block(self, block: Block) -> None:
         """Number a sample or tap block (one seq sequence for both), encode it and buffer it for sending."""
@@ -257,7 +266,29 @@ class RobotClient:
             if self._thumbnailed is None or self._thumbnailed[0] != frame.image:
                 self._thumbnailed = (frame.image, await asyncio.to_thread(frame_thumbnail, frame.image))
             thumb = self._thumbnailed[1]
+        self._newest = (frame, thumb)
         if gate.admit(thumb, asyncio.get_running_loop().time()):
-            self.outbox.add_frame(frame)
+            self._send_frame(frame)
         else:
             self.stats.frames_unchanged += 1
+
+    def _send_frame(self, frame: Frame) -> None:
+        """Queue a frame the gate let through, and time the next refresh from it."""
+        self.outbox.add_frame(frame)
+        self._time_refresh()
+
+    def _time_refresh(self) -> None:
+        if self._refresh is not None:
+            self._refresh.cancel()
+        at = self.frame_gate.refresh_at
+        self._refresh = None if at is None else asyncio.get_running_loop().call_at(at, self._refresh_due)
+
+    def _refresh_due(self) -> None:
+        """The refresh is due: the newest frame goes now, not with the camera's next frame (FrameGate)."""
+        self._refresh = None
+        assert self._newest is not None  # timed only once a frame was sent
+        frame, thumb = self._newest
+        if self.frame_gate.admit(thumb, asyncio.get_running_loop().time()):
+            self._send_frame(frame)
+        else:  # woken a hair early (the loop's clock resolution)
+            self._time_refresh()

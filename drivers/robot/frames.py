@@ -36,7 +36,10 @@ class FrameGate:
 
     The refresh comes `refresh_s` to `refresh_s` × (1 + `jitter`) after the last frame sent, drawn anew each time from
     `rng` (None: seeded by the OS): robots started together would otherwise refresh together, every `refresh_s`,
-    and the service would decode a fleet's frames at once.
+    and the service would decode a fleet's frames at once. It is due at `refresh_at`, and the robot client sends its
+    newest frame then rather than wait for the camera's next one: the cameras of robots started together tick
+    together, and at 1 fps a refresh held to the next tick would gather a third of a fleet's refreshes into the same
+    quarter of a second.
 
     `admit(thumb, now)`: thumb is `frame_thumbnail(frame.image)` (None: unreadable, or change=0), now in seconds of
     a monotonic clock. An unreadable frame goes: the service's answer says what is wrong with it."""
@@ -67,9 +70,14 @@ class FrameGate:
         """Whether admit needs the frames' thumbnails (not when every frame goes)."""
         return self.change > 0
 
+    @property
+    def refresh_at(self) -> float | None:
+        """When the refresh is due (s, the clock `admit` is given); None before the first frame."""
+        return None if self._sent_at is None else self._sent_at + self._refresh_after
+
     def admit(self, thumb: np.ndarray | None, now: float) -> bool:
         """Send this frame? Remembers it as the scene sent when it goes."""
-        due = self._sent_at is None or now - self._sent_at >= self._refresh_after
+        due = self._sent_at is None or now >= self._sent_at + self._refresh_after
         if self.reads_frames and thumb is not None and not due and not scene_changed(self._sent, thumb, self.change):
             return False
         self._sent, self._sent_at = thumb, now

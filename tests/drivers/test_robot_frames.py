@@ -3,6 +3,7 @@ sends what the gate lets through, against a fake service on loopback."""
 
 from __future__ import annotations
 
+import asyncio
 import random
 
 import numpy as np
@@ -58,6 +59,18 @@ def test_robots_started_together_refresh_apart():
     assert again.admit(a, 0.0) and not again.admit(a, firsts[0] - 0.05) and again.admit(a, firsts[0])  # seeded
 
 
+def test_the_gate_says_when_the_refresh_is_due():
+    a = thumbnail(_surface(0))
+    gate = FrameGate(change=0.015, refresh_s=10.0, jitter=0.0)
+    assert gate.refresh_at is None, "nothing sent, nothing to refresh"
+    assert gate.admit(a, 3.0) and gate.refresh_at == 13.0
+    assert not gate.admit(a, 12.999) and gate.admit(a, gate.refresh_at), "due at refresh_at, not a tick later"
+    assert gate.refresh_at == 23.0
+    jittered = FrameGate(change=0.015, refresh_s=10.0, jitter=0.25, rng=random.Random(3))
+    assert jittered.admit(a, 0.0) and 10.0 <= (at := jittered.refresh_at) < 12.5
+    assert not jittered.admit(a, at - 1e-6) and jittered.admit(a, at)
+
+
 def test_change_zero_sends_every_frame_without_reading_it():
     gate = FrameGate(change=0.0)
     assert not gate.reads_frames
@@ -107,3 +120,30 @@ def test_the_robot_sends_a_frame_when_its_scene_changes(kit, fake_service, chang
     else:  # every frame is queued; the source reads faster than the session opens, so older ones are superseded
         assert sent[-1] == photos[-1] and sent == sorted(sent, key=photos.index) and stats.frames_unchanged == 0
         assert stats.frames_sent + stats.frames_dropped == 6
+
+
+def test_the_refresh_goes_on_time_even_when_the_camera_sends_no_new_frame(kit, fake_service):
+    """A camera that sent one frame and stopped: the client sends that frame again each time the refresh is due
+    (a timer, not the camera's next frame), while it streams; and stops refreshing when the stream ends."""
+    from drivers.robot import RobotClient
+
+    photo = _photo(_surface(0), 1)
+    blocks = list(blocks_from_arrays(kit.stroke_arrays(1200, seed=4), 0.05))  # 1.2 s of stream, paced
+    items = [Frame(0.0, photo, "image/png"), *blocks]
+
+    async def main():
+        server = kit.LoopbackServer(fake_service.app)
+        await server.start()
+        try:
+            client = RobotClient(server.url, kit.ListSource(items, realtime=True), frame_refresh_s=0.2, **FAST)
+            return await client.run()
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    sent = [body for _, body in fake_service.only_session().frames]
+    assert stats.frames_read == 1 and stats.acked == len(blocks)
+    # refreshes 0.2–0.25 s apart over 1.2 s: 4–6 after the first (2 leave room for a slow machine); one frame alone
+    # would mean the refresh waited for a camera frame that never came
+    assert 3 <= len(sent) <= 7 and set(sent) == {photo}, len(sent)
+    assert stats.frames_sent == len(sent)
