@@ -7,10 +7,10 @@ sessions (the fleet key), their ingest WebSockets and an operator's events WebSo
 start instant each robot sends block k when its span has ended (start + offset + k·block_s; a tap block, when
 the model reads taps, at once), a camera frame every `frame_every_s` when the configuration has frames — by HTTP
 POST when the robot client's `FrameGate` lets it go (its scene changed; or, at the moment it is due and as the
-client does, its jittered `frame_refresh_s` refresh; a robot's photo never changes, so its thumbnail is computed
-once) — and reads its acknowledgements; the operator
-stamps every window event against the moment the block that completed it left the generator (one clock:
-CLOCK_MONOTONIC, shared by the processes).
+client does, its jittered `frame_refresh_s` refresh, which first asks with the thumbnail and sends the frame only if
+the service wants it; a robot's photo never changes, so its thumbnail is computed once) — and reads its
+acknowledgements; the operator stamps every window event against the moment the block that completed it left the
+generator (one clock: CLOCK_MONOTONIC, shared by the processes).
 
 What comes back, per process: the send lag of every block (ms: how late after its due instant it went out —
 the generator's own delay, which a valid measurement keeps small), end-to-end latencies (ms) and when each
@@ -39,7 +39,7 @@ import numpy as np
 from drivers.blocks import Block, encode_binary
 from drivers.robot.backoff import retry_after
 from drivers.robot.frames import FRAME_REFRESH_S, REFRESH_JITTER, FrameGate, frame_thumbnail
-from drivers.scene_change import FRAME_CHANGE
+from drivers.scene_change import FRAME_CHANGE, thumbnail_bytes
 from drivers.simulated import tap_block
 from drivers.source import blocks_from_arrays
 from texture_library.library import Library
@@ -92,6 +92,7 @@ class GeneratorResult:
     frames_sent: int = 0  # let through by the gate and answered other than 429
     frames_unchanged: int = 0  # kept back by the robot's FrameGate
     frames_refused: int = 0
+    refreshes_held: int = 0  # refreshes whose scene check the service answered "held" (no frame sent)
     failures: list[str] = field(default_factory=list)
     cpu_s: float = 0.0  # this process's CPU time over the streaming phase
     wall_s: float = 0.0
@@ -243,11 +244,13 @@ async def _operate(robot: Robot, start: float, out: GeneratorResult) -> None:
 
 
 async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: GeneratorResult) -> None:
-    from drivers.protocol import bearer, session_path
+    from drivers.protocol import SCENE_CONTENT_TYPE, bearer, session_path
 
     assert robot.session is not None and robot.frame is not None
     target = url + session_path(robot.session["session_id"], "frames")
     headers = {**bearer(robot.session["robot_token"]), "Content-Type": "image/png"}
+    scene_target = url + session_path(robot.session["session_id"], "scene")
+    scene_headers = {**bearer(robot.session["robot_token"]), "Content-Type": SCENE_CONTENT_TYPE}
     # as a robot's own gate, with its refresh jitter seeded per robot
     gate = FrameGate(
         plan.frame_change, plan.frame_refresh_s, plan.frame_refresh_jitter, random.Random(f"{plan.seed}:{robot.k}")
@@ -267,6 +270,11 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
         if not gate.admit(robot.frame_thumb, due):
             out.frames_unchanged += 1
             continue
+        if due == refresh and robot.frame_thumb is not None:  # as the client does: the thumbnail asks first
+            check = await http.post(scene_target, content=thumbnail_bytes(robot.frame_thumb), headers=scene_headers)
+            if check.status_code == 200 and not check.json()["frame_needed"]:
+                out.refreshes_held += 1
+                continue
         # as the robot client does: a frame refused with 429 (the visual queue was full) goes again after Retry-After
         while (r := await http.post(target, content=robot.frame, headers=headers)).status_code == 429:
             out.frames_refused += 1

@@ -489,6 +489,7 @@ def measure(
         "ingest_closed_saturated": sum(r.saturated_closes for r in results),
         "frames_sent": sum(r.frames_sent for r in results),
         "frames_unchanged": sum(r.frames_unchanged for r in results),
+        "refreshes_held": sum(r.refreshes_held for r in results),
         "frames_refused": counted("hapticlink_frames_total", outcome="refused"),
         "frames_embedded": counted("hapticlink_visual_embedding_seconds_count"),
         "events_dropped_by_service": counted("hapticlink_events_dropped_total"),

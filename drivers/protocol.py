@@ -49,6 +49,8 @@ __all__ = [
 #: what a fleet's API key is read from by the robot client and the CLIs (`--api-key` overrides it)
 API_KEY_ENV = "HAPTICLINK_API_KEY"
 FRAME_CONTENT_TYPES = ("image/png", "image/jpeg")
+#: a scene check's body: the newest frame's thumbnail (drivers/scene_change.thumbnail_bytes)
+SCENE_CONTENT_TYPE = "application/octet-stream"
 #: HTTP statuses that say "not now" rather than "bad request": 408 timeout, 421 misdirected, 425 too early
 RETRY_STATUSES = frozenset({408, 421, 425})
 #: HTTP status of a lost session: its replica is gone, and its state with it; final — open a new session

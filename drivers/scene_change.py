@@ -44,6 +44,31 @@ def thumbnail(gray: np.ndarray, size: int = THUMBNAIL_SIZE) -> np.ndarray:
     return np.stack([means, deviations])
 
 
+#: a thumbnail on the wire (a robot's scene check): (2, THUMBNAIL_SIZE, THUMBNAIL_SIZE) float32, little-endian
+THUMBNAIL_BYTES = 2 * THUMBNAIL_SIZE * THUMBNAIL_SIZE * 4
+
+
+def thumbnail_bytes(thumb: np.ndarray) -> bytes:
+    """(2, 16, 16) thumbnail → its THUMBNAIL_BYTES on the wire (float32, little-endian, C order)."""
+    if thumb.shape != (2, THUMBNAIL_SIZE, THUMBNAIL_SIZE):
+        raise ValueError(f"thumbnail must have shape (2, {THUMBNAIL_SIZE}, {THUMBNAIL_SIZE}), got {thumb.shape}")
+    return np.ascontiguousarray(thumb, dtype="<f4").tobytes()
+
+
+def thumbnail_from_bytes(payload: bytes) -> np.ndarray:
+    """THUMBNAIL_BYTES → (2, 16, 16) float32 thumbnail; ValueError naming the problem if the size is wrong or a value
+    is not a grey level's mean or deviation (finite, in [0, 1])."""
+    if len(payload) != THUMBNAIL_BYTES:
+        raise ValueError(
+            f"a scene thumbnail is {THUMBNAIL_BYTES} bytes (2×{THUMBNAIL_SIZE}×{THUMBNAIL_SIZE} float32, "
+            f"little-endian), got {len(payload)}"
+        )
+    thumb = np.frombuffer(payload, dtype="<f4").astype(np.float32).reshape(2, THUMBNAIL_SIZE, THUMBNAIL_SIZE)
+    if not (np.isfinite(thumb).all() and thumb.min() >= 0 and thumb.max() <= 1):
+        raise ValueError("a scene thumbnail's block means and deviations must be finite grey levels in [0, 1]")
+    return thumb
+
+
 def frame_difference(a: np.ndarray, b: np.ndarray) -> float:
     """Mean absolute difference of two thumbnails' block means plus that of their block standard deviations (0…2
     for images in [0, 1]); ValueError if shapes differ."""

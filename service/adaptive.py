@@ -115,6 +115,11 @@ class SceneViews:
         self._taken += 1
         return True, changed
 
+    def wants(self, thumb: np.ndarray) -> bool:
+        """Would offer() take a frame with this thumbnail? (Takes nothing: a robot's scene check.)"""
+        changed = scene_changed(self._scene, thumb, self.threshold)
+        return self.policy.embed_frame(changed, 0 if changed else self._taken)
+
     def add(self, embedding: np.ndarray, new_scene: bool) -> np.ndarray:
         if new_scene:
             self._views.reset()

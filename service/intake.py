@@ -7,6 +7,7 @@ decoded and validated once, in one place, whichever way it came, and outcomes ar
         (admission) ─▶ acknowledgement
     frame bytes ─▶ FrameIntake: refused early (429) when the visual queue's pixels are spent ─▶ decode + thumbnail
         (frame pool) ─▶ Session.offer_frame (the serving policy: embed it?) ─▶ frame_received event
+    scene thumbnail (a robot's refresh) ─▶ FrameIntake.check_scene ─▶ Session.frame_wanted: send the frame?
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from concurrent.futures import Executor
 import numpy as np
 
 from drivers.blocks import Block, decode_binary, decode_json
-from drivers.scene_change import thumbnail
+from drivers.scene_change import thumbnail, thumbnail_from_bytes
 from service.bus import EventBus
 from service.capacity import CapacityGuard
 from service.errors import ServiceError, saturated, session_not_found
@@ -26,7 +27,7 @@ from service.events import status_event
 from service.live_session import RETRY_AFTER_S, Session
 from service.metrics import ServiceMetrics
 from service.runtime import Runtime, frame_pixels
-from service.schemas import FrameAck
+from service.schemas import FrameAck, SceneCheck
 from service.settings import Settings
 
 #: what a malformed payload can raise inside the shared decoders (huge ints overflow, deep nesting recurses)
@@ -181,6 +182,18 @@ class FrameIntake:
             False,
         )
         return FrameAck(used=used, outcome=outcome, width=width, height=height)
+
+    def check_scene(self, session: Session, payload: bytes) -> SceneCheck:
+        """A robot's scene check: its newest frame's thumbnail (drivers/scene_change.thumbnail_bytes) in place of a
+        refresh frame → whether the session wants the frame; 422 for a malformed thumbnail. Costs no decode, and the
+        robot sends 2 kB instead of the frame."""
+        try:
+            thumb = thumbnail_from_bytes(payload)
+        except ValueError as exc:
+            raise ServiceError(422, f"scene check: {exc}") from None
+        why = session.frame_wanted(thumb)
+        self.metrics.scene_checks.labels(answer="held" if why is None else "frame_needed").inc()
+        return SceneCheck(frame_needed=why is not None, detail=why or "the scene is held: no frame needed")
 
     def rejected(self, session: Session) -> None:
         """Count a frame refused before it reached the intake (e.g. a wrong Content-Type)."""

@@ -376,6 +376,20 @@ class Session:
         self._embedder = asyncio.create_task(self._embed_frames(), name=f"embed-{self.id}")
         return "embedding"
 
+    def frame_wanted(self, thumb: np.ndarray) -> str | None:
+        """A robot's scene check (its newest frame's scene_change.thumbnail, in place of the frame): why the session
+        wants that frame, or None when offer_frame would change nothing with it (the scene it holds, no view to add)."""
+        self.touch()
+        if self._chosen_scene is None:
+            return "no frame of this session has been received"
+        if scene_changed(self._chosen_scene, thumb, self.settings.frame_change):
+            return "the scene changed since the last frame received"
+        if self.runtime.needs_taps and self._taps is not None and self._tapped_scene is None:
+            return "no frame shows the tapped surface yet"
+        if self.runtime.needs_visual and self._scene.wants(thumb):
+            return "the model embeds another view of this scene"
+        return None
+
     def _release_choice_on_new_scene(self, thumb: np.ndarray) -> None:
         """A frame of another scene: the tool is over another surface, so the entry chosen for the last one is not
         held against the new one's by hysteresis (HysteresisChooser.release). Whatever the model reads: a

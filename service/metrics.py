@@ -58,6 +58,12 @@ class ServiceMetrics:
         self.frames = Counter(
             "hapticlink_frames_total", "Camera frames received, by outcome.", ("outcome",), registry=registry
         )
+        self.scene_checks = Counter(
+            "hapticlink_scene_checks_total",
+            "Robots' scene checks (a thumbnail in place of a refresh frame), by answer: held or frame_needed.",
+            ("answer",),
+            registry=registry,
+        )
         self.events_dropped = Counter(
             "hapticlink_events_dropped_total",
             "Events dropped for slow operator connections (they keep the latest).",

@@ -51,6 +51,14 @@ class BlockAck(BaseModel):
     )
 
 
+class SceneCheck(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"frame_needed": False, "detail": "the scene is held: no frame needed"}]}
+    )
+    frame_needed: bool = Field(description="true: send the frame whose thumbnail this was (POST …/frames)")
+    detail: str = Field(description="why a frame is needed, or that the scene is held")
+
+
 class FrameAck(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
@@ -277,6 +285,20 @@ BLOCK_REQUEST_BODY = {
         },
     },
 }
+SCENE_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        "application/octet-stream": {
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "the newest frame's scene thumbnail (drivers/scene_change.py): 2×16×16 float32, "
+                "little-endian, 2,048 bytes — block means, then block standard deviations, grey levels in [0, 1]",
+            }
+        }
+    },
+}
+
 FRAME_REQUEST_BODY = {
     "required": True,
     "content": {

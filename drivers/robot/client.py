@@ -28,10 +28,10 @@ from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, e
 from drivers.robot.backoff import Backoff
 from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail, send_frames
 from drivers.robot.http import send_http
-from drivers.robot.outbox import Endpoint, Outbox, RobotStats
+from drivers.robot.outbox import Endpoint, Outbox, Refresh, RobotStats
 from drivers.robot.session import SessionInfo, api_key_from_env, open_session
 from drivers.robot.ws import send_ws
-from drivers.scene_change import FRAME_CHANGE
+from drivers.scene_change import FRAME_CHANGE, thumbnail_bytes
 from drivers.source import SensorSource, check_positive
 
 log = logging.getLogger("drivers.robot")
@@ -272,7 +272,7 @@ class RobotClient:
         else:
             self.stats.frames_unchanged += 1
 
-    def _send_frame(self, frame: Frame) -> None:
+    def _send_frame(self, frame: Frame | Refresh) -> None:
         """Queue a frame the gate let through, and time the next refresh from it."""
         self.outbox.add_frame(frame)
         self._time_refresh()
@@ -289,6 +289,7 @@ class RobotClient:
         assert self._newest is not None  # timed only once a frame was sent
         frame, thumb = self._newest
         if self.frame_gate.admit(thumb, asyncio.get_running_loop().time()):
-            self._send_frame(frame)
+            # the service decodes a frame to learn its scene; the thumbnail (2 kB) tells it without a decode
+            self._send_frame(frame if thumb is None else Refresh(frame, thumbnail_bytes(thumb)))
         else:  # woken a hair early (the loop's clock resolution)
             self._time_refresh()

@@ -1,5 +1,6 @@
-"""Camera frames: which ones go (`FrameGate`: only a changed scene), and `POST /sessions/{id}/frames`; only the few
-newest wait out an outage or a busy visual queue."""
+"""Camera frames: which ones go (`FrameGate`: only a changed scene, and a refresh), and `POST /sessions/{id}/frames`
+(a refresh asks `POST /sessions/{id}/scene` with the frame's thumbnail first); only the few newest wait out an outage
+or a busy visual queue."""
 
 from __future__ import annotations
 
@@ -11,10 +12,10 @@ import httpx
 import numpy as np
 
 from drivers.camera import frame_gray
-from drivers.protocol import RETRY_STATUSES, SESSION_LOST, bearer, session_path
+from drivers.protocol import RETRY_STATUSES, SCENE_CONTENT_TYPE, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
 from drivers.robot.errors import RobotAuthError, session_lost
-from drivers.robot.outbox import Endpoint, Outbox
+from drivers.robot.outbox import Endpoint, Outbox, Refresh
 from drivers.scene_change import FRAME_CHANGE, scene_changed, thumbnail
 
 log = logging.getLogger("drivers.robot")
@@ -95,10 +96,14 @@ def frame_thumbnail(image: bytes) -> np.ndarray | None:
 
 async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
     """Send the outbox's queued frames in order until drained, each once the service takes the robot's blocks
-    (`Outbox.ingest_open`); 429 (visual queue full) waits Retry-After and sends the newest."""
+    (`Outbox.ingest_open`); 429 (visual queue full) waits Retry-After and sends the newest. A `Refresh` first asks
+    `POST /sessions/{sid}/scene` with the frame's thumbnail, and sends the frame only when the answer wants it (or
+    the service cannot check: the frame's own answer then says what is wrong)."""
     http = outbox.http
     assert http is not None
     url = endpoint.url + session_path(str(endpoint.session_id), "frames")
+    scene_url = endpoint.url + session_path(str(endpoint.session_id), "scene")
+    auth = bearer(str(endpoint.robot_token))
     frames = outbox.frames
     while True:
         outbox.frames_changed.clear()
@@ -110,29 +115,41 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
         if not outbox.ingest_open.is_set():
             await outbox.ingest_open.wait()
             continue  # newer frames may have superseded it meanwhile
-        frame = frames[0]
+        item = frames[0]
+        check = isinstance(item, Refresh)
+        what = "scene check" if check else "frame"
         try:
-            r = await http.post(
-                url,
-                content=frame.image,
-                headers={**bearer(str(endpoint.robot_token)), "Content-Type": frame.content_type},
-            )
+            if isinstance(item, Refresh):
+                r = await http.post(
+                    scene_url, content=item.thumbnail, headers={**auth, "Content-Type": SCENE_CONTENT_TYPE}
+                )
+            else:
+                r = await http.post(url, content=item.image, headers={**auth, "Content-Type": item.content_type})
         except httpx.TransportError as exc:
             delay = outbox.frame_backoff.next()
-            log.warning("POST frame: %s: %s; retrying in %.2f s", type(exc).__name__, exc, delay)
+            log.warning("POST %s: %s: %s; retrying in %.2f s", what, type(exc).__name__, exc, delay)
             await asyncio.sleep(delay)
             continue
         status = r.status_code
         if status in (401, 403):
-            raise RobotAuthError(f"the service refused the robot token for frames (HTTP {status}: {detail(r)})")
+            raise RobotAuthError(f"the service refused the robot token for a {what} (HTTP {status}: {detail(r)})")
         if status == SESSION_LOST:
             raise session_lost(endpoint.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
-            outbox.stats.frames_refused += status == 429
+            outbox.stats.frames_refused += status == 429 and not check
             delay = outbox.frame_backoff.next(retry_after(r) if status == 429 else None)
             await asyncio.sleep(delay)
             continue
-        if frames and frames[0] is frame:
+        if isinstance(item, Refresh):
+            if frames and frames[0] is item:  # else a newer frame superseded it meanwhile
+                if status == 200 and not _frame_needed(r):
+                    frames.popleft()
+                    outbox.stats.refreshes_held += 1
+                    outbox.frame_backoff.reset()
+                else:
+                    frames[0] = item.frame
+            continue
+        if frames and frames[0] is item:
             frames.popleft()
         else:  # add_frame superseded it while it was on its way, and counted it dropped; but it arrived
             outbox.stats.frames_dropped -= 1
@@ -141,4 +158,12 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
             outbox.frame_backoff.reset()
         else:
             outbox.stats.frames_rejected += 1
-            log.error("the service rejected a frame (%s): HTTP %d: %s", frame.content_type, status, detail(r))
+            log.error("the service rejected a frame (%s): HTTP %d: %s", item.content_type, status, detail(r))
+
+
+def _frame_needed(r: httpx.Response) -> bool:
+    """A scene check's answer: does the service want the frame? (Yes, when the answer cannot be read.)"""
+    try:
+        return bool(r.json()["frame_needed"])
+    except (ValueError, KeyError, TypeError):
+        return True

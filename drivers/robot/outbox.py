@@ -23,6 +23,17 @@ from drivers.robot.resend import Pending, ResendBuffer
 log = logging.getLogger("drivers.robot")
 
 LOST_LOG_EVERY_S = 5.0
+
+
+@dataclass(frozen=True)
+class Refresh:
+    """A refresh of `frame`: its scene thumbnail (drivers/scene_change.thumbnail_bytes) goes first, and the frame only
+    if the service's answer asks for it."""
+
+    frame: Frame
+    thumbnail: bytes
+
+
 FRAME_QUEUE = 4  # frames kept during an outage: the newest matter, older ones are superseded
 
 
@@ -47,6 +58,7 @@ class RobotStats:
     frames_dropped: int = 0  # superseded by newer frames during an outage
     frames_rejected: int = 0
     frames_refused: int = 0  # answered 429 (the service's visual queue was full); the newest is sent later
+    refreshes_held: int = 0  # refreshes whose scene check the service answered "held": the frame was not sent
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -81,7 +93,7 @@ class Outbox:
 
     def __init__(self, max_buffer_s: float, backoff: tuple[float, float], rng, start_seq: int = 0) -> None:
         self.buffer = ResendBuffer(max_buffer_s)
-        self.frames: deque[Frame] = deque()
+        self.frames: deque[Frame | Refresh] = deque()
         self.blocks_changed = asyncio.Event()
         self.frames_changed = asyncio.Event()
         self.ingest_open = asyncio.Event()
@@ -119,7 +131,7 @@ class Outbox:
         self.blocks_changed.set()
         return seq
 
-    def add_frame(self, frame: Frame) -> None:
+    def add_frame(self, frame: Frame | Refresh) -> None:
         """Queue a frame for sending; past FRAME_QUEUE the oldest is superseded (stats.frames_dropped)."""
         if len(self.frames) >= FRAME_QUEUE:
             self.frames.popleft()

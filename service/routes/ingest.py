@@ -1,4 +1,5 @@
-"""What robots send: sample blocks (HTTP POST or the ingest WebSocket) and camera frames (HTTP POST)."""
+"""What robots send: sample blocks (HTTP POST or the ingest WebSocket), camera frames (HTTP POST) and scene checks
+(HTTP POST: a frame's thumbnail in place of a refresh frame)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,22 @@ import time
 from fastapi import APIRouter, Query, Request, WebSocket
 from starlette.websockets import WebSocketDisconnect
 
-from drivers.protocol import BINARY_CONTENT_TYPE, FRAME_CONTENT_TYPES, SESSION_LOST, Close, ack_error, ack_ok, peek_seq
+from drivers.protocol import (
+    BINARY_CONTENT_TYPE,
+    FRAME_CONTENT_TYPES,
+    SCENE_CONTENT_TYPE,
+    SESSION_LOST,
+    Close,
+    ack_error,
+    ack_ok,
+    peek_seq,
+)
 from service.auth import ROBOT_ONLY
 from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
 from service.routes.common import errors, try_later
-from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, BlockAck, FrameAck
+from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, SCENE_REQUEST_BODY, BlockAck, FrameAck, SceneCheck
 from service.state import ServiceState
 
 router = APIRouter(tags=["ingest"])
@@ -68,6 +78,20 @@ async def post_frame(request: Request, state: State, session: RobotSession, runt
         state.frames.rejected(session)
         raise ServiceError(415, f"frames are {' or '.join(FRAME_CONTENT_TYPES)}, got {kind or 'no Content-Type'}")
     return await state.frames.receive(session, runtime, await request.body())
+
+
+@router.post(
+    "/sessions/{session_id}/scene",
+    response_model=SceneCheck,
+    openapi_extra={"requestBody": SCENE_REQUEST_BODY},
+    responses=errors(401, 403, 404, 410, 413, 415, 421, 422, 503),
+    summary="Check the scene instead of sending a refresh frame: does the session want the frame? (robot token)",
+)
+async def post_scene(request: Request, state: State, session: RobotSession, runtime: ReadyRuntime) -> SceneCheck:
+    kind = media_type(request)
+    if kind != SCENE_CONTENT_TYPE:
+        raise ServiceError(415, f"a scene check is {SCENE_CONTENT_TYPE}, got {kind or 'no Content-Type'}")
+    return state.frames.check_scene(session, await request.body())
 
 
 @router.websocket("/sessions/{session_id}/ingest")

@@ -48,6 +48,7 @@ class FakeSession:
     accepted: list[SampleBlock] = field(default_factory=list)
     deliveries: Counter = field(default_factory=Counter)  # seq → times it reached the server
     frames: list[tuple[str, bytes]] = field(default_factory=list)
+    scene_checks: list[bytes] = field(default_factory=list)  # thumbnails of the robot's refreshes
 
 
 class FakeService:
@@ -61,6 +62,7 @@ class FakeService:
         self.shed_handshakes: int = 0  # refuse this many ingest handshakes with HTTP 429, Retry-After: 0.3
         self.handshakes: list[float] = []  # time.monotonic() of every ingest handshake
         self.frame_posts: list[float] = []  # time.monotonic() of every frame request
+        self.scene_held = True  # a scene check's answer: the scene is held (no frame needed), or not
         self.block_answers: list[tuple[float, int]] = []  # (time.monotonic(), status) of every block POST answered
         self.fail_after_accept: set[int] = set()  # process the block, then 503 / close 1011 without the ack
         self.fail_at: dict[int, list[int]] = {}  # seq → HTTP statuses to answer (one per try) before processing it
@@ -73,6 +75,7 @@ class FakeService:
                 Route("/sessions", self.create_session, methods=["POST"]),
                 Route("/sessions/{sid}/blocks", self.post_block, methods=["POST"]),
                 Route("/sessions/{sid}/frames", self.post_frame, methods=["POST"]),
+                Route("/sessions/{sid}/scene", self.post_scene, methods=["POST"]),
                 WebSocketRoute("/sessions/{sid}/ingest", self.ingest),
             ]
         )
@@ -151,6 +154,14 @@ class FakeService:
             return JSONResponse({"detail": f"unsupported {ctype}"}, status_code=415)
         sess.frames.append((ctype, await request.body()))
         return JSONResponse({"ok": True}, status_code=202)
+
+    async def post_scene(self, request: Request) -> Response:
+        auth = request.headers.get("authorization", "")
+        sess = self._session(request.path_params["sid"], auth.removeprefix("Bearer "))
+        if isinstance(sess, int):
+            return JSONResponse({"detail": LOST_DETAIL if sess == SESSION_LOST else "no"}, status_code=sess)
+        sess.scene_checks.append(await request.body())
+        return JSONResponse({"frame_needed": not self.scene_held, "detail": "fake"})
 
     async def ingest(self, ws: WebSocket) -> None:
         self.handshakes.append(time.monotonic())

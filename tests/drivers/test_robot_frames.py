@@ -12,7 +12,7 @@ import pytest
 from drivers.blocks import Frame
 from drivers.camera import frame_gray, png_bytes
 from drivers.robot.frames import FrameGate, frame_thumbnail
-from drivers.scene_change import thumbnail
+from drivers.scene_change import thumbnail, thumbnail_bytes
 from drivers.source import blocks_from_arrays
 
 FAST = {"backoff": (0.01, 0.05), "seed": 7}
@@ -122,11 +122,14 @@ def test_the_robot_sends_a_frame_when_its_scene_changes(kit, fake_service, chang
         assert stats.frames_sent + stats.frames_dropped == 6
 
 
-def test_the_refresh_goes_on_time_even_when_the_camera_sends_no_new_frame(kit, fake_service):
-    """A camera that sent one frame and stopped: the client sends that frame again each time the refresh is due
-    (a timer, not the camera's next frame), while it streams; and stops refreshing when the stream ends."""
+@pytest.mark.parametrize("held", [True, False])
+def test_the_refresh_goes_on_time_and_sends_the_frame_only_if_the_service_lacks_its_scene(kit, fake_service, held):
+    """A camera that sent one frame and stopped: each time the refresh is due (a timer, not the camera's next frame),
+    the client asks the service with that frame's thumbnail, and sends the frame again only when the answer wants it;
+    it stops refreshing when the stream ends."""
     from drivers.robot import RobotClient
 
+    fake_service.scene_held = held
     photo = _photo(_surface(0), 1)
     blocks = list(blocks_from_arrays(kit.stroke_arrays(1200, seed=4), 0.05))  # 1.2 s of stream, paced
     items = [Frame(0.0, photo, "image/png"), *blocks]
@@ -141,9 +144,15 @@ def test_the_refresh_goes_on_time_even_when_the_camera_sends_no_new_frame(kit, f
             await server.stop()
 
     stats = asyncio.run(main())
-    sent = [body for _, body in fake_service.only_session().frames]
+    session = fake_service.only_session()
+    sent = [body for _, body in session.frames]
     assert stats.frames_read == 1 and stats.acked == len(blocks)
-    # refreshes 0.2–0.25 s apart over 1.2 s: 4–6 after the first (2 leave room for a slow machine); one frame alone
-    # would mean the refresh waited for a camera frame that never came
-    assert 3 <= len(sent) <= 7 and set(sent) == {photo}, len(sent)
+    # refreshes 0.2–0.25 s apart over 1.2 s: 4–6 (2 fewer leave room for a slow machine); none would mean the
+    # refresh waited for a camera frame that never came
+    assert 3 <= len(session.scene_checks) <= 6, len(session.scene_checks)
+    assert set(session.scene_checks) == {thumbnail_bytes(frame_thumbnail(photo))}
+    if held:
+        assert sent == [photo] and stats.refreshes_held == len(session.scene_checks)
+    else:
+        assert sent == [photo] * (1 + len(session.scene_checks)) and stats.refreshes_held == 0
     assert stats.frames_sent == len(sent)

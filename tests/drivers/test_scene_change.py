@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.scene_change import frame_difference, scene_changed, thumbnail
+from drivers.scene_change import (
+    THUMBNAIL_BYTES,
+    frame_difference,
+    scene_changed,
+    thumbnail,
+    thumbnail_bytes,
+    thumbnail_from_bytes,
+)
 
 
 def test_thumbnail_is_the_block_means_and_standard_deviations():
@@ -51,3 +58,27 @@ def test_noise_is_the_same_scene_another_surface_is_not():
         scene_changed(a, b, 3.0)
     with pytest.raises(ValueError, match="same shape"):
         frame_difference(a, thumbnail(surface, size=8))
+
+
+def test_a_thumbnail_round_trips_through_its_wire_bytes():
+    thumb = thumbnail(np.random.default_rng(0).uniform(0, 1, (64, 48)))
+    payload = thumbnail_bytes(thumb)
+    assert len(payload) == THUMBNAIL_BYTES == 2048
+    assert payload[:4] == np.float32(thumb[0, 0, 0]).astype("<f4").tobytes(), "little-endian float32, means first"
+    np.testing.assert_array_equal(thumbnail_from_bytes(payload), thumb)
+
+
+@pytest.mark.parametrize(
+    ("payload", "message"),
+    [
+        (b"\x00" * 2047, "2048 bytes"),
+        (b"", "got 0"),
+        (np.full((2, 16, 16), np.inf, "<f4").tobytes(), "finite grey levels"),
+        (np.full((2, 16, 16), -0.5, "<f4").tobytes(), "in \\[0, 1\\]"),
+    ],
+)
+def test_thumbnail_bytes_that_are_no_thumbnail_are_refused_with_the_reason(payload, message):
+    with pytest.raises(ValueError, match=message):
+        thumbnail_from_bytes(payload)
+    with pytest.raises(ValueError, match="shape"):
+        thumbnail_bytes(np.zeros((16, 16), np.float32))

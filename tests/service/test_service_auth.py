@@ -7,7 +7,8 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
-from drivers.protocol import Close
+from drivers.protocol import SCENE_CONTENT_TYPE, Close
+from drivers.scene_change import THUMBNAIL_BYTES
 
 
 @pytest.fixture
@@ -24,6 +25,11 @@ def _requests(kit, library_dir, sid):
             {"content": block, "headers": {"Content-Type": BINARY_CONTENT_TYPE}},
         ),
         "frames": ("POST", f"/sessions/{sid}/frames", {"content": kit.png(), "headers": {"Content-Type": "image/png"}}),
+        "scene": (
+            "POST",
+            f"/sessions/{sid}/scene",
+            {"content": bytes(THUMBNAIL_BYTES), "headers": {"Content-Type": SCENE_CONTENT_TYPE}},
+        ),
         "status": ("GET", f"/sessions/{sid}", {}),
     }
 
@@ -36,7 +42,9 @@ def _call(client, request, token):
     return client.request(method, path, content=kwargs.get("content"), headers=headers)
 
 
-@pytest.mark.parametrize("what, allowed_role", [("blocks", "robot"), ("frames", "robot"), ("status", "operator")])
+@pytest.mark.parametrize(
+    "what, allowed_role", [("blocks", "robot"), ("frames", "robot"), ("scene", "robot"), ("status", "operator")]
+)
 def test_each_route_opens_only_to_its_role(kit, client, library_dir, two_sessions, what, allowed_role):
     a, b = two_sessions
     request = _requests(kit, library_dir, a["session_id"])[what]

@@ -342,6 +342,7 @@ def test_the_routers_serve_every_route():
         "/sessions/{session_id}",
         "/sessions/{session_id}/blocks",
         "/sessions/{session_id}/frames",
+        "/sessions/{session_id}/scene",
         "/sessions/{session_id}/ingest",
         "/sessions/{session_id}/events",
         "/health",

@@ -8,6 +8,9 @@ import httpx
 import numpy as np
 from websockets.sync.client import connect
 
+from drivers.protocol import SCENE_CONTENT_TYPE
+from drivers.robot.frames import frame_thumbnail
+from drivers.scene_change import thumbnail_bytes
 from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
 from models.visual.embedding import part_columns, visual_features, visual_layout
@@ -153,6 +156,45 @@ def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
             lambda: (s := kit.session_status(client, session))["counters"]["frames_embedded"] == 2 and s, timeout_s=60
         )
         assert status["counters"]["frames_unchanged"] == 5 and status["counters"]["frames_received"] == 7
+
+
+def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(kit, visual_model, library_dir):
+    """A robot's refresh sends its newest frame's thumbnail (2 kB) first: the frame goes only if the session wants it
+    (no frame yet, another scene, a view to add), and a held scene costs no decode."""
+    image = (library_dir / "images" / "synth_003.png").read_bytes()
+    other = (library_dir / "images" / "synth_001.png").read_bytes()
+    with (
+        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="check")) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
+        session = kit.create_session(client)
+        robot = {"Authorization": f"Bearer {session['robot_token']}"}
+        scene_url = f"/sessions/{session['session_id']}/scene"
+
+        def check(thumb_bytes: bytes, content_type: str = SCENE_CONTENT_TYPE) -> httpx.Response:
+            return client.post(scene_url, content=thumb_bytes, headers={**robot, "Content-Type": content_type})
+
+        first = check(thumbnail_bytes(frame_thumbnail(image)))
+        assert first.status_code == 200 and first.json()["frame_needed"] and "no frame" in first.json()["detail"]
+        assert _post_frame(srv.url, session, image).json()["outcome"] == "embedding"
+        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_embedded"] == 1, timeout_s=60)
+        held = check(thumbnail_bytes(frame_thumbnail(image)))
+        assert held.status_code == 200 and held.json() == {
+            "frame_needed": False,
+            "detail": "the scene is held: no frame needed",
+        }, "the robot's thumbnail of a frame matches the service's own"
+        changed = check(thumbnail_bytes(frame_thumbnail(other)))
+        assert changed.json()["frame_needed"] and "scene changed" in changed.json()["detail"]
+        assert kit.session_status(client, session)["counters"]["frames_received"] == 1, "checks decode nothing"
+
+        short = check(b"\x00" * 100)
+        assert short.status_code == 422 and "2048 bytes" in short.json()["detail"]
+        not_grey = check(thumbnail_bytes(np.full((2, 16, 16), np.nan, np.float32)))
+        assert not_grey.status_code == 422 and "finite grey levels" in not_grey.json()["detail"]
+        assert check(image, "image/png").status_code == 415
+        metrics = client.get("/metrics", headers={"Authorization": f"Bearer {kit.API_KEY}"}).text
+        assert 'hapticlink_scene_checks_total{answer="held"} 1.0' in metrics
+        assert 'hapticlink_scene_checks_total{answer="frame_needed"} 2.0' in metrics
 
 
 def _post_frame(url: str, session: dict, image: bytes) -> httpx.Response:
