@@ -1,13 +1,17 @@
-"""What a posted camera frame costs the service process, by thread, against a `/health` GET in the same run.
+"""What a robot's refresh costs the service process, by thread — a posted camera frame, and the scene check that
+replaces it — against a `/health` GET in the same run.
 
     python -m benchmarks.frame_post [--requests 1000] [--rounds 3] [--out FILE.json]
 
 One service process (the `served` configuration of benchmarks/service.py) and one session. Its first frame is
 embedded; every later POST of the same photo is what a robot's refresh costs: the body is received, the header
 probed, the frame decoded and thumbnailed, the scene found unchanged, the frame_received event published and
-the answer sent. The floor is the framework's own: a `/health` GET through the same middleware. Sequential
+the answer sent. The robot client now sends the frame's scene thumbnail instead (`POST …/scene`, 2 kB: no decode)
+and the frame only if the session wants it. The floor is the framework's own: a `/health` GET through the same
+middleware. Sequential
 requests from one client; the service's CPU is read from /proc per thread — the event loop's (the process's
-main thread) apart from the rest (the frame decoder above all). Rounds alternate frames and health checks;
+main thread) apart from the rest (the frame decoder above all). Rounds alternate frames, scene checks and health
+checks;
 medians over rounds, in ms per request. The machine's load average is recorded before and after.
 """
 
@@ -24,6 +28,9 @@ from pathlib import Path
 import httpx
 
 from benchmarks.report_file import write_report
+from drivers.protocol import SCENE_CONTENT_TYPE
+from drivers.robot.frames import frame_thumbnail
+from drivers.scene_change import thumbnail_bytes
 
 DEFAULT_OUT = Path("reports") / "bench" / "frame_post.json"
 API_KEY = "frame-post-benchmark-key-0123456789"
@@ -98,6 +105,15 @@ def main(argv: list[str] | None = None) -> int:
                 if r.status_code != 202:
                     raise RuntimeError(f"POST frame: HTTP {r.status_code}: {r.text}")
 
+            scene = f"/sessions/{session['session_id']}/scene"
+            thumb = thumbnail_bytes(frame_thumbnail(image))
+            scene_headers = {**headers, "Content-Type": SCENE_CONTENT_TYPE}
+
+            def check_scene() -> None:
+                r = client.post(scene, content=thumb, headers=scene_headers)
+                if r.status_code != 200 or r.json()["frame_needed"]:
+                    raise RuntimeError(f"POST scene: HTTP {r.status_code}: {r.text} (the scene should be held)")
+
             def get_health() -> None:
                 client.get("/health").raise_for_status()
 
@@ -110,19 +126,28 @@ def main(argv: list[str] | None = None) -> int:
                     raise RuntimeError("the first frame was not embedded within 60 s")
                 time.sleep(0.1)
             pid = server.proc.pid
-            rows: dict[str, list[dict[str, float]]] = {"frame": [], "health": []}
+            rows: dict[str, list[dict[str, float]]] = {"frame": [], "scene": [], "health": []}
             for _ in range(args.rounds):
                 rows["frame"].append(measure(pid, post_frame, args.requests))
+                rows["scene"].append(measure(pid, check_scene, args.requests))
                 rows["health"].append(measure(pid, get_health, args.requests))
     finally:
         server.stop()
     medians = {kind: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for kind, runs in rows.items()}
-    ratio = medians["frame"]["loop_cpu_ms"] / max(medians["health"]["loop_cpu_ms"], 1e-9)
-    print(f"{'request':<28}{'wall, ms':>10}{'loop CPU, ms':>14}{'other threads, ms':>19}")
-    labels = {"frame": f"POST frame ({len(image) / 1e3:.0f} kB PNG)", "health": "GET /health (the floor)"}
+    floor = max(medians["health"]["loop_cpu_ms"], 1e-9)
+    ratio, scene_ratio = medians["frame"]["loop_cpu_ms"] / floor, medians["scene"]["loop_cpu_ms"] / floor
+    print(f"{'request':<30}{'wall, ms':>10}{'loop CPU, ms':>14}{'other threads, ms':>19}")
+    labels = {
+        "frame": f"POST frame ({len(image) / 1e3:.0f} kB PNG)",
+        "scene": f"POST scene ({len(thumb) / 1e3:.0f} kB thumbnail)",
+        "health": "GET /health (the floor)",
+    }
     for kind, m in medians.items():
-        print(f"{labels[kind]:<28}{m['wall_ms']:>10.2f}{m['loop_cpu_ms']:>14.3f}{m['other_cpu_ms']:>19.3f}")
-    print(f"a refresh frame costs the loop {ratio:.1f} × a /health GET (medians of {args.rounds} rounds)")
+        print(f"{labels[kind]:<30}{m['wall_ms']:>10.2f}{m['loop_cpu_ms']:>14.3f}{m['other_cpu_ms']:>19.3f}")
+    print(
+        f"the loop's CPU per request: a refresh frame {ratio:.1f} ×, a scene check {scene_ratio:.1f} × a /health GET "
+        f"(medians of {args.rounds} rounds)"
+    )
     write_report(
         args.out,
         {
@@ -133,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             "rounds": rows,
             "medians": medians,
             "loop_ratio_frame_to_health": round(ratio, 2),
+            "loop_ratio_scene_to_health": round(scene_ratio, 2),
             "load_average_before": load_before,
             "load_average_after": os.getloadavg(),
         },
