@@ -116,8 +116,7 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
             await outbox.ingest_open.wait()
             continue  # newer frames may have superseded it meanwhile
         item = frames[0]
-        check = isinstance(item, Refresh)
-        what = "scene check" if check else "frame"
+        what = "scene check" if isinstance(item, Refresh) else "frame"
         try:
             if isinstance(item, Refresh):
                 r = await http.post(
@@ -136,7 +135,7 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
         if status == SESSION_LOST:
             raise session_lost(endpoint.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
-            outbox.stats.frames_refused += status == 429 and not check
+            outbox.stats.frames_refused += status == 429 and not isinstance(item, Refresh)
             delay = outbox.frame_backoff.next(retry_after(r) if status == 429 else None)
             await asyncio.sleep(delay)
             continue

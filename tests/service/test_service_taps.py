@@ -15,7 +15,10 @@ import pytest
 from websockets.sync.client import connect
 
 from drivers.blocks import ChannelBlock, SampleBlock, TapBlock, encode_binary, encode_json
+from drivers.protocol import SCENE_CONTENT_TYPE
 from drivers.robot import RobotClient
+from drivers.robot.frames import frame_thumbnail
+from drivers.scene_change import thumbnail_bytes
 from drivers.simulated import SimulatedSource
 from drivers.source import paced
 from models.inference.predictor import Predictor
@@ -261,6 +264,42 @@ def test_a_gap_keeps_the_taps_and_a_new_scene_waits_for_its_own(kit, taps_server
         send(TapBlock(20.0, taps.speeds, taps.accel))  # tapped late: the waiting windows go
         status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] == 6 and s)
     assert status["state"] == "streaming" and status["counters"]["tap_blocks_used"] == 2
+
+
+def test_a_scene_check_after_taps_asks_for_a_frame_of_the_tapped_surface(kit, taps_server, library_dir):
+    """Taps belong to the surface the next frame shows: until a frame after the tap block has come, a robot's scene
+    check asks for the frame even when the scene is the one held (else a later scene change would be taken for the
+    tapped surface)."""
+    taps = _simulated_items(library_dir, "synth_004", 1.0)[0]
+    image = (library_dir / "images" / "synth_004.png").read_bytes()
+    with httpx.Client(base_url=taps_server.url, timeout=10) as client:
+        session = kit.create_session(client)
+        robot = {"Authorization": f"Bearer {session['robot_token']}"}
+
+        def check() -> dict:
+            r = client.post(
+                f"/sessions/{session['session_id']}/scene",
+                content=thumbnail_bytes(frame_thumbnail(image)),
+                headers={**robot, "Content-Type": SCENE_CONTENT_TYPE},
+            )
+            assert r.status_code == 200, r.text
+            return r.json()
+
+        def frame() -> None:
+            r = client.post(
+                f"/sessions/{session['session_id']}/frames",
+                content=image,
+                headers={**robot, "Content-Type": "image/png"},
+            )
+            assert r.status_code == 202, r.text
+
+        frame()
+        assert not check()["frame_needed"], "the scene is held, and no taps wait for a frame"
+        assert kit.post_block(client, session, encode_binary(replace(taps, seq=0))).status_code == 202
+        answer = check()
+        assert answer["frame_needed"] and "tapped surface" in answer["detail"]
+        frame()
+        assert not check()["frame_needed"]
 
 
 def test_tap_blocks_round_trip_both_encodings():
