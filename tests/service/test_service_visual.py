@@ -160,7 +160,7 @@ def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
 
 def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(kit, visual_model, library_dir):
     """A robot's refresh sends its newest frame's thumbnail (2 kB) first: the frame goes only if the session wants it
-    (no frame yet, another scene, a view to add), and a held scene costs no decode."""
+    (no frame yet, another scene), and a held scene costs no decode."""
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     other = (library_dir / "images" / "synth_001.png").read_bytes()
     with (
