@@ -38,6 +38,19 @@ def test_adaptive_embeds_a_new_scene_and_its_first_pool_frames_then_nothing():
     assert scene.offer(b) == (True, True)  # after a failed embedding the next frame is tried
 
 
+def test_wants_answers_what_offer_would_do_and_takes_nothing():
+    """A robot's scene check asks `wants` in place of sending the frame: the same answer as offer's, no view taken."""
+    scene = SceneViews(ServingPolicy("adaptive", pool_frames=2), 0.05)
+    a, b = np.full((16, 16), 0.2, np.float32), np.full((16, 16), 0.8, np.float32)
+    assert scene.wants(a) and scene.wants(a), "no scene yet; asking twice takes nothing"
+    assert scene.offer(a) == (True, True)
+    assert scene.wants(a) and scene.offer(a) == (True, False), "the second view is still wanted"
+    assert not scene.wants(a) and scene.offer(a) == (False, False), "both views taken"
+    assert scene.wants(b), "another scene"
+    scene.forget()
+    assert scene.wants(a), "after a failed embedding the scene is wanted again"
+
+
 def test_the_full_model_runs_where_the_interval_is_wide_a_boundary_is_near_or_the_input_is_flagged():
     policy = ServingPolicy("adaptive", full_model_width=30, full_model_margin=5)
     width = np.array([[10, 10, 10, 10], [10, 40, 10, 10], [10, 10, 10, 10], [10, 10, 10, 10]], float)
