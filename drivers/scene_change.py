@@ -55,14 +55,19 @@ def thumbnail_bytes(thumb: np.ndarray) -> bytes:
     return np.ascontiguousarray(thumb, dtype="<f4").tobytes()
 
 
+def check_thumbnail_length(n: int) -> None:
+    """ValueError unless n bytes can be a thumbnail on the wire (a service checks a declared length before reading)."""
+    if n != THUMBNAIL_BYTES:
+        raise ValueError(
+            f"a scene thumbnail is {THUMBNAIL_BYTES} bytes (2×{THUMBNAIL_SIZE}×{THUMBNAIL_SIZE} float32, "
+            f"little-endian), got {n}"
+        )
+
+
 def thumbnail_from_bytes(payload: bytes) -> np.ndarray:
     """THUMBNAIL_BYTES → (2, 16, 16) float32 thumbnail; ValueError naming the problem if the size is wrong or a value
     is not a grey level's mean or deviation (finite, in [0, 1])."""
-    if len(payload) != THUMBNAIL_BYTES:
-        raise ValueError(
-            f"a scene thumbnail is {THUMBNAIL_BYTES} bytes (2×{THUMBNAIL_SIZE}×{THUMBNAIL_SIZE} float32, "
-            f"little-endian), got {len(payload)}"
-        )
+    check_thumbnail_length(len(payload))
     thumb = np.frombuffer(payload, dtype="<f4").astype(np.float32).reshape(2, THUMBNAIL_SIZE, THUMBNAIL_SIZE)
     if not (np.isfinite(thumb).all() and thumb.min() >= 0 and thumb.max() <= 1):
         raise ValueError("a scene thumbnail's block means and deviations must be finite grey levels in [0, 1]")

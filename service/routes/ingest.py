@@ -20,6 +20,7 @@ from drivers.protocol import (
     ack_ok,
     peek_seq,
 )
+from drivers.scene_change import check_thumbnail_length
 from service.auth import ROBOT_ONLY
 from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
@@ -91,6 +92,12 @@ async def post_scene(request: Request, state: State, session: RobotSession, runt
     kind = media_type(request)
     if kind != SCENE_CONTENT_TYPE:
         raise ServiceError(415, f"a scene check is {SCENE_CONTENT_TYPE}, got {kind or 'no Content-Type'}")
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit():  # refused before the body is read
+        try:
+            check_thumbnail_length(int(declared))
+        except ValueError as exc:
+            raise ServiceError(422, f"scene check: {exc}") from None
     return state.frames.check_scene(session, await request.body())
 
 

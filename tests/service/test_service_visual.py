@@ -189,6 +189,8 @@ def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(
 
         short = check(b"\x00" * 100)
         assert short.status_code == 422 and "2048 bytes" in short.json()["detail"]
+        large = check(image)  # a whole frame posted as a thumbnail: refused by its declared length
+        assert large.status_code == 422 and f"got {len(image)}" in large.json()["detail"]
         not_grey = check(thumbnail_bytes(np.full((2, 16, 16), np.nan, np.float32)))
         assert not_grey.status_code == 422 and "finite grey levels" in not_grey.json()["detail"]
         assert check(image, "image/png").status_code == 415
