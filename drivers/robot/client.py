@@ -111,8 +111,8 @@ class RobotClient:
         self.open_timeout_s = open_timeout_s
         self.outbox = Outbox(max_buffer_s, backoff, random.Random(seed), start_seq)
         self.frame_gate = FrameGate(frame_change, frame_refresh_s)
-        self._thumbnailed: tuple[bytes, np.ndarray | None] | None = None  # the last frame decoded, and its thumbnail
-        self._newest: tuple[Frame, np.ndarray | None] | None = None  # the newest frame read, and its thumbnail
+        # the newest frame read and its thumbnail: what a refresh sends, and a repeat of its bytes is not decoded again
+        self._newest: tuple[Frame, np.ndarray | None] | None = None
         self._refresh: asyncio.TimerHandle | None = None  # sends the newest frame when the gate's refresh is due
         self._stopping = False
         self._ran = False
@@ -263,9 +263,10 @@ class RobotClient:
         gate = self.frame_gate
         thumb = None
         if gate.reads_frames:
-            if self._thumbnailed is None or self._thumbnailed[0] != frame.image:
-                self._thumbnailed = (frame.image, await asyncio.to_thread(frame_thumbnail, frame.image))
-            thumb = self._thumbnailed[1]
+            if self._newest is not None and self._newest[0].image == frame.image:
+                thumb = self._newest[1]
+            else:
+                thumb = await asyncio.to_thread(frame_thumbnail, frame.image)
         self._newest = (frame, thumb)
         if gate.admit(thumb, asyncio.get_running_loop().time()):
             self._send_frame(frame)
