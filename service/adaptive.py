@@ -107,18 +107,21 @@ class SceneViews:
         self._views = ViewPool(policy.views_pooled)
 
     def offer(self, thumb: np.ndarray) -> tuple[bool, bool]:
-        changed = scene_changed(self._scene, thumb, self.threshold)
+        take, changed = self._decide(thumb)
         if changed:
             self._scene, self._taken = thumb, 0
-        if not self.policy.embed_frame(changed, self._taken):
-            return False, changed
-        self._taken += 1
-        return True, changed
+        if take:
+            self._taken += 1
+        return take, changed
 
     def wants(self, thumb: np.ndarray) -> bool:
         """Would offer() take a frame with this thumbnail? (Takes nothing: a robot's scene check.)"""
+        return self._decide(thumb)[0]
+
+    def _decide(self, thumb: np.ndarray) -> tuple[bool, bool]:
+        """(take it?, does it start a new scene?) for a frame with this thumbnail, as the scene stands."""
         changed = scene_changed(self._scene, thumb, self.threshold)
-        return self.policy.embed_frame(changed, 0 if changed else self._taken)
+        return self.policy.embed_frame(changed, 0 if changed else self._taken), changed
 
     def add(self, embedding: np.ndarray, new_scene: bool) -> np.ndarray:
         if new_scene:

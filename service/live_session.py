@@ -378,14 +378,19 @@ class Session:
 
     def frame_wanted(self, thumb: np.ndarray) -> str | None:
         """A robot's scene check (its newest frame's scene_change.thumbnail, in place of the frame): why the session
-        wants that frame, or None when offer_frame would change nothing with it (the scene it holds, no view to add)."""
+        wants that frame, or None when offer_frame would change nothing with it (the scene it holds, no view to add).
+        One question per scene memory offer_frame keeps — the chosen entry's, the tapped surface's, the pooled
+        views' — so that a held frame is one offer_frame would have dropped (a test holds the two together)."""
         self.touch()
         if self._chosen_scene is None:
             return "no frame of this session has been received"
         if scene_changed(self._chosen_scene, thumb, self.settings.frame_change):
             return "the scene changed since the last frame received"
-        if self.runtime.needs_taps and self._taps is not None and self._tapped_scene is None:
-            return "no frame shows the tapped surface yet"
+        if self.runtime.needs_taps and self._taps is not None:
+            if self._tapped_scene is None:
+                return "no frame shows the tapped surface yet"
+            if scene_changed(self._tapped_scene, thumb, self.settings.frame_change):
+                return "the scene changed since the frame of the tapped surface"
         if self.runtime.needs_visual and self._scene.wants(thumb):
             return "the model embeds another view of this scene"
         return None
