@@ -41,8 +41,6 @@ log = logging.getLogger(__name__)
 MAX_SESSIONS_PER_JOB = 8
 #: ≈ 20 ms of a pool thread (≈ 1.1–1.2 ms a window in jobs of 8 sessions)
 MAX_WINDOWS_PER_JOB = 16
-#: how long a ready session waits for a running job before a second one starts beside it (s; Settings.pool_spill_s)
-SPILL_AFTER_S = 0.01
 
 
 class WindowBatcher:
@@ -50,9 +48,10 @@ class WindowBatcher:
         self,
         pool: Executor,
         max_jobs: int,
+        *,
+        spill_after_s: float,
         max_sessions_per_job: int = MAX_SESSIONS_PER_JOB,
         max_windows_per_job: int = MAX_WINDOWS_PER_JOB,
-        spill_after_s: float = SPILL_AFTER_S,
     ) -> None:
         if min(max_jobs, max_sessions_per_job, max_windows_per_job) < 1:
             raise ValueError(

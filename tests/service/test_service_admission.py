@@ -346,7 +346,7 @@ def test_the_batcher_reports_each_sessions_longest_wait_for_a_job_since_it_was_l
     what admission reads (then the record starts again)."""
     from service.batcher import WindowBatcher
 
-    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1)
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, spill_after_s=0)
     assert batcher.take_waits(time.monotonic()) == {}
     a = _ready_session("a", 0.0)
     b = _ready_session("b", 1.0, in_job=True)  # in a job: stays ready, its wait goes on
@@ -368,7 +368,7 @@ def test_the_batcher_serves_the_oldest_sessions_first():
     """A newer session's backlog does not queue ahead of an older session's windows."""
     from service.batcher import WindowBatcher
 
-    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, max_sessions_per_job=2)
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, spill_after_s=0, max_sessions_per_job=2)
     taken: list[str] = []
     sessions = [_ready_session(sid, opened) for sid, opened in (("new", 3.0), ("old", 1.0), ("mid", 2.0))]
     for s in sessions:
@@ -385,7 +385,9 @@ def test_a_job_holds_at_most_max_windows_per_job_windows_the_oldest_sessions_fir
     pool thread is never held long by backlogs while the oldest sessions' windows wait for it."""
     from service.batcher import WindowBatcher
 
-    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, max_sessions_per_job=8, max_windows_per_job=3)
+    batcher = WindowBatcher(
+        ThreadPoolExecutor(1), max_jobs=1, spill_after_s=0, max_sessions_per_job=8, max_windows_per_job=3
+    )
     asked: list[tuple[str, int | None]] = []
     for sid, opened in (("new", 3.0), ("old", 1.0), ("mid", 2.0)):
         s = _ready_session(sid, opened)
