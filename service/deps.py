@@ -10,7 +10,6 @@ handshake the protocol's way (`drivers.protocol.Close`) instead of raising.
 
 from __future__ import annotations
 
-import logging
 from typing import Annotated
 
 from fastapi import Depends, Request
@@ -25,12 +24,8 @@ from service.errors import ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
 from service.live_session import Session
-from service.log_throttle import LogThrottle
 from service.runtime import Runtime
 from service.state import ServiceState
-
-log = logging.getLogger("service.access")
-_refusals = LogThrottle(log)  # clients choose how often they are refused: at most one line per kind every 10 s
 
 
 async def get_state(connection: HTTPConnection) -> ServiceState:
@@ -92,7 +87,7 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
         raise ServiceError(503, NOT_CONFIGURED)
     if not state.api_keys.check(token):
         state.metrics.sessions_refused.labels(reason="api_key").inc()
-        _refusals.warning(
+        state.refusal_log.warning(
             ("api_key", token is None),
             "POST /sessions from %s refused: %s API key",
             client,
@@ -143,7 +138,7 @@ async def socket_session(
         _, session = await state.directory.authorized(session_id, token, roles)
         return session
     except ServiceError as exc:
-        _refusals.warning(
+        state.refusal_log.warning(
             ("socket", robot, exc.status),
             "%s socket for session %s from %s refused: %d %s",
             "ingest" if robot else "events",

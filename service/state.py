@@ -34,6 +34,7 @@ from service.errors import ServiceError
 from service.fleet import ApiKeys, TokenBucket
 from service.intake import BlockIntake, FrameIntake
 from service.live_session import Session
+from service.log_throttle import LogThrottle
 from service.metrics import ServiceMetrics
 from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
@@ -85,6 +86,9 @@ class ServiceState:
         self.blocks = BlockIntake(self.metrics, self.capacity)
         self.api_keys = ApiKeys(settings.api_keys, settings.api_keys_file)
         self.session_limiter = TokenBucket(settings.session_rate_per_s, settings.session_burst)
+        # clients choose how often they are refused: at most one line per kind every 10 s, per service (two in one
+        # process — tests, a benchmark — each log their own)
+        self.refusal_log = LogThrottle(logging.getLogger("service.access"))
         self.batcher = WindowBatcher(
             self.window_pool, max_jobs=settings.pool_threads, spill_after_s=settings.pool_spill_s
         )
