@@ -169,9 +169,11 @@ class FrameIntake:
             self.visual_pixels -= pixels
         if session.closed:  # ended while the frame was decoded
             raise session_not_found(session.id)
+        held = session.embedding_pixels
         outcome = session.offer_frame(gray, thumb)
-        if outcome == "embedding":
-            self.visual_pixels += gray.size  # given back by visual_done when the session's embedding job ends
+        # a frame the session's embedding job takes (to embed now, or waiting in place of an older one) stays in the
+        # queue until the job is done with it: the session gives its pixels back through visual_done
+        self.visual_pixels += session.embedding_pixels - held
         self.metrics.frames.labels(outcome=outcome).inc()
         height, width = gray.shape
         used = outcome != "ignored"
@@ -201,7 +203,7 @@ class FrameIntake:
         self.metrics.frames.labels(outcome="rejected").inc()
 
     def visual_done(self, pixels: int) -> None:
-        """A session's embedding job ended: the pixels of the frame that started it leave the visual queue."""
+        """A session's embedding job is done with frames of these pixels: they leave the visual queue."""
         self.visual_pixels -= pixels
 
 

@@ -123,7 +123,9 @@ class Session:
         self._metrics = metrics
         self._notify = notify
         self._visual_done = visual_done
-        self._embedding_pixels = 0  # the frame that started the running embedding job: what visual_done releases
+        # pixels of the frames the embedding job holds (the one it embeds, the one waiting for it): what the caller
+        # charged to the visual queue, given back through visual_done as each is done with
+        self._embedding_pixels = 0
         self._pending: list[AdmittedBlock] = []
         self._pending_added: list[int] = []  # windows each pending block completes
         self._pending_windows = 0  # windows the pending blocks complete
@@ -227,6 +229,11 @@ class Session:
         if self._pending_windows:
             self._notify(self)
         return {"seq": block.seq, "duplicate": False, "windows_ready": self.backlog()}
+
+    @property
+    def embedding_pixels(self) -> int:
+        """Pixels of the frames this session's embedding job holds: the one it embeds and the one waiting for it."""
+        return self._embedding_pixels
 
     def backlog(self) -> int:
         """Complete windows admitted and not yet published (0 when the pipeline keeps up)."""
@@ -369,7 +376,9 @@ class Session:
             if self._frame is not None:
                 self.counters.frames_superseded += 1
                 new_scene = new_scene or self._frame[1]
+                self._embedding_pixels -= self._frame[0].size
             self._frame = (gray, new_scene)
+            self._embedding_pixels += gray.size
             return "superseded"
         self._frame = (gray, changed)
         self._embedding_pixels = gray.size
@@ -435,6 +444,8 @@ class Session:
                     self._scene.forget()  # the next frame is tried whatever it shows
                     await self._status("error", f"embedding the frame failed ({type(exc).__name__}: {exc})")
                     continue
+                finally:
+                    self._give_back_pixels(gray.size)
                 seconds = time.perf_counter() - started
                 self._metrics.visual_seconds.observe(seconds)
                 first = self.visual is None
@@ -452,7 +463,11 @@ class Session:
                 if self.has_work():
                     self._notify(self)
         finally:
-            self._visual_done(self._embedding_pixels)
+            self._give_back_pixels(self._embedding_pixels)  # a frame left waiting when the job ended early
+
+    def _give_back_pixels(self, pixels: int) -> None:
+        self._embedding_pixels -= pixels
+        self._visual_done(pixels)
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def close(self) -> None:

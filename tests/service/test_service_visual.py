@@ -247,6 +247,33 @@ def test_the_visual_queue_takes_frames_up_to_its_pixels_refuses_beyond_and_gives
         assert _post_frame(srv.url, sessions[2], image).status_code == 202
 
 
+def test_a_frame_waiting_for_the_embedder_holds_its_pixels_in_the_visual_queue(kit, visual_model, library_dir):
+    """While a session's embedding job runs, a frame of another scene waits for it (superseded by a newer one): the
+    waiting frame is charged to the visual queue, a newer one in its place is charged instead of it, and every
+    pixel comes back once the job is done."""
+    import threading
+
+    from service.runtime import frame_pixels
+
+    images = [(library_dir / "images" / f"synth_00{k}.png").read_bytes() for k in (1, 2, 3)]
+    first = frame_pixels(images[0])
+    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vwait")
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+        state = srv.app.state.service
+        release = threading.Event()
+        stall = state.visual_pool.submit(release.wait, 60)  # the embedder is busy: the first frame's job waits
+        session = kit.create_session(client)
+        outcomes = []
+        for image, held in zip(images, [first, first + frame_pixels(images[1]), first + frame_pixels(images[2])]):
+            outcomes.append(_post_frame(srv.url, session, image).json()["outcome"])
+            assert state.frames.visual_pixels == held, outcomes
+        assert outcomes == ["embedding", "superseded", "superseded"]
+        release.set()
+        stall.result(timeout=10)
+        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_embedded"] == 2, timeout_s=60)
+        kit.wait_for(lambda: state.frames.visual_pixels == 0, timeout_s=60)
+
+
 def test_a_frame_larger_than_the_visual_queue_is_taken_when_none_is_held(kit, visual_model, library_dir):
     from service.runtime import frame_pixels
 
