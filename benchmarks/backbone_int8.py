@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
     from models.visual.embedding import visual_features
     from models.visual.image import load_image
 
-    fp32_path = backbone_onnx(SERVED_VISUAL)
+    fp32_path = backbone_onnx(SERVED_VISUAL.model_copy(update={"backbone": "efficientnet_lite0"}))
     int8_path = backbone_onnx(SERVED_VISUAL.model_copy(update={"backbone": INT8_BACKBONE}))
     embedders = variants(fp32_path, int8_path)
     data, source = frame_bytes(args.image)

@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 import onnxruntime as ort
 
 from models.inference.modelfile import INPUT_TACTILE, INPUT_VISUAL, ModelCard
 from models.tactile.config import TactileConfig
-from models.visual.config import VisualConfig
+from models.visual.config import BackboneChoice, VisualConfig
 
 
 class Predictor:
     """ratings = predictor.predict(tactile (N, F) float32, visual (N, D) float32 | None) → (N, 4) bipolar.
 
     expected_tactile_hash: refuse a model trained on other tactile features than the pipeline computes.
-    visual_config: the image configuration the model was trained on (from its card; the default for a card from
-    before the card carried it), so the service computes the vector the model reads.
+    visual_config: the image configuration the model was trained on, its backbone included (from its card; the
+    default for a card from before the card carried it), so the service computes the vector the model reads.
     """
 
     def __init__(self, path: str | Path, *, threads: int = 1, expected_tactile_hash: str | None = None):
@@ -43,7 +44,10 @@ class Predictor:
                 f"{self.path}: model expects tactile features {self.card.tactile_hash}, "
                 f"the pipeline computes {expected_tactile_hash}; re-export the model or change the feature settings"
             )
-        self.visual_config = VisualConfig(**(self.card.visual or {}).get("visual_config", {}))
+        visual = self.card.visual or {}
+        # the backbone the card names (a selection field, outside the hash): int8 and fp32 features differ
+        backbone = {"backbone": visual["backbone"]} if visual.get("backbone") in get_args(BackboneChoice) else {}
+        self.visual_config = VisualConfig(**visual.get("visual_config", {}), **backbone)
         if self.card.visual and self.visual_config.hash() != self.card.visual.get("visual_hash"):
             # a card from before the configuration was recorded names only the hash; the default is what it had
             raise ValueError(

@@ -186,9 +186,15 @@ def _feature_args(parser: argparse.ArgumentParser) -> None:
 def _visual_args(parser: argparse.ArgumentParser) -> None:
     from typing import get_args
 
-    from models.visual.config import DESCRIPTOR_NAMES, BackboneLayer
+    from models.visual.config import DESCRIPTOR_NAMES, BackboneChoice, BackboneLayer
 
     parser.add_argument("--visual-grid", type=int, help="patches per side of the backbone grid (default 7)")
+    parser.add_argument(
+        "--backbone",
+        choices=list(get_args(BackboneChoice)),
+        help="the image backbone (default auto: ResNet-50 if its weights are found, else EfficientNet-Lite0; "
+        "efficientnet_lite0_int8: its int8 copy, the served one)",
+    )
     parser.add_argument(
         "--no-glcm", action="store_true", help="compute no GLCM: the frame costs the backbone (and descriptors) alone"
     )
@@ -217,6 +223,8 @@ def _visual_config(args: argparse.Namespace):
         fields["glcm"] = False
     if getattr(args, "backbone_layer", None) is not None:
         fields["backbone_layer"] = args.backbone_layer
+    if getattr(args, "backbone", None) is not None:
+        fields["backbone"] = args.backbone
     return VisualConfig(**fields)
 
 

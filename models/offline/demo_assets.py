@@ -55,6 +55,7 @@ def _stamp(n_textures: int, library_textures: int, n_probes: int, seed: int) -> 
         "tactile_model": TACTILE_MODEL,
         "tactile_hash": demo_features().hash(),
         "visual_hash": demo_visual().hash(),
+        "backbone": demo_visual().backbone,  # a selection field, outside the hash: int8 and fp32 features differ
         "n_textures": n_textures,
         "library_textures": library_textures,
         "n_probes": n_probes,

@@ -29,7 +29,7 @@ HEADLINE = "selected"  # chosen inside the folds by the rule in docs/models.md
 OLDER = "†"
 # The README's results table: its rows (report folder → what the model is), in this order.
 README_ROWS = {
-    "selected": "picked per attribute inside each fold among the 4 pooled models below, on the served 2×2 no-GLCM "
+    "selected": "picked per attribute inside each fold among the 4 pooled models below, on the served 2×2 no-GLCM int8 "
     "image features (served; withheld predictions)",
     "mean-pooled": "mean of ridge-, krr- and ksvr-pooled",
     "krr-pooled": "kernel ridge (RBF), 8 views pooled, touch weighed per attribute",

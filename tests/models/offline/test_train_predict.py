@@ -176,6 +176,28 @@ def test_the_card_carries_the_visual_configuration_and_a_forged_one_is_refused(d
         Predictor(tmp_path / "forged.onnx")
 
 
+def test_the_configuration_read_from_a_card_names_the_backbone_the_model_was_trained_on(
+    dataset, tmp_path, stand_in_images
+):
+    """The backbone is outside the configuration's hash (int8 and fp32 share it), so the card's backbone name is
+    what says which file computes the model's features: `hapticlink train` names that file from it."""
+    import json
+
+    import onnx
+
+    path = train_and_export(dataset, "selected", tmp_path / "selected.onnx", seed=1, options={"folds": 3, "repeats": 1})
+    model = onnx.load(str(path))
+    for prop in model.metadata_props:
+        if prop.key == "visual":
+            visual = json.loads(prop.value)
+            visual["backbone"] = "efficientnet_lite0_int8"
+            prop.value = json.dumps(visual)
+    onnx.save(model, str(tmp_path / "int8.onnx"))
+    assert Predictor(tmp_path / "int8.onnx").visual_config == VisualConfig(
+        grid=2, glcm=False, backbone="efficientnet_lite0_int8"
+    )
+
+
 def test_train_refuses_metrics_of_another_model(dataset, tmp_path):
     import json
 
