@@ -20,6 +20,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from benchmarks.report_file import write_figure  # noqa: E402
+
 DEFAULT_OUT = Path("reports/bench/hostile.png")
 TARGET_MS = 100.0
 
@@ -55,10 +57,7 @@ def chart(reports: list[tuple[str, dict]], out: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(f"well-behaved robots' window e2e, ms ({reports[0][1]['robots']} robots)")
     axes[0][0].legend(fontsize=7, loc="upper left")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return write_figure(out, fig)
 
 
 def main(argv: list[str] | None = None) -> int:

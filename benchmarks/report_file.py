@@ -1,5 +1,5 @@
-"""Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline; and what
-a report says about its run (the command, the machine and how busy it was)."""
+"""Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline; its charts, as
+PNG files; and what a report says about its run (the command, the machine and how busy it was)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,17 @@ def write_report(path: str | Path, report: dict[str, Any]) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")
+    return out
+
+
+def write_figure(path: str | Path, fig: Any) -> Path:
+    """Save a matplotlib figure as a PNG at `path` (parents created) and release it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
     return out
 
 

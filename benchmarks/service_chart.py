@@ -23,6 +23,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from benchmarks.report_file import write_figure  # noqa: E402
+
 DEFAULT_REPORT = Path("reports/bench/service.json")
 DEFAULT_OUT = Path("reports/bench/service.png")
 E2E_TARGET_MS = 20.0
@@ -76,10 +78,7 @@ def chart(report: dict, out: Path) -> Path:
         fontsize=9,
     )
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return write_figure(out, fig)
 
 
 def main(argv: list[str] | None = None) -> int:
