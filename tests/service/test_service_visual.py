@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+from collections.abc import Iterator
+from typing import Any
 
 import httpx
 import numpy as np
@@ -99,13 +102,20 @@ def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
     )
 
 
+@contextlib.contextmanager
+def _visual_server(kit, visual_model, library_dir, **extra) -> Iterator[tuple[Any, httpx.Client]]:
+    """A running service with the visual model (settings as _visual_settings, plus `extra`) and a client of it."""
+    with (
+        kit.running(_visual_settings(kit, visual_model, library_dir, **extra)) as srv,
+        httpx.Client(base_url=srv.url, timeout=30) as client,
+    ):
+        yield srv, client
+
+
 def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visual_model, library_dir):
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_003", 3.1))  # 6 windows
-    with (
-        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="fallback")) as srv,
-        httpx.Client(base_url=srv.url, timeout=30) as client,
-    ):
+    with _visual_server(kit, visual_model, library_dir, instance_id="fallback") as (srv, client):
         assert client.get("/ready").json()["tactile_model"] == "ridge-tactile"
         session = kit.create_session(client)
         robot = {"Authorization": f"Bearer {session['robot_token']}"}
@@ -140,10 +150,7 @@ def test_windows_are_tactile_only_until_the_embedding_lands_and_say_so(kit, visu
 def test_the_same_scene_is_embedded_once(kit, visual_model, library_dir):
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     other = (library_dir / "images" / "synth_001.png").read_bytes()
-    with (
-        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="scene")) as srv,
-        httpx.Client(base_url=srv.url, timeout=30) as client,
-    ):
+    with _visual_server(kit, visual_model, library_dir, instance_id="scene") as (srv, client):
         session = kit.create_session(client)
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         url = f"/sessions/{session['session_id']}/frames"
@@ -163,10 +170,7 @@ def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(
     (no frame yet, another scene), and a held scene costs no decode."""
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     other = (library_dir / "images" / "synth_001.png").read_bytes()
-    with (
-        kit.running(_visual_settings(kit, visual_model, library_dir, instance_id="check")) as srv,
-        httpx.Client(base_url=srv.url, timeout=30) as client,
-    ):
+    with _visual_server(kit, visual_model, library_dir, instance_id="check") as (srv, client):
         session = kit.create_session(client)
         robot = {"Authorization": f"Bearer {session['robot_token']}"}
         scene_url = f"/sessions/{session['session_id']}/scene"
@@ -218,8 +222,7 @@ def test_the_visual_queue_takes_frames_up_to_its_pixels_refuses_beyond_and_gives
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     pixels = frame_pixels(image)
     room = 2.5 * pixels / 1e6  # two frames fit, a third does not
-    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vqueue", visual_queue_mpx=room)
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+    with _visual_server(kit, visual_model, library_dir, instance_id="vqueue", visual_queue_mpx=room) as (srv, client):
         state = srv.app.state.service
         release = threading.Event()
         stall = state.frame_pool.submit(release.wait, 60)  # the frame decoder is busy
@@ -257,8 +260,7 @@ def test_a_frame_waiting_for_the_embedder_holds_its_pixels_in_the_visual_queue(k
 
     images = [(library_dir / "images" / f"synth_00{k}.png").read_bytes() for k in (1, 2, 3)]
     first = frame_pixels(images[0])
-    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vwait")
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+    with _visual_server(kit, visual_model, library_dir, instance_id="vwait") as (srv, client):
         state = srv.app.state.service
         release = threading.Event()
         stall = state.visual_pool.submit(release.wait, 60)  # the embedder is busy: the first frame's job waits
@@ -279,8 +281,7 @@ def test_a_frame_larger_than_the_visual_queue_is_taken_when_none_is_held(kit, vi
 
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     tiny = 0.5 * frame_pixels(image) / 1e6
-    settings = _visual_settings(kit, visual_model, library_dir, instance_id="vbig", visual_queue_mpx=tiny)
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+    with _visual_server(kit, visual_model, library_dir, instance_id="vbig", visual_queue_mpx=tiny) as (srv, client):
         answer = _post_frame(srv.url, kit.create_session(client), image)
         assert answer.status_code == 202 and answer.json()["outcome"] == "embedding"
         kit.wait_for(lambda: srv.app.state.service.frames.visual_pixels == 0, timeout_s=60)
