@@ -16,6 +16,10 @@ hl tradeoffs frontier --dataset $H --model ridge-both
 hl tradeoffs frontier --dataset $H --model selected --grids 3 2 1 --resizes native --backbones efficientnet_lite0 \
   --glcm off --descriptor-sets none spectrum,grids --nested-folds 0 --workers 2 --threads 1 2 --repeats 7 \
   --out reports/tradeoffs/frontier-selected.json
+# The served model's configuration on the fp32 and the int8 backbone (the rule picks the served backbone)
+hl tradeoffs frontier --dataset $H --model selected --grids 2 --resizes native \
+  --backbones efficientnet_lite0 efficientnet_lite0_int8 --glcm off --nested-folds 0 --workers 1 --threads 1 \
+  --repeats 7 --out reports/tradeoffs/frontier-quant.json
 # Robustness and intervals: faulted inputs of every texture, then fits per (model, seed): curves, breaking points,
 # spread, material-group shift, augmentation, interval coverage
 hl tradeoffs faults --dataset $H

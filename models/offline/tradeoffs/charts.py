@@ -14,6 +14,9 @@ import numpy as np  # noqa: E402
 from models.offline.faults.catalog import FAULTS  # noqa: E402
 from texture_library.attributes import ATTRIBUTES  # noqa: E402
 
+#: a frontier chart of at most this many scored configurations names every one of them
+FEW_POINTS = 8
+
 
 def frontier_chart(
     rows: list[dict],
@@ -43,16 +46,19 @@ def frontier_chart(
                     **({"color": "C0"} if threads == 1 else style),
                 )
     front = sorted([r for r in scored if r["pareto"] and r["threads"] == 1], key=lambda r: r["frame_ms"])
+    # one backbone: its name goes without saying; few points: each is named, not only the Pareto set's
+    one_backbone = len({r["backbone"] for r in scored}) == 1
+    named = [r for r in scored if r["threads"] == 1] if len(scored) <= FEW_POINTS else front
+    for r in named:
+        ax.annotate(
+            r["label"].replace("effnet-lite0 ", "") if one_backbone else r["label"],
+            (r["frame_ms"], r["mae"]),
+            textcoords="offset points",
+            xytext=(4, 4),
+            fontsize=7,
+        )
     if front:
         ax.plot([r["frame_ms"] for r in front], [r["mae"] for r in front], "k--", lw=1, label="Pareto set (1 thread)")
-        for r in front:
-            ax.annotate(
-                r["label"].replace("effnet-lite0 ", ""),
-                (r["frame_ms"], r["mae"]),
-                textcoords="offset points",
-                xytext=(4, 4),
-                fontsize=7,
-            )
         for r in front:
             lo, hi = r["mae_ci"]["lo"], r["mae_ci"]["hi"]
             ax.plot([r["frame_ms"]] * 2, [lo, hi], color="0.6", lw=0.8)

@@ -1,6 +1,7 @@
 """reports/tradeoffs/: README.md with charts and tables, and results.json (a summary of every study).
 
-Inputs (in the report folder): frontier-<model>.json (`hapticlink tradeoffs frontier`),
+Inputs (in the report folder): frontier-<name>.json (`hapticlink tradeoffs frontier`: one per model, or per run of
+a model with other options — each gets its own chart, frontier-<name>.png),
 robustness.json (`hapticlink tradeoffs robustness`) and, when the service benchmark has written
 it, adaptive.json (adaptive serving). Every number on the page comes from those files; none is typed in.
 """
@@ -97,15 +98,33 @@ def cheapest_within_target(fr: dict, scale: dict | None) -> dict | None:
     return {"label": r["label"], "ms": r["frame_ms"] * factor, "mae": r["mae"]}
 
 
-def frontier_section(fr: dict, folder: Path) -> list[str]:
+def backbones(fr: dict) -> str:
+    """The backbones a frontier run compared, by their labels' names ("effnet-lite0, effnet-lite0-int8")."""
+    return ", ".join(dict.fromkeys(r["label"].split(" ")[0] for r in fr["frontier"] if r["mae"] is not None))
+
+
+def serves(fr: dict) -> bool:
+    """Whether the run's recommended configuration is the one the served models read (featurize.SERVED_VISUAL)."""
+    from models.offline.featurize import SERVED_VISUAL
+    from models.visual.config import VisualConfig
+
+    rec = fr.get("recommendation")
+    if not rec or "visual_config" not in rec or "backbone" not in rec:  # runs before either was recorded
+        return False
+    config = VisualConfig(**rec["visual_config"], backbone=rec["backbone"])
+    return config.hash() == SERVED_VISUAL.hash() and config.backbone == SERVED_VISUAL.backbone
+
+
+def frontier_section(fr: dict, folder: Path, name: str) -> list[str]:
+    """The section of frontier-<name>.json: its chart (frontier-<name>.png), recommendation and table."""
     model = fr["model"]
     scale = quiet_scale(fr)
     # the target is a quiet-machine cost: on this run's (loaded) axis it sits at target ÷ the quiet factor
     target_ms = TARGET_FRAME_MS if scale is None else TARGET_FRAME_MS / scale["factor"]
     png = charts.frontier_chart(
         fr["frontier"],
-        folder / f"frontier-{model}.png",
-        title=f"speed against accuracy of the serving path ({model}, LOOCV)",
+        folder / f"frontier-{name}.png",
+        title=f"speed against accuracy of the serving path ({model}; {backbones(fr)}; LOOCV)",
         target_ms=target_ms,
         margin_of_best=TARGET_MAE_MARGIN,
         target_label=None
@@ -114,9 +133,9 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
     )
     rec = fr["recommendation"] or {}
     lines = [
-        f"### Reference model: `{model}`",
+        f"### Reference model: `{model}` — {backbones(fr)} (`frontier-{name}.json`)",
         "",
-        f"![frontier {model}]({png.name})",
+        f"![frontier {name}]({png.name})",
         "",
         f"LOOCV over {fr['n_textures']} textures, seeds {fr['seeds']}, {fr['views_per_image']} image view(s) per "
         f"texture; per-window cost = tactile features ({fr['tactile_window_us']:.0f} µs) + the model in onnxruntime. "
@@ -139,13 +158,19 @@ def frontier_section(fr: dict, folder: Path) -> list[str]:
         q_ms, q_met = quiet_target(fr, scale)
         quiet = "" if q_ms is None else f" (≈ {q_ms:.0f} ms quiet-equivalent)"
         verdict = rec["target_met"] if q_met is None else q_met
+        served = (
+            " The served models read this configuration (`models.offline.featurize.SERVED_VISUAL`)."
+            if serves(fr)
+            else ""
+        )
         lines += [
-            f"**Deployed default (rule fixed in advance: {rec['rule']}): `{rec['config']}`** — MAE "
+            f"**The rule's pick (fixed in advance: {rec['rule']}): `{rec['config']}`** — MAE "
             f"{rec['mae']:.2f} {_ci(rec['mae_ci'])}, {rec['frame_ms_1thread']:.0f} ms per frame on 1 thread under "
             f"load{quiet}; best configuration `{rec['best_config']}` {rec['best_mae']:.2f}. Target (≤ "
             f"{TARGET_FRAME_MS:g} ms at ≤ best + {TARGET_MAE_MARGIN}): **{'met' if verdict else 'not met'}**"
             + ("" if q_ms is None else " on the quiet-equivalent cost")
-            + ".",
+            + "."
+            + served,
             "",
         ]
         if nested:
@@ -449,7 +474,8 @@ def targets_section(frontiers: list[dict], rb: dict | None) -> list[str]:
             verdict = rec["target_met"] if q_met is None else q_met
             ms = rec["frame_ms_1thread"] if q_ms is None else q_ms
             lines.append(
-                f"- **Frontier** ({fr['model']}): `{rec['config']}` costs {cost}, at MAE {rec['mae']:.2f} vs "
+                f"- **Frontier** ({fr['model']}; {backbones(fr)}{'; served' if serves(fr) else ''}): "
+                f"`{rec['config']}` costs {cost}, at MAE {rec['mae']:.2f} vs "
                 f"best {rec['best_mae']:.2f} — target ≤ {TARGET_FRAME_MS:g} ms within +{TARGET_MAE_MARGIN}: "
                 f"**{'met' if verdict else 'not met'}**"
                 + ("" if verdict else f" (missed by {ms - TARGET_FRAME_MS:.0f} ms per frame)")
@@ -497,7 +523,10 @@ def targets_section(frontiers: list[dict], rb: dict | None) -> list[str]:
 
 def build_tradeoffs_report(folder: str | Path) -> Path:
     folder = Path(folder)
-    frontiers = [json.loads(p.read_text()) for p in sorted(folder.glob("frontier-*.json"))]
+    named = {
+        p.stem.removeprefix("frontier-"): json.loads(p.read_text()) for p in sorted(folder.glob("frontier-*.json"))
+    }
+    frontiers = list(named.values())
     rb_path = folder / "robustness.json"
     rb = json.loads(rb_path.read_text()) if rb_path.is_file() else None
     ad_path = folder / "adaptive.json"
@@ -514,8 +543,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
     ]
     lines += targets_section(frontiers, rb)
     lines += ["## 1. The frontier of the whole serving path", ""]
-    for fr in frontiers:
-        lines += frontier_section(fr, folder)
+    for name, fr in named.items():
+        lines += frontier_section(fr, folder, name)
     if not frontiers:
         lines += ["*Not run yet.*", ""]
     elif rb and rb.get("served") and rb["served"] not in {fr["model"] for fr in frontiers}:
@@ -561,8 +590,9 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
                 "resize": r["resize"],
                 "glcm": r["glcm"],
                 "mae_ci": r.get("mae_ci"),
+                "run": name,
             }
-            for fr in frontiers
+            for name, fr in named.items()
             for r in fr["frontier"]
         ],
         "robustness": []

@@ -1,6 +1,8 @@
 """The robustness and interval machinery end to end on a small linear world: fits, faulted predictions, curves,
 breaking points, augmentation, intervals and their coverage."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -203,8 +205,6 @@ def _frontier_rows():
 
 
 def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
-    import json
-
     from models.offline.tradeoffs.common import write_json
     from models.offline.tradeoffs.report import build_tradeoffs_report
 
@@ -238,6 +238,39 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     page = build_tradeoffs_report(tmp_path).read_text()
     assert "compute ratio 6.00×" in page and "*Pending*" not in page
     assert json.loads((tmp_path / "results.json").read_text())["adaptive"]["compute_ratio"] == 6.0
+
+
+def test_two_runs_of_one_model_get_their_own_charts_and_the_served_pick_is_marked(tmp_path):
+    from models.offline.featurize import SERVED_VISUAL
+    from models.offline.tradeoffs.common import write_json
+    from models.offline.tradeoffs.report import build_tradeoffs_report
+
+    fp32 = {**_frontier_rows(), "model": "selected"}
+    served = {**_frontier_rows(), "model": "selected"}
+    served["frontier"] = [
+        {**r, "label": r["label"].replace("effnet-lite0", "effnet-lite0-int8")} for r in fp32["frontier"]
+    ]
+    served["recommendation"] = {
+        **fp32["recommendation"],
+        "config": served["frontier"][1]["label"],
+        "backbone": SERVED_VISUAL.backbone,
+        "visual_config": SERVED_VISUAL.model_dump(exclude={"backbone", "resnet50_weights"}),
+    }
+    # the fp32 run's pick names the served grid too, on another backbone: not the served configuration
+    fp32["recommendation"] = {**served["recommendation"], "backbone": "efficientnet_lite0"}
+    write_json(tmp_path / "frontier-selected.json", fp32)
+    write_json(tmp_path / "frontier-quant.json", served)
+    page = build_tradeoffs_report(tmp_path).read_text()
+    for name in ("selected", "quant"):
+        assert (tmp_path / f"frontier-{name}.png").stat().st_size > 5000 and f"(frontier-{name}.png)" in page
+        assert f"(`frontier-{name}.json`)" in page
+    assert page.count("The served models read this configuration") == 1
+    quant = page.index("(`frontier-quant.json`)")
+    assert quant < page.index("The served models read this configuration") < page.index("(`frontier-selected.json`)")
+    assert "- **Frontier** (selected; effnet-lite0-int8; served)" in page
+    assert "- **Frontier** (selected; effnet-lite0):" in page
+    runs = {r["run"] for r in json.loads((tmp_path / "results.json").read_text())["frontier"]}
+    assert runs == {"selected", "quant"}
 
 
 def test_detector_tables_in_worker_processes_equal_the_serial_ones(world):
