@@ -1,7 +1,10 @@
 # Two commands for a fresh clone: `make demo` (the main job) and `make test`.
-# Both create .venv on first use: the CPU torch wheel first (pinned, so pip never pulls a CUDA build),
-# then hapticlink with its training and development extras.
+# Both create .venv on first use: the CPU torch wheel first (pinned to its +cpu build, so pip never pulls a CUDA
+# build), then hapticlink with its training and development extras. pip finds that wheel where its configuration
+# points (a local wheel folder on this project's machines); PyPI has no +cpu build, so where pip reaches PyPI name
+# PyTorch's CPU index: `make TORCH_INDEX=https://download.pytorch.org/whl/cpu test`.
 PYTHON ?= python3
+TORCH_INDEX ?=
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
@@ -11,7 +14,8 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet 'torch==2.13.0+cpu' $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) \
+	  || { echo "no CPU build of torch 2.13.0 found: run make TORCH_INDEX=https://download.pytorch.org/whl/cpu …" >&2; exit 1; }
 	$(BIN)/pip install --quiet -e '.[train,dev]'
 	touch $(STAMP)
 

@@ -22,7 +22,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--session", required=True, metavar="ID", help="the session to follow")
     p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
     p.add_argument(
-        "--device", default="simulated", metavar="SPEC", help="one of: " + ", ".join(DEVICE_SPECS) + " (default)"
+        "--device",
+        default="simulated",
+        metavar="SPEC",
+        help="one of: " + ", ".join(DEVICE_SPECS) + " (default: simulated)",
     )
     p.add_argument(
         "--out", action="append", metavar="SPEC", help="one or more of: " + ", ".join(OUTPUT_SPECS) + " (repeatable)"

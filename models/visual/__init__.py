@@ -1,7 +1,6 @@
 """Visual features of texture images: grid patches → CNN backbone (averaged) ⊕ 16-level GLCM.
 
-Torch-free modules (safe for the service): config, image, patches, glcm,
-augment, cache, embedding, onnx_backbone (its export function imports torch
-lazily). Torch modules (training/export only): resnet, efficientnet, backbone.
-This package imports none of them eagerly, so `import models.visual` stays light.
+Every module here is torch-free (safe for the service): config, image, patches, glcm, descriptors,
+augment, cache, pooling, embedding, onnx_backbone. The torch backbones and their ONNX export live in the
+offline wing (`models.offline.backbones`: cnn, resnet, efficientnet, onnx_export, quantize).
 """

@@ -34,7 +34,8 @@ def cache_key(
 ) -> str:
     """64 hex digits identifying the features of one view of one image.
 
-    image  (H, W) grayscale in [0, 1]; hashed as contiguous float32 with its shape
+    image  (H, W) grayscale in [0, 1], or (H, W, 3) colour where the features read colour; hashed as contiguous
+           float32 with its shape
     view   JSON-serialisable view parameters (see augment.view_params)
     """
     pixels = np.ascontiguousarray(image, dtype=np.float32)

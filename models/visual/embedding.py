@@ -79,11 +79,11 @@ class PatchEmbedder(Protocol):
 class VisualFeatures:
     """Feature arrays with what produced them.
 
-    values               (..., backbone_dim + glcm_dim) float32; the first backbone_dim
-                         columns are backbone features, the rest the flattened GLCM
-    backbone             backbone name ("resnet50" | "efficientnet_lite0")
-    backbone_dim         2048 | 1280
-    glcm_dim             levels² (256)
+    values               (..., backbone_dim + glcm_dim + descriptor_dim) float32: the backbone features,
+                         then the flattened GLCM, then the texture descriptors (visual_layout)
+    backbone             backbone name ("resnet50" | "efficientnet_lite0" | "efficientnet_lite0_int8")
+    backbone_dim         2048 (resnet50) | 1280 (EfficientNet-Lite0 head) | 640 (its last block)
+    glcm_dim             levels² (256), or 0 without GLCM (the served configuration)
     config_hash          VisualConfig.hash()
     weights_fingerprint  the backbone weights' fingerprint
     views                view parameters along the views axis, if there is one
@@ -171,10 +171,12 @@ def visual_features(
     if not config.descriptors:
         return values
     # Cached apart from the backbone part, keyed by the full configuration: turning descriptors on
-    # reuses every cached backbone vector.
+    # reuses every cached backbone vector. Keyed by the colour frame when a descriptor reads colour: two photos of
+    # one grey can differ in colour (and the grey is the colour frame's luma, so nothing else is lost).
     key = None
     if cache is not None:
-        key = cache_key(img, params, config.hash(), "descriptors", "")
+        frame = colour if colour is not None and config.needs_colour else img  # checked above: needs_colour → colour
+        key = cache_key(frame, params, config.hash(), "descriptors", "")
         hit = cache.get(key)
         if hit is not None and hit.shape == (config.descriptor_dim,):
             return np.concatenate([values, hit.astype(np.float32, copy=False)])

@@ -5,7 +5,7 @@ The export (torch) lives in the offline wing: `models.offline.backbones.onnx_exp
 The graph takes the same input as `Backbone.embed` — "patches", (batch, 224, 224)
 float32 grayscale in [0, 1] — and returns "features", (batch, dim) float32;
 RGB replication and normalisation are inside it. metadata_props:
-    hapticlink.visual.backbone             "resnet50" | "efficientnet_lite0"
+    hapticlink.visual.backbone             "resnet50" | "efficientnet_lite0" | "efficientnet_lite0_int8"
     hapticlink.visual.dim                  feature length
     hapticlink.visual.weights_fingerprint  16 hex digits of the weights
     hapticlink.visual.config_hash          VisualConfig.hash() it was exported for

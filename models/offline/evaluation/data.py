@@ -13,6 +13,10 @@ from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
 from models.visual.embedding import part_columns, visual_layout
 
+#: meta entries with one row per texture (the synthetic world's true ratings): `take` keeps the rows of the textures
+#: it takes, and a texture stripped of its ratings (`with_targets(None)`) loses them too
+PER_TEXTURE_META = ("true_ratings",)
+
 
 @dataclass(frozen=True)
 class TextureData:
@@ -55,10 +59,14 @@ class TextureData:
             tactile=[self.tactile[i] for i in idx],
             visual=None if self.visual is None else self.visual[idx],
             targets=None if self.targets is None else self.targets[idx],
+            meta={k: np.asarray(v)[idx] if k in PER_TEXTURE_META else v for k, v in self.meta.items()},
         )
 
     def with_targets(self, targets: np.ndarray | None) -> TextureData:
-        return replace(self, targets=None if targets is None else np.asarray(targets, np.float32))
+        if targets is None:
+            meta = {k: v for k, v in self.meta.items() if k not in PER_TEXTURE_META}
+            return replace(self, targets=None, meta=meta)
+        return replace(self, targets=np.asarray(targets, np.float32))
 
 
 def load_texture_data(

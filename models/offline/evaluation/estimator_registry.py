@@ -40,15 +40,16 @@ POOLED_BASES = ("ridge-pooled", "krr-pooled", "ksvr-pooled")
 POOLED_MEANS = {"mean-pooled": POOLED_BASES}
 
 
-def pooled_bases(views: int | None = None, modality: str = "both") -> dict:
+def pooled_bases(views: int | None = None, modality: str = "both", loo: str = "centred") -> dict:
     """The base candidates of `selected`, fixed in advance (docs/models.md): name → factory.
 
     Each reads every stored image view pooled (views=None) or the first `views`, and weighs touch
     per attribute inside its own fit; every one exports to ONNX. modality "visual": the same models
-    on the image alone (an image-only dataset)."""
+    on the image alone (an image-only dataset). loo: the kernel ridges' leave-one-out criterion ("centred", the
+    rule's; "exact": `selected-exact-loo`, reported beside it)."""
     return {
-        "ridge-pooled": lambda: KernelRidgeEstimator(modality, "linear", views),
-        "krr-pooled": lambda: KernelRidgeEstimator(modality, "rbf", views),
+        "ridge-pooled": lambda: KernelRidgeEstimator(modality, "linear", views, loo=loo),
+        "krr-pooled": lambda: KernelRidgeEstimator(modality, "rbf", views, loo=loo),
         "ksvr-pooled": lambda: KernelSVREstimator(modality, "rbf", views),
     }
 
@@ -99,6 +100,10 @@ CLASSICAL.update(
         "mean-pooled": _mean_pooled,
         "selected": lambda views=None, modality="both", **kw: SelectedEstimator(
             pooled_bases(views, modality), POOLED_MEANS, **kw
+        ),
+        # the same rule with the kernel ridges' exact leave-one-out criterion: a sensitivity row, not a candidate
+        "selected-exact-loo": lambda views=None, modality="both", **kw: SelectedEstimator(
+            pooled_bases(views, modality, loo="exact"), POOLED_MEANS, name="selected-exact-loo", **kw
         ),
         "selected-image": lambda views=None, **kw: SelectedEstimator(image_bases(views), name="selected-image", **kw),
         **{f"{name}-image": _image_base(name) for name in image_bases()},

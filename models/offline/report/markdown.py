@@ -31,6 +31,8 @@ OLDER = "†"
 README_ROWS = {
     "selected": "picked per attribute inside each fold among the 4 pooled models below, on the served 2×2 no-GLCM int8 "
     "image features (served; withheld predictions)",
+    "selected-exact-loo": "`selected` with its kernel ridges' α, γ and touch weight chosen by exact leave-one-out "
+    "(a sensitivity row: the rule keeps the criterion it was fixed with)",
     "mean-pooled": "mean of ridge-, krr- and ksvr-pooled",
     "krr-pooled": "kernel ridge (RBF), 8 views pooled, touch weighed per attribute",
     "ksvr-pooled": "kernel SVR (RBF), 8 views pooled, touch weighed per attribute",
@@ -190,8 +192,9 @@ def build_report(
         "A texture's prediction averages its windows and comes from a model that never saw that texture (its "
         "ratings, its features, nor its early stopping). Each MAE/RMSE carries a texture-level bootstrap 95 % "
         "interval in brackets (textures resampled with replacement, 2000 draws); with several seeds the mean "
-        "shows ± the spread over seeds, and the interval is that of the mean over seeds. *views*: image views "
-        "pooled into a texture's visual input. Human ratings are read from the dataset, not stored with the "
+        "shows ± the standard deviation of the seeds' MAEs (population: ÷ n seeds), and the interval is that of "
+        "the mean over seeds. *views*: image views pooled into a texture's visual input. Human ratings are read "
+        "from the dataset, not stored with the "
         f"results. {OLDER}: an earlier run that stored only its seed-averaged prediction — its interval is that "
         "prediction's.",
         "",

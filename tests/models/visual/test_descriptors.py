@@ -146,3 +146,20 @@ def test_visual_features_appends_the_descriptors_after_backbone_and_glcm(texture
     np.testing.assert_array_equal(again, full)
     with pytest.raises(ValueError, match="needs the frame in colour"):
         visual_features(texture, cfg, FakeBackbone())
+
+
+def test_two_frames_of_one_grey_in_different_colours_do_not_share_cached_descriptors(texture, tmp_path):
+    from models.visual.cache import FeatureCache
+    from models.visual.embedding import visual_features, visual_layout
+
+    cfg = VisualConfig(patch_size=64, grid=2, descriptors=("colour",), descriptor_size=128)
+    grey = np.repeat(texture[..., None], 3, axis=2)
+    # the same luma (0.299 R + 0.587 G + 0.114 B) with a red–green tint
+    tint = np.stack([texture + 0.05 * 0.587, texture - 0.05 * 0.299, texture], axis=2).clip(0, 1)
+    cache = FeatureCache(tmp_path / "c")
+    columns = visual_layout(3, cfg)["colour"]
+    first = visual_features(texture, cfg, FakeBackbone(), cache, colour=grey)[columns]
+    second = visual_features(texture, cfg, FakeBackbone(), cache, colour=tint)[columns]
+    fresh = visual_features(texture, cfg, FakeBackbone(), None, colour=tint)[columns]
+    assert not np.allclose(first, second)
+    np.testing.assert_array_equal(second, fresh)

@@ -8,7 +8,13 @@ import pytest
 
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import build_estimator
-from models.offline.evaluation.kernel import KernelRidgeEstimator, KernelSVREstimator, MeanOfEstimator
+from models.offline.evaluation.kernel import (
+    KernelRidgeEstimator,
+    KernelSVREstimator,
+    MeanOfEstimator,
+    centred_loo_residuals,
+    exact_loo_residuals,
+)
 from models.visual.pooling import pool_views
 
 
@@ -43,6 +49,83 @@ def test_each_attribute_weighs_touch_for_itself(world, kernel):
     weights = [c["tactile_weight"] for c in est.chosen]
     assert weights[0] == weights[1] == 0.0, weights  # camera-only attributes drop touch
     assert weights[2] > 0 and weights[3] > 0, weights  # touch-only attributes keep it
+
+
+def _brute_force_loo(kernel: np.ndarray, y: np.ndarray, alpha: float) -> np.ndarray:
+    """Each texture left out and the model (mean intercept + kernel ridge) refitted on the others."""
+    n = len(y)
+    out = np.empty_like(y)
+    for i in range(n):
+        keep = np.arange(n) != i
+        mean = y[keep].mean(axis=0)
+        coef = np.linalg.solve(kernel[np.ix_(keep, keep)] + alpha * np.eye(n - 1), y[keep] - mean)
+        out[i] = y[i] - (kernel[i, keep] @ coef + mean)
+    return out
+
+
+def _brute_force_free_intercept_ridge(z: np.ndarray, y: np.ndarray, alpha: float) -> np.ndarray:
+    """Each texture left out and ridge with a free intercept refitted on the others (columns and targets centred
+    on them)."""
+    n = len(y)
+    out = np.empty_like(y)
+    for i in range(n):
+        keep = np.arange(n) != i
+        zm, ym = z[keep].mean(axis=0), y[keep].mean(axis=0)
+        zk = z[keep] - zm
+        beta = np.linalg.solve(zk.T @ zk + alpha * np.eye(z.shape[1]), zk.T @ (y[keep] - ym))
+        out[i] = y[i] - ((z[i] - zm) @ beta + ym)
+    return out
+
+
+def _kernels(n: int = 30):
+    """A centred kernel (linear on centred columns) and an uncentred one (RBF + a touch block of texture means of
+    window z-scores, which are not centred), with two targets: one signal, one noise; and the centred columns."""
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(n, 20))
+    z = (z - z.mean(axis=0)) / z.std(axis=0) / np.sqrt(20)
+    touch = rng.normal(size=(n, 8)) / np.sqrt(8) + 0.3
+    y = np.column_stack([40 * z[:, 0] * np.sqrt(20) + 20 * rng.normal(size=n), rng.normal(size=n)])
+    sq = ((z[:, None] - z[None]) ** 2).sum(-1)
+    rbf = np.exp(-sq / np.median(sq[~np.eye(n, dtype=bool)])) + touch @ touch.T
+    return {"centred": z @ z.T, "uncentred": rbf}, y, z
+
+
+@pytest.mark.parametrize("kind", ["centred", "uncentred"])
+def test_exact_leave_one_out_is_the_refit_one(kind):
+    kernels, y, _ = _kernels()
+    lam, q = np.linalg.eigh(kernels[kind])
+    lam = np.maximum(lam, 0.0)
+    for a in np.logspace(-3, 2, 6):
+        np.testing.assert_allclose(
+            exact_loo_residuals(lam, q, y, a), _brute_force_loo(kernels[kind], y, a), rtol=1e-8, atol=1e-8
+        )
+
+
+def test_the_rules_criterion_is_exact_for_a_centred_kernel_and_leans_to_regularise_an_uncentred_one():
+    kernels, y, z = _kernels()
+    alphas = np.logspace(-3, 2, 6)
+    lam, q = np.linalg.eigh(kernels["centred"])
+    lam = np.maximum(lam, 0.0)
+    for a in alphas:  # on centred columns it is ridge with a free intercept, left out and refitted
+        np.testing.assert_allclose(
+            centred_loo_residuals(lam, q, y, a), _brute_force_free_intercept_ridge(z, y, a), rtol=1e-7, atol=1e-7
+        )
+    lam, q = np.linalg.eigh(kernels["uncentred"])
+    lam = np.maximum(lam, 0.0)
+    centred = [np.abs(centred_loo_residuals(lam, q, y, a)).mean() for a in alphas]
+    exact = [np.abs(exact_loo_residuals(lam, q, y, a)).mean() for a in alphas]
+    assert centred[0] > 2 * exact[0]  # on an RBF kernel weak regularisation looks far worse than it is
+    assert np.argmin(centred) > np.argmin(exact)  # so the criterion picks a larger α
+
+
+def test_leave_one_out_refuses_what_it_cannot_compute():
+    for residuals in (centred_loo_residuals, exact_loo_residuals):
+        with pytest.raises(ValueError, match="at least 2 textures"):
+            residuals(np.ones(1), np.eye(1), np.zeros((1, 4)), 1.0)
+        with pytest.raises(ValueError, match="alpha must be > 0"):
+            residuals(np.ones(2), np.eye(2), np.zeros((2, 4)), 0.0)
+    with pytest.raises(ValueError, match="loo must be one of centred, exact"):
+        KernelRidgeEstimator(loo="approximate")
 
 
 def test_a_texture_is_predicted_as_the_mean_of_its_windows_predictions(world):

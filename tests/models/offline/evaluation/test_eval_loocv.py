@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -45,6 +47,31 @@ def test_held_out_ratings_never_reach_predict(linear_world, monkeypatch):
     pred, _, _, _ = run_fold(linear_world, EstimatorSpec("mean"), 3, 0)
     others = np.delete(linear_world.targets, 3, axis=0).mean(axis=0)
     np.testing.assert_allclose(pred, others, rtol=1e-6)
+
+
+class TruthRecorder(MeanEstimator):
+    """Records the per-texture truth rows that fit and predict are handed."""
+
+    seen: dict = {}
+
+    def fit(self, data, seed):
+        TruthRecorder.seen["fit"] = (list(data.textures), data.meta.get("true_ratings"))
+        return super().fit(data, seed)
+
+    def predict(self, data):
+        TruthRecorder.seen["predict"] = data.meta.get("true_ratings")
+        return super().predict(data)
+
+
+def test_the_held_out_textures_true_ratings_reach_neither_fit_nor_predict(linear_world, monkeypatch):
+    truth = np.arange(4.0 * len(linear_world)).reshape(-1, 4)  # as the synthetic world carries its truth
+    world = replace(linear_world, meta={**linear_world.meta, "true_ratings": truth})
+    monkeypatch.setattr(EstimatorSpec, "build", lambda self: TruthRecorder())
+    run_fold(world, EstimatorSpec("mean"), 3, 0)
+    textures, fit_truth = TruthRecorder.seen["fit"]
+    assert world.textures[3] not in textures
+    np.testing.assert_array_equal(fit_truth, np.delete(truth, 3, axis=0))  # the training textures' rows only
+    assert TruthRecorder.seen["predict"] is None
 
 
 def test_process_backend_equals_serial(linear_world):
