@@ -15,7 +15,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from starlette.requests import ClientDisconnect
 
 from service.errors import ServiceError
 from service.events import StatusEvent, WindowEvent
@@ -91,6 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.add_exception_handler(ClientDisconnect, _client_gone)  # type: ignore[arg-type]
     for module in (sessions, ingest, events, library, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
@@ -118,6 +120,19 @@ async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
 
 async def _too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
     return JSONResponse({"detail": too_large_detail(exc.limit)}, status_code=413, headers={"Connection": "close"})
+
+
+async def _client_gone(request: Request, exc: ClientDisconnect) -> Response:
+    # The client closed its connection (or the read deadline closed it) before its body was read: a robot's link
+    # dropping mid-upload. Nothing was accepted, and nobody reads an answer; one rate-limited WARNING, no traceback.
+    route = request.scope.get("route")
+    request.app.state.service.refusal_log.warning(
+        "client_disconnect",
+        "a client closed its connection before its request body was read (%s %s)",
+        request.method,
+        getattr(route, "path", "?"),  # the route's template: no session id, no token
+    )
+    return Response(status_code=400)
 
 
 async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -473,7 +473,7 @@ class CapacityGuard:
         # with nothing streaming there is no one to keep at full speed (and nothing measured): it starts
         why = self._why_no_room(now) if self._streaming else None
         if why is not None:
-            session.touch()  # its robot is there, waiting for room: not an abandoned session
+            session.heard()  # its robot is there, waiting for room: not an abandoned session
             self._waiting[session.id] = now
             raise AtCapacity(
                 f"this replica is at capacity: {why}; session {session.id} has not streamed yet: {then}",
@@ -485,6 +485,7 @@ class CapacityGuard:
 
     def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:
+            session.heard()  # its robot retries as told: not an idle session (nor a streaming one)
             raise AtCapacity(
                 f"this replica is at capacity (event loop CPU {self.cpu_share:.2f} of {self.settings.cpu_budget:g}, "
                 f"loop lag {self.lag_s * 1e3:.0f} ms, windows queued {self.queue_s * 1e3:.0f} ms) and session "

@@ -214,13 +214,13 @@ class SessionDirectory:
 
 def reap_due(sessions: Iterable[Session], now: float, settings: Settings) -> list[tuple[str, str]]:
     """(session id, why) of sessions to end now: never streamed within session_first_block_s of their creation or
-    their robot's last sign (a frame, or a first block refused for capacity), or no traffic for session_idle_s.
-    now: time.monotonic()."""
+    their robot's last sign (a frame, or a first block refused for capacity), or no sign of its robot (traffic, or a
+    try refused for capacity) for session_idle_s. now: time.monotonic()."""
     due = []
     for s in sessions:
-        if s.last_seq < 0 and now - s.last_activity > settings.session_first_block_s:
+        if s.last_seq < 0 and now - s.last_contact > settings.session_first_block_s:
             due.append((s.id, f"no block within {settings.session_first_block_s:g} s of its creation or last try"))
-        elif now - s.last_activity > settings.session_idle_s:
+        elif now - s.last_contact > settings.session_idle_s:
             due.append((s.id, f"no traffic for {settings.session_idle_s:g} s"))
     return due
 

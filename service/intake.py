@@ -18,7 +18,7 @@ from concurrent.futures import Executor
 
 import numpy as np
 
-from drivers.blocks import Block, decode_binary, decode_json
+from drivers.blocks import BINARY_CONTENT_TYPE, MAX_JSON_BLOCK_BYTES, Block, decode_binary, decode_json
 from drivers.scene_change import thumbnail, thumbnail_from_bytes
 from service.bus import EventBus
 from service.capacity import CapacityGuard
@@ -72,11 +72,17 @@ class BlockIntake:
 
 
 def decode_block(payload: bytes, binary: bool) -> Block:
-    """Wire bytes → SampleBlock | TapBlock; ServiceError 400 (not JSON) or 422 (not a valid block) with the decoder's
-    message."""
+    """Wire bytes → SampleBlock | TapBlock; ServiceError 400 (not JSON), 413 (a JSON block over MAX_JSON_BLOCK_BYTES,
+    refused before it is parsed) or 422 (not a valid block) with the decoder's message."""
     try:
         if binary:
             return decode_binary(payload)
+        if len(payload) > MAX_JSON_BLOCK_BYTES:
+            raise ServiceError(
+                413,
+                f"a JSON block holds at most {MAX_JSON_BLOCK_BYTES} bytes, got {len(payload)}: send larger blocks in "
+                f"the binary format ({BINARY_CONTENT_TYPE}), or smaller ones",
+            )
         try:
             obj = json.loads(payload, parse_int=_json_int)
         except (ValueError, RecursionError) as exc:

@@ -109,7 +109,9 @@ class Session:
         self.runtime = runtime
         self.settings = settings
         self.created_at = time.time()
-        self.opened_at = self.last_activity = time.monotonic()
+        # last_activity: its robot's last block or frame (what counts it as streaming); last_contact: its robot's last
+        # sign of any kind, a try refused for capacity too (what keeps it from being reaped as abandoned)
+        self.opened_at = self.last_activity = self.last_contact = time.monotonic()
         self.last_seq = -1
         self.counters = SessionCounters()
         self.contract = stream_contract(runtime, settings)
@@ -145,7 +147,11 @@ class Session:
 
     # ---- ingest (event loop) ---------------------------------------------------------------------
     def touch(self) -> None:
-        self.last_activity = time.monotonic()
+        self.last_activity = self.last_contact = time.monotonic()
+
+    def heard(self) -> None:
+        """Its robot tried (a block or frame refused for capacity): it is there, but it did not stream."""
+        self.last_contact = time.monotonic()
 
     def ingest(self, block: Block, arrived_ns: int) -> dict:
         """Admit one decoded block → the acknowledgement {seq, duplicate, windows_ready}.

@@ -25,6 +25,10 @@ CANONICAL_UNITS = {kind: next(iter(units)) for kind, units in UNIT_SCALE.items()
 CHANNEL_COLUMNS: dict[str, tuple[int, ...]] = {"accel": (3,), "force": (1, 3), "speed": (1,), "position": (1, 2)}
 MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
+#: the largest magnitude a sample of each kind may have, canonical units: far beyond any tool's sensor (10⁵ m/s² is
+#: ≈ 10,000 g, a shock accelerometer's range; 10⁵ N; 1 km/s; 1 km), far below what overflows the features
+#: (≈ 10¹⁵ m/s²). A sample past it is a sensor fault or a wrong unit, refused with the block, not computed on.
+MAX_ABS: dict[str, float] = {"accel": 1e5, "force": 1e5, "speed": 1e6, "position": 1e6}
 
 
 def check_array(name: str, x: object, shape: tuple[int | None, ...], dtype: type[np.number] = np.float64) -> np.ndarray:
@@ -92,4 +96,12 @@ def check_channel(
     arr = arr.astype(dtype, copy=copy)
     if not np.isfinite(arr).all():
         raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
+    if arr.size:
+        peak = float(np.max(np.abs(arr))) * UNIT_SCALE[kind][units]
+        if peak > MAX_ABS[kind]:
+            unit = CANONICAL_UNITS[kind]
+            raise ValueError(
+                f"{kind}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
+                f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
+            )
     return arr, rate, str(units)

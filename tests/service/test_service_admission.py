@@ -138,7 +138,9 @@ def test_probes_answer_on_their_own_port_as_on_the_service_port(kit, base_settin
 # ---- shedding in steps: newest first, back oldest first -------------------------------------------------------
 def _guard(n: int) -> tuple[CapacityGuard, list[SimpleNamespace]]:
     """A guard over n stub sessions s0 (oldest) … s{n-1}, all streaming, with default thresholds."""
-    sessions = [SimpleNamespace(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_seq=0) for i in range(n)]
+    sessions = [
+        _Robot(id=f"s{i}", opened_at=float(i), last_activity=0.0, last_contact=0.0, last_seq=0) for i in range(n)
+    ]
     return CapacityGuard(Settings(), ServiceMetrics(), lambda: sessions), sessions
 
 
@@ -167,7 +169,10 @@ def test_over_the_lag_limit_a_quarter_is_shed_per_step_newest_first_and_comes_ba
     # busy (loop over half its budget) and late beyond shed_lag_s: the process's own lag
     guard.cpu_share, guard.lag_s = 0.6, 2 * guard.settings.shed_lag_s
     _update(guard, sessions, 0.0)
+    sessions[7].last_contact = sessions[7].last_activity = -100.0
     assert _shed_ids(guard, sessions) == ["s6", "s7"]  # a quarter of 8, the newest
+    # refused, its robot was heard (the reaper leaves it alone) but did not stream (the guard does not count it)
+    assert sessions[7].last_contact > 0 and sessions[7].last_activity == -100.0
     _update(guard, sessions, 0.1)  # within the step's interval: nothing more
     assert _shed_ids(guard, sessions) == ["s6", "s7"]
     _update(guard, sessions, SHED_EVERY_S)  # no worse than at the last step: its effect has not shown yet
@@ -685,15 +690,18 @@ def test_the_sampler_publishes_both_queue_delays_as_gauges():
 
 
 class _Robot(SimpleNamespace):
-    """A stub session with Session's touch()."""
+    """A stub session with Session's touch() and heard()."""
 
     def touch(self) -> None:
-        self.last_activity = time.monotonic()
+        self.last_activity = self.last_contact = time.monotonic()
+
+    def heard(self) -> None:
+        self.last_contact = time.monotonic()
 
 
 def _waiting(name: str, opened_at: float) -> _Robot:
     """A session opened at `opened_at` (time.monotonic()) whose robot has sent nothing yet."""
-    return _Robot(id=name, opened_at=opened_at, last_activity=opened_at, last_seq=-1)
+    return _Robot(id=name, opened_at=opened_at, last_activity=opened_at, last_contact=opened_at, last_seq=-1)
 
 
 def test_sessions_opened_and_not_streaming_yet_count_as_load_when_a_session_is_asked_for():
@@ -728,7 +736,7 @@ def test_a_robot_that_has_not_streamed_starts_only_while_there_is_room_its_frame
     with pytest.raises(AtCapacity, match=r"has not streamed yet: it starts when there is room") as refused:
         guard.admit_block(robot)  # type: ignore[arg-type]
     assert "one more session (0.100 of a core each)" in str(refused.value)
-    assert robot.last_activity > now - 1  # touched: the reaper counts from its robot's last try
+    assert robot.last_contact > now - 1  # heard: the reaper counts from its robot's last try
     with pytest.raises(AtCapacity, match="its frames wait with its first block"):
         guard.admit_frame(robot)  # type: ignore[arg-type]
     guard.cpu_share = 0.4  # the loop has room, its threads together do not (0.1 a session)

@@ -81,15 +81,17 @@ def test_sessions_that_never_stream_are_reclaimed_before_idle_ones():
     settings = Settings(session_first_block_s=10, session_idle_s=60)
 
     class S:
-        def __init__(self, sid, opened, last_seq, activity):
+        def __init__(self, sid, opened, last_seq, activity, contact=None):
             self.id, self.opened_at, self.last_seq, self.last_activity = sid, opened, last_seq, activity
+            self.last_contact = activity if contact is None else contact
 
     sessions = [
         S("fresh", 95, -1, 95),
         S("abandoned", 80, -1, 80),
-        S("waiting for room", 80, -1, 95),  # its first block refused for capacity 5 s ago: its robot is there
+        S("waiting for room", 80, -1, 80, 95),  # its first block refused for capacity 5 s ago: its robot is there
         S("streaming", 0, 40, 99),
         S("idle", 0, 40, 30),
+        S("shed, retrying as told", 0, 40, 30, 98),  # streamed, then shed: its robot's tries are refused
     ]
     due = dict(reap_due(sessions, 100.0, settings))
     assert set(due) == {"abandoned", "idle"}

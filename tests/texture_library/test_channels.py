@@ -45,3 +45,19 @@ def test_a_streaming_block_may_be_empty_a_recording_may_not():
     assert check_channel("accel", empty, 1000.0, allow_empty=True)[0].shape == (0, 3)
     with pytest.raises(ValueError, match="accel: no samples"):
         check_channel("accel", empty, 1000.0)
+
+
+def test_a_sample_beyond_any_sensors_range_is_refused_in_canonical_units():
+    from texture_library.channels import MAX_ABS
+
+    accel = np.zeros((10, 3))
+    accel[4, 1] = -2e15  # finite, even in float32, but it would overflow the features
+    with pytest.raises(ValueError, match=r"accel: a sample of magnitude 2e\+15 m/s\^2 is beyond any accel sensor"):
+        check_channel("accel", accel, 1000.0)
+    edge = np.full((4, 3), MAX_ABS["accel"])
+    assert check_channel("accel", edge, 1000.0)[0].max() == MAX_ABS["accel"]  # the bound itself passes
+    in_g = np.full((4, 3), MAX_ABS["accel"] / 9.0)  # within the bound as a number, beyond it in m/s²
+    with pytest.raises(ValueError, match="accel: a sample of magnitude"):
+        check_channel("accel", in_g, 1000.0, "g")
+    with pytest.raises(ValueError, match=r"force: a sample of magnitude 1e\+19 N"):
+        check_channel("force", np.array([1.0, 1e19]), 1000.0)
