@@ -11,8 +11,9 @@ preprocessor will make of it:
   once position feeds speed, a speed channel is refused; once speed does, position is ignored);
 - no stream may run more than `max_lag_s` seconds of input ahead of another (a channel that is
   never sent would otherwise buffer without bound);
-- a block whose t0 is more than `gap_tolerance_s` off the expected continuation starts a new
-  *segment* (the robot lost data or restarted its clock): windows never straddle the gap;
+- a block whose t0 is more than `gap_tolerance_s` off the expected continuation (where the previous
+  block's fastest channel ended) starts a new *segment* (the robot lost data or restarted its clock):
+  windows never straddle the gap;
 - a block as it arrives (`admit`) spans at most `max_block_s` of stream time and completes at most
   `max_block_windows` windows (the cost of one block is bounded before it is accepted);
 - the windows a segment has completed are counted exactly as `TactilePreprocessor` emits them
@@ -183,6 +184,7 @@ class StreamContract:
                     )
         rates, columns = cursor.rates, cursor.columns
         span = 0.0
+        step = (0.0, 0.0)  # (rate, stream time) of the block's fastest channel
         counts = []
         for kind, ch in used.items():
             data = ch.data
@@ -207,6 +209,7 @@ class StreamContract:
                 raise ValueError(f"{kind}: column count changed from {columns[kind]} to {cols} mid-stream")
             counts.append((kind, shape[0]))
             span = max(span, shape[0] / rate)
+            step = max(step, (rate, shape[0] / rate))
         if bounded and self.max_block_s is not None and span > self.max_block_s + 1e-9:
             raise ValueError(f"a block spans at most {self.max_block_s:g} s of stream time, got {span:g} s")
         new_segment = t0 is not None and (
@@ -216,12 +219,15 @@ class StreamContract:
         samples = {} if new_segment else dict(cursor.samples)
         for kind, n in counts:
             samples[kind] = samples.get(kind, 0) + n
+        # The next block continues where the block's fastest channel ends: its sample count says the block's length
+        # finely, while a slow channel's (one 10 Hz sample in a 20 ms block "spans" 0.1 s) would open a segment at
+        # every block.
         if t0 is None:
             segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, cursor.next_t0
         elif new_segment:
-            segment, origin_t0, next_t0 = cursor.segment + 1, t0, t0 + span
+            segment, origin_t0, next_t0 = cursor.segment + 1, t0, t0 + step[1]
         else:
-            segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, t0 + span
+            segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, t0 + step[1]
         after = StreamCursor(rates, columns, sources, samples, segment, origin_t0, next_t0)
         self._check_lag(after)
         windows = self.windows_in(self.covered(after))

@@ -49,6 +49,24 @@ def test_windows_are_counted_by_stream_time_and_segments_split_on_gaps():
     assert adv.cursor.origin_t0 == 10.0
 
 
+def test_a_slow_channel_in_short_blocks_keeps_one_segment():
+    """Speed at 10 Hz beside 1 kHz accel and force, in 20 ms blocks: a block holds one speed sample or none, yet the
+    blocks follow each other; the stream is one segment with the windows of the same stream in 100 ms blocks."""
+    contract = StreamContract(TactileConfig(), max_lag_s=5)
+    rng = np.random.default_rng(2)
+    windows = {}
+    for block_ms in (20, 100):
+        cursor, segments = contract.start(), set()
+        for k in range(3000 // block_ms):
+            speed = (k + 1) * block_ms // 100 - k * block_ms // 100  # 10 Hz samples that fall in this block
+            block = {"accel": (block_ms, 1000.0, 3), "force": (block_ms, 1000.0, 1), "speed": (speed, 10.0, 1)}
+            cursor = contract.advance(cursor, _channels(block, rng), t0=k * block_ms / 1000).cursor
+            segments.add(cursor.segment)
+        windows[block_ms] = cursor.windows
+        assert segments == {0}, block_ms
+    assert windows[20] == windows[100] > 0
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
