@@ -28,6 +28,8 @@ hl dataset check $H
 # the served visual configuration: the frontier's pick (2×2 patches, no GLCM, the int8 backbone; docs/models.md)
 SERVED=(--visual-grid 2 --no-glcm --backbone efficientnet_lite0_int8)
 hl evaluate --dataset $H --model selected "${SERVED[@]}" --out reports/hatt-texnet/selected --seeds 0 1 2
+# the same rule with the kernel ridges' exact leave-one-out criterion: a sensitivity row (docs/models.md)
+hl evaluate --dataset $H --model selected-exact-loo "${SERVED[@]}" --out reports/hatt-texnet/selected-exact-loo --seeds 0 1 2
 for m in ridge-pooled krr-pooled; do  # deterministic: one seed
   hl evaluate --dataset $H --model $m --out reports/hatt-texnet/$m --seeds 0
 done
