@@ -177,6 +177,10 @@ class SessionDirectory:
         _, session = await self.authorized(session_id, token, roles)
         if session is None:
             record = await self._lookup(session_id)
+            if record is not None and record.instance == self.settings.instance_id:
+                # ending here: out of the local table, its directory entry not yet forgotten. Not "elsewhere": a
+                # 421 would send its robot to retry.
+                raise session_not_found(session_id)
             owner = record.instance if record else "another replica"
             raise ServiceError(
                 421,

@@ -105,3 +105,9 @@ class TokenBucket:
         while len(self._buckets) > self.max_clients:
             self._buckets.popitem(last=False)
         return wait
+
+    def refund(self, client: str) -> None:
+        """Give back the token `take` just took: what it was taken for was refused before anything was done."""
+        if client in self._buckets:
+            tokens, at = self._buckets[client]
+            self._buckets[client] = (min(self.burst, tokens + 1.0), at)

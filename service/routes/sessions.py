@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from service.deps import EitherSession, FleetClient, OperatorSession, State
+from service.errors import ServiceError
 from service.routes.common import errors, try_later
 from service.schemas import SessionCreate, SessionCreated, SessionStatus
 
@@ -22,7 +23,11 @@ router = APIRouter(tags=["sessions"])
     summary="Open a session (fleet API key)",
 )
 async def create_session(state: State, client: FleetClient, body: SessionCreate | None = None) -> SessionCreated:
-    session, robot, operator = await state.create_session(body.name if body else None, client)
+    try:
+        session, robot, operator = await state.create_session(body.name if body else None, client)
+    except ServiceError:  # refused (not ready, full, at capacity): no session opened, so none counts against the rate
+        state.session_limiter.refund(client)
+        raise
     return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
 
 

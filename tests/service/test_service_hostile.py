@@ -65,6 +65,25 @@ def test_the_session_rate_is_limited_per_client():
     assert bucket.take("a") == 0.0
 
 
+def test_a_refused_session_request_does_not_count_against_the_clients_rate(kit, base_settings):
+    # the probe: two POST /sessions refused 503 (the replica full) spent the burst, and the next, once a slot was
+    # free, was refused 429 "too many sessions opened"
+    settings = base_settings.model_copy(
+        update={"session_burst": 2, "session_rate_per_s": 0.01, "max_sessions": 1, "instance_id": "refund"}
+    )
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        first = client.post("/sessions", json={}, headers=kit.FLEET)
+        assert first.status_code == 201
+        assert [client.post("/sessions", json={}, headers=kit.FLEET).status_code for _ in range(3)] == [503] * 3
+        session = first.json()
+        ended = client.delete(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"}
+        )
+        assert ended.status_code == 200
+        assert client.post("/sessions", json={}, headers=kit.FLEET).status_code == 201  # the second of the burst
+        assert srv.app.state.service.session_limiter.take("127.0.0.1") > 0  # and the burst is spent now
+
+
 def test_a_burst_of_session_requests_is_refused_early_not_taking_every_slot(kit, base_settings):
     # the probe: 300 POST /sessions in 0.6 s took all 256 slots for 600 s
     settings = base_settings.model_copy(update={"session_burst": 5, "session_rate_per_s": 0.5, "instance_id": "burst"})

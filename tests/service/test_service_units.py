@@ -197,6 +197,41 @@ def test_a_slow_subscriber_never_holds_back_the_others():
     assert slow_items == [97, 98, 99, "end"] and slow_dropped == 97
 
 
+def test_a_session_being_ended_is_not_found_rather_than_elsewhere():
+    """DELETE takes the session out of the local table, closes it (awaiting its jobs), then forgets its directory
+    entry: in between, its traffic is answered 404 (it ended), not 421 naming this very replica (retry elsewhere)."""
+    from service.bus import EventBus
+    from service.directory import SessionDirectory
+
+    class SlowToClose:
+        def __init__(self, sid):
+            self.id, self.closing = sid, asyncio.Event()
+
+        def status(self):
+            return {"counters": {}}
+
+        async def close(self):
+            await self.closing.wait()
+
+    async def main():
+        settings = Settings(instance_id="here")
+        broker = InMemoryBroker(subscriber_queue=4)
+        metrics = ServiceMetrics()
+        directory = SessionDirectory(settings, broker, EventBus(broker, metrics), metrics)
+        session, robot, _ = await directory.open(None, "test", "m", lambda sid, name, creds: SlowToClose(sid))
+        ending = asyncio.create_task(directory.end(session.id, "ended by request"))
+        await asyncio.sleep(0.01)  # out of the table, closing
+        try:
+            await directory.local(session.id, robot, ROBOT_ONLY)
+        except ServiceError as exc:
+            status = exc.status
+        session.closing.set()
+        await ending
+        return status
+
+    assert asyncio.run(main()) == 404
+
+
 # ---- metrics and settings --------------------------------------------------------------------------
 def test_metrics_render_prometheus_text():
     m = ServiceMetrics()
