@@ -67,6 +67,7 @@ class Close(IntEnum):
     POLICY = 1008  # authentication failed
     TOO_BIG = 1009  # a message larger than the service's limit
     SERVER_ERROR = 1011
+    RESTARTING = 1012  # the replica is shutting down (uvicorn's close of every socket left); the session is lost
     NOT_READY = 1013  # the service is loading; try again
     MISDIRECTED = 4421  # the session runs on another replica
     SATURATED = 4429  # the session has too much work queued; reconnect after a backoff and resend

@@ -50,6 +50,11 @@ class EventBus:
         self.metrics.subscribers.set(self._subscribers)
         await self.broker.unsubscribe(sub)
 
+    @property
+    def subscribers(self) -> int:
+        """Operator subscriptions open on this replica."""
+        return self._subscribers
+
     def watched(self) -> list[str]:
         """Sessions operators on this replica subscribe to (the broker's view)."""
         return self.broker.subscribed()

@@ -72,9 +72,8 @@ def settings_from_args(args: argparse.Namespace):
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from service.app import create_app, server_options
+    from service.app import create_app
+    from service.server import serve
 
     settings = settings_from_args(args)
     for label, path, flag in (
@@ -86,6 +85,7 @@ def _serve(args: argparse.Namespace) -> int:
         if not path.exists():
             raise ValueError(f"{label} not found: {path}")
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    # uvicorn handles SIGINT/SIGTERM: stop accepting, let open requests finish, run the lifespan shutdown.
-    uvicorn.run(create_app(settings), **server_options(settings))
+    # SIGINT/SIGTERM: the sessions end (operators told), then uvicorn stops accepting, lets open requests finish and
+    # runs the lifespan shutdown.
+    serve(create_app(settings), settings)
     return 0

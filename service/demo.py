@@ -344,9 +344,10 @@ async def run_demo(
 
     from drivers.robot import RobotClient
     from service.app import create_app, server_options
+    from service.server import SessionEndingServer
     from service.settings import Settings
 
-    class DemoServer(uvicorn.Server):
+    class DemoServer(SessionEndingServer):
         @contextlib.contextmanager
         def capture_signals(self):  # the demo handles SIGINT/SIGTERM: one stops robot, feed and service together
             yield

@@ -13,6 +13,9 @@
   (uvicorn would log "ASGI callable returned without completing handshake" at ERROR for every one),
   and a text frame that is not UTF-8 closes the socket 1007 with one rate-limited WARNING instead of
   an ERROR with a traceback.
+- `SessionEndingServer`: uvicorn's server, ending every session (its operators told it is lost, their feeds closed
+  1000) before it closes the connections: uvicorn closes every WebSocket (1012) before the lifespan shutdown, where
+  the final events would reach no one.
 - `RedactQueries`: a logging filter that cuts query strings (WebSocket URLs carry `?token=`) out of
   uvicorn's log lines; `install_log_redaction()` puts it on uvicorn's loggers, with a throttle on the
   WARNINGs uvicorn writes for malformed requests (one per kind every 10 s).
@@ -23,8 +26,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
+import socket
 from typing import Any
 
+import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
@@ -108,6 +113,22 @@ class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
                 self.handle_parser_exception()
                 return
         super().send_receive_event_to_app()
+
+
+class SessionEndingServer(uvicorn.Server):
+    """uvicorn.Server that ends the service's sessions first on shutdown (SIGINT, SIGTERM, should_exit)."""
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        state = getattr(getattr(self.config.app, "state", None), "service", None)  # None before the lifespan start
+        if state is not None:
+            await state.end_sessions()
+        await super().shutdown(sockets)
+
+
+def serve(app: Any, settings: Settings, **overrides: Any) -> None:
+    """Run `app` with server_options(settings, **overrides) until SIGINT/SIGTERM (uvicorn.run's way, sessions
+    ended first)."""
+    SessionEndingServer(uvicorn.Config(app, **server_options(settings, **overrides))).run()
 
 
 def _peer(client: tuple[str, int] | None) -> str:

@@ -22,6 +22,7 @@ import contextlib
 import gc
 import logging
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 from service.auth import SessionCredentials
@@ -146,6 +147,15 @@ class ServiceState:
             warm_s,
             f"; NOT READY: {rt.problem}" if rt.problem else "",
         )
+
+    async def end_sessions(self, flush_s: float = 1.0) -> None:
+        """Shutdown, first step: every local session ends as lost (its state cannot outlive the process) and its
+        operators' feeds get the final event and close (1000), waiting up to `flush_s` for them, before the server
+        closes the connections (uvicorn closes every WebSocket 1012 before the lifespan shutdown)."""
+        await self.directory.end_all(f"its replica {self.settings.instance_id} shut down")
+        deadline = time.monotonic() + flush_s
+        while self.bus.subscribers and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
 
     async def close(self) -> None:
         for task in self._tasks:

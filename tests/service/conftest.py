@@ -26,6 +26,7 @@ from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, enco
 from drivers.source import blocks_from_arrays
 from service.app import create_app, server_options
 from service.launcher import free_port
+from service.server import SessionEndingServer
 from service.settings import Settings
 from texture_library.library import Library
 from texture_library.recording import Recording, recording_from_stroke
@@ -68,7 +69,7 @@ class ServerThread:
                 self.settings, lifespan="on", log_level=self.log_level, access_log=False, timeout_graceful_shutdown=3
             ),
         )
-        self._server = uvicorn.Server(config)
+        self._server = SessionEndingServer(config)
         self._thread = threading.Thread(target=self._server.run, kwargs={"sockets": [sock]}, daemon=True)
         self._thread.start()
         deadline = time.monotonic() + timeout_s

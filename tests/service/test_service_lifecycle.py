@@ -3,7 +3,9 @@ read-only routes (health, readiness, library, metrics)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import threading
 
 import httpx
 import pytest
@@ -27,6 +29,32 @@ def test_ending_a_session_tells_its_operators_and_closes_their_sockets(kit, serv
         with pytest.raises(ConnectionClosed):
             sub.recv(timeout=5)
         assert sub.close_code == 1000
+
+
+def test_a_stopping_service_tells_every_operator_its_session_is_lost_before_it_closes(kit, base_settings):
+    """The probe: on SIGTERM uvicorn closed every socket (1012) before the lifespan shutdown ended the sessions, so
+    no operator learnt that its session was lost. The server stopping as a signal stops it (should_exit)."""
+    settings = base_settings.model_copy(update={"instance_id": "stopping"})
+    srv = kit.ServerThread(settings).start()
+    try:
+        with httpx.Client(base_url=srv.url, timeout=10) as client:
+            sessions = [kit.create_session(client) for _ in range(2)]
+        with contextlib.ExitStack() as stack:
+            subs = [stack.enter_context(connect(kit.socket_url(srv, s, "events"))) for s in sessions]
+            for sub in subs:
+                assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+            stopping = threading.Thread(target=srv.stop)
+            stopping.start()
+            for sub in subs:
+                last = json.loads(sub.recv(timeout=10))
+                assert last["event"] == "session_ended" and last["lost"] is True, last
+                assert "its replica stopping shut down" in last["message"]
+                with pytest.raises(ConnectionClosed):
+                    sub.recv(timeout=5)
+                assert sub.close_code == 1000
+            stopping.join(timeout=20)
+    finally:
+        srv.stop()
 
 
 def test_idle_sessions_are_ended_and_max_sessions_is_enforced(kit, base_settings):
