@@ -79,11 +79,12 @@ def stream_contract(runtime: Runtime, settings: Settings) -> StreamContract:
 
 def canonical_channels(block: SampleBlock) -> dict[str, Channel]:
     """The block's channels in canonical units (m/s², N, mm/s, mm): as they came when already canonical (the
-    preprocessor converts to float64 once, on the concatenated blocks), else scaled in float64."""
+    preprocessor converts to float64 once, on the concatenated blocks), else scaled in their own dtype (float32 off
+    the wire): a session's pending samples cost the same whatever units its robot sends."""
     out = {}
     for kind, c in block.channels.items():
         scale = UNIT_SCALE[kind][c.units]
-        out[kind] = Channel(c.data if scale == 1.0 else c.data.astype(np.float64) * scale, c.rate_hz)
+        out[kind] = Channel(c.data if scale == 1.0 else c.data * c.data.dtype.type(scale), c.rate_hz)
     return out
 
 

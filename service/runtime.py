@@ -163,17 +163,24 @@ class Runtime:
             self.backbone.stop()
 
 
+#: what Pillow names the formats of a frame (MPO: a camera's JPEG with more pictures after the first)
+FRAME_FORMATS = frozenset({"PNG", "JPEG", "MPO"})
+
+
 def frame_pixels(image: bytes) -> int:
     """An encoded frame's width × height, read from its header alone (nothing is decoded, ≈ 20 µs); 0 when the bytes
-    are not an image Pillow recognises (decoding them says why); ValueError when it is larger than
-    MAX_FRAME_PIXELS."""
+    are not an image Pillow recognises (decoding them says why); ValueError when it is not a PNG or JPEG (Pillow
+    would decode GIF, BMP, TIFF, WebP … as well: frames are PNG or JPEG, whatever their Content-Type says) or larger
+    than MAX_FRAME_PIXELS."""
     try:
         with Image.open(io.BytesIO(image)) as probe:
-            width, height = probe.size
+            width, height, kind = *probe.size, probe.format
     except Image.DecompressionBombError as exc:
         raise ValueError(f"image is too large: {exc}") from None
     except Exception:  # noqa: BLE001 - not an image: decoding says why
         return 0
+    if kind not in FRAME_FORMATS:
+        raise ValueError(f"the image is {kind}; frames are PNG or JPEG")
     if width * height > MAX_FRAME_PIXELS:
         raise ValueError(f"image is {width}×{height} pixels; at most {MAX_FRAME_PIXELS} pixels are decoded")
     return width * height

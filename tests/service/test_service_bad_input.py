@@ -6,6 +6,7 @@ socket (WebSocket).
 
 from __future__ import annotations
 
+import io
 import json
 import struct
 import zlib
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from PIL import Image
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -221,13 +223,21 @@ def test_frame_pixels_reads_the_size_from_the_header_alone(kit):
         (100, "image/png", 422, "need at least 224"),  # an int: a real PNG of that size
         (_png_header(30_000, 30_000), "image/png", 422, "too large"),
         (_png_header(8_000, 8_000), "image/png", 422, "pixels are decoded"),
+        ("GIF", "image/png", 422, "the image is GIF; frames are PNG or JPEG"),  # a str: that format, labelled PNG
+        ("BMP", "image/jpeg", 422, "the image is BMP; frames are PNG or JPEG"),
     ],
 )
 def test_bad_frames_are_refused_with_a_message(kit, client, body, ctype, status, words):
     session = kit.create_session(client)
+    if isinstance(body, int):
+        body = kit.png(body)
+    elif isinstance(body, str):
+        encoded = io.BytesIO()
+        Image.new("L", (256, 256), 128).save(encoded, format=body)
+        body = encoded.getvalue()
     r = client.post(
         f"/sessions/{session['session_id']}/frames",
-        content=kit.png(body) if isinstance(body, int) else body,
+        content=body,
         headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": ctype},
     )
     assert r.status_code == status and words in r.json()["detail"], r.text
