@@ -189,8 +189,21 @@ class MeanEstimator(Estimator):
         return 4
 
 
+def _repeated_rows(names: list[str]) -> list[np.ndarray] | None:
+    """The row indices of each texture name, when some name repeats; None when every row is its own texture."""
+    if len(set(names)) == len(names):
+        return None
+    rows: dict[str, list[int]] = {}
+    for i, name in enumerate(names):
+        rows.setdefault(name, []).append(i)
+    return [np.array(r) for r in rows.values()]
+
+
 class RidgeEstimator(Estimator):
-    """Ridge regression on texture-level features; α by efficient leave-one-out over the training textures."""
+    """Ridge regression on texture-level features; α by efficient leave-one-out over the training textures.
+
+    Rows that share a texture name (augmented copies of one texture, `tradeoffs.study`) leave out together: a copy
+    left out beside its near-twins would make a weak α look good."""
 
     def __init__(
         self,
@@ -213,12 +226,20 @@ class RidgeEstimator(Estimator):
         # LOO residuals of ridge in closed form via the SVD of X (n ≪ d here).
         u, s, vt = np.linalg.svd(X, full_matrices=False)
         uty = u.T @ yc
+        groups = _repeated_rows(data.textures)
         best = (np.inf, None)
         for a in self.alphas:
             d = s**2 / (s**2 + a)
-            # the fitted intercept adds 1/n to every leverage (columns of X are centred)
-            hat_diag = np.sum(u**2 * d, axis=1) + 1.0 / len(yc)
-            resid = (yc - u @ (d[:, None] * uty)) / (1 - hat_diag)[:, None]
+            fitted = yc - u @ (d[:, None] * uty)
+            if groups is None:
+                # the fitted intercept adds 1/n to every leverage (columns of X are centred)
+                hat_diag = np.sum(u**2 * d, axis=1) + 1.0 / len(yc)
+                resid = fitted / (1 - hat_diag)[:, None]
+            else:  # leave a texture's rows out together: r_g = (I − H_gg)⁻¹ e_g, H with the intercept's 1/n
+                resid = np.empty_like(fitted)
+                for rows in groups:
+                    h = (u[rows] * d) @ u[rows].T + 1.0 / len(yc)
+                    resid[rows] = np.linalg.solve(np.eye(len(rows)) - h, fitted[rows])
             loss = float(np.mean(resid**2))
             if loss < best[0]:
                 best = (loss, a)

@@ -18,6 +18,7 @@ from models.offline.faults.catalog import FAULTS
 from models.offline.tradeoffs import charts
 from models.offline.tradeoffs.common import write_json
 from models.offline.tradeoffs.frontier import TARGET_FRAME_MS, TARGET_MAE_MARGIN
+from models.offline.tradeoffs.robustness import AUGMENTATION_LOO
 
 REGENERATE = "bash reports/tradeoffs/regenerate.sh"
 QUIET_BENCH = Path("reports") / "bench" / "visual.json"  # benchmarks.visual, taken on a quiet machine
@@ -343,6 +344,15 @@ def robustness_section(rb: dict, folder: Path) -> list[str]:
             "| model | fault | breaking point before | after |",
             "|---|---|---:|---:|",
         ]
+        if rb.get("augmentation_loo") != AUGMENTATION_LOO:
+            lines[-4:-4] = [
+                "*This run is older than the fix of 2026-11-27: its ridge chose α by leaving the augmented copies "
+                "out one by one, each beside its near-twins, which favours too weak an α (the copies of a texture "
+                "now leave out together). Its augmented rows likely understate what augmentation gives (a review's "
+                "simulation: outer MAE 1.29 → 1.64 with copies left out one by one); not rerun yet "
+                f"(`{REGENERATE}`, hours).*",
+                "",
+            ]
         for a in rb["augmentation"]:
             lines.append(
                 f"| {a['model']} | {FAULTS[a['fault']].label} | {_fmt(a['breaking_before'], 3)} | "

@@ -27,6 +27,9 @@ from models.offline.tradeoffs.study import AUGMENTED_FAULTS, StudyRun, run_study
 from models.visual.config import VisualConfig
 from texture_library.atomic_file import write_bytes
 
+#: recorded with every study: ridge leaves a texture's augmented copies out together when it chooses α
+AUGMENTATION_LOO = "by texture"
+
 
 def _finite(x: float) -> float | None:
     return None if math.isinf(x) else x
@@ -229,6 +232,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
         "spread": spread,
         "shift": shift,
         "augmentation": augmentation,
+        # how the texture-level models' α saw the augmented copies: a texture's copies left out together
+        "augmentation_loo": AUGMENTATION_LOO,
         "coverage": coverage,
         "recommended_intervals": recommended,
         "coverage_after_n_windows": by_windows,

@@ -140,3 +140,27 @@ def test_a_held_out_texture_can_be_shown_through_fewer_views(linear_world):
     assert not np.allclose(one.predictions, full.predictions)
     with pytest.raises(ValueError, match="must divide the 3 stored views"):
         loocv(linear_world, spec, backend="serial", progress=False, test_views=2)
+
+
+def test_ridge_leaves_a_textures_augmented_copies_out_together():
+    """Augmented copies of a texture share its name (tradeoffs' augmentation study): left out one by one beside their
+    near-twins, a weak α looked best (the grid's smallest, 0.0018); left out by texture, α is the plain data's
+    scaled by the copies (m copies weigh the data m times), within a grid step."""
+    from models.offline.evaluation.data import TextureData
+    from models.offline.evaluation.estimators import RidgeEstimator
+
+    from .conftest import make_linear_world
+
+    world, m = make_linear_world(n_textures=30, noise=30.0, seed=3), 4
+    rng = np.random.default_rng(0)
+    copies = TextureData(
+        [t for t in world.textures for _ in range(m)],
+        [g for g in world.groups for _ in range(m)],
+        [x for x in world.tactile for _ in range(m)],
+        np.repeat(world.visual, m, axis=0) + 0.05 * rng.normal(size=(len(world) * m, *world.visual.shape[1:])),
+        np.repeat(world.targets, m, axis=0),
+        dict(world.meta),
+    )
+    plain = RidgeEstimator("visual").fit(world, 0).alpha
+    together = RidgeEstimator("visual").fit(copies, 0).alpha
+    assert m * plain / 2 <= together <= m * plain * 2, (plain, together)

@@ -214,6 +214,10 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     page = build_tradeoffs_report(tmp_path).read_text()
     for heading in ("## 1. The frontier", "## 2. Stability", "## 3. Intervals", "## 4. Adaptive serving", "*Pending*"):
         assert heading in page
+    assert s["augmentation"] and "older than the fix" not in page
+    write_json(tmp_path / "robustness.json", {k: v for k, v in s.items() if k != "augmentation_loo"})
+    assert "older than the fix" in build_tradeoffs_report(tmp_path).read_text()  # a run from before it says so
+    write_json(tmp_path / "robustness.json", s)
     for png in (
         "frontier-ridge-both.png",
         "robustness-touch.png",
