@@ -128,7 +128,10 @@ class SessionEndingServer(uvicorn.Server):
 def serve(app: Any, settings: Settings, **overrides: Any) -> None:
     """Run `app` with server_options(settings, **overrides) until SIGINT/SIGTERM (uvicorn.run's way, sessions
     ended first)."""
-    SessionEndingServer(uvicorn.Config(app, **server_options(settings, **overrides))).run()
+    try:
+        SessionEndingServer(uvicorn.Config(app, **server_options(settings, **overrides))).run()
+    except KeyboardInterrupt:  # uvicorn re-raises the SIGINT it handled; uvicorn.run exits 0 on it, and so do we
+        pass
 
 
 def _peer(client: tuple[str, int] | None) -> str:
