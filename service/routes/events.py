@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from typing import Literal
 
 from fastapi import APIRouter, Query, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -15,12 +14,14 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from drivers.protocol import SESSION_LOST, Close
 from drivers.render_feed import RenderView
 from service.auth import OPERATOR_ONLY
-from service.deps import Refused, socket_session
+from service.deps import Refused, client_of, refuse, socket_session
 from service.errors import ServiceError
 from service.events import encode, status_event
 from service.state import ServiceState
 
 router = APIRouter()
+#: the feeds an operator may ask for (?view=)
+VIEWS = ("full", "render")
 
 
 @router.websocket("/sessions/{session_id}/events")
@@ -28,9 +29,17 @@ async def events_socket(
     websocket: WebSocket,
     session_id: str,
     token: str | None = Query(None),
-    view: Literal["full", "render"] = Query("full"),
+    view: str = Query("full"),
 ) -> None:
     state: ServiceState = websocket.app.state.service
+    if view not in VIEWS:  # checked here, not by FastAPI: its refusal is a bare 403 that says nothing
+        state.refusal_log.warning(
+            ("socket", False, 422), "events socket from %s refused: 422 unknown view", client_of(websocket)
+        )
+        await refuse(
+            websocket, ServiceError(422, f"view must be one of {', '.join(VIEWS)}, got {view[:40]!r}"), robot=False
+        )
+        return
     try:
         await socket_session(websocket, session_id, token, OPERATOR_ONLY)
     except Refused:

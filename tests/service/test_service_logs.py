@@ -57,16 +57,21 @@ def _refused(url: str) -> int | None:
 def test_client_mistakes_write_no_error_and_one_warning_per_kind(kit, server, client, captured):
     session = kit.create_session(client)
     sid = session["session_id"]
+    operator_events = f"{server.ws_url}/sessions/{sid}/events?token={session['operator_token']}"
     cases = {
         "unknown session, ingest": (f"{server.ws_url}/sessions/test-a.nobody/ingest?token=x", 404),
         "unknown session, events": (f"{server.ws_url}/sessions/test-a.nobody/events?token=x", 404),
         "wrong token, events": (f"{server.ws_url}/sessions/{sid}/events?token=wrong", 401),
         "wrong token, ingest": (f"{server.ws_url}/sessions/{sid}/ingest?token=wrong", 1008),
         "robot token, events": (f"{server.ws_url}/sessions/{sid}/events?token={session['robot_token']}", 403),
+        "unknown view, events": (f"{operator_events}&view=x", 422),
     }
     for name, (url, expected) in cases.items():
         for _ in range(REPEATS):
             assert _refused(url) == expected, name
+    with pytest.raises(InvalidStatus) as unknown_view:  # the refusal says why
+        connect(cases["unknown view, events"][0])
+    assert b"view must be one of full, render" in unknown_view.value.response.body
     for _ in range(REPEATS):  # a text frame that is not UTF-8: the socket closes 1007
         with connect(kit.socket_url(server, session, "ingest")) as ws:
             with ws.send_context():
@@ -96,6 +101,6 @@ def test_client_mistakes_write_no_error_and_one_warning_per_kind(kit, server, cl
     assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
     assert [r.getMessage() for r in mine if r.exc_info] == []
     warnings = Counter(r.getMessage() for r in mine if r.levelno == logging.WARNING)
-    # at most one line per kind of mistake (8 kinds), not one per request (50)
+    # at most one line per kind of mistake (9 kinds), not one per request (55)
     assert all(n == 1 for n in warnings.values()) and sum(warnings.values()) <= len(cases) + 3, warnings
     assert any("closed its connection before its request body was read" in w for w in warnings), warnings
