@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import UNIT_SCALE, check_channel, check_rate
+from texture_library.channels import UNIT_SCALE, check_channel, check_magnitude, check_rate
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
@@ -169,13 +169,15 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
     arr = arr.astype(np.float32, copy=False)
     if not np.isfinite(arr).all():
         raise ValueError(f"taps: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
+    check_magnitude("accel", arr, units, "taps")
     rate = float(rate_hz)
     return v, ChannelBlock(arr, rate, units)
 
 
 def _json_numbers(data: list, message: str) -> np.ndarray:
     """A JSON list of samples as float64; ValueError(message) for a ragged list, strings ("1.5" too: numpy would
-    parse them) or booleans — what numpy infers without being told a dtype says which it is."""
+    parse them) or booleans alone — what numpy infers without being told a dtype says which it is. (Booleans among
+    numbers numpy reads as numbers: the service refuses a block's bytes that hold any, service.intake.)"""
     try:
         arr = np.array(data)
     except (TypeError, ValueError):  # ragged

@@ -83,6 +83,10 @@ def decode_block(payload: bytes, binary: bool) -> Block:
                 f"a JSON block holds at most {MAX_JSON_BLOCK_BYTES} bytes, got {len(payload)}: send larger blocks in "
                 f"the binary format ({BINARY_CONTENT_TYPE}), or smaller ones",
             )
+        # No field of a block is a boolean; among numbers numpy would read true as 1. On the bytes: a scan in C,
+        # where checking every parsed sample would be a Python loop per sample.
+        if b"true" in payload or b"false" in payload:
+            raise ServiceError(422, "a block holds no booleans (true/false): samples, rates and times are numbers")
         try:
             obj = json.loads(payload, parse_int=_json_int)
         except (ValueError, RecursionError) as exc:

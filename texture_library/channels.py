@@ -96,12 +96,19 @@ def check_channel(
     arr = arr.astype(dtype, copy=copy)
     if not np.isfinite(arr).all():
         raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
-    if arr.size:
-        peak = float(np.max(np.abs(arr))) * UNIT_SCALE[kind][units]
-        if peak > MAX_ABS[kind]:
-            unit = CANONICAL_UNITS[kind]
-            raise ValueError(
-                f"{kind}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
-                f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
-            )
+    check_magnitude(kind, arr, units)
     return arr, rate, str(units)
+
+
+def check_magnitude(kind: str, samples: np.ndarray, units: str | None = None, name: str | None = None) -> None:
+    """ValueError (naming `name`, default the kind) when a finite sample of `kind`, in `units` (default canonical),
+    lies beyond MAX_ABS[kind] once in canonical units: a sensor fault or a wrong unit, never computed on."""
+    if not samples.size:
+        return
+    unit = CANONICAL_UNITS[kind]
+    peak = float(np.max(np.abs(samples))) * UNIT_SCALE[kind][units or unit]
+    if peak > MAX_ABS[kind]:
+        raise ValueError(
+            f"{name or kind}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
+            f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
+        )

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from texture_library.channels import check_magnitude
+
 #: sample rate of every TapSet's accel (HaTT's taps and the synthetic world's), Hz
 TAP_RATE_HZ = 1000.0
 
@@ -26,3 +28,4 @@ class TapSet:
             )
         if not (np.all(np.isfinite(speeds)) and np.all(np.isfinite(accel))):
             raise ValueError("taps: contain NaN or Inf")
+        check_magnitude("accel", accel, name="taps")

@@ -82,7 +82,7 @@ def _bad_requests(block: SampleBlock) -> list[tuple[str, bytes, str, int, str]]:
             _mutated(block, _set(["channels", "speed", "data"], [True] * len(block.channels["speed"].data))),
             "application/json",
             422,
-            "list of numbers",
+            "holds no booleans",
         ),
         (
             "JSON block too large to parse",
@@ -90,6 +90,15 @@ def _bad_requests(block: SampleBlock) -> list[tuple[str, bytes, str, int, str]]:
             "application/json",
             413,
             "send larger blocks in the binary format",
+        ),
+        (
+            "booleans among numbers",
+            _mutated(
+                block, _set(["channels", "speed", "data"], [1.0, True] * (len(block.channels["speed"].data) // 2))
+            ),
+            "application/json",
+            422,
+            "holds no booleans",
         ),
         ("beyond any sensor", _binary_with(block, accel=huge_accel), BINARY_CONTENT_TYPE, 422, "beyond any accel"),
         (

@@ -192,6 +192,8 @@ def _tap_doc(**taps) -> dict:
         (_tap_doc(speeds=[20.0, -1.0]), "finite and ≥ 0"),
         (_tap_doc(data=[[0.0] * 50] * 33, speeds=[1.0] * 33), "1 to 32 taps"),
         (_tap_doc(data=[[0.0] * 501] * 2), "each tap holds 16 to 500 samples"),
+        (_tap_doc(data=[[0.0] * 49 + [1e30], [0.0] * 50]), "taps: a sample of magnitude 1e+30 m/s^2 is beyond"),
+        (_tap_doc(data=[[0.0] * 49 + [2e4], [0.0] * 50], units="g"), "taps: a sample of magnitude 1.96e+05"),
         ({"seq": 0, "t0": 0.0, "kind": "taps", "channels": {}}, 'a taps block carries "taps"'),
         ({"seq": 0, "t0": 0.0, "kind": "tap"}, "kind must be one of"),
     ],

@@ -61,3 +61,12 @@ def test_a_sample_beyond_any_sensors_range_is_refused_in_canonical_units():
         check_channel("accel", in_g, 1000.0, "g")
     with pytest.raises(ValueError, match=r"force: a sample of magnitude 1e\+19 N"):
         check_channel("force", np.array([1.0, 1e19]), 1000.0)
+
+
+def test_taps_are_bounded_as_accel_is():
+    from texture_library.taps import TapSet
+
+    accel = np.zeros((2, 50))
+    accel[1, 7] = 3e5
+    with pytest.raises(ValueError, match=r"taps: a sample of magnitude 3e\+05 m/s\^2 is beyond any accel sensor"):
+        TapSet(np.array([20.0, 40.0]), accel)
