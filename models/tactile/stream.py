@@ -11,9 +11,11 @@ preprocessor will make of it:
   once position feeds speed, a speed channel is refused; once speed does, position is ignored);
 - no stream may run more than `max_lag_s` seconds of input ahead of another (a channel that is
   never sent would otherwise buffer without bound);
-- a block whose t0 is more than `gap_tolerance_s` off the expected continuation (where the previous
-  block's fastest channel ended) starts a new *segment* (the robot lost data or restarted its clock):
-  windows never straddle the gap;
+- a block whose t0 is more than `gap_tolerance_s` off the expected continuation starts a new
+  *segment* (the robot lost data or restarted its clock): windows never straddle the gap. The
+  expectation is per channel: where that channel's samples of the segment end (a 10 Hz channel in
+  20 ms blocks, or each channel in its own block, is no gap); a channel the segment has not had yet
+  may start anywhere within the segment's time so far;
 - a block as it arrives (`admit`) spans at most `max_block_s` of stream time and completes at most
   `max_block_windows` windows (the cost of one block is bounded before it is accepted);
 - the windows a segment has completed are counted exactly as `TactilePreprocessor` emits them
@@ -79,7 +81,8 @@ class StreamCursor:
     channel feeding it; samples: input samples per channel in the current segment (the mappings are
     never changed once a cursor holds them: a new cursor gets new ones); segment: index
     of the current segment (−1 before the first block); origin_t0: sender time (s) of the
-    segment's first sample; next_t0: where the next block is expected to start (s).
+    segment's first sample; next_t0: where the last block's fastest channel ended (s), a block of every
+    channel continues there; ends: per input channel, where its samples of the segment end (s).
     """
 
     rates: Mapping[str, float] = field(default_factory=dict)
@@ -89,11 +92,12 @@ class StreamCursor:
     segment: int = -1
     origin_t0: float = 0.0
     next_t0: float | None = None
+    ends: Mapping[str, float] = field(default_factory=dict)
     windows: int = 0  # complete windows of the current segment (set by the contract)
 
     def restarted(self) -> StreamCursor:
         """The same stream with its segment broken: the next block starts a new one (after a failure)."""
-        return replace(self, samples={}, next_t0=math.nan, windows=0)
+        return replace(self, samples={}, next_t0=math.nan, ends={}, windows=0)
 
 
 @dataclass(frozen=True)
@@ -212,23 +216,23 @@ class StreamContract:
             step = max(step, (rate, shape[0] / rate))
         if bounded and self.max_block_s is not None and span > self.max_block_s + 1e-9:
             raise ValueError(f"a block spans at most {self.max_block_s:g} s of stream time, got {span:g} s")
-        new_segment = t0 is not None and (
-            cursor.next_t0 is None or not abs(t0 - cursor.next_t0) <= self.gap_tolerance_s
-        )
+        new_segment = t0 is not None and not self._continues(cursor, counts, t0)
         before = 0 if new_segment else cursor.windows
         samples = {} if new_segment else dict(cursor.samples)
         for kind, n in counts:
             samples[kind] = samples.get(kind, 0) + n
-        # The next block continues where the block's fastest channel ends: its sample count says the block's length
-        # finely, while a slow channel's (one 10 Hz sample in a 20 ms block "spans" 0.1 s) would open a segment at
-        # every block.
+        # A block of every channel continues where its fastest channel ends: that sample count says the block's length
+        # finely, while a slow channel's (one 10 Hz sample in a 20 ms block "spans" 0.1 s) would not.
+        ends = {} if new_segment else dict(cursor.ends)
         if t0 is None:
             segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, cursor.next_t0
-        elif new_segment:
-            segment, origin_t0, next_t0 = cursor.segment + 1, t0, t0 + step[1]
         else:
-            segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, t0 + step[1]
-        after = StreamCursor(rates, columns, sources, samples, segment, origin_t0, next_t0)
+            ends.update({kind: t0 + n / rates[kind] for kind, n in counts if n})
+            if new_segment:
+                segment, origin_t0, next_t0 = cursor.segment + 1, t0, t0 + step[1]
+            else:
+                segment, origin_t0, next_t0 = cursor.segment, cursor.origin_t0, t0 + step[1]
+        after = StreamCursor(rates, columns, sources, samples, segment, origin_t0, next_t0, ends)
         self._check_lag(after)
         windows = self.windows_in(self.covered(after))
         object.__setattr__(after, "windows", windows)  # frozen: set once, here
@@ -238,6 +242,23 @@ class StreamContract:
                 f"{self.max_block_windows} (send every channel in every block, in shorter blocks)"
             )
         return Advance(after, used, new_segment, before, windows, span)
+
+    def _continues(self, cursor: StreamCursor, counts: list[tuple[str, int]], t0: float) -> bool:
+        """Whether a block at t0 carrying `counts` (channel, samples) continues the cursor's segment: each channel
+        the segment has had within gap_tolerance_s of where its samples end, a channel it has not had within the
+        segment's time so far."""
+        if cursor.next_t0 is None or math.isnan(cursor.next_t0):  # the first block, or a broken segment
+            return False
+        tol = self.gap_tolerance_s
+        latest = max(cursor.ends.values(), default=cursor.next_t0)
+        for kind, n in counts:
+            end = cursor.ends.get(kind)
+            if end is None:
+                if not cursor.origin_t0 - tol <= t0 <= latest + tol:
+                    return False
+            elif n and not abs(t0 - end) <= tol:
+                return False
+        return True
 
     def admit(self, cursor: StreamCursor, channels: Mapping[str, Channel], t0: float) -> Advance:
         """`advance` for one block as it arrives, with its cost bounded before it is accepted: at most

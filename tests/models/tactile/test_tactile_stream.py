@@ -67,6 +67,25 @@ def test_a_slow_channel_in_short_blocks_keeps_one_segment():
     assert windows[20] == windows[100] > 0
 
 
+def test_each_channel_in_its_own_block_keeps_one_segment_and_a_real_gap_still_opens_one():
+    """accel, force and speed each in its own 100 ms block, all three stamped with the same t0: every block continues
+    its own channel (the old rule saw each as 100 ms off and opened 81 segments, 0 windows); then a 200 ms gap in
+    all three opens exactly one segment."""
+    contract = StreamContract(TactileConfig(), max_lag_s=5)
+    rng = np.random.default_rng(3)
+    kinds = {"accel": (100, 1000.0, 3), "force": (100, 1000.0, 1), "speed": (100, 1000.0, 1)}
+    cursor, segments = contract.start(), []
+    for k in range(40):
+        t0 = k * 0.1 + (0.2 if k >= 20 else 0.0)  # a 200 ms gap before block 20
+        for kind, spec in kinds.items():
+            cursor = contract.advance(cursor, _channels({kind: spec}, rng), t0=t0).cursor
+            segments.append(cursor.segment)
+        if k == 19:
+            windows_before_gap = cursor.windows
+    assert set(segments[:60]) == {0} and set(segments[60:]) == {1}
+    assert windows_before_gap == cursor.windows == 4  # 2 s of every channel: four 0.5 s windows, hop 0.5 s
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
