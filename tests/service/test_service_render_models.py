@@ -137,4 +137,5 @@ def test_an_unknown_view_is_refused_at_the_handshake(kit, server, client):
     session = kit.create_session(client)
     with pytest.raises(InvalidStatus) as refused:
         connect(kit.socket_url(server, session, "events") + "&view=bogus")
-    assert refused.value.response.status_code == 403
+    assert refused.value.response.status_code == 422
+    assert b"view must be one of full, render, got 'bogus'" in refused.value.response.body
