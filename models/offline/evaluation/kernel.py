@@ -304,13 +304,14 @@ class AdditiveKernelModel(Estimator):
         return export_graph(self, path, metadata)
 
 
-def centred_loo_residuals(lam: np.ndarray, q: np.ndarray, y: np.ndarray, alpha: float) -> np.ndarray:
+def centred_loo_residuals(lam: np.ndarray, q: np.ndarray, y: np.ndarray, alphas: np.ndarray) -> np.ndarray:
     """The selection rule's leave-one-out residuals of kernel ridge with the mean rating as intercept,
     f = ȳ + k·(K + αI)⁻¹(y − ȳ): (y − Hy)_i / (1 − H_ii − 1/n) with H = K(K + αI)⁻¹, the 1/n for the intercept.
 
     lam, q   eigenvalues (n,) ≥ 0 and eigenvectors (n, n) of the kernel K over the n training textures
     y        (n, k) targets
-    returns  (n, k) residuals
+    alphas   (a,) ridge strengths > 0
+    returns  (a, n, k) residuals, one (n, k) per α (what α does not change is computed once)
 
     On centred columns (a linear kernel, K1 = 0) it is exact for ridge with a free intercept, the columns re-centred
     without texture i. An RBF kernel (or an uncentred touch block) is not centred, and there the leverage
@@ -318,35 +319,42 @@ def centred_loo_residuals(lam: np.ndarray, q: np.ndarray, y: np.ndarray, alpha: 
     1 — so the criterion leans to stronger regularisation than `exact_loo_residuals`. It is the criterion the
     rule was fixed with (docs/models.md) and stays so; the exact one is the `selected-exact-loo` variant.
     """
-    n = _loo_size(y, alpha)
+    n = _loo_size(y, alphas)
     yc = y - y.mean(axis=0)
-    d = lam / (lam + alpha)
-    hat = (q**2) @ d + 1.0 / n
-    return (yc - q @ (d[:, None] * (q.T @ yc))) / np.maximum(1.0 - hat, 1e-9)[:, None]
+    qty, q2 = q.T @ yc, q**2
+    out = np.empty((len(alphas), *y.shape))
+    for i, alpha in enumerate(alphas):
+        d = lam / (lam + alpha)
+        hat = q2 @ d + 1.0 / n
+        out[i] = (yc - q @ (d[:, None] * qty)) / np.maximum(1.0 - hat, 1e-9)[:, None]
+    return out
 
 
-def exact_loo_residuals(lam: np.ndarray, q: np.ndarray, y: np.ndarray, alpha: float) -> np.ndarray:
+def exact_loo_residuals(lam: np.ndarray, q: np.ndarray, y: np.ndarray, alphas: np.ndarray) -> np.ndarray:
     """Exact leave-one-out residuals of the same model, each texture's fit redone without it (mean and all), in
     closed form, for any kernel. Arguments and return as `centred_loo_residuals`.
 
     With G = (K + αI)⁻¹, kernel ridge without intercept leaves i out with residual (Gv)_i / G_ii for targets v;
     the intercept re-estimated without i, ȳ₋ᵢ, shifts the targets by a constant: (G(y − ȳ₋ᵢ))_i / G_ii.
     """
-    n = _loo_size(y, alpha)
-    inv = 1.0 / (lam + alpha)
+    n = _loo_size(y, alphas)
     yc = y - y.mean(axis=0)
-    g_y = q @ (inv[:, None] * (q.T @ yc))  # G(y − ȳ)
-    g_1 = q @ (inv * q.sum(axis=0))  # G1
-    g_ii = (q**2) @ inv
-    # ȳ − ȳ₋ᵢ = (y_i − ȳ) / (n − 1)
-    return (g_y + g_1[:, None] * (yc / (n - 1))) / g_ii[:, None]
+    qty, q1, q2 = q.T @ yc, q.sum(axis=0), q**2
+    shift = yc / (n - 1)  # ȳ − ȳ₋ᵢ = (y_i − ȳ) / (n − 1)
+    out = np.empty((len(alphas), *y.shape))
+    for i, alpha in enumerate(alphas):
+        inv = 1.0 / (lam + alpha)
+        g_y = q @ (inv[:, None] * qty)  # G(y − ȳ)
+        g_1 = q @ (inv * q1)  # G1
+        out[i] = (g_y + g_1[:, None] * shift) / (q2 @ inv)[:, None]
+    return out
 
 
-def _loo_size(y: np.ndarray, alpha: float) -> int:
+def _loo_size(y: np.ndarray, alphas: np.ndarray) -> int:
     if len(y) < 2:
         raise ValueError(f"leave-one-out needs at least 2 textures, got {len(y)}")
-    if not alpha > 0:
-        raise ValueError(f"alpha must be > 0, got {alpha}")
+    if not np.all(np.asarray(alphas) > 0):
+        raise ValueError(f"every alpha must be > 0, got {alphas}")
     return len(y)
 
 
@@ -388,8 +396,8 @@ class KernelRidgeEstimator(AdditiveKernelModel):
                 lam, q = np.linalg.eigh(kvm + (w**2 * kt if kt is not None else 0.0))
                 lam = np.maximum(lam, 0.0)
                 qty = q.T @ yc  # (n, 4)
-                for a in self.alphas:
-                    loss = np.mean(np.abs(LOO_RESIDUALS[self.loo](lam, q, y, float(a))), axis=0)
+                losses = np.mean(np.abs(LOO_RESIDUALS[self.loo](lam, q, y, self.alphas)), axis=1)  # (alphas, 4)
+                for a, loss in zip(self.alphas, losses):
                     for j in range(n_out):
                         if loss[j] < best[j][0]:
                             best[j] = (float(loss[j]), gamma, w, float(a), lam, q, qty[:, j])
