@@ -174,7 +174,7 @@ class WindowBatcher:
             try:
                 loop = asyncio.get_running_loop()
                 results = await loop.run_in_executor(self.pool, estimate_batch, runtime, [j for _, j in batch])
-            except Exception as exc:  # noqa: BLE001 - features or the model failed for the whole batch
+            except Exception as exc:  # noqa: BLE001 - a failure outside any one session's steps (each is isolated)
                 log.exception("estimating a batch of %d session(s) failed", len(sessions))
                 for s in sessions:
                     s.estimator.restart()

@@ -446,7 +446,9 @@ def lookup(
 
 
 def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[SessionResult]:
-    """window batch → features → model → lookup for every job; one result per job, in order."""
+    """window batch → features → model → lookup for every job; one result per job, in order. A failure is the
+    failing session's alone: its windows are dropped with the error and its stream restarts; the others' windows
+    are estimated (if features or the model fail for the batch, each session is estimated on its own)."""
     started = time.perf_counter_ns()
     prepared: list[list[PreparedWindows]] = []
     errors: list[Exception | None] = []
@@ -455,26 +457,53 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
             prepared.append(prepare_windows(job))
             errors.append(None)
         except Exception as exc:  # noqa: BLE001 - one session's failure must not cost the others their windows
-            job.estimator.restart()
             prepared.append([])
             errors.append(exc)
-    flat = [p for per_session in prepared for p in per_session]
-    parts: list[tuple[np.ndarray, list[ServedModel], list[WindowCheck | None]]] = []
-    features_ms = model_ms = 0.0
-    if flat:
-        features = featurize(runtime, flat)
-        raw = predict(runtime, features, flat)
-        features_ms, model_ms = features.ms, raw.ms
-        bounds = np.cumsum([0] + [len(p.batch) for p in flat])
-        parts = [(raw.ratings[a:b], raw.models[a:b], raw.checks[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
-    results, row = [], 0
-    for job, per_session, error in zip(jobs, prepared, errors, strict=True):
+    rated: list[list[Rated]] = [[] for _ in jobs]
+    try:
+        for i, per_item in zip(_owners(prepared), _rate(runtime, [p for per in prepared for p in per]), strict=True):
+            rated[i].append(per_item)
+    except Exception:  # noqa: BLE001 - find whose windows fail: each session alone
+        for i, per_session in enumerate(prepared):
+            try:
+                rated[i] = _rate(runtime, per_session)
+            except Exception as exc:  # noqa: BLE001
+                errors[i] = exc
+    results = []
+    for job, per_session, per_rated, error in zip(jobs, prepared, rated, errors, strict=True):
         estimates: list[WindowEstimate] = []
-        for p in per_session:
-            estimates += lookup(p, *parts[row], started, features_ms, model_ms)
-            row += 1
+        if error is None:
+            try:
+                for p, (raw, models, checks, features_ms, model_ms) in zip(per_session, per_rated, strict=True):
+                    estimates += lookup(p, raw, models, checks, started, features_ms, model_ms)
+            except Exception as exc:  # noqa: BLE001
+                error, estimates = exc, []
+        if error is not None:
+            job.estimator.restart()
         results.append(SessionResult(estimates, job.windows, error))
     return results
+
+
+#: one prepared item's share of the model step: raw (m, 4), models, checks, then features_ms and model_ms of its call
+Rated = tuple[np.ndarray, list[ServedModel], list[WindowCheck | None], float, float]
+
+
+def _rate(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> list[Rated]:
+    """Features and model steps for `prepared` in one call each; per item its rows (no session state changes)."""
+    if not prepared:
+        return []
+    features = featurize(runtime, prepared)
+    raw = predict(runtime, features, prepared)
+    bounds = np.cumsum([0] + [len(p.batch) for p in prepared])
+    return [
+        (raw.ratings[a:b], raw.models[a:b], raw.checks[a:b], features.ms, raw.ms)
+        for a, b in zip(bounds[:-1], bounds[1:])
+    ]
+
+
+def _owners(prepared: Sequence[Sequence[PreparedWindows]]) -> list[int]:
+    """The job index of each prepared item, flattened in order."""
+    return [i for i, per in enumerate(prepared) for _ in per]
 
 
 def _completing(group: Sequence[AdmittedBlock], window: int) -> AdmittedBlock:

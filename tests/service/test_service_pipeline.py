@@ -210,3 +210,45 @@ def test_a_backlog_taken_in_capped_jobs_gives_the_windows_of_one_job(kit, base_s
     assert [e.index for e in split] == [e.index for e in one] == list(range(6))
     assert [e.completed_by for e in split] == [e.completed_by for e in one]
     np.testing.assert_allclose([e.raw for e in split], [e.raw for e in one], atol=1e-9)
+
+
+@pytest.mark.parametrize("step", ["featurize", "lookup"])
+def test_a_failure_in_one_session_costs_the_other_sessions_of_its_batch_nothing(
+    kit, base_settings, library_dir, monkeypatch, step
+):
+    """Features, the model or the lookup failing on one session's windows: that session alone gets the error (and
+    restarts its stream); the other sessions of the batch get the windows they get without it."""
+    import time
+
+    from service import pipeline
+    from service.live_session import Session
+    from service.metrics import ServiceMetrics
+    from service.runtime import load_runtime
+
+    runtime = load_runtime(base_settings)
+
+    def job(name: str, texture: str):
+        s = Session(name, name, None, runtime, base_settings, None, None, ServiceMetrics(), lambda s: None)  # type: ignore[arg-type]
+        for b in kit.recording_blocks(kit.stroke_recording(library_dir, texture, 2.2), block_s=0.05):
+            s.ingest(b, time.perf_counter_ns())
+        return s.take_job()
+
+    alone = pipeline.estimate_batch(runtime, [job("good", "synth_001")])[0]
+    good, bad, other = job("good", "synth_001"), job("bad", "synth_002"), job("other", "synth_003")
+    real = getattr(pipeline, step)
+
+    def glitch(*args, **kwargs):
+        items = args[1] if step == "featurize" else [args[0]]
+        if any(p.estimator is bad.estimator for p in items):
+            raise FloatingPointError("a glitch in this session's windows")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, step, glitch)
+    results = pipeline.estimate_batch(runtime, [good, bad, other])
+
+    assert isinstance(results[1].error, FloatingPointError) and results[1].estimates == []
+    assert results[1].windows == bad.windows and bad.estimator.segment == -1  # restarts at the next block
+    assert [r.error for r in (results[0], results[2])] == [None, None]
+    assert len(results[0].estimates) == len(alone.estimates) == good.windows > 0
+    assert len(results[2].estimates) == other.windows > 0
+    np.testing.assert_allclose([e.raw for e in results[0].estimates], [e.raw for e in alone.estimates], atol=1e-9)
