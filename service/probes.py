@@ -64,8 +64,9 @@ def answer(path: str, live: Live, ready: Ready) -> tuple[bytes, int]:
 
 
 class ProbeAnswers:
-    """ASGI middleware: GET /health and GET /ready answered from `live()` / `ready()` without entering the app;
-    every other request (and every other method on those paths) goes on to `app` unchanged."""
+    """ASGI middleware: GET (and HEAD: the same status and headers, no body; `curl -I`, some load balancers) /health
+    and /ready answered from `live()` / `ready()` without entering the app; every other request (and every other
+    method on those paths) goes on to `app` unchanged."""
 
     def __init__(self, app: ASGIApp, live: Live, ready: Ready) -> None:
         self.app = app
@@ -73,17 +74,17 @@ class ProbeAnswers:
         self.ready = ready
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] != "GET" or scope["path"] not in PATHS:
+        if scope["type"] != "http" or scope["method"] not in ("GET", "HEAD") or scope["path"] not in PATHS:
             await self.app(scope, receive, send)
             return
         data, status = answer(scope["path"], self.live, self.ready)
         headers = [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode())]
         await send({"type": "http.response.start", "status": status, "headers": headers})
-        await send({"type": "http.response.body", "body": data})
+        await send({"type": "http.response.body", "body": b"" if scope["method"] == "HEAD" else data})
 
 
 class ProbeServer:
-    """GET /health and GET /ready on (host, port) from daemon threads; `port` 0 picks a free one (see `.port`).
+    """GET (and HEAD) /health and /ready on (host, port) from daemon threads; `port` 0 picks a free one (see `.port`).
     live / ready: build the two answers (called on the probe threads: they must only read)."""
 
     def __init__(self, live: Live, ready: Ready, host: str, port: int) -> None:
@@ -94,6 +95,12 @@ class ProbeServer:
             disable_nagle_algorithm = True  # headers and body are two writes: no 40 ms delayed-ACK wait between them
 
             def do_GET(self) -> None:  # noqa: N802 - the standard library's name
+                self._answer(body=True)
+
+            def do_HEAD(self) -> None:  # noqa: N802 - the standard library's name
+                self._answer(body=False)
+
+            def _answer(self, body: bool) -> None:
                 path = self.path.split("?", 1)[0]
                 if path in PATHS:
                     data, status = answer(path, live, ready)
@@ -106,7 +113,8 @@ class ProbeServer:
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(data)))
                 self.end_headers()
-                self.wfile.write(data)
+                if body:
+                    self.wfile.write(data)
 
             def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the standard library's name
                 pass  # one line per probe would flood the log

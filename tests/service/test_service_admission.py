@@ -131,6 +131,10 @@ def test_probes_answer_on_their_own_port_as_on_the_service_port(kit, base_settin
             own, main = client.get(f"http://127.0.0.1:{port}{path}"), client.get(f"{srv.url}{path}")
             assert own.status_code == main.status_code == 200
             assert own.json() == main.json() and own.headers["content-type"] == "application/json"
+            for url in (f"http://127.0.0.1:{port}{path}", f"{srv.url}{path}"):  # HEAD: the same answer, no body
+                head = client.head(url)
+                assert head.status_code == 200 and head.content == b"", url
+                assert int(head.headers["content-length"]) == len(client.get(url).content), url
         assert json.loads(client.get(f"http://127.0.0.1:{port}/ready").text)["ready"] is True
         assert client.get(f"http://127.0.0.1:{port}/sessions").status_code == 404
 
