@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import UNIT_SCALE, check_channel, check_magnitude, check_rate
+from texture_library.channels import UNIT_SCALE, check_channel, check_rate, check_samples
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
@@ -163,15 +163,8 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
         raise ValueError(f"taps: {v.shape[0]} speed(s) for {k} tap(s); give one speed per tap")
     if units not in UNIT_SCALE["accel"]:
         raise ValueError(f"taps: units must be one of {list(UNIT_SCALE['accel'])}, got {units!r}")
-    rate_hz = check_rate(rate_hz, "taps")
-    if arr.dtype.kind not in "iuf":
-        raise ValueError(f"taps: samples must be numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float32, copy=False)
-    if not np.isfinite(arr).all():
-        raise ValueError(f"taps: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
-    check_magnitude("accel", arr, units, "taps")
-    rate = float(rate_hz)
-    return v, ChannelBlock(arr, rate, units)
+    rate = check_rate(rate_hz, "taps")
+    return v, ChannelBlock(check_samples("accel", arr, units, np.float32, copy=False, name="taps"), rate, units)
 
 
 def _json_numbers(data: list, message: str) -> np.ndarray:

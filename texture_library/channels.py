@@ -82,9 +82,7 @@ def check_channel(
     if units not in UNIT_SCALE[kind]:
         raise ValueError(f"{kind}: units must be one of {list(UNIT_SCALE[kind])}, got {units!r}")
     rate = check_rate(rate_hz, kind)
-    arr = np.asarray(data)
-    if arr.dtype.kind not in "iuf":
-        raise ValueError(f"{kind}: samples must be numbers, got dtype {arr.dtype}")
+    arr = _numbers(np.asarray(data), kind)  # before the shape: text or booleans are refused as such
     if arr.ndim == 2 and arr.shape[1] == 1:
         arr = arr[:, 0]
     cols = 1 if arr.ndim == 1 else (arr.shape[1] if arr.ndim == 2 else -1)
@@ -93,11 +91,31 @@ def check_channel(
         raise ValueError(f"{kind}: shape must be {allowed}, got {arr.shape}")
     if arr.shape[0] == 0 and not allow_empty:
         raise ValueError(f"{kind}: no samples")
-    arr = arr.astype(dtype, copy=copy)
+    return check_samples(kind, arr, units, dtype, copy), rate, str(units)
+
+
+def check_samples(
+    kind: str,
+    data: np.ndarray,
+    units: str | None = None,
+    dtype: type[np.floating] = np.float64,
+    copy: bool = True,
+    name: str | None = None,
+) -> np.ndarray:
+    """Samples of `kind` in `units` (any shape) as `dtype`: numbers, finite, and within MAX_ABS[kind]; ValueError
+    names `name` (default the kind) and the problem."""
+    name = name or kind
+    arr = _numbers(data, name).astype(dtype, copy=copy)
     if not np.isfinite(arr).all():
-        raise ValueError(f"{kind}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
-    check_magnitude(kind, arr, units)
-    return arr, rate, str(units)
+        raise ValueError(f"{name}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
+    check_magnitude(kind, arr, units, name)
+    return arr
+
+
+def _numbers(data: np.ndarray, name: str) -> np.ndarray:
+    if data.dtype.kind not in "iuf":
+        raise ValueError(f"{name}: samples must be numbers, got dtype {data.dtype}")
+    return data
 
 
 def check_magnitude(kind: str, samples: np.ndarray, units: str | None = None, name: str | None = None) -> None:

@@ -92,8 +92,12 @@ def test_taps_are_validated():
         TapSet(np.array([1.0, 2.0]), np.zeros((3, 100)))
     with pytest.raises(ValueError, match="k ≥ 1"):
         TapSet(np.zeros(0), np.zeros((0, 100)))
-    with pytest.raises(ValueError, match="taps: contain NaN or Inf"):
+    with pytest.raises(ValueError, match=r"taps: 100 sample\(s\) are NaN or Inf"):
         TapSet(np.array([1.0]), np.full((1, 100), np.nan))
+    with pytest.raises(ValueError, match="taps: speeds contain NaN or Inf"):
+        TapSet(np.array([np.inf]), np.zeros((1, 100)))
+    with pytest.raises(ValueError, match="taps: samples must be numbers"):
+        TapSet(np.array([1.0]), np.full((1, 100), "x"))
 
 
 def test_load_names_what_is_wrong_with_the_file(model, tmp_path):
