@@ -28,6 +28,12 @@ def bad_input(exc: ValueError) -> ServiceError:
     return ServiceError(422, str(exc))
 
 
+def not_json(reason: object) -> ServiceError:
+    """400: a body that is not JSON Python can read (its syntax, an integer of thousands of digits, bytes that are
+    not UTF-8), with the reason."""
+    return ServiceError(400, f"body is not valid JSON: {reason}")
+
+
 def session_not_found(session_id: str) -> ServiceError:
     return ServiceError(404, f"no session {session_id!r}")
 

@@ -22,7 +22,7 @@ from drivers.blocks import BINARY_CONTENT_TYPE, MAX_JSON_BLOCK_BYTES, Block, dec
 from drivers.scene_change import thumbnail, thumbnail_from_bytes
 from service.bus import EventBus
 from service.capacity import CapacityGuard
-from service.errors import ServiceError, saturated, session_not_found
+from service.errors import ServiceError, not_json, saturated, session_not_found
 from service.events import status_event
 from service.live_session import RETRY_AFTER_S, Session
 from service.metrics import ServiceMetrics
@@ -90,7 +90,7 @@ def decode_block(payload: bytes, binary: bool) -> Block:
         try:
             obj = json.loads(payload, parse_int=_json_int)
         except (ValueError, RecursionError) as exc:
-            raise ServiceError(400, f"body is not valid JSON: {exc}") from None
+            raise not_json(exc) from None
         return decode_json(obj)
     except DECODE_ERRORS as exc:
         if isinstance(exc, ValueError):

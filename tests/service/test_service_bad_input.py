@@ -411,3 +411,21 @@ def test_the_fuzzed_session_still_works(kit, server, client, fuzz_session, libra
         assert r.status_code == 202, r.text
     before = status["counters"]["windows"]
     kit.wait_for(lambda: kit.session_status(client, fuzz_session)["counters"]["windows"] >= before + 2)
+
+
+@pytest.mark.parametrize(
+    "body, words",
+    [
+        (b'{"name": "x"', ["Expecting", "(at 12)"]),
+        (b'{"name": "x", "fleet": ' + b"7" * 5000 + b"}", ["4300 digits"]),
+        (b'{"name": "\xff\xfe"}', ["utf-8"]),
+    ],
+    ids=["truncated", "5000-digit integer", "not UTF-8"],
+)
+def test_a_session_body_that_is_not_json_is_refused_as_a_block_would_be(kit, client, body, words):
+    """400 with the reason, in the words a block that is not JSON gets (FastAPI's own: 422 for a syntax error,
+    a bare "There was an error parsing the body" for the rest)."""
+    r = client.post("/sessions", content=body, headers={**kit.FLEET, "Content-Type": "application/json"})
+    assert r.status_code == 400, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("body is not valid JSON: ") and all(w in detail for w in words), detail
