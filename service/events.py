@@ -85,8 +85,9 @@ class MatchOut(BaseModel):
 
 class Latency(BaseModel):
     """Milliseconds from the arrival of the block that completed the window: queue (until its batch job
-    started), features (this session's preprocessing + window_features of the whole batch), model (the
-    batch's inference), lookup (smoothing + nearest + hysteresis of this window), total (until publish)."""
+    started), features (this session's preprocessing + window_features of the whole batch, or of this session
+    alone when the batch's call failed), model (the batch's inference), lookup (smoothing + nearest + hysteresis
+    of this window), total (until publish)."""
 
     model_config = ConfigDict(extra="forbid")
     queue: float

@@ -317,7 +317,7 @@ class Session:
         if self.closed:
             return
         if result.error is not None:
-            log.error("session %s: estimation failed: %r", self.id, result.error)
+            log.error("session %s: estimation failed: %r", self.id, result.error, exc_info=result.error)
             self.counters.pipeline_errors += 1
             self.cursor = self.cursor.restarted()
             await self._status(

@@ -25,6 +25,7 @@ ingest stamps blocks with.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,12 +37,16 @@ from models.inference.ood import FrameCheck
 from models.tactile.features import window_features
 from models.tactile.preprocess import TactilePreprocessor, WindowBatch
 from models.tactile.stream import StreamContract
+from service.log_throttle import LogThrottle
 from service.runtime import Runtime
 from service.smoothing import ExponentialSmoother, Steadiness
 from service.uncertainty import Assessment, ServedModel, SessionUncertainty
 from texture_library.nearest import Match, decision_margin
 from texture_library.recording import Channel
 from texture_library.selection import Choice, HysteresisChooser
+
+log = logging.getLogger(__name__)
+_batch_failures = LogThrottle(log)
 
 #: what a window's estimate was computed from (the window event's "inputs")
 Inputs = Literal["tactile", "tactile+visual"]
@@ -182,6 +187,8 @@ class SessionResult:
 class SessionEstimator:
     """Per-session compute state: preprocessor (per stream segment), smoother, steadiness, uncertainty, selector."""
 
+    mismatch: np.ndarray | None  # EMA of the windows' vibration mismatch per entry, dB
+
     def __init__(
         self,
         runtime: Runtime,
@@ -199,14 +206,10 @@ class SessionEstimator:
         self.contract = contract
         self.config = contract.config
         self.top_k = top_k
-        self.smoother = ExponentialSmoother(alpha)
-        self.steadiness = Steadiness(steadiness_windows)
-        self.uncertainty = SessionUncertainty(alpha, runtime.interval_level)
-        self.selector = HysteresisChooser(
-            runtime.selection, hysteresis_margin, hysteresis_hold, hysteresis_settle, hysteresis_release_lead
-        )
         self.alpha = alpha
-        self.mismatch: np.ndarray | None = None  # EMA of the windows' vibration mismatch per entry, dB
+        self._steadiness_windows = steadiness_windows
+        self._hysteresis = (hysteresis_margin, hysteresis_hold, hysteresis_settle, hysteresis_release_lead)
+        self._start_tracking()
         self.segment = -1
         self.taken = 0  # windows taken from the current segment
         self.next_index = 0  # session-wide window counter
@@ -235,9 +238,20 @@ class SessionEstimator:
             self.mismatch = self.alpha * mismatch + (1.0 - self.alpha) * self.mismatch
         return self.mismatch
 
-    def restart(self) -> None:
-        """Forget the current segment (after a failure left the preprocessor's state unknown)."""
+    def _start_tracking(self) -> None:
+        """What the lookup carries from window to window: smoother, steadiness, uncertainty, selector, mismatch."""
+        self.smoother = ExponentialSmoother(self.alpha)
+        self.steadiness = Steadiness(self._steadiness_windows)
+        self.uncertainty = SessionUncertainty(self.alpha, self.runtime.interval_level)
+        self.selector = HysteresisChooser(self.runtime.selection, *self._hysteresis)
+        self.mismatch = None
+
+    def restart(self, *, tracking: bool = False) -> None:
+        """Forget the current segment (after a failure left the preprocessor's state unknown); tracking: also what
+        the lookup carries from window to window (after a lookup failed partway: it holds windows never published)."""
         self.segment, self._pre = -1, None
+        if tracking:
+            self._start_tracking()
 
 
 def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
@@ -463,23 +477,31 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
     try:
         for i, per_item in zip(_owners(prepared), _rate(runtime, [p for per in prepared for p in per]), strict=True):
             rated[i].append(per_item)
-    except Exception:  # noqa: BLE001 - find whose windows fail: each session alone
+    except Exception as batch_error:  # noqa: BLE001 - find whose windows fail: each session alone
+        alone_failed = False
         for i, per_session in enumerate(prepared):
             try:
                 rated[i] = _rate(runtime, per_session)
             except Exception as exc:  # noqa: BLE001
-                errors[i] = exc
+                errors[i], alone_failed = exc, True
+        if not alone_failed and _batch_failures.admit("batch") is not None:
+            # a fault of the batch itself (its size, its memory): every such job now costs twice
+            log.warning("features or the model failed for a batch but for none of its sessions", exc_info=batch_error)
     results = []
     for job, per_session, per_rated, error in zip(jobs, prepared, rated, errors, strict=True):
         estimates: list[WindowEstimate] = []
+        est = job.estimator
+        first_index = est.next_index
+        tracking = False
         if error is None:
             try:
                 for p, (raw, models, checks, features_ms, model_ms) in zip(per_session, per_rated, strict=True):
                     estimates += lookup(p, raw, models, checks, started, features_ms, model_ms)
-            except Exception as exc:  # noqa: BLE001
-                error, estimates = exc, []
+            except Exception as exc:  # noqa: BLE001 - its windows are dropped, and what they moved on is undone
+                error, estimates, tracking = exc, [], True
+                est.next_index = first_index
         if error is not None:
-            job.estimator.restart()
+            est.restart(tracking=tracking)
         results.append(SessionResult(estimates, job.windows, error))
     return results
 

@@ -106,7 +106,7 @@ class ProbeServer:
                     data, status = answer(path, live, ready)
                 else:
                     data, status = (
-                        json.dumps({"detail": "the probe port answers GET /health and GET /ready only"}).encode(),
+                        json.dumps({"detail": "the probe port answers GET and HEAD /health and /ready only"}).encode(),
                         404,
                     )
                 self.send_response(status)

@@ -251,8 +251,8 @@ class Settings(BaseSettings):
         None,
         ge=0,
         le=65535,
-        description="also answer GET /health and /ready on this port from a thread of their own, which a busy "
-        "event loop cannot delay (None: off; 0: any free port)",
+        description="also answer GET (and HEAD) /health and /ready on this port from a thread of their own, which a "
+        "busy event loop cannot delay (None: off; 0: any free port)",
     )
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(

@@ -419,8 +419,9 @@ def test_the_fuzzed_session_still_works(kit, server, client, fuzz_session, libra
         (b'{"name": "x"', ["Expecting", "(at 12)"]),
         (b'{"name": "x", "fleet": ' + b"7" * 5000 + b"}", ["4300 digits"]),
         (b'{"name": "\xff\xfe"}', ["utf-8"]),
+        (b'{"name": ' + b"[" * 5000 + b"]" * 5000 + b"}", ["recursion"]),
     ],
-    ids=["truncated", "5000-digit integer", "not UTF-8"],
+    ids=["truncated", "5000-digit integer", "not UTF-8", "nested 5000 deep"],
 )
 def test_a_session_body_that_is_not_json_is_refused_as_a_block_would_be(kit, client, body, words):
     """400 with the reason, in the words a block that is not JSON gets (FastAPI's own: 422 for a syntax error,

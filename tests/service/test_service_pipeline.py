@@ -212,15 +212,10 @@ def test_a_backlog_taken_in_capped_jobs_gives_the_windows_of_one_job(kit, base_s
     np.testing.assert_allclose([e.raw for e in split], [e.raw for e in one], atol=1e-9)
 
 
-@pytest.mark.parametrize("step", ["featurize", "lookup"])
-def test_a_failure_in_one_session_costs_the_other_sessions_of_its_batch_nothing(
-    kit, base_settings, library_dir, monkeypatch, step
-):
-    """Features, the model or the lookup failing on one session's windows: that session alone gets the error (and
-    restarts its stream); the other sessions of the batch get the windows they get without it."""
+def _sessions_of(kit, base_settings, library_dir):
+    """(runtime, job(name, texture)): a session's job over 2.2 s of stroke in 50 ms blocks."""
     import time
 
-    from service import pipeline
     from service.live_session import Session
     from service.metrics import ServiceMetrics
     from service.runtime import load_runtime
@@ -233,13 +228,25 @@ def test_a_failure_in_one_session_costs_the_other_sessions_of_its_batch_nothing(
             s.ingest(b, time.perf_counter_ns())
         return s.take_job()
 
+    return runtime, job
+
+
+@pytest.mark.parametrize("step", ["featurize", "predict", "lookup"])
+def test_a_failure_in_one_session_costs_the_other_sessions_of_its_batch_nothing(
+    kit, base_settings, library_dir, monkeypatch, step
+):
+    """Features, the model or the lookup failing on one session's windows: that session alone gets the error (and
+    restarts its stream); the other sessions of the batch get the windows they get without it."""
+    from service import pipeline
+
+    runtime, job = _sessions_of(kit, base_settings, library_dir)
     alone = pipeline.estimate_batch(runtime, [job("good", "synth_001")])[0]
     good, bad, other = job("good", "synth_001"), job("bad", "synth_002"), job("other", "synth_003")
     real = getattr(pipeline, step)
 
     def glitch(*args, **kwargs):
-        items = args[1] if step == "featurize" else [args[0]]
-        if any(p.estimator is bad.estimator for p in items):
+        items = args[0] if step == "lookup" else args[-1]
+        if any(p.estimator is bad.estimator for p in ([items] if step == "lookup" else items)):
             raise FloatingPointError("a glitch in this session's windows")
         return real(*args, **kwargs)
 
@@ -252,3 +259,52 @@ def test_a_failure_in_one_session_costs_the_other_sessions_of_its_batch_nothing(
     assert len(results[0].estimates) == len(alone.estimates) == good.windows > 0
     assert len(results[2].estimates) == other.windows > 0
     np.testing.assert_allclose([e.raw for e in results[0].estimates], [e.raw for e in alone.estimates], atol=1e-9)
+
+
+def test_a_lookup_failing_partway_undoes_what_its_windows_moved_on(kit, base_settings, library_dir):
+    """The lookup fails at a session's third window: none of its windows is published, so none may count — the
+    window index and the smoothing, steadiness and hysteresis state are as if they had never been."""
+    from service import pipeline
+
+    runtime, job = _sessions_of(kit, base_settings, library_dir)
+    bad = job("bad", "synth_002")
+    est = bad.estimator
+    assert bad.windows >= 3 and est.next_index == 0
+    real, calls = est.selector.choose, []
+
+    def choose(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise FloatingPointError("a glitch at the third window")
+        return real(*args, **kwargs)
+
+    est.selector.choose = choose
+    result = pipeline.estimate_batch(runtime, [bad])[0]
+    assert isinstance(result.error, FloatingPointError) and result.estimates == [] and len(calls) == 3
+    assert est.next_index == 0
+    assert est.smoother.state is None and len(est.steadiness.recent) == 0 and est.mismatch is None
+    assert est.selector.choose is not choose  # a fresh chooser: no hysteresis from windows nobody saw
+
+
+def test_a_fault_of_the_batch_alone_is_estimated_and_logged(kit, base_settings, library_dir, monkeypatch, caplog):
+    """Features failing for a batch but for none of its sessions alone: every session gets its windows, and one
+    WARNING says so (such a job costs twice)."""
+    import logging
+
+    from service import pipeline
+
+    runtime, job = _sessions_of(kit, base_settings, library_dir)
+    jobs = [job("a", "synth_001"), job("b", "synth_002")]
+    real = pipeline.featurize
+
+    def only_alone(runtime, prepared):
+        if len({p.estimator for p in prepared}) > 1:
+            raise MemoryError("a batch too large")
+        return real(runtime, prepared)
+
+    monkeypatch.setattr(pipeline, "featurize", only_alone)
+    with caplog.at_level(logging.WARNING, logger="service.pipeline"):
+        results = pipeline.estimate_batch(runtime, jobs)
+    assert [r.error for r in results] == [None, None]
+    assert [len(r.estimates) for r in results] == [j.windows for j in jobs]
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "for none of its sessions" in caplog.text

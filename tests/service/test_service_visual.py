@@ -85,6 +85,8 @@ def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual
         r = kit.wait_for(lambda: (r := client.get("/ready")).json()["model"] and r)
         assert r.status_code == 503 and r.json()["ready"] is False
         assert "HAPTICLINK_BACKBONE_PATH" in r.json()["detail"] and "efficientnet_lite0" in r.json()["detail"]
+        head = client.head("/ready")  # a load balancer's HEAD hears the same
+        assert head.status_code == 503 and head.content == b""
         assert client.get("/health").status_code == 200
         refused = client.post("/sessions", json={}, headers=kit.FLEET)
         assert refused.status_code == 503 and "not ready" in refused.json()["detail"]
