@@ -30,7 +30,7 @@ def bad_input(exc: ValueError) -> ServiceError:
 
 def not_json(reason: object) -> ServiceError:
     """400: a body that is not JSON Python can read (its syntax, an integer of thousands of digits, bytes that are
-    not UTF-8), with the reason."""
+    not UTF-8, nesting too deep), with the reason."""
     return ServiceError(400, f"body is not valid JSON: {reason}")
 
 

@@ -474,8 +474,9 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
             prepared.append([])
             errors.append(exc)
     rated: list[list[Rated]] = [[] for _ in jobs]
+    owners = [i for i, per_session in enumerate(prepared) for _ in per_session]  # the job of each prepared item
     try:
-        for i, per_item in zip(_owners(prepared), _rate(runtime, [p for per in prepared for p in per]), strict=True):
+        for i, per_item in zip(owners, _rate(runtime, [p for per in prepared for p in per]), strict=True):
             rated[i].append(per_item)
     except Exception as batch_error:  # noqa: BLE001 - find whose windows fail: each session alone
         alone_failed = False
@@ -521,11 +522,6 @@ def _rate(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> list[Rated]:
         (raw.ratings[a:b], raw.models[a:b], raw.checks[a:b], features.ms, raw.ms)
         for a, b in zip(bounds[:-1], bounds[1:])
     ]
-
-
-def _owners(prepared: Sequence[Sequence[PreparedWindows]]) -> list[int]:
-    """The job index of each prepared item, flattened in order."""
-    return [i for i, per in enumerate(prepared) for _ in per]
 
 
 def _completing(group: Sequence[AdmittedBlock], window: int) -> AdmittedBlock:
