@@ -11,6 +11,7 @@ from pathlib import Path
 
 from benchmarks import (
     bandwidth,
+    block_intake,
     features,
     frame_post,
     hostile,
@@ -44,6 +45,8 @@ def main(argv: list[str]) -> int:
     bandwidth.main([])
     print("\n== the window pool: CPU per window by job size ==", flush=True)
     window_batch.main([])
+    print("\n== the event loop: what a block costs before the window pool, against the bare parse ==", flush=True)
+    block_intake.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: what a posted frame costs, against a /health GET ==", flush=True)

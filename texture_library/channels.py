@@ -102,13 +102,24 @@ def check_samples(
     copy: bool = True,
     name: str | None = None,
 ) -> np.ndarray:
-    """Samples of `kind` in `units` (any shape) as `dtype`: numbers, finite, and within MAX_ABS[kind]; ValueError
+    """Samples of `kind` in `units` (default canonical; any shape) as `dtype`: numbers, finite, and within
+    MAX_ABS[kind] once in canonical units (beyond it: a sensor fault or a wrong unit, never computed on). ValueError
     names `name` (default the kind) and the problem."""
     name = name or kind
     arr = _numbers(data, name).astype(dtype, copy=copy)
-    if not np.isfinite(arr).all():
+    if not arr.size:
+        return arr
+    # one pass for both checks (this runs per channel of every block): NaN propagates through max, ±Inf is the peak
+    peak = float(np.abs(arr).max())
+    if not math.isfinite(peak):
         raise ValueError(f"{name}: {int(np.count_nonzero(~np.isfinite(arr)))} sample(s) are NaN or Inf")
-    check_magnitude(kind, arr, units, name)
+    unit = CANONICAL_UNITS[kind]
+    peak *= UNIT_SCALE[kind][units or unit]
+    if peak > MAX_ABS[kind]:
+        raise ValueError(
+            f"{name}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
+            f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
+        )
     return arr
 
 
@@ -116,17 +127,3 @@ def _numbers(data: np.ndarray, name: str) -> np.ndarray:
     if data.dtype.kind not in "iuf":
         raise ValueError(f"{name}: samples must be numbers, got dtype {data.dtype}")
     return data
-
-
-def check_magnitude(kind: str, samples: np.ndarray, units: str | None = None, name: str | None = None) -> None:
-    """ValueError (naming `name`, default the kind) when a finite sample of `kind`, in `units` (default canonical),
-    lies beyond MAX_ABS[kind] once in canonical units: a sensor fault or a wrong unit, never computed on."""
-    if not samples.size:
-        return
-    unit = CANONICAL_UNITS[kind]
-    peak = float(np.max(np.abs(samples))) * UNIT_SCALE[kind][units or unit]
-    if peak > MAX_ABS[kind]:
-        raise ValueError(
-            f"{name or kind}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
-            f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
-        )
