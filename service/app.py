@@ -153,6 +153,9 @@ async def _invalid(request: Request, exc: RequestValidationError) -> JSONRespons
 async def _http_error(request: Request, exc: StarletteHTTPException) -> Response:
     # FastAPI answers a JSON body that Python cannot read for a reason other than its syntax (an integer of thousands
     # of digits, bytes that are not UTF-8, nesting too deep) with a bare 400 "There was an error parsing the body".
+    # It does the same when the client went away before its body was in: that is a dropped link, as on every route.
+    if exc.status_code == 400 and isinstance(exc.__cause__, ClientDisconnect):
+        return await _client_gone(request, exc.__cause__)
     if exc.status_code == 400 and isinstance(exc.__cause__, (ValueError, RecursionError)):
         return await _service_error(request, not_json(str(exc.__cause__).split(";")[0]))
     return await http_exception_handler(request, exc)

@@ -101,3 +101,24 @@ def test_client_mistakes_write_no_error_and_one_warning_per_kind(kit, server, cl
     # at most one line per kind of mistake (9 kinds), not one per request (55)
     assert all(n == 1 for n in warnings.values()) and sum(warnings.values()) <= len(cases) + 3, warnings
     assert any("closed its connection before its request body was read" in w for w in warnings), warnings
+
+
+def test_a_session_request_cut_off_by_a_dropped_link_logs_one_warning(kit, base_settings, captured):
+    """POST /sessions whose body never arrives whole: one throttled WARNING naming the route, as on every other
+    route (FastAPI turns the dropped link into its own bare 400 first), no ERROR, nothing created."""
+    settings = base_settings.model_copy(update={"instance_id": "cut-off"})
+    with kit.running(settings) as srv:
+        for _ in range(REPEATS):
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as raw:
+                raw.sendall(
+                    b"POST /sessions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+                    + kit.API_KEY.encode()
+                    + b'\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{"name":'
+                )
+                time.sleep(0.05)  # the request reaches the route, which waits for the rest of its body
+        kit.wait_for(lambda: any("closed its connection" in r.getMessage() for r in captured), timeout_s=5)
+        assert srv.app.state.service.directory.sessions == {}
+    mine = [r for r in captured if not r.name.startswith(("httpx", "httpcore", "websockets"))]
+    assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
+    cut = [r.getMessage() for r in mine if "closed its connection" in r.getMessage()]
+    assert len(cut) == 1 and "(POST /sessions)" in cut[0], cut
