@@ -23,6 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)",
     )
     p.add_argument(
+        "--tactile-model",
+        type=Path,
+        metavar="PATH",
+        help="tactile-only fallback model: estimates windows before the first frame is embedded, or of a surface not "
+        "tapped, instead of holding them back (HAPTICLINK_TACTILE_MODEL_PATH)",
+    )
+    p.add_argument(
         "--cheap-model",
         type=Path,
         metavar="PATH",
@@ -44,6 +51,7 @@ FLAG_TO_FIELD = {
     "model": "model_path",
     "library": "library_dir",
     "backbone": "backbone_path",
+    "tactile_model": "tactile_model_path",
     "cheap_model": "cheap_model_path",
     "policy": "serving_policy",
     "host": "host",

@@ -184,9 +184,10 @@ class Session:
             or len(self._pending) >= self.settings.session_queue_blocks
         ):
             self.counters.blocks_refused += 1
+            why = self.waiting_for()
             raise saturated(
-                f"session {self.id} is saturated ({self.backlog()} windows, {len(self._pending)} blocks waiting); "
-                f"resend block {block.seq} later",
+                f"session {self.id} is saturated ({self.backlog()} windows, {len(self._pending)} blocks waiting"
+                f"{'; ' + why if why else ''}); resend block {block.seq} later",
                 RETRY_AFTER_S,
             )
         self.cursor = advance.cursor  # a new segment keeps the surface's taps: a gap does not move the tool
@@ -262,6 +263,14 @@ class Session:
         """True while windows must wait: a taps model without an untapped fallback, and a pending block whose
         surface has not been tapped."""
         return self.missing_taps() and self.runtime.untapped is None
+
+    def waiting_for(self) -> str | None:
+        """What the session's windows wait for, in a few words a robot's operator can act on (None: nothing)."""
+        if self.waiting_for_frame():
+            return "its windows wait for a first camera frame (the model reads images): send one"
+        if self.waiting_for_taps():
+            return "its windows wait for a tap block of this surface (the model reads taps): send one (robot --taps)"
+        return None
 
     def missing_taps(self) -> bool:
         """True when a pending block's surface has not been tapped (a taps model)."""

@@ -130,11 +130,13 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
             except ServiceError as exc:
                 if exc.status == 429:
                     why = "saturated"
-                    reason = (
-                        f"replica at capacity; reconnect after Retry-After {exc.retry_after_s:g} s and resend"
-                        if isinstance(exc, AtCapacity)
-                        else "session saturated; reconnect and resend"
-                    )
+                    waiting = session.waiting_for()  # a few words: they fit a close reason
+                    if isinstance(exc, AtCapacity):
+                        reason = f"replica at capacity; reconnect after Retry-After {exc.retry_after_s:g} s and resend"
+                    elif waiting:
+                        reason = f"session saturated: {waiting}"
+                    else:
+                        reason = "session saturated; reconnect and resend"
                     await websocket.close(int(Close.SATURATED), reason)
                     return
                 await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))

@@ -26,6 +26,9 @@ def test_flags_override_the_environment(monkeypatch, tmp_path):
     args = build_parser().parse_args(["serve", "--policy", "always-full", "--cheap-model", str(tmp_path / "c.onnx")])
     settings = settings_from_args(args)
     assert settings.serving_policy == "always-full" and settings.cheap_model_path == tmp_path / "c.onnx"
+    monkeypatch.setenv("HAPTICLINK_TACTILE_MODEL_PATH", str(tmp_path / "env.onnx"))
+    args = build_parser().parse_args(["serve", "--tactile-model", str(tmp_path / "t.onnx")])
+    assert settings_from_args(args).tactile_model_path == tmp_path / "t.onnx"
 
 
 def test_bad_settings_are_named_without_a_traceback(capsys, tmp_path):

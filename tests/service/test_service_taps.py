@@ -12,6 +12,7 @@ from dataclasses import replace
 import httpx
 import numpy as np
 import pytest
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from drivers.blocks import ChannelBlock, SampleBlock, TapBlock, encode_binary, encode_json
@@ -315,3 +316,32 @@ def test_tap_blocks_round_trip_both_encodings():
         assert isinstance(back, TapBlock) and back.seq == 9 and back.t0 == 3.5 and back.accel.units == "g"
         np.testing.assert_array_equal(back.speeds, block.speeds)
         np.testing.assert_allclose(back.accel.data, block.accel.data, rtol=1e-6)
+
+
+def test_a_robot_refused_while_its_windows_wait_for_taps_is_told_to_send_them(kit, taps_model, library_dir):
+    """No untapped fallback and no tap block: the windows wait until the session's queue is full; then the refusal
+    itself (the HTTP 429's detail, the ingest socket's 4429 reason) says what to send, not only "saturated"."""
+    from drivers.protocol import Close
+
+    settings = Settings(
+        model_path=taps_model,
+        library_dir=library_dir,
+        instance_id="test-taps-wait",
+        session_queue_windows=2,
+        max_block_windows=1,
+        api_keys=kit.API_KEY,
+    )
+    blocks = [i for i in _simulated_items(library_dir, "synth_001", 3.0) if isinstance(i, SampleBlock)]
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        session = kit.create_session(client)
+        for k, block in enumerate(blocks):
+            refused = kit.post_block(client, session, encode_binary(replace(block, seq=k)))
+            if refused.status_code == 429:
+                break
+        assert refused.status_code == 429, refused.text
+        assert "tap block" in refused.json()["detail"] and "saturated" in refused.json()["detail"]
+        with connect(kit.socket_url(srv, session, "ingest")) as ws:
+            ws.send(encode_binary(replace(block, seq=k)))  # the refused block, resent
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=5)
+        assert ws.close_code == Close.SATURATED and "tap block" in ws.close_reason and "--taps" in ws.close_reason
