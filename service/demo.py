@@ -24,6 +24,7 @@ import dataclasses
 import json
 import logging
 import secrets
+import socket
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -446,6 +447,20 @@ def _stop_runtime(app: FastAPI) -> None:
     state = getattr(app.state, "service", None)
     if state is not None:
         state.stop_runtime()
+
+
+def check_port_free(host: str, port: int) -> None:
+    """ValueError naming the port when something already listens on (host, port): the demo's service could not start
+    there, and it is said before anything else starts (uvicorn would end the demo with a traceback)."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a closing socket is no user
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ValueError(
+                f"{host}:{port} is not free ({exc.strerror}): stop what uses it (another demo or service?) or pass "
+                "--port"
+            ) from None
 
 
 def demo(

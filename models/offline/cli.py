@@ -386,8 +386,9 @@ def _demo(args: argparse.Namespace) -> int:
     import logging
 
     from models.offline.demo_assets import prepared
-    from service.demo import demo
+    from service.demo import check_port_free, demo
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    check_port_free(args.host, args.port)  # before minutes of building assets
     assets = prepared(args.assets)
     return demo(assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

@@ -135,3 +135,18 @@ def test_a_signal_during_an_embedding_stops_it(small_assets, kit):
         small_assets, kit.free_port(), signal.SIGINT, "EMBEDDING the first frame", ENDLESS_EMBEDDING
     )
     _assert_clean_stop(before, rest, took, code)
+
+
+def test_a_demo_on_a_port_in_use_says_so_before_building_anything(tmp_path, capsys):
+    import socket
+
+    from service.cli import main
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["demo", "--port", str(port), "--assets", str(tmp_path / "assets")]) == 2
+    err = capsys.readouterr().err
+    assert f"127.0.0.1:{port} is not free" in err and "--port" in err and "Traceback" not in err
+    assert not (tmp_path / "assets").exists()  # nothing built
