@@ -98,11 +98,18 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     device = device_from_spec(args.device, block_s=args.block_s, seed=args.seed, loop=args.loop)
-    try:
-        outputs = [output_from_spec(spec, full_scale=args.full_scale) for spec in (args.out or ["sound"])]
-    except (RuntimeError, OSError) as exc:  # no sound card or PortAudio, a serial port that does not open
-        print(f"hapticlink operator: {exc}", file=sys.stderr)
+    outputs, failed = [], []
+    for spec in args.out or ["sound"]:
+        try:
+            outputs.append(output_from_spec(spec, full_scale=args.full_scale))
+        except (RuntimeError, OSError) as exc:  # no sound card or PortAudio, a serial port that does not open
+            failed.append(f"{spec}: {exc}")
+    for why in failed:
+        print(f"hapticlink operator: {why}", file=sys.stderr)
+    if not outputs:
         return 2
+    if failed:  # a headless machine asked for sound beside a WAV file: render into what did open
+        print(f"hapticlink operator: rendering to {', '.join(o.name for o in outputs)} only", file=sys.stderr)
 
     def said(s: Switch) -> None:
         fetched = f", model fetched in {s.fetch_ms:.1f} ms" if s.fetch_ms else ", model cached"

@@ -251,3 +251,14 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
         assert w.getnframes() >= 1900
     bad = subprocess.run([*cmd[:-2], "--out", "mp3:x"], capture_output=True, text=True, timeout=60, env=env)
     assert bad.returncode != 0 and "output spec 'mp3:x'" in bad.stderr
+    # an output that cannot open (here a serial port that is not there; on a headless machine, sound) beside a WAV:
+    # said, and the session is rendered into the WAV anyway; with nothing that opens, exit 2
+    missing = "serial:/dev/hapticlink-no-such-port"
+    out.unlink()
+    partial = subprocess.run([*cmd, "--out", missing], capture_output=True, text=True, timeout=120, env=env)
+    assert partial.returncode == 0, partial.stderr
+    assert "hapticlink-no-such-port" in partial.stderr and f"rendering to wav:{out} only" in partial.stderr
+    with wave.open(str(out)) as w:
+        assert w.getnframes() >= 1900
+    nothing = subprocess.run([*cmd[:-4], "--out", missing], capture_output=True, text=True, timeout=60, env=env)
+    assert nothing.returncode == 2 and "hapticlink-no-such-port" in nothing.stderr
