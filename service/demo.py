@@ -261,17 +261,20 @@ async def print_events(
                 f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
                 f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
                 f"{'':10s}{_interval(event)}\n"
-                f"{'':10s}rendering model: {event['chosen']}{_why(event)} "
-                f"(nearest by ratings: {', '.join(m['id'] for m in event['matches'])}), "
+                f"{'':10s}rendering model: {event['chosen']}{_why(event)}\n"
+                f"{'':10s}nearest by ratings: {', '.join(m['id'] for m in event['matches'])}; "
                 f"pipeline {event['latency_ms']['total']:.1f} ms",
                 flush=True,
             )
 
 
 def _why(event: dict) -> str:
-    """' (held by hysteresis)' when the selection rule's own pick is another entry; '' otherwise or on older servers."""
+    """Why the entry is rendered: ' — <rule> rule: <its reason>', then ' (held by hysteresis)' when the rule's own
+    pick is another entry ('' on older servers). The rule may read more than the ratings (the hybrid weighs the
+    window's vibration against each entry's), so the chosen entry need not be the nearest by ratings."""
     selection = event.get("selection") or {}
-    return " (held by hysteresis)" if selection.get("held_by_hysteresis") else ""
+    why = f" — {selection['rule']} rule: {selection['reason']}" if selection.get("reason") else ""
+    return why + (" (held by hysteresis)" if selection.get("held_by_hysteresis") else "")
 
 
 class DaemonThreads(concurrent.futures.ThreadPoolExecutor):

@@ -32,7 +32,7 @@ def test_demo_builds_its_assets_and_streams_estimates(small_assets, kit, capsys)
     asyncio.run(run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=3.0, duration_s=7.0))
     out = capsys.readouterr().out
     assert "/console?session=" in out and "token=" in out
-    assert "stroking synth_000: estimate" in out and "rendering model:" in out
+    assert "stroking synth_000: estimate" in out and "rendering model:" in out and " rule: " in out  # and why
     assert "rough→smooth" in out and "sticky→slippery" in out, "labels are whole"
     assert "demo summary: " in out and "flagged out of distribution" in out
     assert "'lost': 0" in out and "'unsent': 0" in out
