@@ -24,8 +24,9 @@
 // - speed and force are smoothed with a one-pole filter (`smoothing_ms`, 15 ms by default; 0 = none);
 // - a contact gate: silent while the pad is not touched, ramping in and out over 5 ms; at speeds under
 //   GATE_SPEED_MM_S the output fades in proportion to speed (a finger held still makes no vibration);
-// - acceleration (m/s²) is scaled to the audio signal by `full_scale` (the acceleration that maps to ±1; 1 m/s² by
-//   default) and clipped to ±1.
+// - acceleration (m/s²) is scaled to the audio signal by `full_scale` (the acceleration that maps to ±1; 40 m/s² by
+//   default, as `hapticlink operator --full-scale`: a firm stroke of a rough texture stays clear of clipping) and
+//   clipped to ±1; the level messages say what share of their samples clipped.
 //
 // The file also runs outside an AudioWorklet (a page or a test can import the classes): the processor is
 // registered only where registerProcessor exists.
@@ -33,6 +34,7 @@
 "use strict";
 
 const SCHEMA = "hapticlink.render-model";
+const FULL_SCALE = 40; // m/s² at ±1 (drivers/operator/outputs.py FULL_SCALE)
 const SCHEMA_VERSION = 1;
 const RESAMPLE_HALF_WIDTH = 16; // source samples on each side of the interpolation kernel (= output delay)
 const KAISER_BETA = 7.0; // ≈ 70 dB stop band
@@ -338,13 +340,13 @@ class TextureRenderer {
     this.gate = this.gateTarget();
     this.smoothingMs = options.smoothing_ms === undefined ? 15 : options.smoothing_ms;
     this.crossfadeMs = options.crossfade_ms === undefined ? 50 : options.crossfade_ms;
-    this.fullScale = options.full_scale || 1.0;
+    this.fullScale = options.full_scale || FULL_SCALE;
     this.voice = null; this.incoming = null; this.fade = 0; this.fadeLength = 0;
     this.pending = []; // {model, atSample, crossfadeMs}
     this.sample = 0; // source samples rendered
     this.events = []; // messages for the main thread
     this.resampler = new Resampler(this.rateHz, outputRate);
-    this.sumSquares = 0; this.count = 0;
+    this.sumSquares = 0; this.count = 0; this.clipped = 0;
   }
 
   gateTarget() {
@@ -421,6 +423,7 @@ class TextureRenderer {
     for (let i = 0; i < out.length; i++) {
       const v = this.resampler.next(produce) * scale;
       this.sumSquares += v * v; this.count++;
+      if (v > 1 || v < -1) this.clipped++;
       out[i] = v > 1 ? 1 : v < -1 ? -1 : v;
     }
   }
@@ -465,8 +468,11 @@ if (typeof registerProcessor === "function") {
       for (let c = 1; c < out.length; c++) out[c].set(out[0]);
       while (r.events.length) this.port.postMessage(r.events.shift());
       if (r.count >= this.levelEvery) {
-        this.port.postMessage({ type: "level", rms: Math.sqrt(r.sumSquares / r.count), speed_mm_s: r.speed, force_n: r.force });
-        r.sumSquares = 0; r.count = 0;
+        this.port.postMessage({
+          type: "level", rms: Math.sqrt(r.sumSquares / r.count), clipped: r.clipped / r.count,
+          speed_mm_s: r.speed, force_n: r.force,
+        });
+        r.sumSquares = 0; r.count = 0; r.clipped = 0;
       }
       return true;
     }

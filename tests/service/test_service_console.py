@@ -585,7 +585,18 @@ def test_console_pad_plays_the_chosen_texture(kit, model_server, library_dir, br
     assert 20 < stroke["topSpeed"] < 400, stroke  # ≤ 600 px/s (≈ 159 mm/s at 0.2646 mm/px) in discrete moves
     assert stroke["peakRms"] > 1e-3, stroke  # the worklet played while the pad was stroked
     assert "top speed" in _text(browser, "stroke-summary") and "dBFS" in _text(browser, "stroke-summary")
+    assert stroke["clipped"] == 0 and "clipping" not in _text(browser, "stroke-summary"), stroke  # the default is clear
     _wait(browser, lambda d: _text(d, "level") == "silent")  # released: the gate closes
+    # at the slider's smallest full scale (0.1 m/s² = ±1) the same stroke clips, and the page says so
+    browser.execute_script(
+        "const el = document.getElementById('full-scale'); el.value = -1; el.dispatchEvent(new Event('input'));"
+    )
+    assert _text(browser, "full-scale-value") == "0.1"
+    _stroke(browser, browser.find_element("id", "pad"))
+    stroke = browser.execute_script("return hapticlink.state().stroke")
+    assert stroke["clipped"] > 0, stroke
+    assert "clipping" in _text(browser, "stroke-summary") and "raise full scale" in _text(browser, "stroke-summary")
+    _wait(browser, lambda d: _text(d, "level") == "silent")
     browser.save_screenshot(str(tmp_path / "console-pad.png"))
 
 
