@@ -32,16 +32,21 @@ from texture_library.library import Library
 from texture_library.recording import Channel, Recording
 
 
+def _taps_settings(kit, taps_model, library_dir, **changes) -> Settings:
+    """A server of the taps model without an untapped fallback (its windows wait for taps)."""
+    return Settings(model_path=taps_model, library_dir=library_dir, api_keys=kit.API_KEY, **changes)
+
+
 @pytest.fixture(scope="module")
 def taps_server(kit, taps_model, library_dir):
-    settings = Settings(
-        model_path=taps_model,
-        library_dir=library_dir,
+    settings = _taps_settings(
+        kit,
+        taps_model,
+        library_dir,
         instance_id="test-taps",
         session_idle_s=600,
         session_first_block_s=600,
         session_queue_windows=64,
-        api_keys=kit.API_KEY,
         session_burst=10_000,
     )
     with kit.running(settings) as srv:
@@ -323,13 +328,8 @@ def test_a_robot_refused_while_its_windows_wait_for_taps_is_told_to_send_them(ki
     itself (the HTTP 429's detail, the ingest socket's 4429 reason) says what to send, not only "saturated"."""
     from drivers.protocol import Close
 
-    settings = Settings(
-        model_path=taps_model,
-        library_dir=library_dir,
-        instance_id="test-taps-wait",
-        session_queue_windows=2,
-        max_block_windows=1,
-        api_keys=kit.API_KEY,
+    settings = _taps_settings(
+        kit, taps_model, library_dir, instance_id="test-taps-wait", session_queue_windows=2, max_block_windows=1
     )
     blocks = [i for i in _simulated_items(library_dir, "synth_001", 3.0) if isinstance(i, SampleBlock)]
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
