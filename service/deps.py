@@ -10,6 +10,7 @@ handshake the protocol's way (`drivers.protocol.Close`) instead of raising.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import Depends, Request
@@ -116,7 +117,11 @@ FleetClient = Annotated[str, Depends(fleet_member)]
 
 
 async def socket_session(
-    websocket: WebSocket, session_id: str, token: str | None, roles: frozenset[Role]
+    websocket: WebSocket,
+    session_id: str,
+    token: str | None,
+    roles: frozenset[Role],
+    check: Callable[[], None] | None = None,
 ) -> Session | None:
     """The session a WebSocket's ?token= opens (None for an operator whose session runs on another replica);
     raises Refused after refusing the handshake (one WARNING line):
@@ -125,10 +130,13 @@ async def socket_session(
     session the replica sheds → HTTP 429 with Retry-After; the robot's
     ingest socket closes 1008 on an auth failure, 4421 when misdirected, 1013 when not ready; the events socket
     answers the handshake with the HTTP status.
-    The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`."""
+    The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`.
+    check: the route's own check of its query (ServiceError), refused first, in the same way."""
     state: ServiceState = websocket.app.state.service
     robot = roles == ROBOT_ONLY
     try:
+        if check is not None:
+            check()
         if robot:
             local = await state.directory.local(session_id, token, roles)
             state.require_runtime()

@@ -14,7 +14,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from drivers.protocol import SESSION_LOST, Close
 from drivers.render_feed import RenderView
 from service.auth import OPERATOR_ONLY
-from service.deps import Refused, client_of, refuse, socket_session
+from service.deps import Refused, socket_session
 from service.errors import ServiceError
 from service.events import encode, status_event
 from service.state import ServiceState
@@ -32,16 +32,13 @@ async def events_socket(
     view: str = Query("full"),
 ) -> None:
     state: ServiceState = websocket.app.state.service
-    if view not in VIEWS:  # checked here, not by FastAPI: its refusal is a bare 403 that says nothing
-        state.refusal_log.warning(
-            ("socket", False, 422), "events socket from %s refused: 422 unknown view", client_of(websocket)
-        )
-        await refuse(
-            websocket, ServiceError(422, f"view must be one of {', '.join(VIEWS)}, got {view[:40]!r}"), robot=False
-        )
-        return
+
+    def known_view() -> None:  # checked here, not by FastAPI: its refusal is a bare 403 that says nothing
+        if view not in VIEWS:
+            raise ServiceError(422, f"view must be one of {', '.join(VIEWS)}, got {view[:40]!r}")
+
     try:
-        await socket_session(websocket, session_id, token, OPERATOR_ONLY)
+        await socket_session(websocket, session_id, token, OPERATOR_ONLY, check=known_view)
     except Refused:
         return
     await websocket.accept()
