@@ -130,10 +130,9 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
             except ServiceError as exc:
                 if exc.status == 429:
                     why = "saturated"
-                    waiting = session.waiting_for()  # a few words: they fit a close reason
                     if isinstance(exc, AtCapacity):
                         reason = f"replica at capacity; reconnect after Retry-After {exc.retry_after_s:g} s and resend"
-                    elif waiting:
+                    elif waiting := session.waiting_for():  # a few words: they fit a close reason
                         reason = f"session saturated: {waiting}"
                     else:
                         reason = "session saturated; reconnect and resend"
