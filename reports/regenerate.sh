@@ -30,6 +30,8 @@ SERVED=(--visual-grid 2 --no-glcm --backbone efficientnet_lite0_int8)
 hl evaluate --dataset $H --model selected "${SERVED[@]}" --out reports/hatt-texnet/selected --seeds 0 1 2
 # the same rule with the kernel ridges' exact leave-one-out criterion: a sensitivity row (docs/models.md)
 hl evaluate --dataset $H --model selected-exact-loo "${SERVED[@]}" --out reports/hatt-texnet/selected-exact-loo --seeds 0 1 2
+# a new material, not a new sample: each fold keeps the held-out texture's whole family out (docs/models.md)
+hl evaluate --dataset $H --model selected "${SERVED[@]}" --leave-out family --out reports/hatt-texnet/families/selected --seeds 0 1 2
 for m in ridge-pooled krr-pooled; do  # deterministic: one seed
   hl evaluate --dataset $H --model $m --out reports/hatt-texnet/$m --seeds 0
 done

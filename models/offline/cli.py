@@ -87,6 +87,8 @@ def _dataset_check(args: argparse.Namespace) -> int:
 
 
 def register_models(sub: argparse._SubParsersAction) -> None:
+    from models.offline.evaluation.families import LEAVE_OUT
+
     e = sub.add_parser("evaluate", help="leave-one-texture-out evaluation of one model → results.json + figures")
     e.add_argument("--dataset", required=True)
     e.add_argument(
@@ -110,6 +112,14 @@ def register_models(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="the held-out texture shows only its first K image views (a service that pooled K frames); "
         "training is unchanged. K must divide the stored views (8)",
+    )
+    e.add_argument(
+        "--leave-out",
+        choices=LEAVE_OUT,
+        default="texture",
+        help="what each fold keeps out of training: the held-out texture (default), or its whole family too "
+        "(textures whose names differ only in a trailing number, e.g. carpet_1 and carpet_3): a new material, "
+        "not a new sample of one seen",
     )
     _feature_args(e)
     _visual_args(e)
@@ -290,6 +300,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         backend=args.backend,
         ray_address=args.ray_address,
         test_views=args.test_views,
+        leave_out=args.leave_out,
     )
     if not args.no_figures:
         from models.offline.report.evaluation_figures import results_figures

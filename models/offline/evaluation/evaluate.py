@@ -114,9 +114,11 @@ def evaluate(
     latency: bool = True,
     ray_address: str | None = None,
     test_views: int | None = None,
+    leave_out: str = "texture",
 ) -> dict:
     """LOOCV for every seed (all folds of all seeds as one batch of jobs); writes out/results.json
-    and returns the results dict."""
+    and returns the results dict. leave_out "family": each fold keeps the held-out texture's family out of
+    training too (models.offline.evaluation.families)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -129,6 +131,7 @@ def evaluate(
         progress=progress,
         ray_address=ray_address,
         test_views=test_views,
+        leave_out=leave_out,
     )
     results = {
         "dataset": data.meta.get("dataset"),
@@ -141,6 +144,8 @@ def evaluate(
         "views": spec.build().pooled_views(data.visual.shape[1]) if data.visual is not None else None,
         # the held-out texture seen through only this many views (a service that pooled that many frames)
         "test_views": test_views,
+        # what each fold keeps out of training besides the held-out texture: nothing, or its family
+        "leave_out": leave_out,
         "backend": backend,
         "scale": "0-100 (bipolar error / 2)",
         **summarize_runs(data, runs),

@@ -1,5 +1,7 @@
 """Leave-one-texture-out cross-validation. Every (seed, fold) pair is an independent job, run serially,
 in local worker processes (default; models.offline.jobs) or as Ray tasks on a local Ray instance or a cluster.
+With `leave_out="family"` each fold also keeps the held-out texture's family out of training
+(models.offline.evaluation.families).
 
 Ray: `backend="ray"` connects to the cluster at `ray_address` (or the RAY_ADDRESS environment
 variable) and starts a local instance when neither is set. On a cluster the models/ and
@@ -19,6 +21,7 @@ from tqdm import tqdm
 
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
+from models.offline.evaluation.families import family_of, left_out_with
 from models.offline.jobs import capped_threads, cpu_count, run_jobs
 from texture_library.attributes import RATING_MAX, RATING_MIN
 
@@ -49,14 +52,21 @@ def seen_through(data: TextureData, views: int) -> TextureData:
 
 
 def run_fold(
-    data: TextureData, spec: EstimatorSpec, held_out: int, seed: int, test_views: int | None = None
+    data: TextureData,
+    spec: EstimatorSpec,
+    held_out: int,
+    seed: int,
+    test_views: int | None = None,
+    also_out: tuple[int, ...] = (),
 ) -> tuple[np.ndarray, float, dict, int]:
-    """Fit on every texture but `held_out`, predict `held_out`: (prediction (4,), seconds, fit info, params).
+    """Fit on every texture but `held_out` (and `also_out`: its family, say), predict `held_out`:
+    (prediction (4,), seconds, fit info, params).
 
     test_views: the held-out texture is seen through only its first test_views image views (a service
     that pooled that many frames); the model is still fit as usual."""
     t0 = time.perf_counter()
-    train = data.take([i for i in range(len(data)) if i != held_out])
+    out = {held_out, *also_out}
+    train = data.take([i for i in range(len(data)) if i not in out])
     est = spec.build().fit(train, seed)
     held = data.take([held_out]).with_targets(None)
     if test_views is not None:
@@ -67,15 +77,21 @@ def run_fold(
     return pred, time.perf_counter() - t0, est.fit_info(), est.n_params()
 
 
-def _fold_job(data: TextureData, job: tuple[EstimatorSpec, int, int, int | None]):
+def _fold_job(data: TextureData, job: tuple[EstimatorSpec, int, int, int | None, tuple[int, ...]]):
     return run_fold(data, *job)
 
 
 def _fold_in_ray_task(
-    data: TextureData, spec: EstimatorSpec, held_out: int, seed: int, test_views: int | None, threads: int
+    data: TextureData,
+    spec: EstimatorSpec,
+    held_out: int,
+    seed: int,
+    test_views: int | None,
+    also_out: tuple[int, ...],
+    threads: int,
 ):
     with capped_threads(threads):
-        return run_fold(data, spec, held_out, seed, test_views)
+        return run_fold(data, spec, held_out, seed, test_views, also_out)
 
 
 def loocv(
@@ -88,6 +104,7 @@ def loocv(
     progress: bool = True,
     ray_address: str | None = None,
     test_views: int | None = None,
+    leave_out: str = "texture",
 ) -> LoocvRun:
     """Run all len(data) folds of one seed. workers=None: one per core."""
     return loocv_seeds(
@@ -99,6 +116,7 @@ def loocv(
         progress=progress,
         ray_address=ray_address,
         test_views=test_views,
+        leave_out=leave_out,
     )[0]
 
 
@@ -112,11 +130,13 @@ def loocv_seeds(
     progress: bool = True,
     ray_address: str | None = None,
     test_views: int | None = None,
+    leave_out: str = "texture",
 ) -> list[LoocvRun]:
     """All folds of all seeds as one batch of independent jobs; one LoocvRun per seed, in `seeds` order.
 
     workers: parallel jobs (process: worker processes; ray: CPUs of a local instance; None: one per core);
-    test_views: see run_fold."""
+    test_views: see run_fold; leave_out: "texture", or "family" (each fold keeps the held-out texture's
+    family out of training too)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if data.targets is None or len(data) < 3:
@@ -130,11 +150,18 @@ def loocv_seeds(
         raise ValueError("give at least one seed")
     if test_views is not None:
         seen_through(data.take([0]), test_views)  # refuse a bad value before any job starts
+    also_out = left_out_with(data.textures, leave_out)
+    crowded = next((i for i, o in enumerate(also_out) if len(data) - 1 - len(o) < 2), None)
+    if crowded is not None:
+        raise ValueError(
+            f"leaving family {family_of(data.textures[crowded])!r} ({len(also_out[crowded]) + 1} of the {len(data)} "
+            "textures) out leaves fewer than 2 to train on: these texture names form no families to leave out"
+        )
     n = len(data)
-    jobs = [(spec, i, s, test_views) for s in seeds for i in range(n)]
+    jobs = [(spec, i, s, test_views, also_out[i]) for s in seeds for i in range(n)]
     workers = max(1, min(workers or cpu_count(), len(jobs)))
     threads = max(1, cpu_count() // workers)  # the serial backend too: it shares the machine alike
-    desc = f"LOOCV {spec.name} seeds {list(seeds)}"
+    desc = f"LOOCV {spec.name} seeds {list(seeds)}" + (", families left out" if leave_out == "family" else "")
     t0 = time.perf_counter()
     if backend == "ray":
         with tqdm(total=len(jobs), desc=desc, unit="fold", disable=not progress) as bar:

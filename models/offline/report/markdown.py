@@ -15,6 +15,7 @@ import numpy as np
 
 from models.offline.datasets.format import Dataset
 from models.offline.evaluation.bootstrap import bootstrap_errors, paired_difference, texture_errors
+from models.offline.evaluation.families import with_siblings
 from models.offline.evaluation.metrics import split_half_ceiling
 from models.offline.report.feature_groups import FOLDER as GROUPS_FOLDER
 from models.offline.report.feature_groups import KEYS, SHORT, feature_group_section
@@ -26,6 +27,7 @@ TARGET_RATIO = 0.4
 TARGET_HARD_SOFT = 4.5
 REFERENCE = "ridge-visual"  # the paired comparisons' baseline
 HEADLINE = "selected"  # chosen inside the folds by the rule in docs/models.md
+FAMILIES_FOLDER = "families"  # runs with `--leave-out family`, each beside its main-table twin
 OLDER = "†"
 # The README's results table: its rows (report folder → what the model is), in this order.
 README_ROWS = {
@@ -177,6 +179,7 @@ def build_report(
         (r for r in results if r["dir"].startswith("ablation/")), key=lambda r: (r["model"], _ablation_label(r))
     )
     views = [r for r in results if r["dir"].startswith("views/")]
+    families = [r for r in results if r["dir"].startswith(FAMILIES_FOLDER + "/")]
     _, _, table = ds.rating_table()
     ceiling = split_half_ceiling(table) if table.shape[1] >= 2 else None
     mean_pred = next((r for r in main if r["model"] == "mean"), None)
@@ -220,6 +223,8 @@ def build_report(
         lines += _selection_section(headline)
     if views:
         lines += _views_section(views, folder, main)
+    if families:
+        lines += _families_section(families, main)
     if ablation:
         lines += [
             "## Feature ablation (MAE)",
@@ -364,8 +369,15 @@ def _headline(headline: dict, best: dict) -> list[str]:
         "## Headline",
         "",
         f"- **selected inside the folds** (`{headline['dir']}`, the rule in docs/models.md, nested CV): mean MAE "
-        f"**{headline['mae']['mean']:.2f}** {_ci(headline['_boot']['mae'], 'mean', 2)} — no selection bias: "
-        "every outer fold picked its own model from its training textures.",
+        f"**{headline['mae']['mean']:.2f}** {_ci(headline['_boot']['mae'], 'mean', 2)} — no selection bias in the "
+        "model: every outer fold picked its own model from its training textures."
+        + (
+            " The image features it reads (the served 2×2 patches, no GLCM, int8 backbone) were picked by the "
+            "frontier's fixed rule applied to leave-one-texture-out numbers of this model on these textures "
+            "(`reports/tradeoffs`, `--nested-folds 0`), which flatters the number a little (docs/models.md)."
+            if _reads_served_images(headline)
+            else ""
+        ),
     ]
     if best is not headline:
         lines.append(
@@ -373,6 +385,19 @@ def _headline(headline: dict, best: dict) -> list[str]:
             f"{best['mae']['mean']:.2f} {_ci(best['_boot']['mae'], 'mean', 2)}"
         )
     return lines + [""]
+
+
+def _reads_served_images(res: dict) -> bool:
+    """Whether a run read the served image configuration (models.offline.featurize.SERVED_VISUAL)."""
+    from models.offline.featurize import SERVED_VISUAL
+
+    features = res.get("features") or {}
+    config = features.get("visual_config") or {}
+    return (
+        features.get("backbone") == SERVED_VISUAL.backbone
+        and config.get("grid") == SERVED_VISUAL.grid
+        and config.get("glcm") == SERVED_VISUAL.glcm
+    )
 
 
 def _paired_section(main: list[dict], reference: dict) -> list[str]:
@@ -502,6 +527,55 @@ def _views_section(views: list[dict], folder: Path, main: list[dict] = ()) -> li
             )
             + " |"
         )
+    return lines + [""]
+
+
+def _families_section(families: list[dict], main: list[dict]) -> list[str]:
+    """Runs under families/ (`--leave-out family`) against the main table's run of the same model and features:
+    on every texture, and on those with a sibling (the only ones whose fold changes)."""
+    lines = [
+        "## A new material, not a new sample: families left out",
+        "",
+        "Some textures are samples of one product line: their names differ only in a trailing number "
+        "(carpet_1, carpet_3; floortile_1 … floortile_7; sandpaper_100, sandpaper_220). Leaving one texture out keeps "
+        "its siblings in training; `hapticlink evaluate --leave-out family` keeps its whole family out of the fold "
+        "that predicts it (`models/offline/evaluation/families.py`; a nested rule's inner folds split the "
+        "remaining training textures as usual). Textures without a sibling get the same fold either way. Δ: MAE "
+        "(families out) − MAE (texture out), paired over the same textures; positive: worse on a new material.",
+        "",
+        "| model | textures | leave one texture out | leave its family out | Δ [95 %] |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for run in sorted(families, key=lambda r: r["dir"]):
+        twin = next(
+            (
+                r
+                for r in main
+                if r["model"] == run["model"]
+                and r.get("options") == run.get("options")
+                and r.get("features") == run.get("features")
+                and r.get("views") == run.get("views")
+            ),
+            None,
+        )
+        if twin is None or twin["_textures"] != run["_textures"]:
+            lines.append(
+                f"| {run['dir']} | — | no main-table run of the same model and features on the same textures | | |"
+            )
+            continue
+        siblings = with_siblings(run["_textures"])
+        for label, rows in (("all", slice(None)), (f"with a sibling ({len(siblings)})", siblings)):
+            if label != "all" and not siblings:
+                continue
+            a, b = twin["_abs"][rows], run["_abs"][rows]
+            boot_a, boot_b = bootstrap_errors(a)["mae"], bootstrap_errors(b)["mae"]
+            d = paired_difference(b, a)
+            lines.append(
+                f"| {run['dir']} | {label if label != 'all' else f'all ({len(a)})'} | "
+                f"{boot_a['value']['mean']:.2f} {_ci(boot_a, 'mean', 2)} | "
+                f"{boot_b['value']['mean']:.2f} {_ci(boot_b, 'mean', 2)} | "
+                f"{d['value']['mean']:+.2f} {_ci(d, 'mean', 2)} |"
+            )
     return lines + [""]
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from models.inference.intervals import IntervalCalibration, ema_flags
 from models.offline.calibrate import EMA_ALPHA, Prediction, calibrate, rows_of
+from models.offline.evaluation.bootstrap import bootstrap_mean
 from models.offline.tradeoffs.detection import Check
 from models.offline.tradeoffs.faulted import CLEAN
 from models.offline.tradeoffs.folds import calibration_sources
@@ -54,10 +55,14 @@ def score(cal: IntervalCalibration, pred: Prediction, truth: np.ndarray, check: 
 
 
 def _aggregate(scores: list[dict]) -> dict:
-    covered = np.mean([s["covered"] for s in scores], axis=0)
+    """Coverage over textures (each weighs 1); empirical_ci: the texture-level bootstrap interval of the mean."""
+    per_texture = np.array([s["covered"] for s in scores])
+    covered = per_texture.mean(axis=0)
     unflagged = [s["covered_unflagged"] for s in scores if s["covered_unflagged"] is not None]
+    ci = bootstrap_mean(per_texture.mean(axis=1))
     return {
         "empirical": float(covered.mean()),
+        "empirical_ci": [ci["lo"], ci["hi"]],
         "per_attribute": dict(zip(ATTRIBUTES, map(float, covered))),
         "flagged": float(np.mean([s["flagged"] for s in scores])),
         "unflagged_empirical": float(np.mean(unflagged)) if unflagged else None,

@@ -37,6 +37,13 @@ def _ci(c: dict | None) -> str:
     return "—" if not c else f"[{c['lo']:.2f}, {c['hi']:.2f}]"
 
 
+def _coverage(row: dict) -> str:
+    """A coverage row's mean coverage with its texture-level interval (rows from runs before the interval was
+    stored show the mean alone)."""
+    ci = row.get("empirical_ci")
+    return f"{row['empirical']:.1%}" + (f" [{ci[0]:.1%}, {ci[1]:.1%}]" if ci else "")
+
+
 def quiet_scale(fr: dict, bench: Path = QUIET_BENCH) -> dict | None:
     """Factor from this run's milliseconds to a quiet machine's: the quiet benchmark's EfficientNet-Lite0
     backbone time for the default 7×7 frame (1 thread) over this run's for the same step. CPU-bound
@@ -410,7 +417,7 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
             lines.append(
                 f"| {r['target']} | {r['scale']} | {r['nominal']:.0%} | "
                 + " | ".join(f"{v:.1%}" for v in pa.values())
-                + f" | {r['empirical']:.1%} | {r['width']:.1f} | {r['flagged']:.1%} |"
+                + f" | {_coverage(r)} | {r['width']:.1f} | {r['flagged']:.1%} |"
             )
         faults = sorted(
             [
@@ -436,7 +443,7 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
         ]
         for r in faults:
             lines.append(
-                f"| {r['condition']} | {r['empirical']:.1%} | {r['flagged']:.1%} | "
+                f"| {r['condition']} | {_coverage(r)} | {r['flagged']:.1%} | "
                 f"{'—' if r['unflagged_empirical'] is None else format(r['unflagged_empirical'], '.1%')} | "
                 f"{r['width']:.1f} | {'✓' if r['meets_target'] else '✗'} |"
             )

@@ -164,3 +164,49 @@ def test_ridge_leaves_a_textures_augmented_copies_out_together():
     plain = RidgeEstimator("visual").fit(world, 0).alpha
     together = RidgeEstimator("visual").fit(copies, 0).alpha
     assert m * plain / 2 <= together <= m * plain * 2, (plain, together)
+
+
+def _families(world):
+    """world with its first 12 textures in four families of three (f0_1, f0_2, f0_3, f1_1, …), the rest alone."""
+    names = [f"f{i // 3}_{i % 3 + 1}" if i < 12 else name for i, name in enumerate(world.textures)]
+    return replace(world, textures=names)
+
+
+class FitRecorder(MeanEstimator):
+    """Records the textures of every fit, in order."""
+
+    fits: list = []
+
+    def fit(self, data, seed):
+        FitRecorder.fits.append(set(data.textures))
+        return super().fit(data, seed)
+
+
+def test_leaving_families_out_keeps_every_sibling_out_of_the_fold_that_predicts_a_texture(linear_world, monkeypatch):
+    world = _families(linear_world)
+    FitRecorder.fits = []
+    monkeypatch.setattr(EstimatorSpec, "build", lambda self: FitRecorder())
+    run = loocv(world, EstimatorSpec("mean"), backend="serial", progress=False, leave_out="family")
+    assert len(FitRecorder.fits) == len(world)
+    for i, (name, fitted) in enumerate(zip(world.textures, FitRecorder.fits, strict=True)):
+        family = {t for t in world.textures if t.split("_")[0] == name.split("_")[0]} if i < 12 else {name}
+        assert fitted == set(world.textures) - family, name
+        # known answer: predict-the-mean predicts the mean of exactly the textures outside the family
+        keep = [j for j, t in enumerate(world.textures) if t not in family]
+        np.testing.assert_allclose(run.predictions[i], world.targets[keep].mean(axis=0), rtol=1e-6)
+
+
+def test_leaving_families_out_changes_only_the_textures_with_siblings(linear_world):
+    world = _families(linear_world)
+    by_texture = loocv(world, EstimatorSpec("ridge-both"), backend="serial", progress=False)
+    by_family = loocv(world, EstimatorSpec("ridge-both"), backend="serial", progress=False, leave_out="family")
+    np.testing.assert_allclose(by_family.predictions[12:], by_texture.predictions[12:], rtol=1e-6)
+    assert not np.allclose(by_family.predictions[:12], by_texture.predictions[:12])
+
+
+def test_leaving_families_out_refuses_folds_left_with_too_few_textures(linear_world):
+    world = replace(linear_world.take([0, 1, 2, 3]), textures=["a_1", "a_2", "a_3", "b"])
+    with pytest.raises(
+        ValueError, match=r"leaving family .a. \(3 of the 4 textures\) out leaves fewer than 2 to train on"
+    ):
+        loocv(world, EstimatorSpec("mean"), backend="serial", progress=False, leave_out="family")

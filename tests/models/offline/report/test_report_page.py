@@ -202,3 +202,45 @@ def test_the_readme_table_names_what_is_missing(reports, tmp_path):
         build_report(dataset, folder, reference="ridge-tactile", readme=readme, readme_rows={"mean": "m"})
     with pytest.raises(ValueError, match=r"needs results for \['ann'\]"):
         build_report(dataset, folder, reference="ridge-tactile", readme=readme, readme_rows={"mean": "m", "ann": "a"})
+
+
+def test_the_families_section_sets_each_run_beside_its_leave_one_texture_out_twin(reports, tmp_path):
+    dataset, folder = reports
+    work = tmp_path / "reports"
+    _copy_runs(folder, work, {"mean": "mean", "ridge-tactile": "ridge-tactile", "knn-tactile": "families/knn-tactile"})
+    twin = json.loads((folder / "ridge-tactile" / "results.json").read_text())
+    (work / "families" / "ridge-tactile").mkdir(parents=True)
+    (work / "families" / "ridge-tactile" / "results.json").write_text(json.dumps({**twin, "leave_out": "family"}))
+    far = {s: {t: [v + 150.0 for v in p] for t, p in per.items()} for s, per in twin["predictions_per_seed"].items()}
+    (work / "families" / "ridge-far").mkdir(parents=True)
+    (work / "families" / "ridge-far" / "results.json").write_text(
+        json.dumps({**twin, "predictions_per_seed": far, "leave_out": "family"})
+    )
+    page = build_report(dataset, work).read_text()
+    section = page.split("## A new material, not a new sample: families left out")[1].split("\n## ")[0]
+    rows = {line.split(" | ")[0] + " | " + line.split(" | ")[1]: line for line in section.split("\n") if "| " in line}
+    # the same predictions as its twin: the same MAE, a difference of exactly 0 (synthetic names: one family, 8)
+    same = rows["| families/ridge-tactile | all (8)"].split(" | ")
+    assert same[2] == same[3] and same[4].startswith("+0.00 [0.00, 0.00]")
+    assert "| families/ridge-tactile | with a sibling (8)" in rows
+    assert float(rows["| families/ridge-far | all (8)"].split(" | ")[4].split()[0]) > 10  # far worse
+    # a run whose model the main table lacks says so rather than comparing it with another model
+    assert "| families/knn-tactile | — | no main-table run of the same model" in section
+    assert "families" not in page.split("## MAE")[1].split("## RMSE")[0]  # never a row of the main table
+
+
+def test_the_headline_says_when_the_served_image_features_were_picked_on_its_own_folds(reports, tmp_path):
+    from models.offline.featurize import SERVED_VISUAL
+
+    dataset, folder = reports
+    work = tmp_path / "reports"
+    _copy_runs(folder, work, {"mean": "mean", "knn-tactile": "selected"})
+    page = build_report(dataset, work).read_text()
+    headline = page.split("## Headline")[1].split("\n## ")[0]
+    assert "no selection bias in the model" in headline and "frontier's fixed rule" not in headline
+    run = json.loads((work / "selected" / "results.json").read_text())
+    served = {"grid": SERVED_VISUAL.grid, "glcm": SERVED_VISUAL.glcm, "patch_size": 224}
+    run["features"] = {**run["features"], "backbone": SERVED_VISUAL.backbone, "visual_config": served}
+    (work / "selected" / "results.json").write_text(json.dumps(run))
+    headline = build_report(dataset, work).read_text().split("## Headline")[1].split("\n## ")[0]
+    assert "picked by the frontier's fixed rule applied to leave-one-texture-out numbers of this model" in headline

@@ -114,6 +114,9 @@ def test_coverage_rows_for_every_condition_target_and_level(summary):
     assert {(r["target"], r["nominal"]) for r in rows} >= {("window", 0.8), ("ema", 0.9), ("texture", 0.9)}
     for r in rows:
         assert 0 <= r["empirical"] <= 1 and 0 <= r["flagged"] <= 1 and r["width"] > 0
+        lo, hi = r["empirical_ci"]  # over textures: the mean lies inside, and textures disagree somewhere
+        assert 0 <= lo <= r["empirical"] <= hi <= 1
+    assert any(r["empirical_ci"][1] - r["empirical_ci"][0] > 0.01 for r in rows)
     clean = [r for r in rows if r["condition"] == CLEAN and r["target"] == "texture" and r["scale"] == "none"]
     for r in clean:  # 24 textures: loose, but an interval that means nothing would miss it
         assert abs(r["empirical"] - r["nominal"]) < 0.2
