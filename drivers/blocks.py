@@ -262,6 +262,10 @@ def peek_header(payload: bytes, binary: bool) -> object | None:
         return None
 
 
+class UnreadableHeader(ValueError):
+    """A binary block whose JSON header Python cannot read (the service answers it as a body that is not JSON)."""
+
+
 def decode_binary(buf: bytes) -> Block:
     if len(buf) < 8 or buf[:4] != MAGIC:
         raise ValueError("binary block must start with the magic bytes b'HLB1'")
@@ -270,8 +274,8 @@ def decode_binary(buf: bytes) -> Block:
         raise ValueError(f"binary block header length {n} is invalid for a {len(buf)}-byte message")
     try:
         header = json.loads(buf[8 : 8 + n])
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise ValueError("binary block header is not valid JSON") from None
+    except (ValueError, RecursionError) as exc:  # its syntax, bytes not UTF-8, a huge integer, nesting too deep
+        raise UnreadableHeader(f"the binary block's header: {exc}") from None
     seq, t0, channels = _check_header(header)
     offset = 8 + n
     if header.get("kind") == "taps":
@@ -282,7 +286,11 @@ def decode_binary(buf: bytes) -> Block:
             and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
         ):
             raise ValueError(f"taps: shape must be [k, n] (k taps of n samples), got {shape!r}")
-        if shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES:
+        if (
+            shape[0] > MAX_TAPS * MAX_TAP_SAMPLES
+            or shape[1] > MAX_TAPS * MAX_TAP_SAMPLES
+            or (shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES)
+        ):
             raise ValueError(f"taps: shape {shape} is too large")
         if offset + 4 * shape[0] * shape[1] != len(buf):
             raise ValueError(
@@ -302,7 +310,7 @@ def decode_binary(buf: bytes) -> Block:
         ):
             raise ValueError(f"{kind}: shape must be [n] or [n, k] with non-negative integers, got {shape!r}")
         count = math.prod(shape)
-        if count > 4 * MAX_BLOCK_SAMPLES:
+        if count > 4 * MAX_BLOCK_SAMPLES or max(shape) > 4 * MAX_BLOCK_SAMPLES:  # [2**62, 0] holds 0 samples
             raise ValueError(f"{kind}: shape {shape} is too large")
         end = offset + 4 * count
         if end > len(buf):

@@ -16,11 +16,11 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from service.errors import ServiceError, not_json
+from service.errors import ErrorResponse, ServiceError, not_json
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.probes import ProbeAnswers
@@ -117,12 +117,12 @@ def route_paths(app: FastAPI) -> set[str]:
     return paths
 
 
-async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
-    return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+async def _service_error(request: Request, exc: ServiceError) -> ErrorResponse:
+    return ErrorResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
 
 
-async def _too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
-    return JSONResponse({"detail": too_large_detail(exc.limit)}, status_code=413, headers={"Connection": "close"})
+async def _too_large(request: Request, exc: BodyTooLarge) -> ErrorResponse:
+    return ErrorResponse({"detail": too_large_detail(exc.limit)}, status_code=413, headers={"Connection": "close"})
 
 
 async def _client_gone(request: Request, exc: ClientDisconnect) -> Response:
@@ -138,7 +138,7 @@ async def _client_gone(request: Request, exc: ClientDisconnect) -> Response:
     return Response(status_code=400)
 
 
-async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+async def _invalid(request: Request, exc: RequestValidationError) -> ErrorResponse:
     # One readable sentence instead of pydantic's list, so every 4xx has the same shape; a body that is not JSON
     # gets the 400 and the wording of a block that is not (service.intake), with the reason and where.
     errors = exc.errors()
@@ -147,7 +147,7 @@ async def _invalid(request: Request, exc: RequestValidationError) -> JSONRespons
         where = syntax.get("loc", ("body", "?"))[-1]
         return await _service_error(request, not_json(f"{syntax.get('ctx', {}).get('error', '?')} (at {where})"))
     parts = [f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg')}" for e in errors]
-    return JSONResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
+    return ErrorResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> Response:

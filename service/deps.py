@@ -16,12 +16,11 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.requests import HTTPConnection
-from starlette.responses import JSONResponse
 from starlette.websockets import WebSocket
 
 from drivers.protocol import HANDSHAKE_REFUSALS, Close
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
-from service.errors import ServiceError
+from service.errors import ErrorResponse, ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
 from service.live_session import Session
@@ -148,7 +147,7 @@ async def socket_session(
     except ServiceError as exc:
         state.refusal_log.warning(
             ("socket", robot, exc.status),
-            "%s socket for session %s from %s refused: %d %s",
+            "%s socket for session %r from %s refused: %d %s",
             "ingest" if robot else "events",
             session_id,
             client_of(websocket),
@@ -180,7 +179,7 @@ async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> Non
         return
     try:
         await websocket.send_denial_response(
-            JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+            ErrorResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
         )
     except RuntimeError:  # the server cannot send HTTP denials: a close before accept becomes 403
         await websocket.close(int(Close.POLICY))

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+from typing import Any
+
+from starlette.responses import JSONResponse
+
 from drivers.protocol import SESSION_LOST
 
 
@@ -16,6 +21,15 @@ class ServiceError(Exception):
         self.status = status
         self.detail = detail
         self.headers = headers or {}
+
+
+class ErrorResponse(JSONResponse):
+    """The JSON answer of a refusal, in ASCII: a detail that quotes what a client sent (a channel's name, a field)
+    may hold characters UTF-8 cannot encode (a lone surrogate, legal in a JSON string), which JSONResponse's UTF-8
+    rendering would turn into a 500."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
 
 
 def saturated(what: str, retry_after_s: float) -> ServiceError:

@@ -18,7 +18,14 @@ from concurrent.futures import Executor
 
 import numpy as np
 
-from drivers.blocks import BINARY_CONTENT_TYPE, MAX_JSON_BLOCK_BYTES, Block, decode_binary, decode_json
+from drivers.blocks import (
+    BINARY_CONTENT_TYPE,
+    MAX_JSON_BLOCK_BYTES,
+    Block,
+    UnreadableHeader,
+    decode_binary,
+    decode_json,
+)
 from drivers.scene_change import thumbnail, thumbnail_from_bytes
 from service.bus import EventBus
 from service.capacity import CapacityGuard
@@ -76,7 +83,10 @@ def decode_block(payload: bytes, binary: bool) -> Block:
     refused before it is parsed) or 422 (not a valid block) with the decoder's message."""
     try:
         if binary:
-            return decode_binary(payload)
+            try:
+                return decode_binary(payload)
+            except UnreadableHeader as exc:
+                raise not_json(exc) from None
         if len(payload) > MAX_JSON_BLOCK_BYTES:
             raise ServiceError(
                 413,

@@ -17,7 +17,8 @@
   1000) before it closes the connections: uvicorn closes every WebSocket (1012) before the lifespan shutdown, where
   the final events would reach no one.
 - `RedactQueries`: a logging filter that cuts query strings (WebSocket URLs carry `?token=`) out of
-  uvicorn's log lines; `install_log_redaction()` puts it on uvicorn's loggers, with a throttle on the
+  uvicorn's log lines; `EscapeControls` escapes line breaks and control characters in every record's message
+  (what a client sent can never start a log line of its own); `install_log_redaction()` puts it on uvicorn's loggers, with a throttle on the
   WARNINGs uvicorn writes for malformed requests (one per kind every 10 s).
 """
 
@@ -149,16 +150,45 @@ class RedactQueries(logging.Filter):
         return True
 
 
+#: characters that would start a new line (or rewrite one) in a log file or terminal, and how a record shows them
+_CONTROLS = {c: f"\\x{c:02x}" for c in (*range(0x20), 0x7F, 0x85)} | {
+    ord("\n"): "\\n",
+    ord("\r"): "\\r",
+    ord("\t"): "\\t",
+    0x2028: "\\u2028",
+    0x2029: "\\u2029",
+}
+
+
+class EscapeControls(logging.Filter):
+    """Escapes line breaks and other control characters in a record's message (its arguments formatted in): what a
+    client sent (a URL's path, a field) can never start a line of its own — a forged ERROR line or traceback. The
+    record's traceback (exc_info), which the formatter adds, keeps its lines."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        escaped = message.translate(_CONTROLS)
+        if escaped != message:
+            record.msg, record.args = escaped, None
+        return True
+
+
 _REDACTION = RedactQueries()
+_ESCAPES = EscapeControls()
 _THROTTLE = ThrottleFilter(UVICORN_CLIENT_WARNINGS)
 
 
 def install_log_redaction() -> None:
-    """Put RedactQueries on uvicorn's loggers, and the throttle on its client-caused WARNINGs (idempotent)."""
+    """Put RedactQueries and EscapeControls on uvicorn's loggers, EscapeControls on the root's handlers (the
+    service's records), and the throttle on uvicorn's client-caused WARNINGs (idempotent)."""
     for name in ("uvicorn.error", "uvicorn.access", "uvicorn"):
         logger = logging.getLogger(name)
-        if _REDACTION not in logger.filters:
-            logger.addFilter(_REDACTION)
+        for f in (_REDACTION, _ESCAPES):
+            if f not in logger.filters:
+                logger.addFilter(f)
+    for handler in logging.getLogger().handlers:  # the service's own records reach the log through the root's
+        if _ESCAPES not in handler.filters:
+            handler.addFilter(_ESCAPES)
     error = logging.getLogger("uvicorn.error")
     if _THROTTLE not in error.filters:
         error.addFilter(_THROTTLE)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import signal
+import socket
 import sys
 from pathlib import Path
 
@@ -69,3 +71,33 @@ def test_serve_runs_and_stops_cleanly_on_ctrl_c(kit, tactile_model, library_dir)
             proc.kill()
     assert proc.returncode == 0, output
     assert "Application shutdown complete" in output and "Traceback" not in output
+
+
+def test_a_client_cannot_write_a_line_of_its_own_into_the_log(kit, tactile_model, library_dir):
+    """A refused handshake whose URL carries line breaks: the served process's log (as an operator reads it)
+    holds the refusal on one line, the breaks escaped; no forged ERROR line, no traceback."""
+    server = ServerProcess(
+        [sys.executable, "-m", "service.cli", "serve", "--model", str(tactile_model), "--library", str(library_dir)],
+        {"HAPTICLINK_API_KEYS": kit.API_KEY},
+        cwd=REPO,
+        timeout_s=60,
+        capture=True,
+    )
+    forged = "x%0A2001-01-01%2000:00:00,000%20ERROR%20service.state:%20forged%0DTraceback%20(most%20recent%20call)"
+    try:
+        for route in ("ingest", "events"):
+            with socket.create_connection(("127.0.0.1", server.port), timeout=10) as raw:
+                raw.sendall(
+                    f"GET /sessions/{forged}/{route} HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade"
+                    "\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+                )
+                assert raw.recv(4096).startswith(b"HTTP/1.1 404"), route
+    finally:
+        assert server.stop() == 0
+    output = server.proc.stdout.read()
+    lines = output.splitlines()
+    assert not [line for line in lines if line.startswith("2001-01-01") or line.startswith("Traceback")], output
+    # no line at ERROR (the service's "<date> <time> ERROR …", uvicorn's "ERROR: …"): the forged one is inside a WARNING
+    assert not [line for line in lines if re.match(r"(\S+ \S+ )?ERROR\b", line)], output
+    refused = [line for line in lines if "socket for session" in line and "refused: 404" in line]
+    assert len(refused) == 2 and all("\\n2001-01-01 00:00:00,000 ERROR" in line for line in refused), output

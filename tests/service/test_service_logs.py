@@ -122,3 +122,26 @@ def test_a_session_request_cut_off_by_a_dropped_link_logs_one_warning(kit, base_
     assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
     cut = [r.getMessage() for r in mine if "closed its connection" in r.getMessage()]
     assert len(cut) == 1 and "(POST /sessions)" in cut[0], cut
+
+
+def test_escape_controls_known_answers():
+    from service.server import EscapeControls
+
+    def record(msg, *args, exc_info=None):
+        return logging.LogRecord("service.x", logging.WARNING, __file__, 1, msg, args, exc_info)
+
+    forged = record("session %r from %s refused", "a\nb", "c\rd\x1b[2J\u2028e")
+    assert EscapeControls().filter(forged) is True
+    assert forged.getMessage() == "session 'a\\nb' from c\\rd\\x1b[2J\\u2028e refused"
+    plain = record("session %s created for %s", "hl.1", "10.0.0.1")
+    EscapeControls().filter(plain)
+    assert plain.args == ("hl.1", "10.0.0.1")  # a clean record is left as it was, its arguments unformatted
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        import sys
+
+        failed = record("estimation failed:\n%s", "x", exc_info=sys.exc_info())
+    EscapeControls().filter(failed)
+    text = logging.Formatter("%(levelname)s %(message)s").format(failed)
+    assert text.startswith("WARNING estimation failed:\\nx\nTraceback")  # the traceback keeps its own lines
