@@ -12,15 +12,13 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import Response
-from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from service.errors import ErrorResponse, ServiceError, not_json
+from service.errors import ErrorResponse, ServiceError, invalid_fields
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.probes import ProbeAnswers
@@ -95,7 +93,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(ClientDisconnect, _client_gone)  # type: ignore[arg-type]
-    app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
     for module in (sessions, ingest, events, library, ops):
         app.include_router(module.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
@@ -139,26 +136,8 @@ async def _client_gone(request: Request, exc: ClientDisconnect) -> Response:
 
 
 async def _invalid(request: Request, exc: RequestValidationError) -> ErrorResponse:
-    # One readable sentence instead of pydantic's list, so every 4xx has the same shape; a body that is not JSON
-    # gets the 400 and the wording of a block that is not (service.intake), with the reason and where.
-    errors = exc.errors()
-    syntax = next((e for e in errors if e.get("type") == "json_invalid"), None)
-    if syntax is not None:
-        where = syntax.get("loc", ("body", "?"))[-1]
-        return await _service_error(request, not_json(f"{syntax.get('ctx', {}).get('error', '?')} (at {where})"))
-    parts = [f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg')}" for e in errors]
-    return ErrorResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
-
-
-async def _http_error(request: Request, exc: StarletteHTTPException) -> Response:
-    # FastAPI answers a JSON body that Python cannot read for a reason other than its syntax (an integer of thousands
-    # of digits, bytes that are not UTF-8, nesting too deep) with a bare 400 "There was an error parsing the body".
-    # It does the same when the client went away before its body was in: that is a dropped link, as on every route.
-    if exc.status_code == 400 and isinstance(exc.__cause__, ClientDisconnect):
-        return await _client_gone(request, exc.__cause__)
-    if exc.status_code == 400 and isinstance(exc.__cause__, (ValueError, RecursionError)):
-        return await _service_error(request, not_json(str(exc.__cause__).split(";")[0]))
-    return await http_exception_handler(request, exc)
+    # One readable sentence instead of pydantic's list, so every 4xx has the same shape.
+    return await _service_error(request, invalid_fields(exc.errors()))
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:

@@ -78,10 +78,11 @@ def client_of(connection: HTTPConnection) -> str:
 
 
 def fleet_member(request: Request, state: State, token: Token) -> str:
-    """A valid fleet API key, within this client's session-creation rate → the client's address.
+    """A valid fleet API key → the client's address. Checked before the request's body is read: a client without
+    a key costs its headers alone.
 
     503 when no key is configured (the endpoint is closed, and says how to open it), 401 for a missing or
-    unknown key, 429 + Retry-After past the rate."""
+    unknown key."""
     client = client_of(request)
     if not state.api_keys.configured:
         raise ServiceError(503, NOT_CONFIGURED)
@@ -100,6 +101,12 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
             else "the API key is not valid",
             {"WWW-Authenticate": "Bearer"},
         )
+    return client
+
+
+def take_session_slot(state: ServiceState, client: str) -> None:
+    """One session from `client`'s session-creation rate; 429 + Retry-After past it (refund it with
+    state.session_limiter.refund when no session is opened after all)."""
     wait = state.session_limiter.take(client)
     if wait > 0:
         state.metrics.sessions_refused.labels(reason="rate").inc()
@@ -109,7 +116,6 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
             f"after a burst of {state.settings.session_burst}",
             {"Retry-After": f"{max(1, round(wait))}"},
         )
-    return client
 
 
 FleetClient = Annotated[str, Depends(fleet_member)]

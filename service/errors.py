@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from starlette.responses import JSONResponse
@@ -46,6 +47,13 @@ def not_json(reason: object) -> ServiceError:
     """400: a body that is not JSON Python can read (its syntax, an integer of thousands of digits, bytes that are
     not UTF-8, nesting too deep), with the reason."""
     return ServiceError(400, f"body is not valid JSON: {reason}")
+
+
+def invalid_fields(errors: Sequence[Mapping[str, Any]], *, under: tuple[str, ...] = ()) -> ServiceError:
+    """422 naming each field pydantic refused, in one sentence ("body.name: String should have at most 200
+    characters"); under: where the validated object sits (("body",) for a request body validated by hand)."""
+    parts = [".".join(str(p) for p in (*under, *e.get("loc", ()))) + f": {e.get('msg')}" for e in errors]
+    return ServiceError(422, "; ".join(parts) or "invalid request")
 
 
 def session_not_found(session_id: str) -> ServiceError:

@@ -27,6 +27,15 @@ class SessionCreate(BaseModel):
     name: str | None = Field(None, max_length=200, description="a label shown to operators")
 
 
+#: a session request is a name of at most 200 characters: a body beyond this is refused before it is read
+MAX_SESSION_REQUEST_BYTES = 4096
+SESSION_REQUEST_BODY = {
+    "required": False,
+    "description": f"optional (an empty body opens a session with no name); at most {MAX_SESSION_REQUEST_BYTES} bytes",
+    "content": {"application/json": {"schema": SessionCreate.model_json_schema()}},
+}
+
+
 class SessionCreated(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={

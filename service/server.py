@@ -18,8 +18,9 @@
   the final events would reach no one.
 - `RedactQueries`: a logging filter that cuts query strings (WebSocket URLs carry `?token=`) out of
   uvicorn's log lines; `EscapeControls` escapes line breaks and control characters in every record's message
-  (what a client sent can never start a log line of its own); `install_log_redaction()` puts it on uvicorn's loggers, with a throttle on the
-  WARNINGs uvicorn writes for malformed requests (one per kind every 10 s).
+  (what a client sent can never start a log line of its own); `install_log_redaction()` puts both on uvicorn's
+  loggers (EscapeControls on the root's handlers too), with a throttle on the WARNINGs uvicorn writes for
+  malformed requests (one per kind every 10 s).
 """
 
 from __future__ import annotations

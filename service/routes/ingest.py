@@ -25,16 +25,12 @@ from service.auth import ROBOT_ONLY
 from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
-from service.routes.common import errors, try_later
+from service.routes.common import errors, media_type, try_later
 from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, SCENE_REQUEST_BODY, BlockAck, FrameAck, SceneCheck
 from service.state import ServiceState
 
 router = APIRouter(tags=["ingest"])
 log = logging.getLogger("service.access")
-
-
-def media_type(request: Request) -> str:
-    return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
 @router.post(

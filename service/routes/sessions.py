@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+import json
 
-from service.deps import EitherSession, FleetClient, OperatorSession, State
-from service.errors import ServiceError
-from service.routes.common import errors, try_later
-from service.schemas import SessionCreate, SessionCreated, SessionStatus
+from fastapi import APIRouter, Request
+from pydantic import ValidationError
+
+from service.deps import EitherSession, FleetClient, OperatorSession, State, take_session_slot
+from service.errors import ServiceError, invalid_fields, not_json
+from service.routes.common import errors, media_type, try_later
+from service.schemas import (
+    MAX_SESSION_REQUEST_BYTES,
+    SESSION_REQUEST_BODY,
+    SessionCreate,
+    SessionCreated,
+    SessionStatus,
+)
 
 router = APIRouter(tags=["sessions"])
 
@@ -16,19 +25,57 @@ router = APIRouter(tags=["sessions"])
     "/sessions",
     status_code=201,
     response_model=SessionCreated,
+    openapi_extra={"requestBody": SESSION_REQUEST_BODY},
     responses={
-        **errors(400, 401, 422, 503),
+        **errors(400, 401, 413, 415, 422, 503),
         **try_later("too many sessions opened by this client; retry after Retry-After s"),
     },
     summary="Open a session (fleet API key)",
 )
-async def create_session(state: State, client: FleetClient, body: SessionCreate | None = None) -> SessionCreated:
+async def create_session(request: Request, state: State, client: FleetClient) -> SessionCreated:
+    # The key is checked (FleetClient) before the body is read, the body is read and checked before the client's
+    # session rate is spent: a refused request opens nothing, so it costs the rate nothing either.
+    body = await session_request(request)
+    take_session_slot(state, client)
     try:
         session, robot, operator = await state.create_session(body.name if body else None, client)
     except ServiceError:  # refused (not ready, full, at capacity): no session opened, so none counts against the rate
         state.session_limiter.refund(client)
         raise
     return SessionCreated(session_id=session.id, robot_token=robot, operator_token=operator)
+
+
+async def session_request(request: Request) -> SessionCreate | None:
+    """The body of POST /sessions: None when empty (or JSON null); 413 past MAX_SESSION_REQUEST_BYTES (a declared
+    length before reading, else as it streams in), 415 for a body that is not application/json, 400 for one that
+    is not JSON Python can read, 422 naming the field."""
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > MAX_SESSION_REQUEST_BYTES:
+        raise _too_large()
+    raw = bytearray()
+    async for chunk in request.stream():
+        raw += chunk
+        if len(raw) > MAX_SESSION_REQUEST_BYTES:
+            raise _too_large()
+    if not raw:
+        return None
+    kind = media_type(request)
+    if kind != "application/json":
+        raise ServiceError(415, f"a session request is application/json, got {kind or 'no Content-Type'}")
+    try:
+        obj = json.loads(bytes(raw))
+    except (ValueError, RecursionError) as exc:  # its syntax, bytes not UTF-8, a huge integer, nesting too deep
+        raise not_json(exc) from None
+    if obj is None:
+        return None
+    try:
+        return SessionCreate.model_validate(obj)
+    except ValidationError as exc:
+        raise invalid_fields(exc.errors(), under=("body",)) from None
+
+
+def _too_large() -> ServiceError:
+    return ServiceError(413, f"a session request holds at most {MAX_SESSION_REQUEST_BYTES} bytes (a name)")
 
 
 @router.get(

@@ -460,16 +460,15 @@ def test_the_fuzzed_session_still_works(kit, server, client, fuzz_session, libra
 @pytest.mark.parametrize(
     "body, words",
     [
-        (b'{"name": "x"', ["Expecting", "(at 12)"]),
-        (b'{"name": "x", "fleet": ' + b"7" * 5000 + b"}", ["4300 digits"]),
+        (b'{"name": "x"', ["Expecting", "(char 12)"]),
         (b'{"name": "\xff\xfe"}', ["utf-8"]),
-        (b'{"name": ' + b"[" * 5000 + b"]" * 5000 + b"}", ["recursion"]),
+        (b'{"name": ' + b"[" * 1800 + b"]" * 1800 + b"}", ["recursion"]),
     ],
-    ids=["truncated", "5000-digit integer", "not UTF-8", "nested 5000 deep"],
+    ids=["truncated", "not UTF-8", "nested 1800 deep"],
 )
 def test_a_session_body_that_is_not_json_is_refused_as_a_block_would_be(kit, client, body, words):
-    """400 with the reason, in the words a block that is not JSON gets (FastAPI's own: 422 for a syntax error,
-    a bare "There was an error parsing the body" for the rest)."""
+    """400 with the reason, in the words a block that is not JSON gets. (An integer of thousands of digits does not
+    fit the 4 KiB a session request may hold: refused 413 before it is parsed.)"""
     r = client.post("/sessions", content=body, headers={**kit.FLEET, "Content-Type": "application/json"})
     assert r.status_code == 400, r.text
     detail = r.json()["detail"]

@@ -84,6 +84,37 @@ def test_a_refused_session_request_does_not_count_against_the_clients_rate(kit, 
         assert srv.app.state.service.session_limiter.take("127.0.0.1") > 0  # and the burst is spent now
 
 
+def test_a_session_request_is_judged_key_first_body_second_rate_last(kit, base_settings):
+    # the probe: 8 MB bodies without a key were parsed before their 401 (0.2–0.5 s of the event loop each, until
+    # admission shed streaming robots), ten 422s spent a client's session rate, and a body sent as text/plain got
+    # "Input should be a valid dictionary"
+    settings = base_settings.model_copy(update={"session_burst": 2, "session_rate_per_s": 0.01, "instance_id": "order"})
+    big = b"[" + b"[]," * 2_000_000 + b"[]]"  # 6 MB of JSON
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        for headers in ({}, {"Authorization": "Bearer nope"}):  # no key, a wrong key: 401 whatever the body
+            for body in (big, b"{syntax", b'{"name": 7}'):
+                r = client.post("/sessions", content=body, headers={**headers, "Content-Type": "application/json"})
+                assert r.status_code == 401, (headers, body[:10], r.text)
+        # with a key: the body's size is bounded before it is read, its media type named, its fields named
+        r = client.post("/sessions", content=big, headers={**kit.FLEET, "Content-Type": "application/json"})
+        assert r.status_code == 413 and "at most 4096 bytes" in r.json()["detail"]
+        for kind in ("text/plain", "application/x-www-form-urlencoded", None):
+            headers = {**kit.FLEET, **({"Content-Type": kind} if kind else {})}
+            r = client.post("/sessions", content=b'{"name": "ok"}', headers=headers)
+            assert r.status_code == 415, r.text
+            assert r.json()["detail"] == f"a session request is application/json, got {kind or 'no Content-Type'}"
+        for _ in range(10):
+            r = client.post("/sessions", json={"nmae": "typo"}, headers=kit.FLEET)
+            assert r.status_code == 422 and r.json()["detail"] == "body.nmae: Extra inputs are not permitted"
+        # none of these opened a session, so none spent the rate: the burst of 2 is whole
+        assert [client.post("/sessions", json={"name": "r"}, headers=kit.FLEET).status_code for _ in range(3)] == [
+            201,
+            201,
+            429,
+        ]
+        assert client.post("/sessions", headers=kit.FLEET).status_code == 429  # an empty body is a request too
+
+
 def test_a_burst_of_session_requests_is_refused_early_not_taking_every_slot(kit, base_settings):
     # the probe: 300 POST /sessions in 0.6 s took all 256 slots for 600 s
     settings = base_settings.model_copy(update={"session_burst": 5, "session_rate_per_s": 0.5, "instance_id": "burst"})
