@@ -95,12 +95,41 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
 
 
 class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
-    """uvicorn's WebSocket protocol, quiet about refused handshakes and non-UTF-8 text (module docstring)."""
+    """uvicorn's WebSocket protocol, quiet about refused handshakes and non-UTF-8 text (module docstring), and
+    bounded against ping floods: uvicorn writes a pong for every ping whether or not the client reads them, so a
+    client pinging without reading grew the server's memory without bound (22 MB/s in a probe). Past
+    `max_pings_per_s` the socket closes 1008; a pong is written only while the client reads what it is sent."""
+
+    #: pings a client may send in one second (a keepalive sends one every few seconds)
+    max_pings_per_s = 50
+    _ping_second = float("-inf")  # when the current one-second count of pings began (loop time)
+    _pings = 0
 
     async def send(self, message: Any) -> None:
         await super().send(message)
         if message["type"] == "websocket.http.response.body" and not message.get("more_body", False):
             self.handshake_complete = True  # refused with an HTTP answer: the handshake is over, and answered
+
+    def handle_ping(self) -> None:
+        pong = self.conn.data_to_send()  # what websockets queued in answer
+        if self.close_sent:
+            return
+        now = self.loop.time()
+        if now - self._ping_second >= 1.0:
+            self._ping_second, self._pings = now, 0
+        self._pings += 1
+        if self._pings > self.max_pings_per_s:
+            _client_warnings.warning(
+                "pings",
+                "closing a WebSocket from %s: more than %d pings in a second (1008)",
+                _peer(self.client),
+                self.max_pings_per_s,
+            )
+            self.conn.send_close(1008, "too many pings")
+            self.handle_parser_exception()
+            return
+        if self.writable.is_set():  # the transport's buffer is under its high-water mark: the client reads
+            self.transport.write(b"".join(pong))
 
     def send_receive_event_to_app(self) -> None:
         if self.curr_msg_data_type == "text" and not self.close_sent:

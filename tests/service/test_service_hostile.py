@@ -404,3 +404,27 @@ def test_the_routers_serve_every_route():
         "/library/{entry_id}/model",
         "/console",
     } <= paths
+
+
+def test_a_ping_flood_closes_its_socket_1008_and_the_session_streams_on(kit, server, client, library_dir):
+    # the probe: 180 k pings a second for 12 s, their pongs never read, grew the server by 22 MB/s (and stalled
+    # /health): uvicorn wrote a pong for every ping whatever the client read
+    session = kit.create_session(client)
+    url = kit.socket_url(server, session, "ingest")
+    with connect(url) as ws:
+        for k in range(400):
+            try:
+                ws.ping(str(k))
+            except ConnectionClosed:
+                break
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=10)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+    assert closed.value.rcvd.reason == "too many pings"
+    # a keepalive's pace is answered, and the session's blocks still go in
+    with connect(url) as ws:
+        for k in range(5):
+            assert ws.ping(str(k)).wait(timeout=5)
+        blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))
+        ws.send(encode_binary(blocks[0]))
+        assert json.loads(ws.recv(timeout=10))["ok"] is True
