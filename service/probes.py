@@ -11,18 +11,29 @@ behind the loop and the pools.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import socket
+import sys
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from service.log_throttle import LogThrottle
 from service.runtime import Runtime
 from service.schemas import HealthOut, ReadyOut
 
 log = logging.getLogger(__name__)
+_dropped = LogThrottle(log)
+#: connections the probe port serves at once; beyond it a new one is closed at once (a probe is one short request,
+#: so only a client holding connections open reaches this: it costs threads, never memory without bound)
+MAX_PROBE_CONNECTIONS = 64
+#: a request (from the wait for its first byte to its answer) gets this long, however slowly its bytes drip in
+PROBE_REQUEST_S = 5.0
 
 
 def health(instance: str) -> HealthOut:
@@ -91,8 +102,23 @@ class ProbeServer:
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
-            timeout = 5.0  # a connection that sends nothing holds its thread this long at most
+            timeout = PROBE_REQUEST_S  # each read; the whole request is bounded by handle_one_request's deadline
             disable_nagle_algorithm = True  # headers and body are two writes: no 40 ms delayed-ACK wait between them
+
+            def handle_one_request(self) -> None:
+                # One byte every few seconds would reset the per-read timeout forever (a slowloris holding the
+                # thread): past the deadline the socket is shut, the read sees its end and the request is over.
+                deadline = threading.Timer(PROBE_REQUEST_S, self._cut)
+                deadline.daemon = True
+                deadline.start()
+                try:
+                    super().handle_one_request()
+                finally:
+                    deadline.cancel()
+
+            def _cut(self) -> None:
+                with contextlib.suppress(OSError):
+                    self.connection.shutdown(socket.SHUT_RDWR)
 
             def do_GET(self) -> None:  # noqa: N802 - the standard library's name
                 self._answer(body=True)
@@ -119,7 +145,7 @@ class ProbeServer:
             def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the standard library's name
                 pass  # one line per probe would flood the log
 
-        self._server = ThreadingHTTPServer((host, port), Handler)
+        self._server = _BoundedProbeServer((host, port), Handler)
         self._server.daemon_threads = True
         self._server.timeout = 1.0
         self.port = self._server.server_address[1]
@@ -132,3 +158,39 @@ class ProbeServer:
     def stop(self) -> None:
         self._server.shutdown()
         self._server.server_close()
+
+
+class _BoundedProbeServer(ThreadingHTTPServer):
+    """ThreadingHTTPServer with at most MAX_PROBE_CONNECTIONS connections at once, and a client's dropped link (a
+    broken pipe, a reset, a read past its deadline) one rate-limited WARNING instead of socketserver's traceback."""
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]) -> None:
+        super().__init__(address, handler)
+        self._slots = threading.BoundedSemaphore(MAX_PROBE_CONNECTIONS)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            _dropped.warning("full", "probe port: %d connections open; closing a new one", MAX_PROBE_CONNECTIONS)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        if not isinstance(sys.exc_info()[1], OSError):  # not the client's doing: the answer itself failed
+            log.exception("probe port: answering a request failed")
+            return
+        _dropped.warning(
+            "dropped",
+            "probe port: a connection from %s ended before its answer was sent",
+            client_address[0] if client_address else "?",
+        )
