@@ -495,5 +495,5 @@ async def _kill_a_replica(topology: Topology) -> None:
     # as the replicas logged their refusals (410 at the handshake) without one
     # (refusals of one kind are logged once per interval: one of the lost sessions' lines is there)
     survivor_log = logs(topology)[f"{topology.replicas[survivor].name}.log"]
-    assert any(f"{robots[k].session_id} from" in survivor_log for k in lost), survivor_log[-2000:]
+    assert any(f"{robots[k].session_id!r} from" in survivor_log for k in lost), survivor_log[-2000:]
     assert_no_secret_logged(topology, session_secrets(topology, robots + again))
