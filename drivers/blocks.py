@@ -286,11 +286,7 @@ def decode_binary(buf: bytes) -> Block:
             and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
         ):
             raise ValueError(f"taps: shape must be [k, n] (k taps of n samples), got {shape!r}")
-        if (
-            shape[0] > MAX_TAPS * MAX_TAP_SAMPLES
-            or shape[1] > MAX_TAPS * MAX_TAP_SAMPLES
-            or (shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES)
-        ):
+        if max(shape) > MAX_TAPS * MAX_TAP_SAMPLES or shape[0] * shape[1] > MAX_TAPS * MAX_TAP_SAMPLES:
             raise ValueError(f"taps: shape {shape} is too large")
         if offset + 4 * shape[0] * shape[1] != len(buf):
             raise ValueError(

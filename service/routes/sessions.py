@@ -75,7 +75,10 @@ async def session_request(request: Request) -> SessionCreate | None:
 
 
 def _too_large() -> ServiceError:
-    return ServiceError(413, f"a session request holds at most {MAX_SESSION_REQUEST_BYTES} bytes (a name)")
+    # the rest of the body is left unread: the connection cannot carry another request
+    return ServiceError(
+        413, f"a session request holds at most {MAX_SESSION_REQUEST_BYTES} bytes (a name)", {"Connection": "close"}
+    )
 
 
 @router.get(
