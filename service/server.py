@@ -26,6 +26,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import re
 import socket
@@ -43,30 +44,62 @@ _client_warnings = LogThrottle(log)
 #: uvicorn's WARNINGs about what a client sent (httptools_impl), throttled
 UVICORN_CLIENT_WARNINGS = ("Invalid HTTP request received.", "Unsupported upgrade request.")
 _QUERY = re.compile(r"\?[^\s\"']*")
+#: a request's line and headers together (a robot's are a few hundred bytes; nginx's default is 4 × 8 kB)
+MAX_REQUEST_HEAD_BYTES = 64 * 1024
 
 
 class DeadlineHttpProtocol(HttpToolsProtocol):
-    """HttpToolsProtocol that closes a connection whose request does not arrive whole within the deadline."""
+    """HttpToolsProtocol that closes a connection whose request does not arrive whole within the deadline, and
+    answers 431 to a request whose line and headers pass MAX_REQUEST_HEAD_BYTES (httptools sets no bound: one
+    64 MB header, sent with no credential, held the event loop for seconds)."""
 
     read_timeout_s = 10.0  # set per server by server_options (a subclass per Settings)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._deadline: asyncio.TimerHandle | None = None
+        self._head: int | None = 0  # bytes of the current request's line and headers so far (None: they are in)
+        self._tail = b""  # the last bytes of the head so far: its blank line may straddle two reads
         self._arm()
 
     def data_received(self, data: bytes) -> None:
         if self._deadline is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a kept-alive connection
+        if self._head is not None:
+            end = (self._tail + data).find(b"\r\n\r\n")
+            self._head += len(data) if end < 0 else max(0, end + 4 - len(self._tail))
+            self._tail = data[-3:]
+            if self._head > MAX_REQUEST_HEAD_BYTES:
+                self._refuse_head()
+                return
         super().data_received(data)
+
+    def on_headers_complete(self) -> None:
+        self._head = None
+        super().on_headers_complete()
 
     def on_message_complete(self) -> None:
         self._disarm()
+        self._head, self._tail = 0, b""  # the next request's head may follow on this connection
         super().on_message_complete()
 
     def handle_websocket_upgrade(self) -> None:
         self._disarm()
         super().handle_websocket_upgrade()
+
+    def _refuse_head(self) -> None:
+        _client_warnings.warning(
+            "head",
+            "closing a connection from %s: request line and headers over %d bytes (431)",
+            _peer(self.client),
+            MAX_REQUEST_HEAD_BYTES,
+        )
+        body = json.dumps({"detail": f"request line and headers exceed {MAX_REQUEST_HEAD_BYTES} bytes"}).encode()
+        self.transport.write(
+            b"HTTP/1.1 431 Request Header Fields Too Large\r\ncontent-type: application/json\r\n"
+            b"content-length: %d\r\nconnection: close\r\n\r\n%s" % (len(body), body)
+        )
+        self.transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()

@@ -79,7 +79,7 @@ async def render_model(
     served = runtime.render_models.models.get(entry_id)
     if served is None:
         raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
-    compact = accept is not None and COMPACT_CONTENT_TYPE in accept
+    compact = wants_compact(accept)
     etag = f'"{served.version}.hlm1"' if compact else f'"{served.version}"'
     headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL, "Vary": "Accept"}
     if if_none_match is not None and _matches(if_none_match, etag):
@@ -101,6 +101,29 @@ async def _authorize(state: State, token: str | None, session: str | None) -> No
             {"WWW-Authenticate": "Bearer"},
         )
     await state.directory.authorized(session, token, EITHER)
+
+
+def wants_compact(accept: str | None) -> bool:
+    """Whether an Accept header asks for the compact encoding: it names COMPACT_CONTENT_TYPE itself with q > 0, and
+    no JSON-serving range (application/json, application/*, */*) with a higher q. A substring is not a name
+    (`…-modelXYZ`), and q=0 means "not this" (RFC 9110 §12.5.1)."""
+    if not accept:
+        return False
+    q: dict[str, float] = {}
+    for part in accept.split(","):
+        kind, *params = (p.strip() for p in part.split(";"))
+        weight = 1.0
+        for param in params:
+            name, _, value = param.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    weight = float(value)
+                except ValueError:
+                    weight = 0.0  # an unreadable weight: not a request for this type
+        q[kind.lower()] = max(q.get(kind.lower(), 0.0), weight)
+    compact = q.get(COMPACT_CONTENT_TYPE, 0.0)
+    json_q = max(q.get(k, 0.0) for k in ("application/json", "application/*", "*/*"))
+    return compact > 0 and compact >= json_q
 
 
 def _matches(if_none_match: str, etag: str) -> bool:

@@ -428,3 +428,28 @@ def test_a_ping_flood_closes_its_socket_1008_and_the_session_streams_on(kit, ser
         blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 0.1))
         ws.send(encode_binary(blocks[0]))
         assert json.loads(ws.recv(timeout=10))["ok"] is True
+
+
+def test_request_headers_are_bounded_before_they_are_parsed(kit, server, client, library_dir):
+    # the probe: one 64 MB header on GET /library, no credential, held the event loop 2.5–5 s (/health with it)
+    many = b"".join(b"X-%d: %s\r\n" % (k, b"z" * 900) for k in range(200))
+    for head in (b"X-A: " + b"y" * 2_000_000 + b"\r\n", many):
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as raw:
+            t0 = time.perf_counter()
+            try:
+                raw.sendall(b"GET /library HTTP/1.1\r\nHost: x\r\n" + head + b"\r\n")
+            except OSError:
+                pass  # the server may close before the last bytes are in
+            answer = raw.recv(4096)
+            assert answer.startswith(b"HTTP/1.1 431 "), answer[:100]
+            assert b"request line and headers exceed 65536 bytes" in answer
+            assert time.perf_counter() - t0 < 2
+    assert client.get("/health").status_code == 200
+    # a body in the same reads as a small head is no header: a 200 kB block whose head and body arrive together
+    session = kit.create_session(client)
+    rec = kit.stroke_recording(library_dir, "synth_000", 3.0)
+    block = kit.recording_blocks(rec, block_s=1.0)[0]
+    body = json.dumps(encode_json(block)).encode()
+    assert len(body) > 64 * 1024
+    r = kit.post_block(client, session, body, "application/json")
+    assert r.status_code == 202, r.text

@@ -139,3 +139,23 @@ def test_an_unknown_view_is_refused_at_the_handshake(kit, server, client):
         connect(kit.socket_url(server, session, "events") + "&view=bogus")
     assert refused.value.response.status_code == 422
     assert b"view must be one of full, render, got 'bogus'" in refused.value.response.body
+
+
+@pytest.mark.parametrize(
+    ("accept", "compact"),
+    [
+        (None, False),
+        ("application/json", False),
+        (model_codec.CONTENT_TYPE, True),
+        (f"application/json, {model_codec.CONTENT_TYPE}", True),  # named alike: the one asked for by name
+        (f"{model_codec.CONTENT_TYPE};q=0.5, application/json", False),  # JSON preferred
+        (f"text/html, {model_codec.CONTENT_TYPE};q=0", False),  # q=0: "not this"
+        (f"{model_codec.CONTENT_TYPE}XYZ", False),  # another type that merely contains the name
+        (f"{model_codec.CONTENT_TYPE.upper()} ; q=0.9, */*;q=0.1", True),
+        (f"{model_codec.CONTENT_TYPE};q=x", False),  # an unreadable weight asks for nothing
+    ],
+)
+def test_the_compact_encoding_is_served_only_when_asked_for_by_name(accept, compact):
+    from service.routes.library import wants_compact
+
+    assert wants_compact(accept) is compact
