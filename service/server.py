@@ -158,11 +158,23 @@ class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
                 _peer(self.client),
                 self.max_pings_per_s,
             )
-            self.conn.send_close(1008, "too many pings")
-            self.handle_parser_exception()
+            self._close(1008, "too many pings")
             return
         if self.writable.is_set():  # the transport's buffer is under its high-water mark: the client reads
             self.transport.write(b"".join(pong))
+
+    def _close(self, code: int, reason: str) -> None:
+        """Close as the app's websocket.close does: the app told, the close frame sent, and the connection closed
+        once the client answers it (or after close_timeout). Closed at once, a client still sending would get a
+        reset, which can discard the close frame before the client reads it."""
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
+        self.conn.send_close(code, reason)
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.close_sent = True
+        if self.read_paused:  # the client's answer must be read
+            self.read_paused = False
+            self.transport.resume_reading()
+        self.close_timer = self.loop.call_later(self.close_timeout, self.transport.close)
 
     def send_receive_event_to_app(self) -> None:
         if self.curr_msg_data_type == "text" and not self.close_sent:
@@ -173,8 +185,7 @@ class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
                 _client_warnings.warning(
                     "utf8", "closing a WebSocket from %s: a text frame that is not UTF-8 (1007)", _peer(self.client)
                 )
-                self.conn.send_close(1007, "text frames must be UTF-8")
-                self.handle_parser_exception()
+                self._close(1007, "text frames must be UTF-8")
                 return
         super().send_receive_event_to_app()
 
