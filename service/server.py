@@ -66,8 +66,14 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
         if self._deadline is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a kept-alive connection
         if self._head is not None:
-            end = (self._tail + data).find(b"\r\n\r\n")
-            self._head += len(data) if end < 0 else max(0, end + 4 - len(self._tail))
+            # the blank line that ends the head: across the last read's tail, else in this read (searched in place:
+            # an HTTP block's first read holds its body too, which is not copied for this)
+            joint = (self._tail + data[:3]).find(b"\r\n\r\n")
+            inside = data.find(b"\r\n\r\n") if joint < 0 else -1
+            if joint >= 0:
+                self._head += joint + 4 - len(self._tail)
+            else:
+                self._head += len(data) if inside < 0 else inside + 4
             self._tail = data[-3:]
             if self._head > MAX_REQUEST_HEAD_BYTES:
                 self._refuse_head()
