@@ -40,12 +40,15 @@ class Point:
 
 
 def curves(report: dict) -> dict[tuple[str, int], list[Point]]:
-    """(config, replicas) → its rows in order of robots. ValueError naming what a report without rows lacks."""
+    """(config, replicas) → its rows in order of robots, but for rows that measured nothing (refused at set-up: no
+    window arrived, so there is no latency to draw). ValueError naming what a report without rows lacks."""
     rows = report.get("results")
     if not rows:
         raise ValueError("the report has no results: write it with python -m benchmarks.service")
     out: dict[tuple[str, int], list[Point]] = {}
     for r in rows:
+        if r["e2e_ms"]["p99"] is None:
+            continue
         point = Point(int(r["robots"]), float(r["e2e_ms"]["p99"]), float(r["service_cpu_ms_per_robot_s"]), r["valid"])
         out.setdefault((r["config"], int(r["replicas"])), []).append(point)
     return {key: sorted(points, key=lambda p: p.robots) for key, points in out.items()}

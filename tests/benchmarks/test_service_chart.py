@@ -38,6 +38,15 @@ def test_rows_are_grouped_per_configuration_and_replicas_in_order_of_robots():
         curves({"results": []})
 
 
+def test_a_row_that_measured_nothing_is_left_off_the_chart(tmp_path):
+    # refused at set-up (more robots than a replica's max_sessions): no window, so no latency and no CPU
+    empty = {**_row("served", 300, 1, 0.0, 0.0, valid=False), "e2e_ms": {"p50": None, "p99": None, "max": None}}
+    empty["service_cpu_ms_per_robot_s"] = 0.0
+    report = {**REPORT, "results": [*REPORT["results"], empty]}
+    assert curves(report)["served", 1] == [Point(1, 9.0, 26.0, True), Point(10, 7.0, 14.0, True)]
+    assert chart(report, tmp_path / "service.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_the_chart_is_a_png_and_a_report_it_cannot_read_is_named(tmp_path, capsys):
     out = chart(REPORT, tmp_path / "service.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
