@@ -387,6 +387,19 @@ def generator_lag_limit_ms(block_s: float) -> float:
     return min(GENERATOR_LAG_LIMIT_MS, 250 * block_s)
 
 
+def invalid_because(lag_p99_ms: float | None, limit_ms: float, failures: list[str]) -> str | None:
+    """Why a row did not measure the service serving its load (None: it did): the generator fell behind (its send
+    lag p99 over the limit), sent nothing (no lag to judge), or a robot or operator failed (the first failure)."""
+    reasons = []
+    if lag_p99_ms is None:
+        reasons.append("the generator sent no block")
+    elif lag_p99_ms > limit_ms:
+        reasons.append(f"generator send lag p99 {lag_p99_ms} ms > {limit_ms:g} ms")
+    if failures:
+        reasons.append(f"{len(failures)} generator failure(s): {failures[0]}")
+    return "; ".join(reasons) or None
+
+
 def measure(
     n: int,
     assets: Assets,
@@ -458,6 +471,7 @@ def measure(
     median_features = percentile(stages["features"], 50)
     lag_p99 = percentile(lag, 99)
     limit = generator_lag_limit_ms(block_s)
+    why_invalid = invalid_because(lag_p99, limit, failures)
     # the generator's stream phase: from the common start to its last window (the generators' own wall clocks)
     served_s = n * duration_s  # robot-seconds of stream the service was sent
     server_cpu_s = cpu1 - cpu0
@@ -470,12 +484,8 @@ def measure(
         "generators": plan.generators,
         "duration_s": duration_s,
         "block_s": block_s,
-        "valid": bool(lag_p99 is not None and lag_p99 <= limit and not failures),
-        "invalid_because": None
-        if lag_p99 is not None and lag_p99 <= limit and not failures
-        else (f"generator send lag p99 {lag_p99} ms > {limit:g} ms" if lag_p99 is None or lag_p99 > limit else "")
-        + ("; " if failures and (lag_p99 is None or lag_p99 > limit) else "")
-        + (f"{len(failures)} generator failure(s): {failures[0]}" if failures else ""),
+        "valid": why_invalid is None,
+        "invalid_because": why_invalid,
         "generator_lag_ms": {"p50": percentile(lag, 50), "p99": lag_p99, "max": percentile(lag, 100), "limit": limit},
         "windows_expected": expected,
         "windows_received": received,
