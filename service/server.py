@@ -57,6 +57,7 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self._answering: Any = None  # the request whose answer is being written (uvicorn's RequestResponseCycle)
         self._deadline: asyncio.TimerHandle | None = None
         self._head: int | None = 0  # bytes of the current request's line and headers so far (None: they are in)
         self._tail = b""  # the last bytes of the head so far: its blank line may straddle two reads
@@ -107,8 +108,16 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
         )
         self.transport.close()
 
+    def _start_asgi_task(self, cycle: Any, app: Any) -> None:
+        self._answering = cycle
+        super()._start_asgi_task(cycle, app)
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        # uvicorn marks only the newest request it parsed as disconnected; with requests pipelined, the one being
+        # answered is older, and it would write to the closed transport (an ERROR and a traceback, for any client)
+        if self._answering is not None and not self._answering.response_complete:
+            self._answering.disconnected = True
         super().connection_lost(exc)
 
     def _arm(self) -> None:

@@ -4,6 +4,7 @@ not UTF-8, a request body cut off by a dropped link and a garbled HTTP request l
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import time
@@ -122,6 +123,24 @@ def test_a_session_request_cut_off_by_a_dropped_link_logs_one_warning(kit, base_
     assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
     cut = [r.getMessage() for r in mine if "closed its connection" in r.getMessage()]
     assert len(cut) == 1 and "(POST /sessions)" in cut[0], cut
+
+
+def test_a_client_that_leaves_with_pipelined_answers_unread_writes_no_error(kit, server, captured):
+    """Pipelined requests whose answers the client never reads, then the link drops: uvicorn marked only the newest
+    parsed request disconnected, so the one still answering wrote to the closed transport and logged an ERROR with
+    a traceback per connection, for any client, without a credential."""
+    for _ in range(3):
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5) as raw:
+            raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            raw.setblocking(False)
+            with contextlib.suppress(BlockingIOError):
+                raw.send(b"GET /openapi.json HTTP/1.1\r\nHost: x\r\n\r\n" * 100)
+            time.sleep(0.5)  # the server's write buffer fills behind the unread answers
+    time.sleep(0.5)
+    assert httpx.get(f"{server.url}/health", timeout=5).status_code == 200
+    mine = [r for r in captured if not r.name.startswith(("httpx", "httpcore", "websockets"))]
+    assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
+    assert [r.getMessage() for r in mine if r.exc_info] == []
 
 
 def test_escape_controls_known_answers():
