@@ -15,7 +15,9 @@ import logging
 import secrets
 import time
 from collections.abc import Callable, Iterable
+from typing import Any
 
+from drivers.protocol import Close
 from service import memory
 from service.auth import Role, SessionCredentials, authorize, issue_credentials
 from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord
@@ -29,6 +31,9 @@ from service.settings import Settings
 log = logging.getLogger(__name__)
 
 REAP_EVERY_S = 5.0
+#: ingest sockets one session holds at once: its robot's, and one more while a reconnect overlaps a link not yet known
+#: dead; a further one replaces the oldest (each may hold a message of up to the size limit while it arrives)
+MAX_INGEST_SOCKETS = 2
 
 #: (session id, name, credentials) → a new Session on this replica
 SessionFactory = Callable[[str, str, SessionCredentials], Session]
@@ -43,6 +48,7 @@ class SessionDirectory:
         self.bus = bus
         self.metrics = metrics
         self.sessions: dict[str, Session] = {}
+        self._ingest: dict[str, list[Any]] = {}  # session id → its open ingest sockets (WebSockets), oldest first
         self._ended = 0  # sessions ended since memory was last given back
 
     # ---- open and end ----------------------------------------------------------------------------
@@ -78,6 +84,9 @@ class SessionDirectory:
             raise session_not_found(session_id)
         status = session.status()
         await self.drop(session_id)
+        # its robot is told now, not at its next block (an idle socket would outlive the session)
+        code, reason = (Close.LOST, why) if lost else (Close.SESSION_ENDED, "session ended")
+        await self._close_ingest(session_id, code, reason)
         with contextlib.suppress(Exception):
             await (self.broker.mark_lost(session_id, why) if lost else self.broker.forget(session_id))
         event = (
@@ -95,6 +104,29 @@ class SessionDirectory:
         if session is not None:
             self._ended += 1
             await session.close()
+
+    async def attach_ingest(self, session_id: str, socket: Any) -> None:
+        """A robot's ingest socket (an accepted starlette WebSocket) opened; past MAX_INGEST_SOCKETS the oldest is
+        closed 4429: a robot reconnects and resends, and one robot token cannot hold sockets without bound."""
+        sockets = self._ingest.setdefault(session_id, [])
+        sockets.append(socket)
+        while len(sockets) > MAX_INGEST_SOCKETS:
+            oldest = sockets.pop(0)
+            with contextlib.suppress(Exception):  # it may be closing already
+                await oldest.close(int(Close.SATURATED), "replaced by a newer ingest connection; reconnect and resend")
+
+    def detach_ingest(self, session_id: str, socket: Any) -> None:
+        """A robot's ingest socket closed."""
+        sockets = self._ingest.get(session_id, [])
+        if socket in sockets:
+            sockets.remove(socket)
+        if not sockets:
+            self._ingest.pop(session_id, None)
+
+    async def _close_ingest(self, session_id: str, code: Close, reason: str) -> None:
+        for socket in self._ingest.pop(session_id, []):
+            with contextlib.suppress(Exception):  # it may be closing already
+                await socket.close(int(code), reason[:120])
 
     async def end_all(self, why: str) -> None:
         """Shutdown: every local session ends as lost (their state cannot outlive the process)."""

@@ -51,7 +51,10 @@ class BlockIntake:
 
     def receive(self, session: Session, payload: bytes, binary: bool, arrived_ns: int) -> dict:
         """Decode and admit one block → its acknowledgement; ServiceError 400/422 (invalid), 429 (the session's queue
-        is full, or the replica is over capacity and sheds this session's blocks) otherwise."""
+        is full, or the replica is over capacity and sheds this session's blocks) otherwise; 404 when the session
+        ended after the request was authorized (a DELETE while its body arrived): no session holds the block."""
+        if session.closed:
+            raise session_not_found(session.id)
         try:
             self.capacity.admit_block(session)
         except ServiceError:

@@ -8,7 +8,7 @@ import logging
 import time
 
 from fastapi import APIRouter, Query, Request, WebSocket
-from starlette.websockets import WebSocketDisconnect
+from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from drivers.protocol import (
     BINARY_CONTENT_TYPE,
@@ -106,17 +106,19 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
         return
     assert session is not None
     await websocket.accept()
+    await state.directory.attach_ingest(session_id, websocket)
     why = "disconnected"
     try:
         while True:
             message = await websocket.receive()
-            if message["type"] == "websocket.disconnect":
-                return
+            if message["type"] == "websocket.disconnect" or websocket.application_state is WebSocketState.DISCONNECTED:
+                return  # (closed by the directory: its session ended, or a newer socket replaced it)
             arrived = time.perf_counter_ns()
             if state.sessions.get(session_id) is not session:
                 code, reason = await _gone(state, session_id)
                 why = "session lost" if code == Close.LOST else "session ended"
-                await websocket.close(int(code), reason)
+                if websocket.application_state is not WebSocketState.DISCONNECTED:  # the directory may have closed it
+                    await websocket.close(int(code), reason)
                 return
             data: bytes | None = message.get("bytes")
             binary = data is not None
@@ -144,6 +146,7 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
     except WebSocketDisconnect:
         return
     finally:
+        state.directory.detach_ingest(session_id, websocket)
         await state.directory.robot_disconnected(session, why)
 
 

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import contextlib
 import json
+import socket
 import threading
+import time
 
 import httpx
 import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from drivers.blocks import BINARY_CONTENT_TYPE, encode_binary
 from service.events import StatusEvent
 from texture_library.library import Library
 
@@ -29,6 +32,61 @@ def test_ending_a_session_tells_its_operators_and_closes_their_sockets(kit, serv
         with pytest.raises(ConnectionClosed):
             sub.recv(timeout=5)
         assert sub.close_code == 1000
+
+
+def test_a_block_whose_body_arrives_after_its_session_ended_is_refused_not_acknowledged(kit, server, client):
+    """The robot token is checked with the headers; a DELETE may end the session before the body is in. That block
+    was answered 202 and counted, with no session to hold it: the robot was told a lost block was accepted."""
+    session = kit.create_session(client)
+    block = encode_binary(kit.recording_blocks(kit.stroke_recording(server.settings.library_dir, "synth_001", 0.1))[0])
+    with socket.create_connection(("127.0.0.1", server.port), timeout=5) as raw:
+        raw.sendall(
+            f"POST /sessions/{session['session_id']}/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+            f"{session['robot_token']}\r\nContent-Type: {BINARY_CONTENT_TYPE}\r\n"
+            f"Content-Length: {len(block)}\r\n\r\n".encode()
+            + block[: len(block) // 2]
+        )
+        time.sleep(0.2)  # the request reaches the route, which waits for the rest of its body
+        r = client.delete(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"}
+        )
+        assert r.status_code == 200 and r.json()["last_seq"] == -1
+        raw.sendall(block[len(block) // 2 :])
+        answer = raw.recv(4096).decode()
+    assert answer.startswith("HTTP/1.1 404"), answer
+    assert f"no session '{session['session_id']}'" in answer
+
+
+def test_ending_a_session_closes_its_robots_idle_ingest_socket(kit, server, client):
+    """The robot learns at once that its session ended (1000), not at its next block: an idle or half-sent socket
+    outlived its session (one was still open 90 s after it was reaped)."""
+    session = kit.create_session(client)
+    with connect(kit.socket_url(server, session, "ingest")) as robot:
+        r = client.delete(
+            f"/sessions/{session['session_id']}", headers={"Authorization": f"Bearer {session['robot_token']}"}
+        )
+        assert r.status_code == 200
+        with pytest.raises(ConnectionClosed):
+            robot.recv(timeout=5)
+        assert robot.close_code == 1000 and robot.close_reason == "session ended"
+
+
+def test_a_sessions_ingest_sockets_are_bounded_a_newer_one_replaces_the_oldest(kit, server, client):
+    """Two at once (a robot's reconnect may overlap a link not yet known dead); a third closes the oldest 4429, which a
+    robot answers by reconnecting and resending. One robot token held 500 sockets before."""
+    from service.directory import MAX_INGEST_SOCKETS
+
+    session = kit.create_session(client)
+    url = kit.socket_url(server, session, "ingest")
+    block = encode_binary(kit.recording_blocks(kit.stroke_recording(server.settings.library_dir, "synth_001", 0.1))[0])
+    with contextlib.ExitStack() as stack:
+        sockets = [stack.enter_context(connect(url)) for _ in range(MAX_INGEST_SOCKETS + 1)]
+        with pytest.raises(ConnectionClosed):
+            sockets[0].recv(timeout=5)
+        assert sockets[0].close_code == 4429 and "replaced by a newer ingest connection" in sockets[0].close_reason
+        for ws in sockets[1:]:  # the newer ones stream on
+            ws.send(block)
+            assert json.loads(ws.recv(timeout=5))["ok"] is True
 
 
 def test_a_stopping_service_tells_every_operator_its_session_is_lost_before_it_closes(kit, base_settings):
