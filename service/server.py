@@ -19,8 +19,8 @@
 - `RedactQueries`: a logging filter that cuts query strings (WebSocket URLs carry `?token=`) out of
   uvicorn's log lines; `EscapeControls` escapes line breaks and control characters in every record's message
   (what a client sent can never start a log line of its own); `install_log_redaction()` puts both on uvicorn's
-  loggers (EscapeControls on the root's handlers too), with a throttle on the WARNINGs uvicorn writes for
-  malformed requests (one per kind every 10 s).
+  loggers (EscapeControls on the root's handlers too), with a throttle on the lines uvicorn writes about
+  clients — malformed requests, refused WebSocket handshakes (one per kind every 10 s).
 """
 
 from __future__ import annotations
@@ -41,8 +41,16 @@ from service.settings import Settings
 
 log = logging.getLogger(__name__)
 _client_warnings = LogThrottle(log)
-#: uvicorn's WARNINGs about what a client sent (httptools_impl), throttled
-UVICORN_CLIENT_WARNINGS = ("Invalid HTTP request received.", "Unsupported upgrade request.")
+#: what uvicorn logs about a client, throttled to one line per kind every 10 s: its WARNINGs about what a client sent
+#: (httptools_impl), and its INFO lines for each refused WebSocket handshake (the request line with the status, and
+#: the websockets library's "connection rejected"), which any client could write two at a time without credentials
+UVICORN_CLIENT_LINES = (
+    "Invalid HTTP request received.",
+    "Unsupported upgrade request.",
+    '%s - "WebSocket %s" 403',
+    '%s - "WebSocket %s" %d',
+    "connection rejected (%d %s)",
+)
 _QUERY = re.compile(r"\?[^\s\"']*")
 #: a request's line and headers together (a robot's are a few hundred bytes; nginx's default is 4 × 8 kB)
 MAX_REQUEST_HEAD_BYTES = 64 * 1024
@@ -264,12 +272,12 @@ class EscapeControls(logging.Filter):
 
 _REDACTION = RedactQueries()
 _ESCAPES = EscapeControls()
-_THROTTLE = ThrottleFilter(UVICORN_CLIENT_WARNINGS)
+_THROTTLE = ThrottleFilter(UVICORN_CLIENT_LINES)
 
 
 def install_log_redaction() -> None:
     """Put RedactQueries and EscapeControls on uvicorn's loggers, EscapeControls on the root's handlers (the
-    service's records), and the throttle on uvicorn's client-caused WARNINGs (idempotent)."""
+    service's records), and the throttle on uvicorn's client-caused lines (idempotent)."""
     for name in ("uvicorn.error", "uvicorn.access", "uvicorn"):
         logger = logging.getLogger(name)
         for f in (_REDACTION, _ESCAPES):

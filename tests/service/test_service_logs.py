@@ -125,6 +125,31 @@ def test_a_session_request_cut_off_by_a_dropped_link_logs_one_warning(kit, base_
     assert len(cut) == 1 and "(POST /sessions)" in cut[0], cut
 
 
+def test_refused_handshakes_write_a_few_lines_not_two_per_refusal(kit, base_settings):
+    """uvicorn (and the websockets library under it) wrote two INFO lines for every refused handshake, the request
+    line and 'connection rejected (…)': 2,000 unauthenticated upgrades were 4,002 lines. Now each kind is
+    throttled like uvicorn's client WARNINGs: one line every 10 s."""
+    settings = base_settings.model_copy(update={"instance_id": "refusals"})
+    handler = Records()
+    with kit.running(settings, log_level="info") as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        logging.getLogger("uvicorn.error").addHandler(handler)  # after the start: uvicorn's log config resets it
+        try:
+            session = kit.create_session(client)
+            urls = [
+                f"{srv.ws_url}/sessions/{session['session_id']}/events?token=wrong",  # 401
+                f"{srv.ws_url}/sessions/refusals.nobody/events?token=x",  # 404
+            ]
+            for _ in range(20):
+                for url in urls:
+                    assert _refused(url) in (401, 404)
+        finally:
+            logging.getLogger("uvicorn.error").removeHandler(handler)
+    lines = [r.getMessage() for r in handler.records]
+    refusals = [m for m in lines if '"WebSocket /sessions/' in m]
+    rejected = [m for m in lines if "connection rejected" in m]
+    assert 1 <= len(refusals) <= 2 and 1 <= len(rejected) <= 2, (refusals, rejected)
+
+
 def test_a_client_that_leaves_with_pipelined_answers_unread_writes_no_error(kit, server, captured):
     """Pipelined requests whose answers the client never reads, then the link drops: uvicorn marked only the newest
     parsed request disconnected, so the one still answering wrote to the closed transport and logged an ERROR with
