@@ -34,6 +34,9 @@ _dropped = LogThrottle(log)
 MAX_PROBE_CONNECTIONS = 64
 #: a request (from the wait for its first byte to its answer) gets this long, however slowly its bytes drip in
 PROBE_REQUEST_S = 5.0
+#: connections the kernel queues before the probe thread accepts them (socketserver's default is 5: a client
+#: connecting in a loop made liveness probes time out)
+PROBE_LISTEN_BACKLOG = 128
 
 
 def health(instance: str) -> HealthOut:
@@ -163,6 +166,8 @@ class ProbeServer:
 class _BoundedProbeServer(ThreadingHTTPServer):
     """ThreadingHTTPServer with at most MAX_PROBE_CONNECTIONS connections at once, and a client's dropped link (a
     broken pipe, a reset, a read past its deadline) one rate-limited WARNING instead of socketserver's traceback."""
+
+    request_queue_size = PROBE_LISTEN_BACKLOG
 
     def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]) -> None:
         super().__init__(address, handler)

@@ -4,7 +4,9 @@ link is one rate-limited WARNING without a traceback, and connections beyond the
 from __future__ import annotations
 
 import logging
+import shutil
 import socket
+import subprocess
 import time
 
 import pytest
@@ -78,3 +80,12 @@ def test_connections_beyond_the_cap_are_closed_at_once(probe_port):
             s.close()
     time.sleep(0.3)
     assert _get(probe_port).startswith(b"HTTP/1.1 200")  # the slots are free again
+
+
+@pytest.mark.skipif(shutil.which("ss") is None, reason="needs ss (iproute2) to read a socket's listen backlog")
+def test_the_listen_backlog_holds_a_burst_of_connects(probe_port):
+    """socketserver listens with a backlog of 5: a client connecting and closing in a loop made 1 s liveness probes
+    time out (3 of 120) while the main port, backlog 2048, answered every one."""
+    out = subprocess.run(["ss", "-ltnH", f"sport = :{probe_port}"], capture_output=True, text=True, check=True).stdout
+    backlog = int(out.split()[2])  # State Recv-Q Send-Q …: a listening socket's Send-Q is its backlog
+    assert backlog >= probes.PROBE_LISTEN_BACKLOG >= 128, out
