@@ -11,13 +11,14 @@ from __future__ import annotations
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import Response
 from starlette.requests import ClientDisconnect
 
+from service.deps import refuse
 from service.errors import ErrorResponse, ServiceError, invalid_fields
 from service.events import StatusEvent, WindowEvent
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
@@ -95,6 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(ClientDisconnect, _client_gone)  # type: ignore[arg-type]
     for module in (sessions, ingest, events, library, ops):
         app.include_router(module.router)
+    app.add_api_websocket_route("/{path:path}", _no_socket_here)  # last: only what no route above takes
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 
@@ -112,6 +114,13 @@ def route_paths(app: FastAPI) -> set[str]:
 
     walk(app.routes)
     return paths
+
+
+async def _no_socket_here(websocket: WebSocket, path: str) -> None:
+    """A WebSocket handshake on a path with no socket: 404 naming the two there are (Starlette would close it before
+    accepting, which uvicorn answers 403 with no body)."""
+    detail = f"no WebSocket at /{path}: the sockets are /sessions/{{id}}/ingest and /sessions/{{id}}/events"
+    await refuse(websocket, ServiceError(404, detail), robot=False)
 
 
 async def _service_error(request: Request, exc: ServiceError) -> ErrorResponse:

@@ -5,6 +5,7 @@ not UTF-8, a request body cut off by a dropped link and a garbled HTTP request l
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import socket
 import time
@@ -123,6 +124,17 @@ def test_a_session_request_cut_off_by_a_dropped_link_logs_one_warning(kit, base_
     assert [r.getMessage() for r in mine if r.levelno >= logging.ERROR] == []
     cut = [r.getMessage() for r in mine if "closed its connection" in r.getMessage()]
     assert len(cut) == 1 and "(POST /sessions)" in cut[0], cut
+
+
+def test_a_socket_on_a_path_with_none_is_refused_404_with_a_reason(server):
+    """Starlette closed such a handshake before accepting it, which uvicorn answers 403 with no body."""
+    for path in ("/health", "/nonexistent", "/sessions/x/blocks"):
+        with pytest.raises(InvalidStatus) as refused:
+            with connect(f"{server.ws_url}{path}"):
+                pass
+        assert refused.value.response.status_code == 404, path
+        detail = json.loads(refused.value.response.body)["detail"]
+        assert f"no WebSocket at {path}" in detail and "/sessions/{id}/ingest" in detail, detail
 
 
 def test_refused_handshakes_write_a_few_lines_not_two_per_refusal(kit, base_settings):
