@@ -111,9 +111,7 @@ class SessionDirectory:
         sockets = self._ingest.setdefault(session_id, [])
         sockets.append(socket)
         while len(sockets) > MAX_INGEST_SOCKETS:
-            oldest = sockets.pop(0)
-            with contextlib.suppress(Exception):  # it may be closing already
-                await oldest.close(int(Close.SATURATED), "replaced by a newer ingest connection; reconnect and resend")
+            await _close(sockets.pop(0), Close.SATURATED, "replaced by a newer ingest connection; reconnect and resend")
 
     def detach_ingest(self, session_id: str, socket: Any) -> None:
         """A robot's ingest socket closed."""
@@ -125,8 +123,7 @@ class SessionDirectory:
 
     async def _close_ingest(self, session_id: str, code: Close, reason: str) -> None:
         for socket in self._ingest.pop(session_id, []):
-            with contextlib.suppress(Exception):  # it may be closing already
-                await socket.close(int(code), reason[:120])
+            await _close(socket, code, reason)
 
     async def end_all(self, why: str) -> None:
         """Shutdown: every local session ends as lost (their state cannot outlive the process)."""
@@ -246,6 +243,12 @@ class SessionDirectory:
                 status_event(session.id, "robot_disconnected", f"the robot's ingest socket closed: {why}", reason=why),
                 False,
             )
+
+
+async def _close(socket: Any, code: Close, reason: str) -> None:
+    """Close a WebSocket with `code` and `reason` (cut to fit a close frame), whatever state it is in."""
+    with contextlib.suppress(Exception):  # it may be closing already
+        await socket.close(int(code), reason[:120])
 
 
 def reap_due(sessions: Iterable[Session], now: float, settings: Settings) -> list[tuple[str, str]]:
