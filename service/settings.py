@@ -252,7 +252,7 @@ class Settings(BaseSettings):
         ge=0,
         le=65535,
         description="also answer GET (and HEAD) /health and /ready on this port from a thread of their own, which a "
-        "busy event loop cannot delay (None: off; 0: any free port)",
+        "blocked event loop cannot delay (a busy one still can, through the GIL) (None: off; 0: any free port)",
     )
     # ---- compute ----------------------------------------------------------------------------------
     pool_threads: int = Field(
