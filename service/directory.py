@@ -34,6 +34,9 @@ REAP_EVERY_S = 5.0
 #: ingest sockets one session holds at once: its robot's, and one more while a reconnect overlaps a link not yet known
 #: dead; a further one replaces the oldest (each may hold a message of up to the size limit while it arrives)
 MAX_INGEST_SOCKETS = 2
+#: how long closing a socket may wait for its client: a close frame waits behind what the client has not read, and a
+#: client that stopped reading would hold it (and the DELETE, reaper or newer socket that closes it) for ever
+CLOSE_WAIT_S = 2.0
 
 #: (session id, name, credentials) → a new Session on this replica
 SessionFactory = Callable[[str, str, SessionCredentials], Session]
@@ -49,6 +52,7 @@ class SessionDirectory:
         self.metrics = metrics
         self.sessions: dict[str, Session] = {}
         self._ingest: dict[str, list[Any]] = {}  # session id → its open ingest sockets (WebSockets), oldest first
+        self._closing: set[asyncio.Task] = set()  # closes under way (see _close_soon)
         self._ended = 0  # sessions ended since memory was last given back
 
     # ---- open and end ----------------------------------------------------------------------------
@@ -86,7 +90,8 @@ class SessionDirectory:
         await self.drop(session_id)
         # its robot is told now, not at its next block (an idle socket would outlive the session)
         code, reason = (Close.LOST, why) if lost else (Close.SESSION_ENDED, "session ended")
-        await self._close_ingest(session_id, code, reason)
+        for socket in self._ingest.pop(session_id, []):
+            self._close_soon(socket, code, reason, "session lost" if lost else "session ended")
         with contextlib.suppress(Exception):
             await (self.broker.mark_lost(session_id, why) if lost else self.broker.forget(session_id))
         event = (
@@ -105,13 +110,14 @@ class SessionDirectory:
             self._ended += 1
             await session.close()
 
-    async def attach_ingest(self, session_id: str, socket: Any) -> None:
+    def attach_ingest(self, session_id: str, socket: Any) -> None:
         """A robot's ingest socket (an accepted starlette WebSocket) opened; past MAX_INGEST_SOCKETS the oldest is
         closed 4429: a robot reconnects and resends, and one robot token cannot hold sockets without bound."""
         sockets = self._ingest.setdefault(session_id, [])
         sockets.append(socket)
         while len(sockets) > MAX_INGEST_SOCKETS:
-            await _close(sockets.pop(0), Close.SATURATED, "replaced by a newer ingest connection; reconnect and resend")
+            reason = "replaced by a newer ingest connection; reconnect and resend"
+            self._close_soon(sockets.pop(0), Close.SATURATED, reason, "replaced")
 
     def detach_ingest(self, session_id: str, socket: Any) -> None:
         """A robot's ingest socket closed."""
@@ -121,14 +127,19 @@ class SessionDirectory:
         if not sockets:
             self._ingest.pop(session_id, None)
 
-    async def _close_ingest(self, session_id: str, code: Close, reason: str) -> None:
-        for socket in self._ingest.pop(session_id, []):
-            await _close(socket, code, reason)
+    def _close_soon(self, socket: Any, code: Close, reason: str, why: str) -> None:
+        """Close a WebSocket in a task of its own, within CLOSE_WAIT_S (past it, the client's keepalive ends it): no
+        caller waits for a client. `why`, a few words, is what its handler logs and counts."""
+        socket.state.closed_why = why
+        task = asyncio.create_task(_close(socket, code, reason), name="close-socket")
+        self._closing.add(task)
+        task.add_done_callback(self._closing.discard)
 
     async def end_all(self, why: str) -> None:
         """Shutdown: every local session ends as lost (their state cannot outlive the process)."""
         for sid in list(self.sessions):
-            await self.end(sid, why, lost=True)
+            if sid in self.sessions:  # (the reaper may end one while an earlier one is ended)
+                await self.end(sid, why, lost=True)
 
     # ---- background duties -----------------------------------------------------------------------
     async def reap_idle(self) -> None:
@@ -246,9 +257,10 @@ class SessionDirectory:
 
 
 async def _close(socket: Any, code: Close, reason: str) -> None:
-    """Close a WebSocket with `code` and `reason` (cut to fit a close frame), whatever state it is in."""
-    with contextlib.suppress(Exception):  # it may be closing already
-        await socket.close(int(code), reason[:120])
+    """Close a WebSocket with `code` and `reason` (cut to fit a close frame), whatever state it is in, waiting at most
+    CLOSE_WAIT_S for its client."""
+    with contextlib.suppress(Exception):  # it may be closing already, or its client not reading (TimeoutError)
+        await asyncio.wait_for(socket.close(int(code), reason[:120]), CLOSE_WAIT_S)
 
 
 def reap_due(sessions: Iterable[Session], now: float, settings: Settings) -> list[tuple[str, str]]:

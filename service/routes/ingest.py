@@ -106,13 +106,16 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
         return
     assert session is not None
     await websocket.accept()
-    await state.directory.attach_ingest(session_id, websocket)
+    state.directory.attach_ingest(session_id, websocket)
     why = "disconnected"
     try:
         while True:
             message = await websocket.receive()
-            if message["type"] == "websocket.disconnect" or websocket.application_state is WebSocketState.DISCONNECTED:
-                return  # (closed by the directory: its session ended, or a newer socket replaced it)
+            if message["type"] == "websocket.disconnect":
+                return
+            if websocket.application_state is WebSocketState.DISCONNECTED:  # closed by the directory
+                why = getattr(websocket.state, "closed_why", why)  # its session ended, or a newer socket replaced it
+                return
             arrived = time.perf_counter_ns()
             if state.sessions.get(session_id) is not session:
                 code, reason = await _gone(state, session_id)
@@ -136,9 +139,11 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                         reason = "session saturated; reconnect and resend"
                     await websocket.close(int(Close.SATURATED), reason)
                     return
-                await websocket.send_text(ack_error(peek_seq(payload, binary), exc.detail))
+                if not await _answer(websocket, ack_error(peek_seq(payload, binary), exc.detail)):
+                    return
                 continue
-            await websocket.send_text(ack_ok(ack["seq"], ack["duplicate"]))
+            if not await _answer(websocket, ack_ok(ack["seq"], ack["duplicate"])):
+                return
             # A robot's blocks queue up in its socket (a backlog resent at once, or a stall's worth): receiving
             # them does not suspend, so without this one socket would hold the loop for all of them, and the
             # capacity guard, /health and every other robot would wait.
@@ -148,6 +153,16 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
     finally:
         state.directory.detach_ingest(session_id, websocket)
         await state.directory.robot_disconnected(session, why)
+
+
+async def _answer(websocket: WebSocket, text: str) -> bool:
+    """Send an acknowledgement; False when the connection closed while it waited for a client that stopped reading
+    (uvicorn's keepalive timeout, or the directory's close): a disconnect, not an error."""
+    try:
+        await websocket.send_text(text)
+    except (RuntimeError, OSError):  # starlette/uvicorn: a send after the close (uvicorn's ClientDisconnected: OSError)
+        return False
+    return True
 
 
 async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:

@@ -232,6 +232,67 @@ def test_a_session_being_ended_is_not_found_rather_than_elsewhere():
     assert asyncio.run(main()) == 404
 
 
+def test_closing_a_robots_socket_never_waits_on_a_client_that_stopped_reading(monkeypatch):
+    """A close frame waits behind what the client has not read: awaited inline, one robot that kept sending without
+    reading held its DELETE, the idle reaper (every session's), a newer socket's attach and shutdown for ever.
+    Closes now run beside the caller, each for at most CLOSE_WAIT_S; and shutdown skips a session the reaper ended
+    while it waited (it raised 'no session' out of the shutdown)."""
+    from types import SimpleNamespace
+
+    from service import directory as directory_module
+    from service.bus import EventBus
+    from service.directory import MAX_INGEST_SOCKETS, SessionDirectory
+
+    monkeypatch.setattr(directory_module, "CLOSE_WAIT_S", 0.2)
+
+    class Session:
+        def __init__(self, sid):
+            self.id, self.closing = sid, asyncio.Event()
+            self.closing.set()
+
+        def status(self):
+            return {"counters": {}}
+
+        async def close(self):
+            await self.closing.wait()
+
+    class StalledSocket:  # its client reads nothing: a close never completes
+        def __init__(self):
+            self.state, self.closes = SimpleNamespace(), []
+
+        async def close(self, code, reason):
+            self.closes.append(code)
+            await asyncio.Event().wait()
+
+    async def main():
+        settings = Settings(instance_id="here")
+        broker = InMemoryBroker(subscriber_queue=4)
+        metrics = ServiceMetrics()
+        directory = SessionDirectory(settings, broker, EventBus(broker, metrics), metrics)
+        a, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
+        b, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
+        b.closing.clear()
+        sockets = [StalledSocket() for _ in range(MAX_INGEST_SOCKETS + 1)]
+        for socket in sockets:
+            directory.attach_ingest(a.id, socket)  # the last replaces the first
+        await asyncio.wait_for(directory.end(a.id, "ended by request"), 1.0)
+        await asyncio.sleep(0.01)
+        tried = [(s.closes, getattr(s.state, "closed_why", None)) for s in sockets]
+        await asyncio.sleep(0.3)  # past CLOSE_WAIT_S: the closes gave up
+        pending = len(directory._closing)
+        c, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
+        shutdown = asyncio.create_task(directory.end_all("the replica shut down"))  # b, then c…
+        await asyncio.sleep(0.01)
+        await directory.end(c.id, "no traffic")  # … but the reaper ends c while shutdown waits on b
+        b.closing.set()
+        await asyncio.wait_for(shutdown, 1.0)
+        return tried, pending
+
+    tried, pending = asyncio.run(main())
+    assert tried == [([4429], "replaced"), ([1000], "session ended"), ([1000], "session ended")]
+    assert pending == 0
+
+
 # ---- metrics and settings --------------------------------------------------------------------------
 def test_metrics_render_prometheus_text():
     m = ServiceMetrics()
