@@ -197,28 +197,43 @@ def test_a_slow_subscriber_never_holds_back_the_others():
     assert slow_items == [97, 98, 99, "end"] and slow_dropped == 97
 
 
-def test_a_session_being_ended_is_not_found_rather_than_elsewhere():
-    """DELETE takes the session out of the local table, closes it (awaiting its jobs), then forgets its directory
-    entry: in between, its traffic is answered 404 (it ended), not 421 naming this very replica (retry elsewhere)."""
+class _HeldSession:
+    """A stand-in for a live session whose close() waits until `closing` is set (set from the start: closes at once)."""
+
+    def __init__(self, sid: str, closes_at_once: bool) -> None:
+        self.id, self.closing = sid, asyncio.Event()
+        if closes_at_once:
+            self.closing.set()
+
+    def status(self) -> dict:
+        return {"counters": {}}
+
+    async def close(self) -> None:
+        await self.closing.wait()
+
+
+def _directory():
+    """A SessionDirectory over an in-memory broker, and an open(closes_at_once) that opens a _HeldSession in it."""
     from service.bus import EventBus
     from service.directory import SessionDirectory
 
-    class SlowToClose:
-        def __init__(self, sid):
-            self.id, self.closing = sid, asyncio.Event()
+    broker = InMemoryBroker(subscriber_queue=4)
+    metrics = ServiceMetrics()
+    directory = SessionDirectory(Settings(instance_id="here"), broker, EventBus(broker, metrics), metrics)
 
-        def status(self):
-            return {"counters": {}}
+    async def open_session(closes_at_once: bool = True):
+        return await directory.open(None, "test", "m", lambda sid, name, creds: _HeldSession(sid, closes_at_once))
 
-        async def close(self):
-            await self.closing.wait()
+    return directory, open_session
+
+
+def test_a_session_being_ended_is_not_found_rather_than_elsewhere():
+    """DELETE takes the session out of the local table, closes it (awaiting its jobs), then forgets its directory
+    entry: in between, its traffic is answered 404 (it ended), not 421 naming this very replica (retry elsewhere)."""
 
     async def main():
-        settings = Settings(instance_id="here")
-        broker = InMemoryBroker(subscriber_queue=4)
-        metrics = ServiceMetrics()
-        directory = SessionDirectory(settings, broker, EventBus(broker, metrics), metrics)
-        session, robot, _ = await directory.open(None, "test", "m", lambda sid, name, creds: SlowToClose(sid))
+        directory, open_session = _directory()
+        session, robot, _ = await open_session(closes_at_once=False)
         ending = asyncio.create_task(directory.end(session.id, "ended by request"))
         await asyncio.sleep(0.01)  # out of the table, closing
         try:
@@ -240,21 +255,9 @@ def test_closing_a_robots_socket_never_waits_on_a_client_that_stopped_reading(mo
     from types import SimpleNamespace
 
     from service import directory as directory_module
-    from service.bus import EventBus
-    from service.directory import MAX_INGEST_SOCKETS, SessionDirectory
+    from service.directory import MAX_INGEST_SOCKETS
 
     monkeypatch.setattr(directory_module, "CLOSE_WAIT_S", 0.2)
-
-    class Session:
-        def __init__(self, sid):
-            self.id, self.closing = sid, asyncio.Event()
-            self.closing.set()
-
-        def status(self):
-            return {"counters": {}}
-
-        async def close(self):
-            await self.closing.wait()
 
     class StalledSocket:  # its client reads nothing: a close never completes
         def __init__(self):
@@ -265,13 +268,9 @@ def test_closing_a_robots_socket_never_waits_on_a_client_that_stopped_reading(mo
             await asyncio.Event().wait()
 
     async def main():
-        settings = Settings(instance_id="here")
-        broker = InMemoryBroker(subscriber_queue=4)
-        metrics = ServiceMetrics()
-        directory = SessionDirectory(settings, broker, EventBus(broker, metrics), metrics)
-        a, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
-        b, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
-        b.closing.clear()
+        directory, open_session = _directory()
+        a, _, _ = await open_session()
+        b, _, _ = await open_session(closes_at_once=False)
         sockets = [StalledSocket() for _ in range(MAX_INGEST_SOCKETS + 1)]
         for socket in sockets:
             directory.attach_ingest(a.id, socket)  # the last replaces the first
@@ -280,7 +279,7 @@ def test_closing_a_robots_socket_never_waits_on_a_client_that_stopped_reading(mo
         tried = [(s.closes, getattr(s.state, "closed_why", None)) for s in sockets]
         await asyncio.sleep(0.3)  # past CLOSE_WAIT_S: the closes gave up
         pending = len(directory._closing)
-        c, _, _ = await directory.open(None, "test", "m", lambda sid, name, creds: Session(sid))
+        c, _, _ = await open_session()
         shutdown = asyncio.create_task(directory.end_all("the replica shut down"))  # b, then c…
         await asyncio.sleep(0.01)
         await directory.end(c.id, "no traffic")  # … but the reaper ends c while shutdown waits on b
