@@ -106,7 +106,10 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
         return
     assert session is not None
     await websocket.accept()
-    state.directory.attach_ingest(session_id, websocket)
+    if state.sessions.get(session_id) is not session:  # it ended during the handshake: not kept for no one
+        await _close_gone(websocket, state, session_id)
+        return
+    state.directory.attach_ingest(session_id, websocket)  # sync: nothing can end the session between check and attach
     why = "disconnected"
     try:
         while True:
@@ -118,10 +121,7 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 return
             arrived = time.perf_counter_ns()
             if state.sessions.get(session_id) is not session:
-                code, reason = await _gone(state, session_id)
-                why = "session lost" if code == Close.LOST else "session ended"
-                if websocket.application_state is not WebSocketState.DISCONNECTED:  # the directory may have closed it
-                    await websocket.close(int(code), reason)
+                why = await _close_gone(websocket, state, session_id)
                 return
             data: bytes | None = message.get("bytes")
             binary = data is not None
@@ -165,12 +165,15 @@ async def _answer(websocket: WebSocket, text: str) -> bool:
     return True
 
 
-async def _gone(state: ServiceState, session_id: str) -> tuple[Close, str]:
-    """How to close the ingest socket of a session no longer here: lost (4410 and the reason: this replica was
-    silent too long and another one marked it lost) or ended (1000)."""
+async def _close_gone(websocket: WebSocket, state: ServiceState, session_id: str) -> str:
+    """Close the ingest socket of a session no longer here → why, for the log: lost (4410 and the reason: this replica
+    was silent too long and another one marked it lost) or ended (1000)."""
+    code, reason = Close.SESSION_ENDED, "session ended"
     try:
         await state.directory.credentials(session_id)
     except ServiceError as exc:
         if exc.status == SESSION_LOST:
-            return Close.LOST, exc.detail[:120]
-    return Close.SESSION_ENDED, "session ended"
+            code, reason = Close.LOST, exc.detail[:120]
+    if websocket.application_state is not WebSocketState.DISCONNECTED:  # the directory may have closed it
+        await websocket.close(int(code), reason)
+    return "session lost" if code == Close.LOST else "session ended"

@@ -151,3 +151,23 @@ def test_health_ready_library_and_metrics(kit, server, client, library_dir):
     assert 'hapticlink_blocks_total{outcome="accepted"}' in text
     assert 'hapticlink_window_latency_seconds_count{stage="total"}' in text
     assert client.get("/console").headers["content-type"].startswith("text/html")
+
+
+def test_an_ingest_socket_opened_as_its_session_ends_is_closed_not_kept(kit, server, client, monkeypatch):
+    """The session may end while the socket's handshake is answered (after its token was checked): that socket was
+    kept, idle, for a session that no longer existed, until its client sent something."""
+    from starlette.websockets import WebSocket
+
+    accept = WebSocket.accept
+
+    async def end_then_accept(self: WebSocket, *args, **kwargs) -> None:
+        await self.app.state.service.directory.end(self.path_params["session_id"], "ended by request")
+        await accept(self, *args, **kwargs)
+
+    session = kit.create_session(client)
+    monkeypatch.setattr(WebSocket, "accept", end_then_accept)
+    with connect(kit.socket_url(server, session, "ingest")) as robot:
+        with pytest.raises(ConnectionClosed):
+            robot.recv(timeout=5)
+        assert robot.close_code == 1000 and robot.close_reason == "session ended"
+    assert session["session_id"] not in server.app.state.service.directory._ingest
