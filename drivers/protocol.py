@@ -8,9 +8,10 @@ or a format changes in one place.
 WebSocket ingest (`WS /sessions/{id}/ingest?token=<robot token>`): every message is one block
 (binary or JSON text) and is answered, in order, by one text message — `ack_ok` or `ack_error`.
 Close codes (`Close`): 4429 saturated (reconnect after a backoff, resend from the oldest
-unacknowledged block), 1008 authentication failed (fatal), 4421 misdirected (the session lives on
-another replica), 1013 not ready (retry), 1000 the session ended (fatal for this session), 4410 the
-session is lost (fatal: its replica dropped it as lost; the reason says why). A handshake
+unacknowledged block), 4409 replaced by a newer ingest socket of the session (the same), 1008
+authentication failed (fatal), 4421 misdirected (the session lives on another replica), 1013 not ready
+(retry), 1000 the session ended (fatal for this session), 4410 the session is lost (fatal: its replica
+dropped it as lost; the reason says why). A handshake
 for a session no replica knows is refused with HTTP 404, for a lost one (`SESSION_LOST`) with HTTP 410.
 
 HTTP: `RETRY_STATUSES` say "not now" (back off, resend); `SESSION_LOST` (410) says the replica that held
@@ -71,6 +72,7 @@ class Close(IntEnum):
     NOT_READY = 1013  # the service is loading; try again
     MISDIRECTED = 4421  # the session runs on another replica
     SATURATED = 4429  # the session has too much work queued; reconnect after a backoff and resend
+    REPLACED = 4409  # a newer ingest socket of the same session took this one's place; reconnect and resend
     LOST = 4410  # the session is lost (HTTP 410's meaning, on an open socket); open a new session
 
 

@@ -45,7 +45,8 @@ robot or operator token.
   layout) or text-JSON blocks; each is answered with `{"seq", "ok": true, "duplicate"}` or
   `{"seq": int|null, "ok": false, "error"}` (a bad block does not close the socket). Close code
   **4429**: the session is saturated, reconnect after a backoff and resend from the oldest
-  unacknowledged block; **1008**: authentication failed; **4421**: the session runs on another replica;
+  unacknowledged block; **4409**: a newer ingest socket of the session replaced this one (at most two at
+  once), the same; **1008**: authentication failed; **4421**: the session runs on another replica;
   **1013**: not ready yet; **1000**: the session ended. A handshake for a session no replica knows is answered
   HTTP 404, for a lost one (the replica that held it is gone) HTTP 410: open a new session.
 * `WS /sessions/{session_id}/events?token=<operator_token>` — JSON events: `{"type": "window", …}`

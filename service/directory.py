@@ -112,12 +112,12 @@ class SessionDirectory:
 
     def attach_ingest(self, session_id: str, socket: Any) -> None:
         """A robot's ingest socket (an accepted starlette WebSocket) opened; past MAX_INGEST_SOCKETS the oldest is
-        closed 4429: a robot reconnects and resends, and one robot token cannot hold sockets without bound."""
+        closed 4409: a robot reconnects and resends, and one robot token cannot hold sockets without bound."""
         sockets = self._ingest.setdefault(session_id, [])
         sockets.append(socket)
         while len(sockets) > MAX_INGEST_SOCKETS:
             reason = "replaced by a newer ingest connection; reconnect and resend"
-            self._close_soon(sockets.pop(0), Close.SATURATED, reason, "replaced")
+            self._close_soon(sockets.pop(0), Close.REPLACED, reason, "replaced")
 
     def detach_ingest(self, session_id: str, socket: Any) -> None:
         """A robot's ingest socket closed."""

@@ -52,6 +52,7 @@ class RobotStats:
     unsent: int = 0  # blocks still unacknowledged when the run ended
     reconnects: int = 0  # recoveries after a failed connection or outage
     saturated: int = 0  # times the service said the session was saturated (429 / close 4429)
+    replaced: int = 0  # times a newer ingest socket of the session took this one's place (close 4409)
     frames_read: int = 0
     frames_unchanged: int = 0  # not sent: the scene had not changed since the last frame sent (FrameGate)
     frames_sent: int = 0

@@ -75,6 +75,8 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
                 raise ServiceRefused(f"the service ended session {endpoint.session_id!r}") from None
             if exc.close_code == Close.SATURATED:
                 outbox.stats.saturated += 1
+            elif exc.close_code == Close.REPLACED:  # another client holds this robot token, or an old link of ours
+                outbox.stats.replaced += 1
             why = str(exc)
         except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as exc:
             why = f"{type(exc).__name__}: {exc}"

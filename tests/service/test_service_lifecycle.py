@@ -3,6 +3,7 @@ read-only routes (health, readiness, library, metrics)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import socket
@@ -72,7 +73,7 @@ def test_ending_a_session_closes_its_robots_idle_ingest_socket(kit, server, clie
 
 
 def test_a_sessions_ingest_sockets_are_bounded_a_newer_one_replaces_the_oldest(kit, server, client):
-    """Two at once (a robot's reconnect may overlap a link not yet known dead); a third closes the oldest 4429, which a
+    """Two at once (a robot's reconnect may overlap a link not yet known dead); a third closes the oldest 4409, which a
     robot answers by reconnecting and resending. One robot token held 500 sockets before."""
     from service.directory import MAX_INGEST_SOCKETS
 
@@ -83,7 +84,7 @@ def test_a_sessions_ingest_sockets_are_bounded_a_newer_one_replaces_the_oldest(k
         sockets = [stack.enter_context(connect(url)) for _ in range(MAX_INGEST_SOCKETS + 1)]
         with pytest.raises(ConnectionClosed):
             sockets[0].recv(timeout=5)
-        assert sockets[0].close_code == 4429 and "replaced by a newer ingest connection" in sockets[0].close_reason
+        assert sockets[0].close_code == 4409 and "replaced by a newer ingest connection" in sockets[0].close_reason
         for ws in sockets[1:]:  # the newer ones stream on
             ws.send(block)
             assert json.loads(ws.recv(timeout=5))["ok"] is True
@@ -171,3 +172,52 @@ def test_an_ingest_socket_opened_as_its_session_ends_is_closed_not_kept(kit, ser
             robot.recv(timeout=5)
         assert robot.close_code == 1000 and robot.close_reason == "session ended"
     assert session["session_id"] not in server.app.state.service.directory._ingest
+
+
+def test_a_robot_whose_socket_a_newer_one_replaced_reconnects_and_says_replaced_not_saturated(kit, server, library_dir):
+    """Closed 4409 (not 4429): the robot reconnects, resends, delivers every block, and its stats tell a replacement
+    (another holder of its token, or an old link of its own) from a saturated session."""
+    from websockets.asyncio.client import connect as connect_async
+
+    from drivers.robot.client import RobotClient
+
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_001", 2.0))
+    intruders: list = []
+
+    class Source:  # after 20 blocks, two more sockets open with the robot's token: the robot's is the oldest
+        name = "blocks"
+
+        def __init__(self) -> None:
+            self.robot: RobotClient | None = None
+
+        async def _items(self):
+            for i, block in enumerate(blocks):
+                if i == 20:
+                    assert self.robot is not None and self.robot.session is not None
+                    session = {"session_id": self.robot.session.session_id}
+                    session["robot_token"] = self.robot.session.robot_token
+                    for _ in range(2):
+                        intruders.append(await connect_async(kit.socket_url(server, session, "ingest")))
+                yield block
+                await asyncio.sleep(0.005)
+
+        def __aiter__(self):
+            return self._items()
+
+        async def aclose(self) -> None:
+            pass
+
+    async def main():
+        source = Source()
+        robot = source.robot = RobotClient(
+            server.url, source, transport="ws", backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
+        )
+        try:
+            return await robot.run()
+        finally:
+            for ws in intruders:
+                await ws.close()
+
+    stats = asyncio.run(main())
+    assert stats.replaced >= 1 and stats.saturated == 0
+    assert stats.acked == len(blocks) and stats.lost == stats.rejected == stats.unsent == 0

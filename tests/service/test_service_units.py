@@ -288,7 +288,7 @@ def test_closing_a_robots_socket_never_waits_on_a_client_that_stopped_reading(mo
         return tried, pending
 
     tried, pending = asyncio.run(main())
-    assert tried == [([4429], "replaced"), ([1000], "session ended"), ([1000], "session ended")]
+    assert tried == [([4409], "replaced"), ([1000], "session ended"), ([1000], "session ended")]
     assert pending == 0
 
 
