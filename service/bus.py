@@ -10,6 +10,7 @@ import logging
 import time
 
 from service.broker import Broker, Subscription
+from service.errors import ServiceError
 from service.events import encode
 from service.metrics import ServiceMetrics
 
@@ -17,6 +18,9 @@ log = logging.getLogger(__name__)
 
 #: at most one WARNING per this many seconds about events the broker failed to publish
 PUBLISH_ERROR_LOG_EVERY_S = 10.0
+#: event sockets one session may hold open on one replica (a console, a renderer, an operator client, a few
+#: viewers): each holds a queue, so one operator token cannot open them without bound
+MAX_SUBSCRIBERS_PER_SESSION = 16
 
 
 class EventBus:
@@ -26,6 +30,7 @@ class EventBus:
         self.broker = broker
         self.metrics = metrics
         self._subscribers = 0
+        self._per_session: dict[str, int] = {}
         self._last_publish_error = 0.0
 
     async def publish(self, session_id: str, event: dict, final: bool) -> None:
@@ -39,8 +44,25 @@ class EventBus:
                 self._last_publish_error = now
                 log.warning("publishing an event of session %s failed: %s", session_id, exc)
 
+    def require_room(self, session_id: str) -> None:
+        """ServiceError 429 when `session_id` already has MAX_SUBSCRIBERS_PER_SESSION subscriptions here."""
+        if self._per_session.get(session_id, 0) >= MAX_SUBSCRIBERS_PER_SESSION:
+            raise ServiceError(
+                429,
+                f"session {session_id!r} already has {MAX_SUBSCRIBERS_PER_SESSION} event connections on this replica "
+                "(the most it takes); close one first",
+                {"Retry-After": "5"},
+            )
+
     async def subscribe(self, session_id: str) -> Subscription:
-        sub = await self.broker.subscribe(session_id)
+        """A subscription to `session_id`'s events; ServiceError 429 past MAX_SUBSCRIBERS_PER_SESSION."""
+        self.require_room(session_id)
+        self._per_session[session_id] = self._per_session.get(session_id, 0) + 1  # before the await: no race
+        try:
+            sub = await self.broker.subscribe(session_id)
+        except BaseException:
+            self._release(session_id)
+            raise
         self._subscribers += 1
         self.metrics.subscribers.set(self._subscribers)
         return sub
@@ -48,7 +70,13 @@ class EventBus:
     async def unsubscribe(self, sub: Subscription) -> None:
         self._subscribers -= 1
         self.metrics.subscribers.set(self._subscribers)
+        self._release(sub.session_id)
         await self.broker.unsubscribe(sub)
+
+    def _release(self, session_id: str) -> None:
+        left = self._per_session.pop(session_id, 1) - 1
+        if left:
+            self._per_session[session_id] = left
 
     @property
     def subscribers(self) -> int:

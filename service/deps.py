@@ -136,12 +136,10 @@ async def socket_session(
     ingest socket closes 1008 on an auth failure, 4421 when misdirected, 1013 when not ready; the events socket
     answers the handshake with the HTTP status.
     The operator's events socket may attach on any replica (its session may run elsewhere), hence `local`.
-    check: the route's own check of its query (ServiceError), refused first, in the same way."""
+    check: the route's own check (ServiceError), once the token is accepted, refused in the same way."""
     state: ServiceState = websocket.app.state.service
     robot = roles == ROBOT_ONLY
     try:
-        if check is not None:
-            check()
         if robot:
             local = await state.directory.local(session_id, token, roles)
             state.require_runtime()
@@ -149,6 +147,8 @@ async def socket_session(
             state.capacity.admit_block(local)
             return local
         _, session = await state.directory.authorized(session_id, token, roles)
+        if check is not None:
+            check()
         return session
     except ServiceError as exc:
         state.refusal_log.warning(

@@ -33,16 +33,21 @@ async def events_socket(
 ) -> None:
     state: ServiceState = websocket.app.state.service
 
-    def known_view() -> None:  # checked here, not by FastAPI: its refusal is a bare 403 that says nothing
+    def admissible() -> None:  # the view is checked here, not by FastAPI: its refusal is a bare 403 that says nothing
         if view not in VIEWS:
             raise ServiceError(422, f"view must be one of {', '.join(VIEWS)}, got {view[:40]!r}")
+        state.bus.require_room(session_id)
 
     try:
-        await socket_session(websocket, session_id, token, OPERATOR_ONLY, check=known_view)
+        await socket_session(websocket, session_id, token, OPERATOR_ONLY, check=admissible)
     except Refused:
         return
     await websocket.accept()
-    subscription = await state.bus.subscribe(session_id)
+    try:
+        subscription = await state.bus.subscribe(session_id)
+    except ServiceError as exc:  # others took the room while this one's handshake was answered
+        await websocket.close(int(Close.SATURATED), exc.detail[:120])
+        return
     try:
         try:
             await state.directory.credentials(session_id)

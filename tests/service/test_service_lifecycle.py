@@ -221,3 +221,30 @@ def test_a_robot_whose_socket_a_newer_one_replaced_reconnects_and_says_replaced_
     stats = asyncio.run(main())
     assert stats.replaced >= 1 and stats.saturated == 0
     assert stats.acked == len(blocks) and stats.lost == stats.rejected == stats.unsent == 0
+
+
+def test_a_sessions_event_connections_are_bounded_the_next_is_refused_with_the_reason(kit, server, client):
+    """Each event connection holds a queue: one operator token opened them without bound. Past the bound the
+    handshake is refused 429, naming it; a closed one makes room, and other sessions are not affected."""
+    from websockets.exceptions import InvalidStatus
+
+    from service.bus import MAX_SUBSCRIBERS_PER_SESSION
+
+    session, other = kit.create_session(client), kit.create_session(client)
+    url = kit.socket_url(server, session, "events")
+    with contextlib.ExitStack() as stack:
+        subs = [stack.enter_context(connect(url)) for _ in range(MAX_SUBSCRIBERS_PER_SESSION)]
+        for sub in subs:
+            assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+        with pytest.raises(InvalidStatus) as refused:
+            connect(url)
+        assert refused.value.response.status_code == 429
+        assert f"already has {MAX_SUBSCRIBERS_PER_SESSION} event connections" in refused.value.response.body.decode()
+        with connect(kit.socket_url(server, other, "events")) as elsewhere:
+            assert json.loads(elsewhere.recv(timeout=5))["event"] == "subscribed"
+        subs.pop().close()
+        held = server.app.state.service.bus._per_session
+        kit.wait_for(lambda: held[session["session_id"]] < MAX_SUBSCRIBERS_PER_SESSION)
+        with connect(url) as again:
+            assert json.loads(again.recv(timeout=5))["event"] == "subscribed"
+    kit.wait_for(lambda: not held)

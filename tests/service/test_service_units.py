@@ -333,3 +333,25 @@ def test_every_setting_is_in_the_table():
     table = settings_table()
     for name in Settings.model_fields:
         assert f"`{env_name(name)}`" in table
+
+
+def test_the_event_bus_bounds_a_sessions_subscriptions_itself_and_releases_them():
+    """The bound holds in subscribe itself, not only at the handshake (handshakes answered together all pass the
+    route's check before any of them subscribes)."""
+    from service.bus import MAX_SUBSCRIBERS_PER_SESSION, EventBus
+
+    async def main() -> None:
+        broker = InMemoryBroker(subscriber_queue=4)
+        bus = EventBus(broker, ServiceMetrics())
+        subs = [await bus.subscribe("s") for _ in range(MAX_SUBSCRIBERS_PER_SESSION)]
+        with pytest.raises(ServiceError) as full:
+            await bus.subscribe("s")
+        assert full.value.status == 429 and full.value.headers == {"Retry-After": "5"}
+        other = await bus.subscribe("t")  # another session has its own room
+        await bus.unsubscribe(subs.pop())
+        subs.append(await bus.subscribe("s"))
+        for sub in [*subs, other]:
+            await bus.unsubscribe(sub)
+        assert bus.subscribers == 0 and bus._per_session == {}
+
+    asyncio.run(main())
