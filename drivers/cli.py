@@ -9,7 +9,7 @@ from pathlib import Path
 
 from drivers.robot.frames import FRAME_REFRESH_S
 from drivers.scene_change import FRAME_CHANGE
-from drivers.source import DEFAULT_BLOCK_S
+from drivers.source import DEFAULT_BLOCK_S, MODEL_RATE_HZ, SLOW_CHANNEL_BLOCK_S
 
 SOURCE_SPECS = (
     "simulated:LIBRARY_DIR:ENTRY_ID",
@@ -57,9 +57,10 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--block-s",
         type=float,
-        default=DEFAULT_BLOCK_S,
+        default=None,
         metavar="S",
-        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: {0.5 / DEFAULT_BLOCK_S:.0f} blocks per 500 ms window)",
+        help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: {0.5 / DEFAULT_BLOCK_S:.0f} blocks per 500 ms window; "
+        f"{SLOW_CHANNEL_BLOCK_S:g} when a channel runs below {MODEL_RATE_HZ / 1000:g} kHz)",
     )
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
@@ -132,7 +133,7 @@ def source_from_spec(
     spec: str,
     *,
     realtime: bool = True,
-    block_s: float = DEFAULT_BLOCK_S,
+    block_s: float | None = None,
     seed: int = 0,
     image: str | None = None,
     recording: int = 0,

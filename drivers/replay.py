@@ -10,7 +10,7 @@ from pathlib import Path
 
 from drivers.blocks import Frame
 from drivers.camera import frame_from_file
-from drivers.source import DEFAULT_BLOCK_S, Item, blocks_from_arrays, check_positive, paced
+from drivers.source import Item, blocks_from_arrays, check_positive, default_block_s, paced
 from texture_library.channels import CANONICAL_UNITS
 from texture_library.recording import Recording, load_recording
 
@@ -30,13 +30,15 @@ class ReplaySource:
     def __init__(
         self,
         recording: Recording,
-        block_s: float = DEFAULT_BLOCK_S,
+        block_s: float | None = None,
         realtime: bool = True,
         speed: float = 1.0,
         loop: bool = False,
         frames: Sequence[Frame] = (),
         name: str = "replay",
     ) -> None:
+        if block_s is None:
+            block_s = default_block_s(c.rate_hz for c in recording.channels().values())
         check_positive("block_s", block_s)
         check_positive("speed", speed, "finite factor")
         if loop and recording.duration_s < block_s:

@@ -22,7 +22,6 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.source import (
-    DEFAULT_BLOCK_S,
     Item,
     StreamAssembler,
     StreamStats,
@@ -108,8 +107,9 @@ class BoardDecoder:
     stream time continues after the last sample.
     """
 
-    def __init__(self, block_s: float = DEFAULT_BLOCK_S, header: BoardHeader | None = None) -> None:
-        check_positive("block_s", block_s)
+    def __init__(self, block_s: float | None = None, header: BoardHeader | None = None) -> None:
+        if block_s is not None:  # None: chosen from the header's rate (drivers.source.default_block_s)
+            check_positive("block_s", block_s)
         self.block_s = block_s
         self.stats = BoardStats()
         self._header: BoardHeader | None = None
@@ -200,7 +200,8 @@ class BoardDecoder:
 class SerialBoardSource(ThreadedSource):
     """Sample blocks from an HL1 board on a serial port, read in a background thread.
 
-    port: device name (/dev/ttyACM0, COM3, or a pty); block_s: seconds per block;
+    port: device name (/dev/ttyACM0, COM3, or a pty); block_s: seconds per block (None: from the board's rate,
+    drivers.source.default_block_s);
     header: an HL1 header line to assume for boards that never send one.
     Decoding counts live in `stats` (BoardStats).
     """
@@ -209,7 +210,7 @@ class SerialBoardSource(ThreadedSource):
         self,
         port: str,
         baudrate: int = 921_600,
-        block_s: float = DEFAULT_BLOCK_S,
+        block_s: float | None = None,
         header: str | None = None,
         queue_size: int = 256,
     ) -> None:

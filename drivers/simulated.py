@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.blocks import ChannelBlock, Frame, TapBlock
 from drivers.camera import encode_image, sniff_content_type
-from drivers.source import DEFAULT_BLOCK_S, Item, blocks_from_arrays, check_positive, paced
+from drivers.source import Item, blocks_from_arrays, check_positive, default_block_s, paced
 from texture_library.library import Library
 from texture_library.stroke import StrokeSignals, random_rotation, stroke
 from texture_library.taps import TAP_RATE_HZ
@@ -72,7 +72,7 @@ class SimulatedSource:
         model: VibrationModel,
         image_png: bytes | None = None,
         seed: int = 0,
-        block_s: float = DEFAULT_BLOCK_S,
+        block_s: float | None = None,
         realtime: bool = True,
         chunk_s: float = 5.0,
         duration_s: float | None = None,
@@ -81,6 +81,8 @@ class SimulatedSource:
         name: str | None = None,
         taps: bool = False,
     ) -> None:
+        if block_s is None:
+            block_s = default_block_s([model.rate_hz])
         check_positive("block_s", block_s)
         if taps and model.taps is None:
             raise ValueError(f"model {model.name!r} has no tap transients to tap with; use taps=False")

@@ -29,13 +29,26 @@ log = logging.getLogger(__name__)
 
 Item = SampleBlock | TapBlock | Frame
 
-#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 100 ms, five
-#: blocks per 500 ms window. The service's cost is mostly per block (a WebSocket message, its acknowledgement,
-#: decoding, admission), so 100 ms blocks cost it a fifth less CPU per robot-second than 50 ms ones, and half
-#: of 20 ms ones. A window still completes with the block that ends where it ends (a divisor of the 500 ms hop,
-#: channels at 1 kHz or above); a channel resampled up from a slower rate holds its last samples back until the
-#: next block, one block later (benchmarks/service.py, docs/drivers.md).
-DEFAULT_BLOCK_S = 0.1
+#: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 250 ms, two
+#: blocks per 500 ms window. The service's event loop pays per block (a WebSocket message, its acknowledgement,
+#: decoding, admission): 250 ms blocks cost the service about a quarter less CPU per robot-second than 100 ms
+#: ones, and a window still completes with the block that ends where it ends (a divisor of the 500 ms hop), so
+#: latency does not pay for it (docs/drivers.md, "Block size").
+DEFAULT_BLOCK_S = 0.25
+#: ... except where a channel runs slower than MODEL_RATE_HZ: resampled up, it holds its last samples back until
+#: the next block, so each window completes one block late; short blocks keep that delay short
+SLOW_CHANNEL_BLOCK_S = 0.05
+#: the rate the project's models resample every channel to, Hz (models.tactile.config.TactileConfig.rate_hz)
+MODEL_RATE_HZ = 1000.0
+
+
+def default_block_s(rates_hz: Iterable[float]) -> float:
+    """The block size, s, for a stream whose channels run at `rates_hz` (Hz) when none is asked for:
+    DEFAULT_BLOCK_S, or SLOW_CHANNEL_BLOCK_S when one of them is slower than MODEL_RATE_HZ."""
+    rates = [float(r) for r in rates_hz]
+    if not rates:
+        raise ValueError("default_block_s needs the rate of at least one channel")
+    return SLOW_CHANNEL_BLOCK_S if min(rates) < MODEL_RATE_HZ else DEFAULT_BLOCK_S
 
 
 @runtime_checkable
@@ -71,11 +84,12 @@ def _boundary(k: int, block_s: float, rate_hz: float) -> int:
 
 def blocks_from_arrays(
     channels: Mapping[str, tuple[np.ndarray, float, str]],
-    block_s: float,
+    block_s: float | None,
     t0: float = 0.0,
     seq0: int = 0,
 ) -> Iterator[SampleBlock]:
-    """Cut aligned channel arrays into consecutive SampleBlocks of `block_s` seconds.
+    """Cut aligned channel arrays into consecutive SampleBlocks of `block_s` seconds (None: default_block_s of
+    the channels' rates).
 
     channels: {kind: (samples (n,) or (n, k), rate Hz, units)}, all starting at t0 (s).
     Block k spans [t0 + k·block_s, t0 + (k+1)·block_s); each channel is cut at its own rate
@@ -85,19 +99,22 @@ def blocks_from_arrays(
     is left out of that block, and a block with no samples at all is skipped (seq stays
     consecutive). Samples are validated once (texture_library.channels.check_channel).
     """
-    check_positive("block_s", block_s)
+    if block_s is not None:
+        check_positive("block_s", block_s)
     if not channels:
         raise ValueError("blocks_from_arrays needs at least one channel")
     checked: dict[str, tuple[np.ndarray, float, str]] = {}
     for kind, spec in channels.items():
         if not (isinstance(spec, tuple) and len(spec) == 3):
             raise ValueError(f"{kind}: expected (samples, rate_hz, units), got {type(spec).__name__}")
-        arr, rate, units = check_channel(kind, spec[0], spec[1], spec[2], dtype=np.float32)
+        checked[kind] = check_channel(kind, spec[0], spec[1], spec[2], dtype=np.float32)
+    if block_s is None:
+        block_s = default_block_s(rate for _, rate, _ in checked.values())
+    for kind, (_, rate, _) in checked.items():
         if math.ceil(block_s * rate) + 1 > MAX_BLOCK_SAMPLES:
             raise ValueError(
                 f"{kind}: block_s={block_s} s at {rate:g} Hz exceeds {MAX_BLOCK_SAMPLES} samples per block"
             )
-        checked[kind] = (arr, rate, units)
     # Enough blocks that every channel's last sample falls in one.
     n_blocks = 0
     for arr, rate, _ in checked.values():
@@ -298,7 +315,8 @@ class StreamStats:
 
 
 class StreamAssembler:
-    """Rows of samples stamped with a device sample counter → SampleBlocks of block_s seconds.
+    """Rows of samples stamped with a device sample counter → SampleBlocks of block_s seconds (None:
+    default_block_s of rate_hz).
 
     Stream time = sample index ÷ rate_hz + time_offset (s); index 0 is the first sample seen.
     Blocks lie on a grid of round(block_s·rate) samples. A forward counter jump (mod `wrap`,
@@ -311,13 +329,15 @@ class StreamAssembler:
         self,
         rate_hz: float,
         layout: Layout,
-        block_s: float,
+        block_s: float | None,
         *,
         wrap: int = 2**32,
         time_offset: float = 0.0,
         seq0: int = 0,
         stats: StreamStats | None = None,
     ) -> None:
+        if block_s is None:
+            block_s = default_block_s([rate_hz])
         check_positive("block_s", block_s)
         if not layout:
             raise ValueError("a stream layout needs at least one channel")

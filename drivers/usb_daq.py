@@ -23,7 +23,6 @@ import numpy as np
 
 from drivers.blocks import SampleBlock
 from drivers.source import (
-    DEFAULT_BLOCK_S,
     Item,
     Layout,
     StreamAssembler,
@@ -113,7 +112,7 @@ class DaqStats(StreamStats):
 class PacketDecoder:
     """Bulk transfers → SampleBlocks (no I/O). Gap handling: drivers.source.StreamAssembler."""
 
-    def __init__(self, config: DaqConfig, block_s: float = DEFAULT_BLOCK_S) -> None:
+    def __init__(self, config: DaqConfig, block_s: float | None = None) -> None:
         self.config = config
         self.stats = DaqStats()
         self._scales = config.column_scales()
@@ -155,8 +154,9 @@ class UsbDaqSource(ThreadedSource):
     """Sample blocks from an HLD1 DAQ, read with pyusb in a background thread.
 
     vid, pid: USB ids; backend: a pyusb backend (None: libusb1/openusb/libusb0, whichever loads);
-    block_s: seconds per block. Opening happens when iteration starts; DeviceNotFoundError (from
-    the iterator) when no such device is attached. Decoding counts live in `stats` once open.
+    block_s: seconds per block (None: from the device's rate, drivers.source.default_block_s). Opening happens
+    when iteration starts; DeviceNotFoundError (from the iterator) when no such device is attached. Decoding
+    counts live in `stats` once open.
     """
 
     def __init__(
@@ -164,14 +164,15 @@ class UsbDaqSource(ThreadedSource):
         vid: int = DEFAULT_VID,
         pid: int = DEFAULT_PID,
         backend: object | None = None,
-        block_s: float = DEFAULT_BLOCK_S,
+        block_s: float | None = None,
         queue_size: int = 256,
     ) -> None:
         super().__init__(queue_size)
         for label, value in (("vid", vid), ("pid", pid)):
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
                 raise ValueError(f"{label} must be an integer in [0, 0xFFFF], got {value!r}")
-        check_positive("block_s", block_s)
+        if block_s is not None:  # None: chosen from the device's rate (drivers.source.default_block_s)
+            check_positive("block_s", block_s)
         self.vid, self.pid = vid, pid
         self.backend = backend
         self.block_s = block_s

@@ -94,5 +94,5 @@ def test_robot_command_replays_a_recording_into_a_new_session(kit, fake_service,
         and out[2] == f"console {server.url}/console?session=s1&token={sess.operator_token}"
     )
     stats = json.loads(out[-1])
-    assert stats["acked"] == stats["read"] == 5 and stats["lost"] == stats["unsent"] == 0  # 0.5 s in 100 ms blocks
+    assert stats["acked"] == stats["read"] == 2 and stats["lost"] == stats["unsent"] == 0  # 0.5 s in 250 ms blocks
     np.testing.assert_array_equal(kit.concat(sess.accepted, "speed"), rec.speed.data.astype(np.float32))

@@ -11,7 +11,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.blocks import Frame, SampleBlock
-from drivers.source import SensorSource, StreamAssembler, ThreadedSource, blocks_from_arrays, paced
+from drivers.source import (
+    DEFAULT_BLOCK_S,
+    SLOW_CHANNEL_BLOCK_S,
+    SensorSource,
+    StreamAssembler,
+    ThreadedSource,
+    blocks_from_arrays,
+    default_block_s,
+    paced,
+)
 
 RATES = st.sampled_from([10.0, 100.0, 333.3, 500.0, 1000.0, 1234.5, 2500.0, 10_000.0])
 
@@ -61,6 +70,29 @@ def test_blocks_at_1khz_are_exactly_20_samples():
     blocks = list(blocks_from_arrays({"speed": (data, 1000.0, "mm/s")}, 0.02, t0=5.0))
     assert [b.channels["speed"].data.shape[0] for b in blocks] == [20] * 50
     assert blocks[3].t0 == pytest.approx(5.06) and blocks[3].channels["speed"].data[0] == 60
+
+
+def test_the_default_block_is_long_unless_a_channel_is_slower_than_the_models_rate():
+    """A channel below 1 kHz is resampled up and completes each window a block late: such a stream gets short
+    blocks; a stream at 1 kHz or above gets 250 ms ones (a window completes with its block whatever the size)."""
+    assert DEFAULT_BLOCK_S == 0.25 and SLOW_CHANNEL_BLOCK_S == 0.05
+    assert default_block_s([1000.0, 1000.0]) == 0.25
+    assert default_block_s([10_000.0, 1000.0]) == 0.25
+    assert default_block_s([1000.0, 999.0]) == 0.05
+    assert default_block_s([250.0]) == 0.05
+    with pytest.raises(ValueError, match="at least one channel"):
+        default_block_s([])
+
+
+def test_blocks_from_arrays_chooses_the_block_from_the_channels_rates_when_not_told():
+    fast = {"speed": (np.arange(1000, dtype=np.float32), 1000.0, "mm/s")}
+    assert [b.t0 for b in blocks_from_arrays(fast, None)] == [0.0, 0.25, 0.5, 0.75]
+    slow = {**fast, "force": (np.zeros(250, np.float32), 250.0, "N")}
+    blocks = list(blocks_from_arrays(slow, None))
+    assert len(blocks) == 20 and blocks[1].t0 == pytest.approx(0.05)
+    assert blocks[1].channels["speed"].data.shape[0] == 50 and blocks[1].channels["force"].data.shape[0] == 12
+    assert StreamAssembler(250.0, (("force", 1, "N"),), None).per_block == 12  # round(0.05 s × 250 Hz)
+    assert StreamAssembler(1000.0, (("force", 1, "N"),), None).per_block == 250
 
 
 def test_blocks_from_arrays_names_bad_arguments():
