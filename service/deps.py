@@ -163,10 +163,16 @@ async def socket_session(
         if robot:
             state.metrics.sockets_refused.labels(status=str(exc.status)).inc()
             known = state.sessions.get(session_id)
-            if known is not None and exc.status in (401, 403):  # someone tried this session's ingest: say so
+            # someone tried this session's ingest: say so, at most once every 10 s (anyone who knows the id can try)
+            if (
+                known is not None
+                and exc.status in (401, 403)
+                and (left_out := known.notices.admit("refused")) is not None
+            ):
+                more = f" (and {left_out} more since the last such event)" if left_out else ""
                 await state.bus.publish(
                     session_id,
-                    status_event(session_id, "robot_refused", f"an ingest connection was refused: {exc.detail}"),
+                    status_event(session_id, "robot_refused", f"an ingest connection was refused: {exc.detail}{more}"),
                     False,
                 )
         await refuse(websocket, exc, robot=robot)

@@ -49,6 +49,7 @@ from service.adaptive import SceneViews
 from service.auth import SessionCredentials
 from service.errors import ServiceError, bad_input, saturated
 from service.events import status_event, window_event
+from service.log_throttle import LogThrottle
 from service.metrics import ServiceMetrics
 from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, SessionResult
 from service.runtime import Runtime
@@ -115,6 +116,8 @@ class Session:
         self.opened_at = self.last_activity = self.last_contact = time.monotonic()
         self.last_seq = -1
         self.counters = SessionCounters()
+        # what anyone who knows the session's id can make it tell its operators (a refused ingest connection)
+        self.notices = LogThrottle(log)
         self.contract = stream_contract(runtime, settings)
         self.cursor = self.contract.start()
         self.estimator = SessionEstimator.from_settings(runtime, self.contract, settings)

@@ -10,8 +10,9 @@
   `timeout_keep_alive`.
 - `RefusingWebSocketProtocol`: uvicorn's WebSocket protocol, with what clients send kept out of the
   ERROR log: a handshake the app refuses with an HTTP answer (404, 410, 401, …) counts as completed
-  (uvicorn would log "ASGI callable returned without completing handshake" at ERROR for every one),
-  and a text frame that is not UTF-8 closes the socket 1007 with one rate-limited WARNING instead of
+  (uvicorn would log "ASGI callable returned without completing handshake" at ERROR for every one), an upgrade
+  request the websockets library refuses itself (a line over 8 kB, too many headers) is answered and closed (uvicorn
+  held it open, unanswered), and a text frame that is not UTF-8 closes the socket 1007 with one rate-limited WARNING instead of
   an ERROR with a traceback.
 - `SessionEndingServer`: uvicorn's server, ending every session (its operators told it is lost, their feeds closed
   1000) before it closes the connections: uvicorn closes every WebSocket (1012) before the lifespan shutdown, where
@@ -42,14 +43,19 @@ from service.settings import Settings
 log = logging.getLogger(__name__)
 _client_warnings = LogThrottle(log)
 #: what uvicorn logs about a client, throttled to one line per kind every 10 s: its WARNINGs about what a client sent
-#: (httptools_impl), and its INFO lines for each refused WebSocket handshake (the request line with the status, and
-#: the websockets library's "connection rejected"), which any client could write two at a time without credentials
+#: (httptools_impl), and its INFO lines for each WebSocket handshake (the request line with the status or
+#: "[accepted]", and the websockets library's "connection open" / "connection rejected" / "HTTP response sent"),
+#: which any client could write two at a time without credentials (a robot's wrong token is accepted, then closed
+#: 1008). The service's own lines say what happened to whom.
 UVICORN_CLIENT_LINES = (
     "Invalid HTTP request received.",
     "Unsupported upgrade request.",
     '%s - "WebSocket %s" 403',
     '%s - "WebSocket %s" %d',
+    '%s - "WebSocket %s" [accepted]',
+    "connection open",
     "connection rejected (%d %s)",
+    "HTTP response sent (%d %s)",
 )
 _QUERY = re.compile(r"\?[^\s\"']*")
 #: a request's line and headers together (a robot's are a few hundred bytes; nginx's default is 4 × 8 kB)
@@ -165,6 +171,26 @@ class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):
         await super().send(message)
         if message["type"] == "websocket.http.response.body" and not message.get("more_body", False):
             self.handshake_complete = True  # refused with an HTTP answer: the handshake is over, and answered
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if not self.handshake_initiated and not self.close_sent and self.conn.handshake_exc is not None:
+            self._refuse_upgrade()
+
+    def _refuse_upgrade(self) -> None:
+        """websockets refused the upgrade request itself (a line over 8 kB, more than 128 headers, not valid HTTP)
+        and queued its answer (414, 431 or the end of the stream), which uvicorn writes only with an event, so the
+        connection was held open, unanswered, for ever; and at shutdown uvicorn's 500 on top of it raised.
+        Write the answer and close."""
+        _client_warnings.warning(
+            "upgrade",
+            "refusing a WebSocket upgrade from %s: %s",
+            _peer(self.client),
+            str(self.conn.handshake_exc)[:120],
+        )
+        self.handshake_complete = self.close_sent = True  # answered: uvicorn's shutdown adds nothing
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.transport.close()
 
     def handle_ping(self) -> None:
         pong = self.conn.data_to_send()  # what websockets queued in answer

@@ -15,6 +15,12 @@ from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from service.schemas import HealthOut, ReadyOut
 
 router = APIRouter(tags=["service"])
+#: the console page's headers
+CONSOLE_HEADERS = {
+    "Referrer-Policy": "no-referrer",
+    "X-Frame-Options": "DENY",
+    "Content-Security-Policy": "frame-ancestors 'none'",
+}
 
 
 @router.get("/health", response_model=HealthOut, summary="Liveness")
@@ -49,8 +55,8 @@ async def metrics(state: State) -> Response:
     summary="The operator console (open with ?session=…&token=<operator token>)",
 )
 async def console_page() -> HTMLResponse:
-    # The URL carries the operator token: never send it on as a Referer.
-    return HTMLResponse(console.page(), headers={"Referrer-Policy": "no-referrer"})
+    # The URL carries the operator token: never send it on as a Referer, and no other site may frame the page.
+    return HTMLResponse(console.page(), headers=CONSOLE_HEADERS)
 
 
 @router.get(

@@ -271,9 +271,10 @@ def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_sett
                 ws.send(encode_binary(_block(0, 0.0)))
                 assert json.loads(ws.recv(timeout=5))["ok"] is True
             refused_token = "definitely-not-the-token-0123456789"
-            with pytest.raises(ConnectionClosed):
-                with connect(f"{srv.ws_url}/sessions/{session['session_id']}/ingest?token={refused_token}") as ws:
-                    ws.recv(timeout=5)
+            for _ in range(5):  # each accepted, then closed 1008
+                with pytest.raises(ConnectionClosed):
+                    with connect(f"{srv.ws_url}/sessions/{session['session_id']}/ingest?token={refused_token}") as ws:
+                        ws.recv(timeout=5)
             kit.wait_for(lambda: any("disconnected" in r.getMessage() for r in capture.records), timeout_s=5)
         finally:
             for name in names:
@@ -281,6 +282,8 @@ def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_sett
                 logging.getLogger(name).setLevel(levels[name])
     lines = [r.getMessage() for r in capture.records]
     assert any('"WebSocket /sessions/' in line for line in lines), "uvicorn logged no handshake line"
+    # uvicorn's two INFO lines per accepted socket: once in 10 s, not twice per wrong token (any client could)
+    assert sum("[accepted]" in line for line in lines) == 1 and lines.count("connection open") == 1
     for secret in (session["robot_token"], session["operator_token"], refused_token, kit.API_KEY):
         assert not any(secret in line for line in lines), [line for line in lines if secret in line]
     refusals = [r for r in capture.records if "refused" in r.getMessage() and "ingest socket" in r.getMessage()]
@@ -308,6 +311,28 @@ def test_operators_are_told_when_the_robot_disconnects(kit, server, client):
         event = json.loads(sub.recv(timeout=5))
         assert event["event"] == "robot_refused" and "refused" in event["message"]
         assert session["operator_token"] not in event["message"]
+
+
+def test_refused_ingest_connections_reach_the_operators_once_every_10_s_not_each(kit, server, client, monkeypatch):
+    """Anyone who knows a session's id could push 1,800 robot_refused events a second into its operators' feeds
+    (wrong tokens cost nothing): the next one says how many were left out."""
+    session = kit.create_session(client)
+    wrong = f"{server.ws_url}/sessions/{session['session_id']}/ingest?token=wrong-token"
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+        for _ in range(20):
+            with pytest.raises(ConnectionClosed), connect(wrong) as ws:
+                ws.recv(timeout=5)
+        first = json.loads(sub.recv(timeout=5))
+        assert first["event"] == "robot_refused" and "more" not in first["message"]
+        with pytest.raises(TimeoutError):  # the other 19 were not sent on
+            sub.recv(timeout=0.5)
+        notices = server.app.state.service.sessions[session["session_id"]].notices
+        monkeypatch.setattr(notices, "every_s", 0.0)  # as if 10 s had passed
+        with pytest.raises(ConnectionClosed), connect(wrong) as ws:
+            ws.recv(timeout=5)
+        later = json.loads(sub.recv(timeout=5))
+        assert later["event"] == "robot_refused" and "(and 19 more since the last such event)" in later["message"]
 
 
 # ---- slow and half-open connections -----------------------------------------------------------------------
@@ -374,9 +399,62 @@ def test_cors_is_closed_by_default_and_opens_for_configured_origins(kit, server,
         assert "POST" in r.headers["access-control-allow-methods"]
 
 
-def test_the_console_sends_no_referrer(client):
+def test_the_console_sends_no_referrer_and_no_other_site_may_frame_it(client):
+    """Its URL carries the operator token: no Referer carries it on, and no page of another site shows it in a frame."""
     r = client.get("/console")
     assert r.status_code == 200 and r.headers["referrer-policy"] == "no-referrer"
+    assert r.headers["x-frame-options"] == "DENY" and r.headers["content-security-policy"] == "frame-ancestors 'none'"
+
+
+def _upgrade(path: str = "/sessions/x/events", extra: bytes = b"") -> bytes:
+    return (
+        f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n"
+        "Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n".encode()
+        + extra
+        + b"\r\n"
+    )
+
+
+#: upgrade requests the websockets library refuses itself, before the app sees them, and its answer
+REFUSED_UPGRADES = {
+    "a 9 kB header line": (_upgrade(extra=b"Cookie: " + b"a" * 9000 + b"\r\n"), b"HTTP/1.1 431 "),
+    "a 10 kB request line": (_upgrade("/sessions/" + "x" * 10_000 + "/events"), b"HTTP/1.1 414 "),
+    "130 headers": (_upgrade(extra=b"".join(b"X-%d: y\r\n" % k for k in range(130))), b"HTTP/1.1 431 "),
+}
+
+
+@pytest.mark.parametrize("case", REFUSED_UPGRADES)
+def test_an_upgrade_the_websockets_library_refuses_is_answered_and_closed_not_held(kit, server, case):
+    """Its answer was queued but never written, and the connection held for ever (no deadline once upgrading): one
+    client held 150 such connections, unanswered, for as long as it liked, without a credential."""
+    request, status = REFUSED_UPGRADES[case]
+    with socket.create_connection(("127.0.0.1", server.port), timeout=5) as raw:
+        raw.sendall(request)
+        answer = b""
+        while chunk := raw.recv(65536):  # to the end: the server closes the connection
+            answer += chunk
+    assert answer.startswith(status), answer[:200]
+
+
+def test_a_refused_upgrade_held_open_does_not_break_the_shutdown(kit, base_settings, monkeypatch):
+    """uvicorn's shutdown answered such a connection 500 on top of the refusal already queued, and raised: the
+    service exited 1 with two tracebacks, its lifespan shutdown never run."""
+    import threading
+
+    raised: list[BaseException | None] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: raised.append(args.exc_value))
+    srv = kit.ServerThread(base_settings.model_copy(update={"instance_id": "held-upgrade"})).start()
+    capture = _Capture()
+    logging.getLogger("uvicorn.error").addHandler(capture)
+    try:
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as raw:
+            raw.sendall(REFUSED_UPGRADES["a 9 kB header line"][0])  # and never reads
+            time.sleep(0.3)
+            srv.stop()
+    finally:
+        logging.getLogger("uvicorn.error").removeHandler(capture)
+    assert raised == []
+    assert not [r.getMessage() for r in capture.records if r.levelno >= logging.ERROR]
 
 
 def test_settings_refuse_a_block_bound_the_queue_could_never_hold():
