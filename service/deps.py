@@ -24,6 +24,7 @@ from service.errors import ErrorResponse, ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
 from service.live_session import Session
+from service.log_throttle import REFUSING_SOCKET
 from service.runtime import Runtime
 from service.state import ServiceState
 
@@ -186,7 +187,11 @@ class Refused(Exception):
 async def refuse(websocket: WebSocket, exc: ServiceError, *, robot: bool) -> None:
     if robot and exc.status not in HANDSHAKE_REFUSALS:
         code = {401: Close.POLICY, 403: Close.POLICY, 421: Close.MISDIRECTED}.get(exc.status, Close.NOT_READY)
-        await websocket.accept()
+        refusing = REFUSING_SOCKET.set(True)  # uvicorn's lines for this acceptance are throttled
+        try:
+            await websocket.accept()
+        finally:
+            REFUSING_SOCKET.reset(refusing)
         await websocket.close(int(code), exc.detail[:120])
         return
     try:

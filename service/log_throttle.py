@@ -4,7 +4,8 @@
 the next one that gets through says how many were left out. Keys are a small fixed set (a kind of
 refusal), never a client address or anything else a client chooses, so the throttle's memory is
 bounded. `ThrottleFilter` does the same for records of another library's logger (uvicorn's
-"Invalid HTTP request received." and the like) picked by their message.
+"Invalid HTTP request received." and the like) picked by their message; `RefusedSocketFilter` for the lines of a
+WebSocket accepted only to be closed (`REFUSING_SOCKET` set around that acceptance).
 """
 
 from __future__ import annotations
@@ -13,9 +14,12 @@ import logging
 import threading
 import time
 from collections.abc import Hashable, Iterable
+from contextvars import ContextVar
 
 #: at most one WARNING per kind of client-caused event per this many seconds
 EVERY_S = 10.0
+#: True while the app accepts a WebSocket only to close it at once (a robot's wrong token: its close code says why)
+REFUSING_SOCKET: ContextVar[bool] = ContextVar("refusing_socket", default=False)
 
 
 class LogThrottle:
@@ -61,3 +65,11 @@ class ThrottleFilter(logging.Filter):
         if not isinstance(record.msg, str) or record.msg not in self.messages:
             return True
         return self._throttle.admit(record.msg) is not None
+
+
+class RefusedSocketFilter(ThrottleFilter):
+    """ThrottleFilter for the lines a WebSocket's acceptance writes, applied only to a socket accepted to be refused
+    (REFUSING_SOCKET): any client can cause those, while every accepted robot's and operator's lines are kept."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not REFUSING_SOCKET.get() or super().filter(record)

@@ -11,9 +11,9 @@
 - `RefusingWebSocketProtocol`: uvicorn's WebSocket protocol, with what clients send kept out of the
   ERROR log: a handshake the app refuses with an HTTP answer (404, 410, 401, …) counts as completed
   (uvicorn would log "ASGI callable returned without completing handshake" at ERROR for every one), an upgrade
-  request the websockets library refuses itself (a line over 8 kB, too many headers) is answered and closed (uvicorn
-  held it open, unanswered), and a text frame that is not UTF-8 closes the socket 1007 with one rate-limited WARNING instead of
-  an ERROR with a traceback.
+  request the websockets library refuses itself (a line over 8 kB, too many headers) is answered and closed
+  (uvicorn held it open, unanswered), and a text frame that is not UTF-8 closes the socket 1007 with one
+  rate-limited WARNING instead of an ERROR with a traceback.
 - `SessionEndingServer`: uvicorn's server, ending every session (its operators told it is lost, their feeds closed
   1000) before it closes the connections: uvicorn closes every WebSocket (1012) before the lifespan shutdown, where
   the final events would reach no one.
@@ -37,26 +37,26 @@ import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
-from service.log_throttle import LogThrottle, ThrottleFilter
+from service.log_throttle import LogThrottle, RefusedSocketFilter, ThrottleFilter
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
 _client_warnings = LogThrottle(log)
 #: what uvicorn logs about a client, throttled to one line per kind every 10 s: its WARNINGs about what a client sent
-#: (httptools_impl), and its INFO lines for each WebSocket handshake (the request line with the status or
-#: "[accepted]", and the websockets library's "connection open" / "connection rejected" / "HTTP response sent"),
-#: which any client could write two at a time without credentials (a robot's wrong token is accepted, then closed
-#: 1008). The service's own lines say what happened to whom.
+#: (httptools_impl), and its INFO lines for each refused WebSocket handshake (the request line with the status, and
+#: the websockets library's "connection rejected" / "HTTP response sent"), which any client could write two at a
+#: time without credentials
 UVICORN_CLIENT_LINES = (
     "Invalid HTTP request received.",
     "Unsupported upgrade request.",
     '%s - "WebSocket %s" 403',
     '%s - "WebSocket %s" %d',
-    '%s - "WebSocket %s" [accepted]',
-    "connection open",
     "connection rejected (%d %s)",
     "HTTP response sent (%d %s)",
 )
+#: its two INFO lines for an accepted WebSocket, throttled the same way for a socket accepted only to be closed (a
+#: robot's wrong token: accepted, then closed 1008)
+UVICORN_ACCEPT_LINES = ('%s - "WebSocket %s" [accepted]', "connection open")
 _QUERY = re.compile(r"\?[^\s\"']*")
 #: a request's line and headers together (a robot's are a few hundred bytes; nginx's default is 4 × 8 kB)
 MAX_REQUEST_HEAD_BYTES = 64 * 1024
@@ -299,6 +299,7 @@ class EscapeControls(logging.Filter):
 _REDACTION = RedactQueries()
 _ESCAPES = EscapeControls()
 _THROTTLE = ThrottleFilter(UVICORN_CLIENT_LINES)
+_REFUSED_ACCEPTS = RefusedSocketFilter(UVICORN_ACCEPT_LINES)
 
 
 def install_log_redaction() -> None:
@@ -313,8 +314,9 @@ def install_log_redaction() -> None:
         if _ESCAPES not in handler.filters:
             handler.addFilter(_ESCAPES)
     error = logging.getLogger("uvicorn.error")
-    if _THROTTLE not in error.filters:
-        error.addFilter(_THROTTLE)
+    for throttle in (_THROTTLE, _REFUSED_ACCEPTS):
+        if throttle not in error.filters:
+            error.addFilter(throttle)
 
 
 def server_options(settings: Settings, **overrides: Any) -> dict[str, Any]:
