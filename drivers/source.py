@@ -31,9 +31,9 @@ Item = SampleBlock | TapBlock | Frame
 
 #: seconds of stream per block that the sources and `hapticlink robot` send unless told otherwise: 250 ms, two
 #: blocks per 500 ms window. The service's event loop pays per block (a WebSocket message, its acknowledgement,
-#: decoding, admission): 250 ms blocks cost the service about a quarter less CPU per robot-second than 100 ms
-#: ones, and a window still completes with the block that ends where it ends (a divisor of the 500 ms hop), so
-#: latency does not pay for it (docs/drivers.md, "Block size").
+#: decoding, admission): 250 ms blocks cost the service about a tenth less CPU per robot-second than 100 ms ones,
+#: and a window still completes with the block that ends where it ends (a divisor of the 500 ms hop), so latency
+#: does not pay for it (docs/drivers.md, "Block size").
 DEFAULT_BLOCK_S = 0.25
 #: ... except where a channel runs slower than MODEL_RATE_HZ: resampled up, it holds its last samples back until
 #: the next block, so each window completes one block late; short blocks keep that delay short

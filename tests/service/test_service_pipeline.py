@@ -133,6 +133,23 @@ def test_any_block_size_gives_the_same_windows(kit, server, client, library_dir)
         assert np.allclose(results[0], other, atol=0.011)
 
 
+@pytest.mark.parametrize("block_s", [0.1, 0.25])
+def test_a_window_completes_with_the_block_that_ends_where_it_ends(kit, server, client, library_dir, block_s):
+    """Why a long default block costs no latency: at 1 kHz the block ending at a window's end completes it, whatever
+    the block's size (a divisor of the hop)."""
+    rec = kit.stroke_recording(library_dir, "synth_004", 2.0)
+    blocks = kit.recording_blocks(rec, block_s=block_s)
+    ends = {b.seq: b.t0 + block_s for b in blocks}
+    session = kit.create_session(client)
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        sub.recv(timeout=5)
+        for block in blocks:
+            assert kit.post_block(client, session, block).status_code == 202
+        windows, _ = read_windows(sub, 4)
+    assert [round(w["t_end_s"], 6) for w in windows] == [0.5, 1.0, 1.5, 2.0]
+    assert [round(ends[w["block_seq"]], 6) for w in windows] == [0.5, 1.0, 1.5, 2.0]
+
+
 def test_a_time_gap_starts_a_new_segment_and_no_window_straddles_it(kit, server, client, library_dir):
     rec = kit.stroke_recording(library_dir, "synth_003", 2.0)
     first = kit.recording_blocks(rec.crop(0, 0.75), t0=0.0)
