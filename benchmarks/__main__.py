@@ -6,6 +6,7 @@ benchmark runs one and two replicas; the deploy benchmark runs when nginx and re
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -26,6 +27,14 @@ from benchmarks import (
 
 
 def main(argv: list[str]) -> int:
+    # parsed first: a typo or --help must not start an hour of benchmarks that rewrite reports/bench
+    args = argparse.ArgumentParser(
+        prog="python -m benchmarks",
+        description="Run every benchmark in turn (about an hour on 2 cores); each prints its numbers and writes "
+        "reports/bench/*.json. One benchmark alone: python -m benchmarks.<name> --help.",
+    )
+    args.add_argument("--all", action="store_true", help="also build the HaTT–TexNet dataset (about 10 minutes more)")
+    everything = args.parse_args(argv).all
     print("== tactile features: ours vs librosa ==", flush=True)
     features.main([])
     print("\n== visual embedding: torch vs onnxruntime ==", flush=True)
@@ -65,7 +74,7 @@ def main(argv: list[str]) -> int:
         deploy.main([])
     else:
         print("\n(skipping benchmarks.deploy: it needs nginx and redis-server)", flush=True)
-    if "--all" in argv:
+    if everything:
         from benchmarks import dataset_build
 
         print("\n== building the HaTT–TexNet dataset ==", flush=True)

@@ -199,6 +199,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.seed < 0:  # numpy's own refusal names no flag
+        raise ValueError(f"--seed must be a whole number ≥ 0, got {args.seed}")
     if not logging.getLogger().handlers:
         logging.basicConfig(
             level=logging.DEBUG if args.verbose else logging.INFO,

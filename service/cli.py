@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from importlib.metadata import EntryPoint, entry_points
 
 COMMAND_GROUP = "hapticlink.commands"
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    warnings.formatwarning = _warning_line  # a user reads what went wrong, not the line of code that said so
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -41,8 +43,23 @@ def main(argv: list[str] | None = None) -> int:
         # Bad input named precisely by the code below; no traceback for the user.
         print(f"hapticlink {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path that cannot be read or written (missing, a file where a folder is due, no access)
+        print(f"hapticlink {args.command}: error: {_os_error(exc)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _warning_line(message: Warning | str, category: type[Warning], *_: object, **__: object) -> str:
+    return f"warning: {message}\n"
+
+
+def _os_error(exc: OSError) -> str:
+    """Which path and what went wrong with it, in one line: "/nope/v.wav: No such file or directory"."""
+    where = " → ".join(str(p) for p in (exc.filename, exc.filename2) if p is not None)
+    if not where:
+        return str(exc)
+    return f"{where}: {exc.strerror or type(exc).__name__}"
 
 
 if __name__ == "__main__":

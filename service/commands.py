@@ -79,20 +79,74 @@ def settings_from_args(args: argparse.Namespace):
         raise ValueError(f"invalid settings: {problems}") from None
 
 
+#: the paths `serve` reads: (its flag, what it names, a folder rather than a file, required)
+SERVED_PATHS = (
+    ("--model", "model", False, True),
+    ("--library", "library", True, True),
+    ("--backbone", "visual backbone", False, False),
+    ("--tactile-model", "tactile fallback model", False, False),
+    ("--cheap-model", "cheap model", False, False),
+)
+
+
+def check_paths(settings) -> None:
+    """ValueError naming the first path `serve` would read that is missing or of the wrong kind, with its flag and
+    variable: checked before anything starts (found later, the service ran on, never ready)."""
+    for flag, label, folder, required in SERVED_PATHS:
+        field = FLAG_TO_FIELD[flag[2:].replace("-", "_")]
+        path, where = getattr(settings, field), f"{flag} or HAPTICLINK_{field.upper()}"
+        if path is None:
+            if required:
+                raise ValueError(f"no {label} configured: pass {where.replace(' or ', ' or set ')}")
+        elif not path.exists():
+            raise ValueError(f"{label} not found: {path} ({where})")
+        elif folder != path.is_dir():
+            kind = ("a folder", "the file") if folder else ("a file", "the folder")
+            raise ValueError(f"{label} must be {kind[0]}, got {kind[1]} {path} ({where})")
+
+
+def check_broker(settings, timeout_s: float = 3.0) -> None:
+    """ValueError when the Redis that broker=redis names does not answer a PING within timeout_s: said in one line
+    before anything starts (found at start-up, it ended the service with a traceback). The URL is said without its
+    password."""
+    if settings.broker != "redis":
+        return
+    import redis
+
+    client = redis.Redis.from_url(settings.redis_url, socket_connect_timeout=timeout_s, socket_timeout=timeout_s)
+    try:
+        client.ping()
+    except redis.RedisError as exc:
+        raise ValueError(
+            f"cannot reach Redis at {redact_password(settings.redis_url)} ({exc}): start redis-server, or pass "
+            "--redis-url (HAPTICLINK_REDIS_URL)"
+        ) from None
+    finally:
+        client.close()
+
+
+def redact_password(url: str) -> str:
+    """`url` with the password of its user part (redis://user:secret@host) replaced by ***."""
+    scheme, sep, rest = url.partition("://")
+    credentials, at, host = rest.rpartition("@")
+    if not at or ":" not in credentials:
+        return url
+    return f"{scheme}{sep}{credentials.split(':', 1)[0]}:***@{host}"
+
+
 def _serve(args: argparse.Namespace) -> int:
     from service.app import create_app
     from service.server import serve
 
     settings = settings_from_args(args)
-    for label, path, flag in (
-        ("model", settings.model_path, "--model"),
-        ("library", settings.library_dir, "--library"),
-    ):
-        if path is None:
-            raise ValueError(f"no {label} configured: pass {flag} or set HAPTICLINK_{FLAG_TO_FIELD[flag[2:]].upper()}")
-        if not path.exists():
-            raise ValueError(f"{label} not found: {path}")
+    check_paths(settings)
+    check_broker(settings)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if settings.api_keys is None and settings.api_keys_file is None:
+        logging.getLogger("service").warning(
+            "no fleet API key is configured (HAPTICLINK_API_KEYS or HAPTICLINK_API_KEYS_FILE): every robot's "
+            "session request will be refused (503)"
+        )
     # SIGINT/SIGTERM: the sessions end (operators told), then uvicorn stops accepting, lets open requests finish and
     # runs the lifespan shutdown.
     serve(create_app(settings), settings)

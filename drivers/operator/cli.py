@@ -89,14 +89,21 @@ def _port_baud(rest: str) -> tuple[str, int]:
 def run(args: argparse.Namespace) -> int:
     from drivers.operator.client import OperatorClient, Switch
 
+    # checked before anything connects: found later (or never), they cost a session's worth of retries
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if not 0 < args.block_s <= 0.1:
+        raise ValueError(f"--block-s must lie in (0, 0.1] s (a rendering block; 0.01 by default), got {args.block_s}")
+    if not 0 <= args.crossfade_s <= 1:
+        raise ValueError(f"--crossfade-s must lie in [0, 1] s, got {args.crossfade_s}")
+    if not args.full_scale > 0:
+        raise ValueError(f"--full-scale must be a positive acceleration, m/s², got {args.full_scale}")
     if not logging.getLogger().handlers:
         logging.basicConfig(
             level=logging.DEBUG if args.verbose else logging.INFO,
             format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         )
         logging.getLogger("httpx").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
-    if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     device = device_from_spec(args.device, block_s=args.block_s, seed=args.seed, loop=args.loop)
     outputs, failed = [], []
     for spec in args.out or ["sound"]:
@@ -146,4 +153,4 @@ def run(args: argparse.Namespace) -> int:
         + (f"; {stats.ended}" if stats.ended else ""),
         flush=True,
     )
-    return 0
+    return 1 if stats.refused else 0

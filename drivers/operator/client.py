@@ -31,7 +31,7 @@ import numpy as np
 from drivers import render_feed
 from drivers.operator.devices import RATE_HZ, Motion
 from drivers.protocol import FATAL_CLOSES, bearer, ws_url
-from drivers.robot.backoff import Backoff
+from drivers.robot.backoff import Backoff, body_detail
 from texture_library import model_codec
 from texture_library.render_model import parse_render_model
 from texture_library.renderer import CROSSFADE_S, StreamRenderer
@@ -70,6 +70,7 @@ class OperatorStats:
     model_bytes: int = 0
     ratings: tuple[int, ...] | None = None
     ended: str | None = None
+    refused: bool = False  # the service refused the event feed (token, session): nothing was ever rendered for it
 
 
 class ModelCache:
@@ -186,7 +187,8 @@ class OperatorClient:
             except InvalidStatus as exc:
                 status = exc.response.status_code
                 if status in FATAL_HANDSHAKES:
-                    self._end(f"the service refused the event feed: HTTP {status}")
+                    self.stats.refused = True
+                    self._end(f"the service refused the event feed: HTTP {status}: {body_detail(exc.response.body)}")
                     return
                 log.warning("event feed refused (HTTP %d); retrying", status)
                 code = None

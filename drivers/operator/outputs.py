@@ -37,7 +37,9 @@ class WavOutput:
         if not full_scale > 0:
             raise ValueError(f"full_scale must be > 0 m/s², got {full_scale}")
         self.path, self.full_scale = Path(path), full_scale
-        self._wav = wave.open(str(self.path), "wb")  # noqa: SIM115 - closed by close()
+        # the file first: wave.open(path) failing half-built leaves a writer whose __del__ prints a traceback
+        self._file = self.path.open("wb")  # noqa: SIM115 - closed by close()
+        self._wav = wave.open(self._file, "wb")  # noqa: SIM115 - closed by close()
         self._wav.setnchannels(1)
         self._wav.setsampwidth(2)
         self._wav.setframerate(RATE_HZ)
@@ -51,7 +53,8 @@ class WavOutput:
         self.clipped += clipped
 
     def close(self) -> None:
-        self._wav.close()
+        self._wav.close()  # writes the header's sizes; the file is ours to close
+        self._file.close()
 
 
 def load_sounddevice():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -384,8 +385,8 @@ def register_demo(sub: argparse._SubParsersAction) -> None:
         "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
     )
     d.add_argument("--assets", type=Path, default=Path("artifacts/demo"), help="where demo assets are built and cached")
-    d.add_argument("--host", default="127.0.0.1")
-    d.add_argument("--port", type=int, default=8000)
+    d.add_argument("--host", default="127.0.0.1", help="address the demo's service listens on (default 127.0.0.1)")
+    d.add_argument("--port", type=int, default=8000, help="its TCP port (default 8000)")
     d.add_argument(
         "--per-texture", type=float, default=20.0, metavar="S", help="seconds the robot strokes each texture"
     )
@@ -400,6 +401,9 @@ def _demo(args: argparse.Namespace) -> int:
     from service.demo import check_port_free, demo
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    for flag, seconds in (("--per-texture", args.per_texture), ("--duration", args.duration)):
+        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+            raise ValueError(f"{flag} must be a positive number of seconds, got {seconds:g}")
     check_port_free(args.host, args.port)  # before minutes of building assets
     assets = prepared(args.assets)
     return demo(assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

@@ -96,3 +96,25 @@ def test_robot_command_replays_a_recording_into_a_new_session(kit, fake_service,
     stats = json.loads(out[-1])
     assert stats["acked"] == stats["read"] == 2 and stats["lost"] == stats["unsent"] == 0  # 0.5 s in 250 ms blocks
     np.testing.assert_array_equal(kit.concat(sess.accepted, "speed"), rec.speed.data.astype(np.float32))
+
+
+OPERATOR = ["operator", "--url", "http://h:1", "--session", "s1", "--token", "t"]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["robot", "--source", "serial:COM3", "--url", "http://h:1", "--seed", "-1"], "--seed must be a whole number"),
+        ([*OPERATOR, "--block-s", "0"], "--block-s must lie in (0, 0.1] s"),
+        ([*OPERATOR, "--block-s", "5"], "--block-s must lie in (0, 0.1] s"),
+        ([*OPERATOR, "--crossfade-s", "-1"], "--crossfade-s must lie in [0, 1] s"),
+        ([*OPERATOR, "--full-scale", "0"], "--full-scale must be a positive acceleration"),
+    ],
+)
+def test_bad_numbers_are_named_by_their_flag_before_anything_connects(argv, message):
+    """numpy refused a negative seed without naming it; the operator took a zero block and rendered silence, and
+    refused a negative crossfade only once connected (never, with the service unreachable)."""
+    args = parser().parse_args(argv)
+    with pytest.raises(ValueError) as refused:
+        args.func(args)
+    assert message in str(refused.value)

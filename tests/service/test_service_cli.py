@@ -101,3 +101,57 @@ def test_a_client_cannot_write_a_line_of_its_own_into_the_log(kit, tactile_model
     assert not [line for line in lines if re.match(r"(\S+ \S+ )?ERROR\b", line)], output
     refused = [line for line in lines if "socket for session" in line and "refused: 404" in line]
     assert len(refused) == 2 and all("\\n2001-01-01 00:00:00,000 ERROR" in line for line in refused), output
+
+
+def test_every_path_serve_reads_is_checked_before_it_starts(capsys, tmp_path, library_dir, tactile_model):
+    """A missing backbone or fallback model, or a folder given as the model, left the service running, never ready."""
+    model, library = str(tactile_model), str(library_dir)
+    cases = {
+        ("--backbone", str(tmp_path / "nope.onnx")): "visual backbone not found",
+        ("--tactile-model", str(tmp_path / "nope.onnx")): "tactile fallback model not found",
+        ("--cheap-model", str(tmp_path / "nope.onnx")): "cheap model not found",
+    }
+    for (flag, value), why in cases.items():
+        assert main(["serve", "--model", model, "--library", library, flag, value]) == 2
+        err = capsys.readouterr().err
+        assert why in err and f"{flag} or HAPTICLINK_" in err and "Traceback" not in err
+    assert main(["serve", "--model", library, "--library", library]) == 2
+    assert "model must be a file, got the folder" in capsys.readouterr().err
+    assert main(["serve", "--model", model, "--library", model]) == 2
+    assert "library must be a folder, got the file" in capsys.readouterr().err
+
+
+def test_an_os_error_is_one_line_naming_the_path_not_a_traceback(capsys, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "ds"
+    status = main(
+        ["dataset", "build", "--source", "synthetic", "--n-textures", "3", "--no-features", "--out", str(out)]
+    )
+    err = capsys.readouterr().err
+    assert status == 2 and "Traceback" not in err
+    assert (
+        err.startswith("hapticlink dataset: error: ") and str(tmp_path / "afile") in err and len(err.splitlines()) == 1
+    )
+
+
+def test_an_unreachable_redis_is_one_line_without_its_password(capsys, tactile_model, library_dir):
+    """It ended the service at start-up with a traceback in one enormous log line."""
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    flags = ["--model", str(tactile_model), "--library", str(library_dir), "--broker", "redis"]
+    assert main(["serve", *flags, "--redis-url", f"redis://robot:hunter2@127.0.0.1:{port}/0"]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot reach Redis at redis://robot:***@127.0.0.1:{port}/0" in err and "--redis-url" in err
+    assert "hunter2" not in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_a_redis_url_is_said_without_its_password():
+    from service.commands import redact_password
+
+    assert redact_password("redis://:s3cret@host:6379/0") == "redis://:***@host:6379/0"
+    assert redact_password("rediss://user:p@ss@host/1") == "rediss://user:***@host/1"
+    assert redact_password("redis://host:6379/0") == "redis://host:6379/0"
+    assert redact_password("unix:///run/redis.sock") == "unix:///run/redis.sock"

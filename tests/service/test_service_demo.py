@@ -150,3 +150,23 @@ def test_a_demo_on_a_port_in_use_says_so_before_building_anything(tmp_path, caps
     err = capsys.readouterr().err
     assert f"127.0.0.1:{port} is not free" in err and "--port" in err and "Traceback" not in err
     assert not (tmp_path / "assets").exists()  # nothing built
+
+
+@pytest.mark.parametrize(
+    ("flags", "why"),
+    [
+        (["--port", "70000"], "--port must be a TCP port, 1–65535, got 70000"),
+        (["--host", "nosuch.invalid"], "--host 'nosuch.invalid' is no address of this machine"),
+        (["--per-texture", "0"], "--per-texture must be a positive number of seconds, got 0"),
+        (["--duration", "-5"], "--duration must be a positive number of seconds, got -5"),
+    ],
+)
+def test_a_demo_with_a_bad_flag_names_it_before_building_or_starting_anything(tmp_path, capsys, flags, why):
+    """A port past 65535 ended in a traceback, an unknown host was called "not free", and --per-texture 0 started
+    the service and a session before an error named an internal duration_s."""
+    from service.cli import main
+
+    assert main(["demo", *flags, "--assets", str(tmp_path / "assets")]) == 2
+    err = capsys.readouterr().err
+    assert why in err and "Traceback" not in err
+    assert not (tmp_path / "assets").exists()

@@ -230,7 +230,8 @@ async def _enumerate(source):
 def test_an_unknown_session_ends_the_operator_with_the_reason(server):
     operator = OperatorClient(server.url, "test-a.nope", "x", SimulatedStroke(5.0), [])
     stats = asyncio.run(operator.run(duration_s=5.0))
-    assert stats.ended is not None and "HTTP 404" in stats.ended and stats.samples < 2000
+    assert stats.ended is not None and "HTTP 404: no session 'test-a.nope'" in stats.ended and stats.samples < 2000
+    assert stats.refused
 
 
 def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, client, library_dir, tmp_path):
@@ -262,3 +263,13 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
         assert w.getnframes() >= 1900
     nothing = subprocess.run([*cmd[:-4], "--out", missing], capture_output=True, text=True, timeout=60, env=env)
     assert nothing.returncode == 2 and "hapticlink-no-such-port" in nothing.stderr
+    # a WAV that cannot be written: one line naming it, no traceback from a half-built writer
+    unwritable = subprocess.run([*cmd[:-4], "--out", f"wav:{tmp_path}/no/such/dir/x.wav"], capture_output=True,
+                                text=True, timeout=60, env=env)  # fmt: skip
+    assert unwritable.returncode == 2 and "no/such/dir/x.wav" in unwritable.stderr
+    assert "Traceback" not in unwritable.stderr
+    # the service refusing the feed (a wrong token): the reason, and a failed exit
+    token = cmd.index("--token") + 1
+    refused = subprocess.run([*cmd[:token], "not-the-token", *cmd[token + 1 :]], capture_output=True, text=True,
+                             timeout=60, env=env)  # fmt: skip
+    assert refused.returncode == 1 and "refused the event feed: HTTP 401" in refused.stdout

@@ -27,8 +27,11 @@ def build_synthetic(
     withheld: int = 0,
 ) -> Path:
     """n_textures procedural textures; the last `withheld` are built without ratings (to practise prediction)."""
+    for label, value in (("n_textures", n_textures), ("recordings", recordings), ("n_raters", n_raters)):
+        if value < 1:
+            raise ValueError(f"{label} must be at least 1, got {value}")
     if not 0 <= withheld < n_textures:
-        raise ValueError(f"withheld must lie in [0, n_textures), got {withheld}")
+        raise ValueError(f"withheld must lie in [0, n_textures), got {withheld} of {n_textures}")
     writer = DatasetWriter(
         out,
         name=f"synthetic-{n_textures}-s{seed}",

@@ -49,7 +49,10 @@ README_ROWS = {
     "svr-tactile-windows": "paper's Tactile SVM",
     "mean": "predict the mean",
 }
-README_BEGIN = "<!-- results table: written by `hapticlink report --readme README.md`; edits here are overwritten -->"
+README_BEGIN = (
+    "<!-- results table: written by `hapticlink report --dataset data/hatt-texnet --reports reports/hatt-texnet "
+    "--readme README.md`; edits here are overwritten -->"
+)
 README_END = "<!-- end of results table -->"
 
 
