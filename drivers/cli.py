@@ -231,6 +231,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         api_key=args.api_key,
         frame_change=args.frame_change,
         frame_refresh_s=args.frame_refresh_s,
+        on_session=_print_session,
     )
     try:
         stats = asyncio.run(_stream(client, args.duration))
@@ -244,17 +245,17 @@ def _run_robot(args: argparse.Namespace) -> int:
     return 1 if stats.lost or stats.unsent else 0
 
 
+def _print_session(info) -> None:
+    """The session the robot opened, once its source gave something: where its operators watch."""
+    print(f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True)
+
+
 async def _stream(client, duration_s: float | None):
-    """Create the session if needed (printing the operator link), then run; first Ctrl-C drains, second quits."""
+    """Run (the client opens the session once its source gives something); first Ctrl-C drains, second quits."""
     import asyncio
 
     from drivers.stop_signals import on_stop_signals
 
-    if client.session_id is None:
-        info = await client.open_session()
-        print(
-            f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True
-        )
     main = asyncio.current_task()
     interrupted = False
 

@@ -18,6 +18,7 @@ import dataclasses
 import json
 import logging
 import random
+from collections.abc import Callable
 from typing import Literal
 from urllib.parse import urlsplit
 
@@ -42,8 +43,9 @@ __all__ = ["RobotClient", "RobotStats"]
 class RobotClient:
     """Streams `source` to the service at `url` (http(s)://host:port[/prefix]).
 
-    session_id + robot_token: stream into an existing session; neither: create one (its operator
-    token and console link are kept in `session`). transport "ws" (blocks over one WebSocket,
+    session_id + robot_token: stream into an existing session; neither: create one once the source has given its
+    first item (a device that does not open ends the run before any session exists; its operator token and console
+    link are kept in `session`, and given to `on_session`). transport "ws" (blocks over one WebSocket,
     up to `window` unacknowledged in flight) or "http" (one POST per block, in order);
     binary=False sends JSON blocks (WebSocket text messages) instead of the binary format. max_buffer_s: seconds
     of unacknowledged data kept for resending.
@@ -80,6 +82,7 @@ class RobotClient:
         open_timeout_s: float | None = 60.0,
         frame_change: float = FRAME_CHANGE,
         frame_refresh_s: float = FRAME_REFRESH_S,
+        on_session: Callable[[SessionInfo], None] | None = None,
     ) -> None:
         parts = urlsplit(url)
         if parts.scheme not in ("http", "https") or not parts.netloc:
@@ -111,12 +114,14 @@ class RobotClient:
         self.open_timeout_s = open_timeout_s
         self.outbox = Outbox(max_buffer_s, backoff, random.Random(seed), start_seq)
         self.frame_gate = FrameGate(frame_change, frame_refresh_s)
+        self.on_session = on_session  # told the session run() opens (where its operators can watch)
         # the newest frame read and its thumbnail: what a refresh sends, and a repeat of its bytes is not decoded again
         self._newest: tuple[Frame, np.ndarray | None] | None = None
         self._refresh: asyncio.TimerHandle | None = None  # sends the newest frame when the gate's refresh is due
         self._stopping = False
         self._ran = False
         self._reader: asyncio.Task | None = None
+        self._first_item = asyncio.Event()  # the source has given something (its device opened)
 
     @property
     def stats(self) -> RobotStats:
@@ -174,8 +179,15 @@ class RobotClient:
         try:
             async with httpx.AsyncClient(timeout=self.request_timeout_s) as http:
                 outbox.http = http
+                self._reader = asyncio.create_task(self._read_source(), name="robot-reader")
+                tasks = [self._reader]
+                if self._stopping:
+                    self._reader.cancel()
                 if self.session_id is None:
-                    await self.open_session()
+                    await self._source_started()
+                    info = await self.open_session()
+                    if self.on_session is not None:
+                        self.on_session(info)
                 endpoint = Endpoint(
                     self.url,
                     str(self.session_id),
@@ -184,9 +196,6 @@ class RobotClient:
                     window=self.window,
                     request_timeout_s=self.request_timeout_s,
                 )
-                self._reader = asyncio.create_task(self._read_source(), name="robot-reader")
-                if self._stopping:
-                    self._reader.cancel()
                 send_blocks = send_ws if self.transport == "ws" else send_http
                 sender = asyncio.create_task(send_blocks(endpoint, outbox), name="robot-sender")
                 framer = asyncio.create_task(send_frames(endpoint, outbox), name="robot-frames")
@@ -217,6 +226,21 @@ class RobotClient:
                 )
         return self.stats
 
+    async def _source_started(self) -> None:
+        """Wait until the source has given its first item, or ended: a device that does not open (a wrong serial
+        port, a missing DAQ) ends the run with its error here, before a session is opened that nothing would reach.
+        A source that gave items and then failed, or was stopped, has its items delivered as ever (a session is
+        opened for them, and run() raises its error after)."""
+        assert self._reader is not None
+        first = asyncio.create_task(self._first_item.wait())
+        try:
+            await asyncio.wait({first, self._reader}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            first.cancel()
+        failed = self._reader.done() and not self._reader.cancelled() and self._reader.exception() is not None
+        if failed and not self._first_item.is_set():
+            raise self._reader.exception()  # type: ignore[misc]
+
     async def _drain(self, sender: asyncio.Task, framer: asyncio.Task) -> None:
         """Let the senders deliver what is buffered, for at most drain_timeout_s."""
         self.outbox.drain()
@@ -235,6 +259,7 @@ class RobotClient:
     async def _read_source(self) -> None:
         try:
             async for item in self.source:
+                self._first_item.set()
                 if isinstance(item, (SampleBlock, TapBlock)):
                     self._enqueue_block(item)
                 elif isinstance(item, Frame):

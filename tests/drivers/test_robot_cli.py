@@ -118,3 +118,15 @@ def test_bad_numbers_are_named_by_their_flag_before_anything_connects(argv, mess
     with pytest.raises(ValueError) as refused:
         args.func(args)
     assert message in str(refused.value)
+
+
+def test_a_source_that_does_not_open_ends_the_robot_before_it_opens_a_session(kit, fake_service, capsys):
+    """It opened a session, printed its tokens and console link, then failed on the device: an orphan session."""
+    with kit.ServerThread(fake_service.app) as server:
+        args = parser().parse_args(
+            ["robot", "--source", "serial:/dev/hapticlink-no-such-port", "--url", server.url, "--api-key", "k"]
+        )
+        status = args.func(args)
+    captured = capsys.readouterr()
+    assert status == 1 and "hapticlink-no-such-port" in captured.err
+    assert fake_service.sessions == {} and "console" not in captured.out
