@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
-from importlib.metadata import EntryPoint, entry_points
+from importlib.metadata import EntryPoint, PackageNotFoundError, entry_points, version
 
 COMMAND_GROUP = "hapticlink.commands"
 HELP_ORDER = ("service", "offline", "library", "drivers")  # parts not named here follow, by name
@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hapticlink",
         description="Perceptual haptic texture estimation for model-mediated teleoperation.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_installed_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     parts = sorted(entry_points(group=COMMAND_GROUP), key=_help_rank)
     if not parts:
@@ -48,6 +49,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _installed_version() -> str:
+    try:
+        return version("hapticlink")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
 
 
 def _warning_line(message: Warning | str, category: type[Warning], *_: object, **__: object) -> str:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import pytest
 
 from service.cli import build_parser, main
 from service.commands import settings_from_args
@@ -155,3 +156,11 @@ def test_a_redis_url_is_said_without_its_password():
     assert redact_password("rediss://user:p@ss@host/1") == "rediss://user:***@host/1"
     assert redact_password("redis://host:6379/0") == "redis://host:6379/0"
     assert redact_password("unix:///run/redis.sock") == "unix:///run/redis.sock"
+
+
+def test_version_prints_the_installed_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.strip() == f"hapticlink {version('hapticlink')}"
