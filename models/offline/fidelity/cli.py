@@ -27,15 +27,13 @@ def _fidelity(args: argparse.Namespace) -> int:
     from models.offline.fidelity.report import write_report
     from models.offline.fidelity.study import RULE_ORDER, load_world, run_rules, summarise
 
+    # ValueError: `hapticlink` says it as every command does ("hapticlink fidelity: error: …", exit 2)
     if args.default_rule not in RULE_ORDER:
-        print(f"--default-rule must be one of {RULE_ORDER}, got {args.default_rule!r}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--default-rule must be one of {RULE_ORDER}, got {args.default_rule!r}")
     if (args.synthetic_dataset is None) != (args.synthetic_predictions is None):
-        print("--synthetic-dataset and --synthetic-predictions go together", file=sys.stderr)
-        return 2
+        raise ValueError("--synthetic-dataset and --synthetic-predictions go together")
     if args.windows < 1:
-        print(f"--windows must be ≥ 1, got {args.windows}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--windows must be ≥ 1, got {args.windows}")
     parts: list = []
     for dataset, predictions in (
         (args.dataset, args.predictions),
@@ -46,9 +44,8 @@ def _fidelity(args: argparse.Namespace) -> int:
             continue
         try:
             world = load_world(dataset, predictions, args.windows)
-        except (ValueError, OSError, KeyError) as exc:
-            print(f"fidelity: {exc}", file=sys.stderr)
-            return 1
+        except KeyError as exc:
+            raise ValueError(f"{dataset}: no {exc} in its files") from None
         per_texture, info = run_rules(world)
         rows = summarise(world, per_texture)
         parts.append((world, per_texture, rows, info))

@@ -88,9 +88,15 @@ def test_the_hybrid_weight_is_tuned_without_the_held_out_texture(world_files, mo
 
 
 def test_bad_arguments_get_a_clear_error(world_files, tmp_path, capsys):
+    from service.cli import main
+
     dataset, predictions = world_files
     base = ["fidelity", "--dataset", str(dataset), "--predictions", str(predictions), "--out", str(tmp_path)]
-    assert run_cli(base + ["--synthetic-dataset", str(dataset)]) == 2
-    assert "go together" in capsys.readouterr().err
-    assert run_cli(base + ["--default-rule", "loudest"]) == 2
-    assert run_cli(["fidelity", "--dataset", str(tmp_path), "--predictions", str(predictions)]) == 1
+    assert main(base + ["--synthetic-dataset", str(dataset)]) == 2
+    assert "hapticlink fidelity: error: --synthetic-dataset and --synthetic-predictions go together" in (
+        capsys.readouterr().err
+    )
+    assert main(base + ["--default-rule", "loudest"]) == 2
+    assert "--default-rule must be one of" in capsys.readouterr().err
+    assert main(["fidelity", "--dataset", str(tmp_path), "--predictions", str(predictions)]) == 2
+    assert f"hapticlink fidelity: error: {tmp_path}: not a hapticlink dataset" in capsys.readouterr().err
