@@ -57,7 +57,9 @@ UVICORN_CLIENT_LINES = (
 #: its two INFO lines for an accepted WebSocket, throttled the same way for a socket accepted only to be closed (a
 #: robot's wrong token: accepted, then closed 1008)
 UVICORN_ACCEPT_LINES = ('%s - "WebSocket %s" [accepted]', "connection open")
-_QUERY = re.compile(r"\?[^\s\"']*")
+#: a query string, to the next whitespace: a target holds none, while a quote may sit inside the query (`?v='&token=…`
+#: kept the token when the cut stopped at quotes)
+_QUERY = re.compile(r"\?\S*")
 #: a request's line and headers together (a robot's are a few hundred bytes; nginx's default is 4 × 8 kB)
 MAX_REQUEST_HEAD_BYTES = 64 * 1024
 

@@ -201,3 +201,25 @@ def test_escape_controls_known_answers():
     EscapeControls().filter(failed)
     text = logging.Formatter("%(levelname)s %(message)s").format(failed)
     assert text.startswith("WARNING estimation failed:\\nx\nTraceback")  # the traceback keeps its own lines
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/sessions/s1/ingest?token=SECRET",
+        "/sessions/s1/ingest?v='&token=SECRET",
+        '/sessions/s1/events?v="&token=SECRET',
+        "/sessions/s1/events?view=render&token=SECRET&x=1",
+    ],
+)
+def test_redact_queries_cuts_the_whole_query_a_quote_in_it_included(path):
+    """The query was cut only up to a quote: `?v='&token=…` wrote a live token into the log."""
+    from service.server import RedactQueries
+
+    as_argument = logging.LogRecord("uvicorn.error", logging.INFO, __file__, 1, '%s - "WebSocket %s" [accepted]',
+                                    ("127.0.0.1:5", path), None)  # fmt: skip
+    as_text = logging.LogRecord("uvicorn.error", logging.INFO, __file__, 1, f'GET {path} HTTP/1.1" 404', (), None)
+    for record in (as_argument, as_text):
+        assert RedactQueries().filter(record) is True
+        message = record.getMessage()
+        assert "SECRET" not in message and "/sessions/s1/" in message
