@@ -128,6 +128,16 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
         self._answering = cycle
         super()._start_asgi_task(cycle, app)
 
+    def shutdown(self) -> None:
+        if self._deadline is not None:
+            # a request still arriving cannot be answered before its client sends the rest, which the graceful
+            # shutdown would wait for, then cancel (an ERROR and a traceback for any client that sends half a body):
+            # closed now, its route sees the client gone
+            self._disarm()
+            self.transport.close()
+            return
+        super().shutdown()
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         # uvicorn marks only the newest request it parsed as disconnected; with requests pipelined, the one being

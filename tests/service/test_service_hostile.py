@@ -437,6 +437,27 @@ def test_an_upgrade_the_websockets_library_refuses_is_answered_and_closed_not_he
     assert answer.startswith(status), answer[:200]
 
 
+def test_a_request_whose_body_is_still_arriving_does_not_hold_the_shutdown_or_write_an_error(kit, base_settings):
+    """Half a body at shutdown: uvicorn waited its graceful 5 s for the rest, then cancelled the route, with an ERROR
+    and a traceback for every such client."""
+    srv = kit.ServerThread(base_settings.model_copy(update={"instance_id": "half-body"})).start()
+    capture = _Capture()
+    logging.getLogger("uvicorn.error").addHandler(capture)
+    logging.getLogger("service").addHandler(capture)
+    try:
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as raw:
+            raw.sendall(
+                b"POST /sessions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer " + kit.API_KEY.encode()
+                + b"\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n{\"a\":"
+            )  # fmt: skip
+            time.sleep(0.3)
+            srv.stop()
+    finally:
+        logging.getLogger("uvicorn.error").removeHandler(capture)
+        logging.getLogger("service").removeHandler(capture)
+    assert not [r.getMessage() for r in capture.records if r.levelno >= logging.ERROR]
+
+
 def test_a_refused_upgrade_held_open_does_not_break_the_shutdown(kit, base_settings, monkeypatch):
     """uvicorn's shutdown answered such a connection 500 on top of the refusal already queued, and raised: the
     service exited 1 with two tracebacks, its lifespan shutdown never run."""
