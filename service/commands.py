@@ -65,9 +65,12 @@ FLAG_TO_FIELD = {
 
 def settings_from_args(args: argparse.Namespace):
     """Settings from the environment with the given flags on top; ValueError names a bad value."""
-    from pydantic import ValidationError
+    import re
 
-    from service.settings import Settings
+    from pydantic import ValidationError
+    from pydantic_settings import SettingsError
+
+    from service.settings import Settings, env_name
 
     overrides = {
         field: getattr(args, flag) for flag, field in FLAG_TO_FIELD.items() if getattr(args, flag, None) is not None
@@ -77,6 +80,10 @@ def settings_from_args(args: argparse.Namespace):
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
         raise ValueError(f"invalid settings: {problems}") from None
+    except SettingsError as exc:  # a list or mapping variable that is not JSON: pydantic names neither it nor why
+        field = re.search(r'field "(\w+)"', str(exc))
+        name = env_name(field.group(1)) if field else "a HAPTICLINK_ variable"
+        raise ValueError(f"{name} must be JSON (a list is written [1, 2]): {exc.__cause__ or exc}") from None
 
 
 #: the paths `serve` reads: (its flag, what it names, a folder rather than a file, required)
@@ -136,10 +143,11 @@ def redact_password(url: str) -> str:
 
 def _serve(args: argparse.Namespace) -> int:
     from service.app import create_app
-    from service.server import serve
+    from service.server import check_port_free, serve
 
     settings = settings_from_args(args)
     check_paths(settings)
+    check_port_free(settings.host, settings.port)
     check_broker(settings)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if settings.api_keys is None and settings.api_keys_file is None:

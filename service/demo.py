@@ -24,7 +24,6 @@ import dataclasses
 import json
 import logging
 import secrets
-import socket
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -450,25 +449,6 @@ def _stop_runtime(app: FastAPI) -> None:
     state = getattr(app.state, "service", None)
     if state is not None:
         state.stop_runtime()
-
-
-def check_port_free(host: str, port: int) -> None:
-    """ValueError naming the port when something already listens on (host, port): the demo's service could not start
-    there, and it is said before anything else starts (uvicorn would end the demo with a traceback); ValueError too
-    for a port outside 1–65535 or a host this machine cannot listen on."""
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
-        raise ValueError(f"--port must be a TCP port, 1–65535, got {port!r}")
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a closing socket is no user
-        try:
-            probe.bind((host, port))
-        except socket.gaierror as exc:  # the name resolves to nothing: no use stopping anything or changing the port
-            raise ValueError(f"--host {host!r} is no address of this machine ({exc.strerror})") from None
-        except OSError as exc:
-            raise ValueError(
-                f"{host}:{port} is not free ({exc.strerror}): stop what uses it (another demo or service?) or pass "
-                "--port"
-            ) from None
 
 
 def demo(

@@ -261,6 +261,25 @@ class SessionEndingServer(uvicorn.Server):
         await super().shutdown(sockets)
 
 
+def check_port_free(host: str, port: int) -> None:
+    """ValueError naming the port when something already listens on (host, port), the port is outside 1–65535 or the
+    host is no address of this machine: `serve` and the demo say so before they load anything (uvicorn found it only
+    after start-up, with an ERROR line or a traceback)."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+        raise ValueError(f"--port must be a TCP port, 1–65535, got {port!r}")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a closing socket is no user
+        try:
+            probe.bind((host, port))
+        except socket.gaierror as exc:  # the name resolves to nothing: no use stopping anything or changing the port
+            raise ValueError(f"--host {host!r} is no address of this machine ({exc.strerror})") from None
+        except OSError as exc:
+            raise ValueError(
+                f"{host}:{port} is not free ({exc.strerror}): stop what uses it (another demo or service?) or pass "
+                "--port"
+            ) from None
+
+
 def serve(app: Any, settings: Settings, **overrides: Any) -> None:
     """Run `app` with server_options(settings, **overrides) until SIGINT/SIGTERM (uvicorn.run's way, sessions
     ended first)."""

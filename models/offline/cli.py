@@ -398,7 +398,8 @@ def _demo(args: argparse.Namespace) -> int:
     import logging
 
     from models.offline.demo_assets import prepared
-    from service.demo import check_port_free, demo
+    from service.demo import demo
+    from service.server import check_port_free
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     for flag, seconds in (("--per-texture", args.per_texture), ("--duration", args.duration)):

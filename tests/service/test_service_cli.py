@@ -164,3 +164,22 @@ def test_version_prints_the_installed_version(capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])
     assert done.value.code == 0 and capsys.readouterr().out.strip() == f"hapticlink {version('hapticlink')}"
+
+
+def test_serve_names_a_bad_host_a_busy_port_or_a_variable_that_is_not_json(capsys, monkeypatch, tactile_model,
+                                                                           library_dir):  # fmt: skip
+    """A bad host was found after the models loaded (an ERROR naming no host); a list variable that is not JSON got
+    pydantic's message, naming neither the variable nor the form."""
+    flags = ["--model", str(tactile_model), "--library", str(library_dir)]
+    assert main(["serve", *flags, "--host", "nosuch.invalid"]) == 2
+    assert "--host 'nosuch.invalid' is no address of this machine" in capsys.readouterr().err
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["serve", *flags, "--port", str(port)]) == 2
+    assert f"127.0.0.1:{port} is not free" in capsys.readouterr().err
+    monkeypatch.setenv("HAPTICLINK_NEAREST_WEIGHTS", "1,2")
+    assert main(["serve", *flags]) == 2
+    err = capsys.readouterr().err
+    assert "HAPTICLINK_NEAREST_WEIGHTS must be JSON (a list is written [1, 2])" in err and "Traceback" not in err
