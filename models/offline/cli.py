@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -397,14 +396,15 @@ def register_demo(sub: argparse._SubParsersAction) -> None:
 def _demo(args: argparse.Namespace) -> int:
     import logging
 
+    from drivers.source import check_positive
     from models.offline.demo_assets import prepared
     from service.demo import demo
     from service.server import check_port_free
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     for flag, seconds in (("--per-texture", args.per_texture), ("--duration", args.duration)):
-        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
-            raise ValueError(f"{flag} must be a positive number of seconds, got {seconds:g}")
+        if seconds is not None:
+            check_positive(flag, seconds)
     check_port_free(args.host, args.port)  # before minutes of building assets
     assets = prepared(args.assets)
     return demo(assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)
