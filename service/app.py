@@ -21,6 +21,7 @@ from starlette.requests import ClientDisconnect
 from service.deps import refuse
 from service.errors import ErrorResponse, ServiceError, invalid_fields
 from service.events import StatusEvent, WindowEvent
+from service.http_head import HeadAsGet
 from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
 from service.probes import ProbeAnswers
 from service.routes import events, ingest, library, ops, sessions
@@ -75,6 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await state.close()
 
     app = FastAPI(title="hapticlink", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app.add_middleware(HeadAsGet)  # innermost: what answers a GET answers its HEAD, credentials and all
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     # Browsers only: no origin is allowed unless configured (preflights from others are answered 400).
     app.add_middleware(
