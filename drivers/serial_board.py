@@ -15,6 +15,7 @@ import logging
 import math
 import re
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -30,7 +31,7 @@ from drivers.source import (
     device_rate,
     layout_channel,
 )
-from texture_library.channels import UNIT_SCALE
+from texture_library.channels import MAX_ABS, UNIT_SCALE
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,10 @@ HEADER_TAG = "#HL1"
 HEADER_REQUEST = b"#?\n"
 DEFAULT_COLUMNS = {"accel": 3, "force": 3, "speed": 1, "position": 1}
 MAX_LINE_BYTES = 512
+#: seconds between tries to reopen a port that went away (doubling from the first to the last)
+REOPEN_S = (0.25, 4.0)
+#: seconds of bytes arriving with no sample decoded before the source says the line format or baud rate is wrong
+UNDECODED_WARN_S = 2.0
 _TOKEN = re.compile(r"^(?P<kind>[a-z]+)(?:\[(?P<cols>\d+)\])?=(?P<value>\S+)$")
 
 
@@ -96,7 +101,9 @@ class BoardStats(StreamStats):
 
     lines: int = 0  # data lines read, good or not
     garbled: int = 0  # lines that could not be decoded (skipped; the counter shows the hole)
+    out_of_range: int = 0  # lines with a value beyond any sensor's range (skipped, as garbled ones)
     skipped: int = 0  # data lines before any header (layout unknown)
+    reopened: int = 0  # times the port went away and was opened again
 
 
 class BoardDecoder:
@@ -114,6 +121,7 @@ class BoardDecoder:
         self.stats = BoardStats()
         self._header: BoardHeader | None = None
         self._assembler: StreamAssembler | None = None
+        self._limits: list[float] = []  # largest |value| per column, in the board's units
         if header is not None:
             self._set_header(header)
 
@@ -124,6 +132,9 @@ class BoardDecoder:
     def _set_header(self, header: BoardHeader) -> None:
         old = self._assembler
         self._header = header
+        self._limits = [
+            MAX_ABS[kind] / UNIT_SCALE[kind][units] for kind, cols, units in header.layout for _ in range(cols)
+        ]
         self._assembler = StreamAssembler(
             header.rate_hz,
             header.layout,
@@ -161,13 +172,29 @@ class BoardDecoder:
             self.stats.garbled += 1
             return []
         counter, values = parsed
+        if any(abs(v) > limit for v, limit in zip(values, self._limits)):
+            # a sensor fault or a corrupted digit: one sample lost (its counter shows the hole), never the stream
+            if self.stats.out_of_range == 0:
+                log.warning(
+                    "serial board: sample %d has a value beyond its sensor's range; such lines are skipped", counter
+                )
+            self.stats.out_of_range += 1
+            return []
         return self._assembler.add(counter, np.asarray([values]))
 
     def _on_comment(self, line: str) -> list[SampleBlock]:
         if not line.startswith(HEADER_TAG):
             log.debug("serial board says: %s", line)
             return []
-        header = parse_header(line)  # a bad header is a configuration error: raise
+        try:
+            header = parse_header(line)
+        except ValueError as exc:
+            if self._header is None:
+                raise  # before any good header it is a configuration error: say so
+            # after one, it is a line garbled on the way: the board has not changed
+            log.warning("serial board: a header line that does not parse, skipped (%s)", exc)
+            self.count_garbled()
+            return []
         if header == self._header:
             return []  # the answer to our request, or a repeat: nothing changes
         out = self.flush()
@@ -203,7 +230,9 @@ class SerialBoardSource(ThreadedSource):
     port: device name (/dev/ttyACM0, COM3, or a pty); block_s: seconds per block (None: from the board's rate,
     drivers.source.default_block_s);
     header: an HL1 header line to assume for boards that never send one.
-    Decoding counts live in `stats` (BoardStats).
+    Decoding counts live in `stats` (BoardStats). A port that does not open raises at once; one that goes away
+    once open (unplugged, a board resetting its USB link) is reopened until it is back, every REOPEN_S, the
+    samples it sent before going away delivered first.
     """
 
     def __init__(
@@ -231,34 +260,74 @@ class SerialBoardSource(ThreadedSource):
     def _produce(self, stop: threading.Event, emit: Callable[[Item], None]) -> None:
         import serial  # pyserial: imported here so the rest of drivers loads without it
 
-        # timeout: a read returns at least every 0.1 s so the stop flag is seen promptly.
-        with serial.Serial(self.port, self.baudrate, timeout=0.1) as ser:
-            ser.write(HEADER_REQUEST)
-            pending = b""
-            discarding = False  # inside an over-long line: drop bytes up to the next newline
-            while not stop.is_set():
-                try:
-                    chunk = ser.read(max(1, ser.in_waiting))
-                except serial.SerialException:
-                    if stop.is_set():
-                        break
-                    raise
-                if not chunk:
+        opened = False
+        wait = REOPEN_S[0]
+        while not stop.is_set():
+            try:
+                # timeout: a read returns at least every 0.1 s so the stop flag is seen promptly.
+                with serial.Serial(self.port, self.baudrate, timeout=0.1) as ser:
+                    if opened:
+                        self.stats.reopened += 1
+                        log.warning("serial board %s is back; reading again", self.port)
+                    opened, wait = True, REOPEN_S[0]
+                    self._read(ser, stop, emit)
+            except (serial.SerialException, OSError) as exc:
+                if stop.is_set():
+                    break
+                if not opened:
+                    raise  # it never opened: a wrong port, said at once
+                # unplugged, or the board reset its USB link: what it sent so far goes, then the port is reopened
+                for block in self._decoder.flush():
+                    emit(block)
+                if wait == REOPEN_S[0]:
+                    log.warning("serial board %s went away (%s); reopening it until it is back", self.port, exc)
+                stop.wait(wait)
+                wait = min(2 * wait, REOPEN_S[1])
+        for block in self._decoder.flush():
+            emit(block)
+
+    def _read(self, ser, stop: threading.Event, emit: Callable[[Item], None]) -> None:
+        """Read lines from the open port `ser` until `stop` (SerialException when the port goes away)."""
+        ser.write(HEADER_REQUEST)
+        pending = b""
+        discarding = False  # inside an over-long line: drop bytes up to the next newline
+        undecoded_since: float | None = None  # when bytes began arriving with no sample decoded from them
+        warned = False
+        while not stop.is_set():
+            chunk = ser.read(max(1, ser.in_waiting))
+            if not chunk:
+                continue
+            samples = self.stats.samples
+            pending += chunk
+            if discarding:
+                end = pending.find(b"\n")
+                if end < 0:
+                    pending = b""
                     continue
-                pending += chunk
-                if discarding:
-                    end = pending.find(b"\n")
-                    if end < 0:
-                        pending = b""
-                        continue
-                    pending, discarding = pending[end + 1 :], False
-                *lines, pending = pending.split(b"\n")
-                for raw in lines:
-                    for block in self._decoder.feed_line(raw):
-                        emit(block)
-                if len(pending) > MAX_LINE_BYTES:
-                    # No newline in sight: noise on the line. Count it once and resynchronise on the next newline.
-                    self._decoder.count_garbled()
-                    pending, discarding = b"", True
-            for block in self._decoder.flush():
-                emit(block)
+                pending, discarding = pending[end + 1 :], False
+            *lines, pending = pending.split(b"\n")
+            for raw in lines:
+                for block in self._decoder.feed_line(raw):
+                    emit(block)
+            if len(pending) > MAX_LINE_BYTES:
+                # No newline in sight: noise on the line. Count it once and resynchronise on the next newline.
+                self._decoder.count_garbled()
+                pending, discarding = b"", True
+            if self.stats.samples > samples:
+                undecoded_since = None
+            elif undecoded_since is None:
+                undecoded_since = time.monotonic()
+            elif not warned and time.monotonic() - undecoded_since > UNDECODED_WARN_S:
+                warned = True
+                s = self.stats
+                log.warning(
+                    "serial board %s: bytes for %.0f s and no sample decoded from them (%d line(s), %d garbled, %d "
+                    "before a header): is the baud rate %d the board's, and does each line end in \\n with "
+                    "comma-separated fields (docs/drivers.md, HL1)?",
+                    self.port,
+                    UNDECODED_WARN_S,
+                    s.lines,
+                    s.garbled,
+                    s.skipped,
+                    self.baudrate,
+                )

@@ -6,6 +6,7 @@ import asyncio
 import os
 import select
 import threading
+import time
 import tty
 
 import numpy as np
@@ -151,3 +152,108 @@ def test_decoder_restart_header_continues_time_and_counts_a_resync():
     out += dec.flush()
     assert [round(b.t0, 4) for b in out] == [0.0, 0.05]
     assert out[1].channels["force"].rate_hz == 200.0 and dec.stats.resyncs == 1
+
+
+def _decode(dec: BoardDecoder, lines: list[bytes]) -> list:
+    out = []
+    for raw in lines:
+        out += dec.feed_line(raw.rstrip(b"\n"))
+    return out + dec.flush()
+
+
+def test_a_value_beyond_any_sensor_is_one_lost_sample_not_the_end_of_the_stream():
+    dec = BoardDecoder(0.02, parse_header(HEADER))
+    lines = [data_line(c) for c in range(60)]
+    lines[20] = b"20,1000000.0,-0.5,1.0,0.1,0.0,1.5,4.0\n"  # 10⁶ g: beyond any accelerometer
+    lines[40] = b"40,0.04,-0.5,1e39,0.1,0.0,1.9,8.0\n"  # beyond float32 too
+    blocks = _decode(dec, lines)
+    kept = [c for c in range(60) if c not in (20, 40)]
+    accel = np.concatenate([b.channels["accel"].data for b in blocks])
+    np.testing.assert_allclose(accel, np.array([sample_values(c) for c in kept])[:, 0:3], atol=1e-4)
+    assert [round(b.t0 * 1000) for b in blocks] == [0, 21, 40 + 1]  # time is kept: each hole is where it was
+    assert (dec.stats.out_of_range, dec.stats.gaps, dec.stats.missing_samples) == (2, 2, 2)
+
+
+def test_a_garbled_header_after_a_good_one_is_skipped_and_the_stream_goes_on():
+    dec = BoardDecoder(0.02, parse_header(HEADER))
+    lines = [data_line(c) for c in range(40)]
+    lines.insert(25, b"#HL1 rate=1000 posit\x00on=mm accel=g\n")
+    blocks = _decode(dec, lines)
+    assert sum(b.channels["accel"].data.shape[0] for b in blocks) == 40
+    assert (dec.stats.garbled, dec.stats.resyncs, dec.stats.gaps) == (1, 0, 0)
+    with pytest.raises(ValueError, match="is not key=value"):  # before any good header: the board is misconfigured
+        BoardDecoder(0.02).feed_line(b"#HL1 rate=1000 posit\x00on=mm accel=g")
+
+
+def test_a_board_unplugged_and_plugged_back_keeps_the_stream(kit, tmp_path):
+    """The port is a symlink (as udev's /dev/serial/by-id names are): the first pty goes away mid-stream, a new one
+    takes its name, and the source reopens it; the samples before the unplug arrive, and the counter times the gap."""
+    link = tmp_path / "ttyBOARD"
+    first_master, first_slave = os.openpty()
+    tty.setraw(first_slave)
+    link.symlink_to(os.ttyname(first_slave))
+    board, _ = play_board(first_master, [(HEADER + "\n").encode(), *[data_line(c) for c in range(50)]])
+    source = SerialBoardSource(str(link), block_s=0.02)
+    replugged: dict = {}
+
+    def unplug_and_replug() -> None:
+        board.join(5)
+        time.sleep(0.3)  # the host reads what was sent
+        os.close(first_master)  # unplugged: the host's reads fail
+        time.sleep(0.5)
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        replugged.update(master=master, slave=slave)
+        tmp = tmp_path / "ttyBOARD.new"
+        tmp.symlink_to(os.ttyname(slave))
+        tmp.replace(link)
+        play_board(master, [(HEADER + "\n").encode(), *[data_line(c) for c in range(100, 150)]])
+
+    async def main():
+        threading.Thread(target=unplug_and_replug, daemon=True).start()
+        return await asyncio.wait_for(kit.take(source, samples=90), 30)
+
+    try:
+        blocks = asyncio.run(main())
+    finally:
+        os.close(first_slave)
+        for fd in (replugged.get("master"), replugged.get("slave")):
+            if fd is not None:
+                os.close(fd)
+    counters = [*range(50), *range(100, 140)]  # 140-149: the block still open when the test stops reading
+    accel = np.concatenate([b.channels["accel"].data for b in blocks])
+    np.testing.assert_allclose(accel, np.array([sample_values(c) for c in counters])[:, 0:3], atol=1e-4)
+    assert [round(b.t0 * 1000) for b in blocks] == [0, 20, 40, 100, 120]  # the partial block at 40, then the gap
+    s = source.stats
+    assert (s.reopened, s.gaps, s.missing_samples, s.resyncs) == (1, 1, 50, 0)
+
+
+def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog):
+    master, port = pty_port
+    semicolons = [(HEADER + "\n").encode()] + [data_line(c).replace(b",", b";") for c in range(10)]
+    source = SerialBoardSource(port, block_s=0.02)
+    stop = threading.Event()
+
+    def board() -> None:
+        play_board(master, semicolons)[0].join(5)
+        c = 10
+        while not stop.is_set():  # a board that keeps talking in the wrong format
+            os.write(master, data_line(c).replace(b",", b";"))
+            c += 1
+            time.sleep(0.01)
+
+    async def main():
+        threading.Thread(target=board, daemon=True).start()
+        it = source.__aiter__()
+        task = asyncio.ensure_future(it.__anext__())
+        await asyncio.sleep(3.0)
+        task.cancel()
+        await source.aclose()
+
+    with caplog.at_level("WARNING", logger="drivers.serial_board"):
+        asyncio.run(main())
+    stop.set()
+    said = [r.getMessage() for r in caplog.records if "no sample decoded" in r.getMessage()]
+    assert len(said) == 1, said
+    assert "baud rate 921600" in said[0] and "comma-separated" in said[0]
+    assert source.stats.samples == 0 and source.stats.garbled > 100
