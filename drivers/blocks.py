@@ -44,6 +44,11 @@ MAX_JSON_BLOCK_BYTES = 256 * 1024
 MAX_HEADER_BYTES = 64 * 1024
 #: block kinds the wire carries (header "kind"); absent means "samples"
 BLOCK_KINDS = ("samples", "taps")
+#: the largest camera frame the service decodes (width × height, a 4096×4096 image); a robot never sends a larger one
+MAX_FRAME_PIXELS = 4096 * 4096
+#: the service's default limit on a request body or WebSocket message (HAPTICLINK_MAX_BODY_BYTES): a robot keeps each
+#: encoded frame under it, since a larger one could never arrive
+DEFAULT_MAX_BODY_BYTES = 8 * 1024 * 1024
 MAX_TAPS = 32  # taps per tap block (HaTT records 9–15 per texture)
 MIN_TAP_SAMPLES = 16  # models.tactile.taps.MIN_TAP_SAMPLES: a shorter tap has no ringing to measure
 #: per tap: 0.5 s at 1 kHz (HaTT's taps are 100 ms); with MAX_TAPS it bounds the tap features' cost on admission

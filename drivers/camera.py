@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.blocks import Frame
+from drivers.blocks import DEFAULT_MAX_BODY_BYTES, MAX_FRAME_PIXELS, Frame
 from drivers.source import Item, ThreadedSource, check_positive, paced
 
 log = logging.getLogger(__name__)
@@ -60,21 +60,37 @@ def frame_gray(data: bytes) -> np.ndarray:
 def encode_image(data: bytes, label: str = "image") -> tuple[bytes, str]:
     """(bytes, content type) ready to send: complete PNG/JPEG as is, other formats as PNG.
 
-    ValueError when the data is not a complete image Pillow can read (truncated, not an image).
+    ValueError when the data is not a complete image Pillow can read (truncated, not an image), or one the service
+    would refuse: over MAX_FRAME_PIXELS (judged from its header, before decoding) or, encoded, over
+    DEFAULT_MAX_BODY_BYTES.
     """
     from PIL import Image, UnidentifiedImageError
 
+    out, ctype = b"", ""
     try:
         with Image.open(io.BytesIO(data)) as img:
-            img.load()  # decodes fully: a half-written file fails here
-            fmt = img.format
-            if fmt in ("PNG", "JPEG") and sniff_content_type(data):
-                return data, f"image/{fmt.lower()}"
-            buf = io.BytesIO()
-            img.save(buf, format="PNG")
-            return buf.getvalue(), "image/png"
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            width, height = img.size  # from the header: nothing decoded yet
+            if width * height <= MAX_FRAME_PIXELS:
+                img.load()  # decodes fully: a half-written file fails here
+                fmt = img.format
+                if fmt in ("PNG", "JPEG") and sniff_content_type(data):
+                    out, ctype = data, f"image/{fmt.lower()}"
+                else:
+                    buf = io.BytesIO()
+                    img.save(buf, format="PNG")
+                    out, ctype = buf.getvalue(), "image/png"
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise ValueError(f"{label}: not a complete image ({exc})") from None
+    if not out:
+        raise ValueError(
+            f"{label}: {width}×{height} pixels; the service decodes at most {MAX_FRAME_PIXELS} (4096×4096)"
+        )
+    if len(out) > DEFAULT_MAX_BODY_BYTES:
+        raise ValueError(
+            f"{label}: {len(out) / 2**20:.1f} MiB encoded; the service takes at most "
+            f"{DEFAULT_MAX_BODY_BYTES / 2**20:g} MiB a request by default (save it as JPEG, or smaller)"
+        )
+    return out, ctype
 
 
 def frame_from_file(path: str | Path, t: float = 0.0) -> Frame:
@@ -146,6 +162,7 @@ class WatchedDirectorySource:
         self._closed = asyncio.Event()
         self._done: dict[str, tuple[float, int]] = {}  # name → (mtime, size) sent or given up on
         self._warned: set[str] = set()
+        self._gone = False  # the directory has disappeared (said once)
         self.skipped = 0
 
     def _scan(self) -> dict[str, tuple[float, int]]:
@@ -167,17 +184,32 @@ class WatchedDirectorySource:
             self.skipped += 1
             log.warning("%s: skipping %s: %s", self.name, name, why)
 
-    def _read(self, name: str, t: float) -> Frame | None:
-        """The file as a Frame, or None if it does not decode (yet)."""
+    def _read(self, name: str, t: float) -> Frame | str:
+        """The file as a Frame, or why it cannot be sent (yet: a partial file)."""
         try:
             data, ctype = encode_image((self.directory / name).read_bytes(), name)
-        except (ValueError, OSError):
-            return None
+        except (ValueError, OSError) as exc:
+            return str(exc).removeprefix(f"{name}: ")
         return Frame(t=t, image=data, content_type=ctype, meta={"path": name})
+
+    async def _look(self) -> dict[str, tuple[float, int]]:
+        """`_scan` off the event loop; a directory that is gone (moved, unmounted) reads as empty until it is back,
+        said once each way."""
+        try:
+            seen = await asyncio.to_thread(self._scan)
+        except (FileNotFoundError, NotADirectoryError) as exc:
+            if not self._gone:
+                self._gone = True
+                log.warning("%s: the directory is gone (%s); watching for it to come back", self.name, exc)
+            return {}
+        if self._gone:
+            self._gone = False
+            log.warning("%s: the directory is back", self.name)
+        return seen
 
     async def _frames(self) -> AsyncIterator[Frame]:
         start = time.time()
-        seen = await asyncio.to_thread(self._scan)
+        seen = await self._look()
         if not self.include_existing:
             self._done.update(seen)
             seen = {}
@@ -194,8 +226,8 @@ class WatchedDirectorySource:
                     continue  # new or still changing: look again next poll
                 frame = await asyncio.to_thread(self._read, name, stamp[0] - start)
                 self._done[name] = stamp  # a changed file (new mtime/size) is tried again
-                if frame is None:
-                    self._warn_once(name, "partial or unreadable image")
+                if isinstance(frame, str):
+                    self._warn_once(name, frame)
                     continue
                 yield frame
             previous = seen
@@ -203,7 +235,7 @@ class WatchedDirectorySource:
                 await asyncio.wait_for(self._closed.wait(), self.poll_s)
             except TimeoutError:
                 pass
-            seen = await asyncio.to_thread(self._scan)
+            seen = await self._look()
 
     def __aiter__(self) -> AsyncIterator[Item]:
         return self._frames().__aiter__()

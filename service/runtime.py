@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from drivers.blocks import MAX_FRAME_PIXELS
 from models.inference.ood import FrameCheck
 from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
@@ -32,9 +33,8 @@ from texture_library.selection import SelectionRule, SpectralTable, sensor_noise
 
 log = logging.getLogger(__name__)
 
-#: largest camera frame decoded (a 4096×4096 image); a larger declared size is refused before decoding, so a
-#: small compressed body cannot expand into gigabytes (Pillow itself only warns below 179 Mpx)
-MAX_FRAME_PIXELS = 4096 * 4096
+# MAX_FRAME_PIXELS: a larger declared size is refused before decoding, so a small compressed body cannot expand into
+# gigabytes (Pillow itself only warns below 179 Mpx)
 
 
 @dataclass(frozen=True)

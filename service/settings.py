@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from drivers.blocks import DEFAULT_MAX_BODY_BYTES
 from drivers.scene_change import FRAME_CHANGE
 
 ENV_PREFIX = "HAPTICLINK_"
@@ -169,7 +170,7 @@ class Settings(BaseSettings):
         16, ge=1, description="events buffered per operator connection; older ones are dropped"
     )
     max_body_bytes: int = Field(
-        8 * 1024 * 1024, ge=1024, description="largest request body or WebSocket message (413 / close 1009)"
+        DEFAULT_MAX_BODY_BYTES, ge=1024, description="largest request body or WebSocket message (413 / close 1009)"
     )
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
     session_idle_s: float = Field(60.0, gt=0, description="a session with no traffic for this long is ended")

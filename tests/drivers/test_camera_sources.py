@@ -84,7 +84,60 @@ def test_watched_directory_sends_new_images_and_skips_partial_and_other_files(tm
         ("002.jpg", "image/jpeg"),
     ]
     assert frames[0].image == first and frames[1].image == later and frames[2].image == jpeg
-    assert "partial or unreadable" in caplog.text and "notes.txt" in caplog.text
+    assert "skipping 001.png: not a complete image" in caplog.text and "notes.txt" in caplog.text
+
+
+def huge_png(width: int, height: int) -> bytes:
+    """A PNG of width × height black pixels: a few kB on disk, any size decoded."""
+    buf = io.BytesIO()
+    Image.new("1", (width, height)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_frames_the_service_would_refuse_are_refused_here_naming_why():
+    with pytest.raises(ValueError, match="5000×4000 pixels; the service decodes at most 16777216"):
+        encode_image(huge_png(5000, 4000), "big.png")
+    with pytest.raises(ValueError, match="bomb.png: not a complete image .*exceeds limit"):  # Pillow's bomb guard
+        encode_image(huge_png(20000, 20000), "bomb.png")
+    noise = np.random.default_rng(0).integers(0, 255, (2048, 2048, 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(noise).save(buf, format="BMP")  # 12 MiB once PNG: over the service's default body limit
+    with pytest.raises(ValueError, match=r"noise.bmp: 1\d\.\d MiB encoded; the service takes at most 8 MiB"):
+        encode_image(buf.getvalue(), "noise.bmp")
+
+
+def test_watched_directory_survives_a_bomb_and_its_own_disappearance(tmp_path, caplog):
+    watched = tmp_path / "snapshots"
+    watched.mkdir()
+    (watched / "000.png").write_bytes(huge_png(20000, 20000))
+    source = WatchedDirectorySource(watched, poll_s=0.02)
+
+    async def main():
+        frames: asyncio.Queue = asyncio.Queue()
+
+        async def pump():
+            async for frame in source:
+                await frames.put(frame)
+
+        task = asyncio.create_task(pump())
+        while source.skipped < 1:  # the bomb: skipped, not raised
+            await asyncio.sleep(0.01)
+        (watched / "001.png").write_bytes(image_bytes("PNG", 1))
+        got = [await asyncio.wait_for(frames.get(), 10)]
+        watched.rename(tmp_path / "moved")  # the camera app moves its folder away ...
+        await asyncio.sleep(0.2)
+        watched.mkdir()  # ... and makes a new one
+        (watched / "002.png").write_bytes(image_bytes("PNG", 2))
+        got.append(await asyncio.wait_for(frames.get(), 10))
+        await source.aclose()
+        await asyncio.wait_for(task, 10)
+        return got
+
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"):
+        frames = asyncio.run(main())
+    assert [f.meta["path"] for f in frames] == ["001.png", "002.png"]
+    assert "skipping 000.png: not a complete image" in caplog.text
+    assert caplog.text.count("the directory is gone") == 1 and caplog.text.count("the directory is back") == 1
 
 
 def test_watched_directory_can_ignore_what_is_already_there(tmp_path):
