@@ -60,7 +60,8 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="S",
         help=f"seconds per block (default {DEFAULT_BLOCK_S:g}: {0.5 / DEFAULT_BLOCK_S:.0f} blocks per 500 ms window; "
-        f"{SLOW_CHANNEL_BLOCK_S:g} when a channel runs below {MODEL_RATE_HZ / 1000:g} kHz)",
+        f"{SLOW_CHANNEL_BLOCK_S:g} when a channel runs below {MODEL_RATE_HZ / 1000:g} kHz; the service takes blocks of "
+        "up to 1 s unless HAPTICLINK_MAX_BLOCK_S says more)",
     )
     p.add_argument("--seed", type=int, default=0, help="simulated: random seed")
     p.add_argument("--image", metavar="FILE", help="simulated: the texture's image, sent as a camera frame")
@@ -199,6 +200,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.block_s is not None and not args.block_s > 0:
+        raise ValueError(f"--block-s must be a positive number of seconds, got {args.block_s}")
     if args.seed < 0:  # numpy's own refusal names no flag
         raise ValueError(f"--seed must be a whole number ≥ 0, got {args.seed}")
     if not logging.getLogger().handlers:
@@ -242,7 +245,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         print(f"hapticlink robot: error: {exc}", file=sys.stderr)
         return 1
     print(json.dumps(stats.as_dict()))
-    return 1 if stats.lost or stats.unsent else 0
+    return 1 if stats.lost or stats.unsent or stats.rejected else 0
 
 
 def _print_session(info) -> None:

@@ -133,6 +133,14 @@ def session_path(session_id: str, tail: str = "") -> str:
     return f"{path}/{tail}" if tail else path
 
 
+def check_service_url(url: str) -> None:
+    """ValueError unless `url` is the service's http(s)://host[:port][/prefix] (a bare host:port would be read as a
+    path, and every request would fail without saying why)."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        raise ValueError(f"url must be http://host[:port] or https://…, got {url!r}")
+
+
 def ws_url(base_url: str, session_id: str, route: str, token: str) -> str:
     """ws(s):// URL of a session's WebSocket `route` ("ingest" or "events") from the service's http(s) URL."""
     parts = urlsplit(base_url.rstrip("/"))

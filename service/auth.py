@@ -74,7 +74,8 @@ def authorize(credentials: SessionCredentials, token: str | None, allowed: froze
         raise ServiceError(401, f"the token is not valid for session {session_id}", {"WWW-Authenticate": "Bearer"})
     if role not in allowed:
         needed = " or ".join(sorted(r.value for r in allowed))
-        raise ServiceError(403, f"a {role.value} token cannot do this; it needs the {needed} token")
+        article = "an" if role.value[0] in "aeiou" else "a"
+        raise ServiceError(403, f"{article} {role.value} token cannot do this; it needs the {needed} token")
     return role
 
 

@@ -332,6 +332,16 @@ async def wait_ready(url: str, serving: asyncio.Task, stop: asyncio.Event, timeo
                 await asyncio.wait_for(stop.wait(), 0.1)
 
 
+def local_address(host: str) -> str:
+    """Where a client on this machine reaches a server listening on `host`: its loopback for every address ("",
+    0.0.0.0, ::), the host itself otherwise (IPv6 in brackets, as a URL needs)."""
+    if host in ("", "0.0.0.0"):
+        return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
+    return f"[{host}]" if ":" in host else host
+
+
 async def run_demo(
     assets: DemoAssets,
     *,
@@ -385,7 +395,7 @@ async def run_demo(
         app = create_app(settings)
         server = DemoServer(uvicorn.Config(app, **server_options(settings)))
         serving = asyncio.create_task(server.serve())
-        url = f"http://{host}:{port}"
+        url = f"http://{local_address(host)}:{port}"
         tour = ProbeTour(assets.probes, per_texture_s)
         # a short drain: at a stop the service goes too, so what is still unacknowledged after it cannot be delivered
         robot = RobotClient(url, tour, session_name="demo robot", api_key=api_key, drain_timeout_s=STOP_S / 2)

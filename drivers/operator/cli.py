@@ -28,7 +28,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="one of: " + ", ".join(DEVICE_SPECS) + " (default: simulated)",
     )
     p.add_argument(
-        "--out", action="append", metavar="SPEC", help="one or more of: " + ", ".join(OUTPUT_SPECS) + " (repeatable)"
+        "--out",
+        action="append",
+        metavar="SPEC",
+        help="one or more of: " + ", ".join(OUTPUT_SPECS) + " (repeatable; default: sound)",
     )
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the device's end)")
     p.add_argument("--full-scale", type=float, default=40.0, metavar="M_S2", help="m/s² at full scale (default 40)")
@@ -88,8 +91,10 @@ def _port_baud(rest: str) -> tuple[str, int]:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.operator.client import OperatorClient, Switch
+    from drivers.protocol import check_service_url
 
     # checked before anything connects: found later (or never), they cost a session's worth of retries
+    check_service_url(args.url)
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 0 < args.block_s <= 0.1:
@@ -110,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             outputs.append(output_from_spec(spec, full_scale=args.full_scale))
         except (RuntimeError, OSError) as exc:  # no sound card or PortAudio, a serial port that does not open
-            failed.append(f"{spec}: {exc}")
+            failed.append(str(exc) if str(exc).startswith(spec.partition(":")[0]) else f"{spec}: {exc}")
     for why in failed:
         print(f"hapticlink operator: {why}", file=sys.stderr)
     if not outputs:
@@ -150,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
         f"{len(stats.switches)} switch(es)"
         + (f", latency median {sorted(latencies)[len(latencies) // 2]:.1f} ms" if latencies else "")
         + f", {len(stats.model_errors)} model error(s), {stats.stalls} device stall(s)"
-        + (f"; {stats.ended}" if stats.ended else ""),
+        + (f"; {stats.ended}" if stats.ended else "")
+        + ("; never reached the service's event feed" if not stats.connects else ""),
         flush=True,
     )
-    return 1 if stats.refused else 0
+    return 1 if stats.refused or not stats.connects else 0

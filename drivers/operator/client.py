@@ -30,7 +30,7 @@ import numpy as np
 
 from drivers import render_feed
 from drivers.operator.devices import RATE_HZ, Motion
-from drivers.protocol import FATAL_CLOSES, bearer, ws_url
+from drivers.protocol import FATAL_CLOSES, bearer, check_service_url, ws_url
 from drivers.robot.backoff import Backoff, body_detail
 from texture_library import model_codec
 from texture_library.render_model import parse_render_model
@@ -146,6 +146,7 @@ class OperatorClient:
         seed: int = 0,
         on_switch: Callable[[Switch], None] | None = None,
     ) -> None:
+        check_service_url(url)
         if view not in ("render", "full"):
             raise ValueError(f"view must be 'render' or 'full', got {view!r}")
         if not stall_s > 0:
@@ -175,8 +176,10 @@ class OperatorClient:
         if self.view == "render":
             url += "&view=render"
         while not self._done.is_set():
+            opened = False
             try:
                 async with connect(url, open_timeout=10, max_size=1 << 20) as ws:
+                    opened = True
                     self.stats.connects += 1
                     if self.stats.connects > 1:
                         log.warning("event feed reconnected (connection %d)", self.stats.connects)
@@ -201,7 +204,8 @@ class OperatorClient:
                 self._end(f"the event feed closed ({code}): the session is over")
                 return
             if not self._done.is_set():
-                log.warning("event feed dropped (close code %s); reconnecting", code)
+                if opened:
+                    log.warning("event feed dropped (close code %s); reconnecting", code)
                 await asyncio.sleep(backoff.next())
 
     async def _on_message(self, message: str | bytes, received: float, cache: ModelCache) -> None:

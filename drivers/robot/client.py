@@ -20,12 +20,12 @@ import logging
 import random
 from collections.abc import Callable
 from typing import Literal
-from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
 
 from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, encode_json
+from drivers.protocol import check_service_url
 from drivers.robot.backoff import Backoff
 from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail, send_frames
 from drivers.robot.http import send_http
@@ -84,9 +84,7 @@ class RobotClient:
         frame_refresh_s: float = FRAME_REFRESH_S,
         on_session: Callable[[SessionInfo], None] | None = None,
     ) -> None:
-        parts = urlsplit(url)
-        if parts.scheme not in ("http", "https") or not parts.netloc:
-            raise ValueError(f"url must be http://host[:port] or https://…, got {url!r}")
+        check_service_url(url)
         if (session_id is None) != (robot_token is None):
             raise ValueError("give both session_id and robot_token (stream into that session) or neither (create one)")
         if transport not in ("ws", "http"):

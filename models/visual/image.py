@@ -75,8 +75,8 @@ def _open(source: str | Path | bytes | bytearray | Image.Image) -> Image.Image:
         image = Image.open(stream)
         image.load()  # decode now, so a truncated file fails here and not later
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        # Pillow names an in-memory stream by its repr (<_io.BytesIO object at 0x…>): say what it was instead
-        why = re.sub(r"<_io\.BytesIO object at 0x[0-9A-Fa-f]+>", "the bytes", str(exc))
+        # Pillow names an in-memory stream by its repr (<_io.BytesIO object at 0x…>); the label already says what it was
+        why = re.sub(r" ?<_io\.BytesIO object at 0x[0-9A-Fa-f]+>", "", str(exc))
         raise ValueError(f"source {label} is not a readable image: {why}") from exc
     return image
 

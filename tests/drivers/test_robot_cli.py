@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import socket
 
 import numpy as np
 import pytest
@@ -109,6 +111,9 @@ OPERATOR = ["operator", "--url", "http://h:1", "--session", "s1", "--token", "t"
         ([*OPERATOR, "--block-s", "5"], "--block-s must lie in (0, 0.1] s"),
         ([*OPERATOR, "--crossfade-s", "-1"], "--crossfade-s must lie in [0, 1] s"),
         ([*OPERATOR, "--full-scale", "0"], "--full-scale must be a positive acceleration"),
+        (["robot", "--source", "serial:COM3", "--url", "http://h:1", "--block-s", "0"], "--block-s must be a positive"),
+        # a URL without its scheme: the operator rendered silence and exited 0, saying nothing
+        (["operator", "--url", "127.0.0.1:8711", "--session", "s1", "--token", "t"], "url must be http://host[:port]"),
     ],
 )
 def test_bad_numbers_are_named_by_their_flag_before_anything_connects(argv, message):
@@ -130,3 +135,44 @@ def test_a_source_that_does_not_open_ends_the_robot_before_it_opens_a_session(ki
     captured = capsys.readouterr()
     assert status == 1 and "hapticlink-no-such-port" in captured.err
     assert fake_service.sessions == {} and "console" not in captured.out
+
+
+def _replay_dataset(root, seconds: float = 0.5):
+    """A dataset folder holding texture t1 with one recording of `seconds` at 1 kHz → the robot's replay SPEC."""
+    rng = np.random.default_rng(0)
+    n = int(seconds * 1000)
+    rec = Recording(
+        accel=make_channel("accel", rng.standard_normal((n, 3)), 1000.0),
+        force=make_channel("force", rng.uniform(1, 2, n), 1000.0),
+        speed=make_channel("speed", rng.uniform(20, 80, n), 1000.0),
+    )
+    folder = root / "textures" / "t1"
+    folder.mkdir(parents=True)
+    save_recording(folder / "recording_000.npz", rec)
+    (folder / "meta.json").write_text(json.dumps({"recordings": ["recording_000.npz"], "images": []}))
+    return rec, f"replay:{root}:t1"
+
+
+def test_a_robot_whose_blocks_the_service_rejected_exits_1(kit, fake_service, tmp_path, capsys):
+    """Every block rejected (an ERROR line each) and yet exit 0: a script driving the robot could not tell."""
+    _, spec = _replay_dataset(tmp_path)
+    fake_service.reject_seqs = {0, 1}
+    with kit.ServerThread(fake_service.app) as server:
+        args = parser().parse_args(
+            ["robot", "--source", spec, "--url", server.url, "--no-realtime", "--transport", "http"]
+        )
+        status = args.func(args)
+    stats = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert (stats["rejected"], stats["acked"], status) == (2, 0, 1)
+
+
+def test_an_operator_that_never_reaches_the_service_says_so_and_exits_1(capsys):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again at once: nothing listens there
+    args = parser().parse_args(
+        ["operator", "--url", f"http://127.0.0.1:{port}", "--session", "s1", "--token", "t", "--device",
+         "simulated:1", "--out", f"wav:{os.devnull}", "--duration", "1"]
+    )  # fmt: skip
+    assert args.func(args) == 1
+    assert "never reached the service's event feed" in capsys.readouterr().out

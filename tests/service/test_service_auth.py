@@ -55,7 +55,8 @@ def test_each_route_opens_only_to_its_role(kit, client, library_dir, two_session
     assert missing.status_code == 401 and "missing token" in missing.json()["detail"]
     assert missing.headers["www-authenticate"] == "Bearer"
     wrong_role = _call(client, request, a[f"{other_role}_token"])
-    assert wrong_role.status_code == 403 and f"a {other_role} token cannot" in wrong_role.json()["detail"]
+    article = "an" if other_role == "operator" else "a"
+    assert wrong_role.status_code == 403 and f"{article} {other_role} token cannot" in wrong_role.json()["detail"]
     for token in (b["robot_token"], b["operator_token"], "not-a-token"):  # another session's tokens
         r = _call(client, request, token)
         assert r.status_code == 401 and "not valid for session" in r.json()["detail"]

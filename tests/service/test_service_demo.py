@@ -170,3 +170,18 @@ def test_a_demo_with_a_bad_flag_names_it_before_building_or_starting_anything(tm
     err = capsys.readouterr().err
     assert why in err and "Traceback" not in err
     assert not (tmp_path / "assets").exists()
+
+
+def test_the_demo_robot_reaches_a_service_listening_on_every_address():
+    """`demo --host ""` listened everywhere and pointed its robot at http://:PORT, which reached nothing: a silent
+    hang."""
+    from service.demo import local_address
+
+    assert [local_address(h) for h in ("", "0.0.0.0", "::", "127.0.0.1", "::1", "demo.local")] == [
+        "127.0.0.1",
+        "127.0.0.1",
+        "[::1]",
+        "127.0.0.1",
+        "[::1]",
+        "demo.local",
+    ]

@@ -56,7 +56,7 @@ def test_pil_image_input():
 
 
 def test_not_an_image_raises(tmp_path):
-    with pytest.raises(ValueError, match="not a readable image"):
+    with pytest.raises(ValueError, match="source 20 bytes is not a readable image: cannot identify image file$"):
         load_image(b"definitely not a png")
     text = tmp_path / "notes.png"
     text.write_text("hello")
