@@ -43,6 +43,15 @@ class ReplaySource:
         check_positive("speed", speed, "finite factor")
         if loop and recording.duration_s < block_s:
             raise ValueError(f"recording of {recording.duration_s:.3f} s is shorter than one block; cannot loop it")
+        spans = {k: c.duration_s for k, c in recording.channels().items()}
+        if max(spans.values()) - min(spans.values()) > block_s:
+            # beyond the shortest channel the blocks go without it: the service estimates no window there
+            log.warning(
+                "%s: its channels cover different spans (%s); only the first %.2f s has every channel",
+                name,
+                ", ".join(f"{k} {v:.2f} s" for k, v in spans.items()),
+                min(spans.values()),
+            )
         self.recording = recording
         self.block_s = block_s
         self.realtime = realtime
@@ -101,9 +110,15 @@ class ReplaySource:
             raise ValueError(
                 f"texture {texture_id!r} has {len(recs)} recording(s); index {recording!r} is out of range"
             )
-        rec = load_recording(folder / recs[recording])
+        name = recs[recording]
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{meta_path}: recordings[{recording}] must be a file name, got {name!r}")
+        images = meta.get("images", [])
+        if not isinstance(images, list) or not all(isinstance(i, str) and i for i in images):
+            raise ValueError(f"{meta_path}: images must be a list of file names, got {images!r}")
+        rec = load_recording(folder / name)
         frames: list[Frame] = []
-        for image in meta.get("images", []) if with_images else []:
+        for image in images if with_images else []:
             path = Path(image) if Path(image).is_absolute() else folder / image
             try:
                 frames.append(frame_from_file(path))

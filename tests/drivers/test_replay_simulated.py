@@ -81,6 +81,29 @@ def test_replay_names_bad_arguments(dataset):
         ReplaySource.from_dataset(root, "t1", recording=3)
     with pytest.raises(ValueError, match="block_s"):
         ReplaySource(rec, block_s=-1)
+    # a meta.json a hand edit broke: a TypeError deep inside, or a string of images read letter by letter
+    meta_path = root / "textures" / "t1" / "meta.json"
+    for meta, why in [
+        ({"recordings": [7]}, r"recordings\[0\] must be a file name, got 7"),
+        ({"recordings": ["recording_000.npz"], "images": "image_000.png"}, "images must be a list of file names"),
+        ({"recordings": ["recording_000.npz"], "images": [None]}, "images must be a list of file names"),
+    ]:
+        meta_path.write_text(json.dumps(meta))
+        with pytest.raises(ValueError, match=why):
+            ReplaySource.from_dataset(root, "t1")
+
+
+def test_replay_says_when_its_channels_cover_different_spans(caplog):
+    rng = np.random.default_rng(0)
+    rec = Recording(
+        accel=make_channel("accel", rng.standard_normal((10_000, 3)), 1000.0),
+        force=make_channel("force", rng.uniform(1, 2, 100), 1000.0),
+        speed=make_channel("speed", rng.uniform(20, 80, 10_000), 1000.0),
+    )
+    with caplog.at_level(logging.WARNING, logger="drivers.replay"):
+        ReplaySource(rec, realtime=False, name="short-force")
+    assert "short-force: its channels cover different spans (accel 10.00 s, force 0.10 s" in caplog.text
+    assert "only the first 0.10 s has every channel" in caplog.text
 
 
 @pytest.fixture(scope="module")
