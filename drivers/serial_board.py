@@ -219,8 +219,12 @@ class BoardDecoder:
             return None
         return counter, values
 
+    def settle(self) -> list[SampleBlock]:
+        """A read timed out: StreamAssembler.settle."""
+        return [] if self._assembler is None else self._assembler.settle()
+
     def flush(self) -> list[SampleBlock]:
-        """The partial block held so far (if any), as a block."""
+        """What is held so far (if any), as blocks."""
         return [] if self._assembler is None else self._assembler.flush()
 
 
@@ -295,7 +299,9 @@ class SerialBoardSource(ThreadedSource):
         warned = False
         while not stop.is_set():
             chunk = ser.read(max(1, ser.in_waiting))
-            if not chunk:
+            if not chunk:  # 0.1 s of silence: a sample held to see what follows it is judged as it came
+                for block in self._decoder.settle():
+                    emit(block)
                 continue
             samples = self.stats.samples
             pending += chunk

@@ -312,6 +312,7 @@ class StreamStats:
     gaps: int = 0  # sample counter jumped forward: data lost on the way
     missing_samples: int = 0  # samples those jumps skipped
     resyncs: int = 0  # counter went backwards or the device restarted: time continues contiguously
+    glitches: int = 0  # one packet's counter out of sequence, the sequence going on after it: not a gap (see add)
 
 
 class StreamAssembler:
@@ -321,8 +322,14 @@ class StreamAssembler:
     Stream time = sample index ÷ rate_hz + time_offset (s); index 0 is the first sample seen.
     Blocks lie on a grid of round(block_s·rate) samples. A forward counter jump (mod `wrap`,
     less than wrap/2) is lost data: the current block ends early, the index skips the missing
-    samples, and the next block's t0 is their true time. A backward jump (repeat, or a counter
-    reset) cannot be timed: it is counted as a resync and time continues after the last sample.
+    samples, and the next block's t0 is their true time. A backward jump (a counter reset) cannot be
+    timed: it is counted as a resync and time continues after the last sample.
+
+    A packet whose counter breaks the sequence is held until the next one says which it was: if the
+    next continues *it*, the jump was real (a gap or a reset, as above); if the next continues the old
+    sequence, that one counter was the glitch — a corrupted digit (its rows are kept in the slot the
+    sequence gave them) or a repeated or swapped packet (dropped) — counted in `glitches`, and time is
+    not shifted by it. The first samples after a real jump thus arrive one packet late.
     """
 
     def __init__(
@@ -356,6 +363,7 @@ class StreamAssembler:
         self._rows: list[np.ndarray] = []
         self._held = 0  # rows held in _rows
         self._block_start = 0
+        self._suspect: tuple[int, np.ndarray] | None = None  # a packet that broke the sequence, until the next one
 
     @property
     def end_time(self) -> float:
@@ -367,10 +375,36 @@ class StreamAssembler:
         rows = np.asarray(rows, dtype=np.float64)
         if rows.ndim != 2 or rows.shape[1] != self.columns:
             raise ValueError(f"rows must have shape (n, {self.columns}), got {rows.shape}")
+        if self._suspect is not None:
+            (held, held_rows), self._suspect = self._suspect, None
+            assert self._expected is not None
+            # the old sequence first: after a repeat of the last packet, the next counter continues both
+            if counter != self._expected and counter == (held + held_rows.shape[0]) % self.wrap:
+                return self._take(held, held_rows) + self._take(counter, rows)  # it continues the held one: real
+            if counter in (self._expected, (self._expected + held_rows.shape[0]) % self.wrap):
+                self.stats.glitches += 1
+                log.warning(
+                    "device counter %d out of sequence between %d and %d: one garbled or misplaced packet; time "
+                    "goes on unshifted",
+                    held,
+                    (self._expected - 1) % self.wrap,
+                    counter,
+                )
+                if counter == self._expected:  # a repeat or a swapped packet: what follows goes on without it
+                    return self._take(counter, rows)
+                return self._take(self._expected, held_rows) + self._take(counter, rows)  # its counter garbled
+            return self._take(held, held_rows) + self.add(counter, rows)  # neither: the held jump was real
+        if self._expected is not None and counter != self._expected:
+            self._suspect = (counter, rows)
+            return []
+        return self._take(counter, rows)
+
+    def _take(self, counter: int, rows: np.ndarray) -> list[SampleBlock]:
+        """Rows whose first sample carries `counter`, judged: a jump from the expected counter is a gap or a resync."""
         out: list[SampleBlock] = []
         if self._expected is not None and counter != self._expected:
             jump = (counter - self._expected) % self.wrap
-            out += self.flush()
+            out += self._close_block()
             if jump < self.wrap // 2:
                 self.stats.gaps += 1
                 self.stats.missing_samples += jump
@@ -395,10 +429,22 @@ class StreamAssembler:
             self.stats.samples += take
             i += take
             if self.next_index % self.per_block == 0:
-                out += self.flush()
+                out += self._close_block()
         return out
 
+    def settle(self) -> list[SampleBlock]:
+        """The device went quiet (a read timed out): a packet held for judgement is taken as it came, a real jump,
+        since nothing follows to say otherwise; the blocks it completes."""
+        if self._suspect is None:
+            return []
+        (held, held_rows), self._suspect = self._suspect, None
+        return self._take(held, held_rows)
+
     def flush(self) -> list[SampleBlock]:
+        """What is held so far, as blocks: a packet held for judgement (taken as it came), then the partial block."""
+        return self.settle() + self._close_block()
+
+    def _close_block(self) -> list[SampleBlock]:
         """The partial block held so far, if any."""
         if not self._held:
             return []

@@ -146,6 +146,10 @@ class PacketDecoder:
         self.stats.bad_packets += 1
         log.warning("USB DAQ: dropped a bad packet: %s", why)
 
+    def settle(self) -> list[SampleBlock]:
+        """A read timed out: StreamAssembler.settle."""
+        return self._assembler.settle()
+
     def flush(self) -> list[SampleBlock]:
         return self._assembler.flush()
 
@@ -219,6 +223,8 @@ class UsbDaqSource(ThreadedSource):
                         data = dev.read(ENDPOINT_IN, READ_SIZE, READ_TIMEOUT_MS)
                     except usb.core.USBTimeoutError:
                         self._decoder.stats.timeouts += 1
+                        for block in self._decoder.settle():
+                            emit(block)
                         continue
                     for block in self._decoder.feed(bytes(data)):
                         emit(block)

@@ -250,9 +250,46 @@ def test_assembler_counts_across_the_counter_wrap_and_resyncs_backwards():
     out = asm.add(250, _rows(range(6)))  # 250..255
     out += asm.add(0, _rows(range(4)))  # wrapped: contiguous, no gap
     assert asm.stats.gaps == 0
-    out += asm.add(10, _rows(range(2)))  # 4..9 lost across nothing but a jump of 6
+    out += asm.add(10, _rows(range(2)))  # 4..9 lost across nothing but a jump of 6: judged at the next packet
+    out += asm.add(12, _rows(range(2)))  # which continues it: the jump was real
     assert asm.stats.gaps == 1 and asm.stats.missing_samples == 6
     out += asm.add(3, _rows(range(2)))  # backwards: a restart
+    out += asm.add(5, _rows(range(2)))
     out += asm.flush()
     assert asm.stats.resyncs == 1
-    assert out[-1].t0 == pytest.approx((10 + 6 + 2) / 100.0), "after a resync time continues after the last sample"
+    assert out[-1].t0 == pytest.approx((10 + 6 + 4) / 100.0), "after a resync time continues after the last sample"
+    assert asm.stats.glitches == 0
+
+
+def _counters(blocks, rate_hz: float = 1000.0) -> list[tuple[int, list[int]]]:
+    """(block start in samples, the counters its rows carry) of each block; _rows puts the counter in column 0."""
+    return [(round(b.t0 * rate_hz), b.channels["accel"].data[:, 0].astype(int).tolist()) for b in blocks]
+
+
+@pytest.mark.parametrize(
+    "sequence, kept, glitches",
+    [
+        # a digit of one counter corrupted on the way: its sample stays where the sequence puts it
+        ([*range(0, 12), 4_000_012, *range(13, 20)], list(range(20)), 1),
+        # one line sent twice: the repeat is dropped
+        ([*range(0, 12), 11, *range(12, 20)], list(range(20)), 1),
+        # two lines swapped: the early one is dropped, its place shows as a one-sample gap
+        ([*range(0, 12), 13, 12, *range(14, 20)], [c for c in range(20) if c != 13], 1),
+        # a real gap and a real restart are still what they were
+        ([*range(0, 12), *range(15, 20)], [*range(0, 12), *range(15, 20)], 0),
+    ],
+)
+def test_one_counter_out_of_sequence_never_shifts_time(sequence, kept, glitches):
+    """A corrupted counter (4 000 012 for 12) used to shift every later block by 4 000 s: a 'gap' of 4 million
+    samples, then a 'resync' after it; a repeated line put every later sample one late."""
+    asm = StreamAssembler(1000.0, LAYOUT, 0.005)  # 5 samples per block
+    out = []
+    for c in sequence:
+        out += asm.add(c, _rows([c % 1000]))
+    out += asm.flush()
+    got = [c for _, counters in _counters(out) for c in counters]
+    assert got == [c % 1000 for c in kept]
+    # every block starts at its first sample's true time: sample k at k ms
+    for start, counters in _counters(out):
+        assert start == counters[0], (start, counters)
+    assert asm.stats.glitches == glitches and asm.stats.resyncs == 0
