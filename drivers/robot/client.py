@@ -27,6 +27,7 @@ import numpy as np
 from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, encode_json
 from drivers.protocol import check_service_url
 from drivers.robot.backoff import Backoff
+from drivers.robot.errors import ServiceUnavailable
 from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail, send_frames
 from drivers.robot.http import send_http
 from drivers.robot.outbox import Endpoint, Outbox, Refresh, RobotStats
@@ -120,6 +121,7 @@ class RobotClient:
         self._ran = False
         self._reader: asyncio.Task | None = None
         self._first_item = asyncio.Event()  # the source has given something (its device opened)
+        self._stop_asked = asyncio.Event()  # stop() was called: a session still being opened gets drain_timeout_s
 
     @property
     def stats(self) -> RobotStats:
@@ -154,6 +156,7 @@ class RobotClient:
     def stop(self) -> None:
         """Stop reading the source; run() then delivers what is buffered (up to drain_timeout_s) and returns."""
         self._stopping = True
+        self._stop_asked.set()
         if self._reader is not None and not self._reader.done():
             self._reader.cancel()
 
@@ -181,9 +184,11 @@ class RobotClient:
                 tasks = [self._reader]
                 if self._stopping:
                     self._reader.cancel()
+                if duration_s is not None:  # from the start: an unreachable service does not stretch the reading
+                    timer = loop.call_later(duration_s, self.stop)
                 if self.session_id is None:
                     await self._source_started()
-                    info = await self.open_session()
+                    info = await self._open_until_stopped()
                     if self.on_session is not None:
                         self.on_session(info)
                 endpoint = Endpoint(
@@ -198,8 +203,6 @@ class RobotClient:
                 sender = asyncio.create_task(send_blocks(endpoint, outbox), name="robot-sender")
                 framer = asyncio.create_task(send_frames(endpoint, outbox), name="robot-frames")
                 tasks = [self._reader, sender, framer]
-                if duration_s is not None:
-                    timer = loop.call_later(duration_s, self.stop)
                 await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
                 for task in (sender, framer):
                     if task.done():
@@ -223,6 +226,26 @@ class RobotClient:
                     "%d block(s) (%.1f s of data) were never acknowledged", self.stats.unsent, outbox.buffer.held_s
                 )
         return self.stats
+
+    async def _open_until_stopped(self) -> SessionInfo:
+        """open_session, which retries an unreachable service for up to open_timeout_s; once stop() is called (a
+        Ctrl-C, the --duration) it gets drain_timeout_s more, as delivering what is buffered would."""
+        opening = asyncio.create_task(self.open_session())
+        stopped = asyncio.create_task(self._stop_asked.wait())
+        try:
+            await asyncio.wait({opening, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            if not opening.done():
+                await asyncio.wait({opening}, timeout=self.drain_timeout_s)
+            if not opening.done():
+                raise ServiceUnavailable(
+                    f"stopped, and no session could be opened at {self.url} within the {self.drain_timeout_s:g} s "
+                    "given to deliver what was read (is the service running, and does its /ready answer 200?)"
+                )
+            return opening.result()
+        finally:
+            for task in (opening, stopped):
+                task.cancel()
+            await asyncio.gather(opening, stopped, return_exceptions=True)
 
     async def _source_started(self) -> None:
         """Wait until the source has given its first item, or ended: a device that does not open (a wrong serial

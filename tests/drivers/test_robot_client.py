@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import random
+import socket
 
 import numpy as np
 import pytest
@@ -259,6 +260,23 @@ def test_duration_stops_reading_then_drains(kit, fake_service):
     assert stats.read > 0 and stats.acked == stats.read and stats.unsent == 0
     assert [b.seq for b in sess.accepted] == list(range(stats.read))
     assert source.closed
+
+
+def test_duration_holds_while_the_service_is_unreachable(kit):
+    """The reading went on for the whole minute the robot retried opening a session (55 s of data for --duration 2),
+    and only then did it give up."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{s.getsockname()[1]}"  # closed at once: nothing listens there
+    source = kit.EndlessSource(speed=4.0)
+    client = RobotClient(url, source, **{**FAST, "drain_timeout_s": 0.5})
+
+    async def main():
+        return await asyncio.wait_for(client.run(duration_s=0.3), 20)  # a hang guard, not a timing assertion
+
+    with pytest.raises(ServiceUnavailable, match="stopped, and no session could be opened"):
+        asyncio.run(main())
+    assert client.stats.unsent == client.stats.read > 0 and source.closed
 
 
 def test_cancelling_run_closes_the_source_and_its_tasks(kit, fake_service):
