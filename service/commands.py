@@ -78,7 +78,12 @@ def settings_from_args(args: argparse.Namespace):
     try:
         return Settings(**overrides)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+
+        def named(field: str) -> str:  # a value comes from a flag or from the environment: name both
+            flags = [f"--{flag.replace('_', '-')}" for flag, f in FLAG_TO_FIELD.items() if f == field]
+            return f"{flags[0]} ({env_name(field)})" if flags else env_name(field)
+
+        problems = "; ".join(f"{named(str(e['loc'][0])) if e['loc'] else 'settings'}: {e['msg']}" for e in exc.errors())
         raise ValueError(f"invalid settings: {problems}") from None
     except SettingsError as exc:  # a list or mapping variable that is not JSON: pydantic names neither it nor why
         field = re.search(r'field "(\w+)"', str(exc))

@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     h.set_defaults(func=_import_hatt)
 
     ls = lsub.add_parser("list", help="entries of a library")
-    ls.add_argument("library")
+    ls.add_argument("library", nargs="?", help="the library directory (or --library DIR, as `render` takes it)")
+    ls.add_argument("--library", dest="library_flag", metavar="DIR", help=argparse.SUPPRESS)
     ls.set_defaults(func=_list)
 
     r = lsub.add_parser("render", help="synthesize the vibration the operator side would render (1 kHz)")
@@ -58,7 +59,9 @@ def _list(args: argparse.Namespace) -> int:
     from texture_library.attributes import ATTRIBUTES
     from texture_library.library import Library
 
-    lib = Library.load(args.library)
+    if (args.library is None) == (args.library_flag is None):
+        raise ValueError("library list: name the library directory once, as LIBRARY or --library DIR")
+    lib = Library.load(args.library or args.library_flag)
     print(f"{'id':24s} {'group':12s} " + " ".join(f"{a:>15s}" for a in ATTRIBUTES) + "  source")
     for e in lib.entries:
         print(f"{e.id:24s} {e.group:12s} " + " ".join(f"{v:15.1f}" for v in e.ratings) + f"  {e.ratings_source}")

@@ -383,11 +383,20 @@ def register_demo(sub: argparse._SubParsersAction) -> None:
         description="Builds a synthetic world, trains and exports a model, starts the service and a simulated "
         "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
     )
-    d.add_argument("--assets", type=Path, default=Path("artifacts/demo"), help="where demo assets are built and cached")
+    d.add_argument(
+        "--assets",
+        type=Path,
+        default=Path("artifacts/demo"),
+        help="where demo assets are built and cached (default artifacts/demo)",
+    )
     d.add_argument("--host", default="127.0.0.1", help="address the demo's service listens on (default 127.0.0.1)")
     d.add_argument("--port", type=int, default=8000, help="its TCP port (default 8000)")
     d.add_argument(
-        "--per-texture", type=float, default=20.0, metavar="S", help="seconds the robot strokes each texture"
+        "--per-texture",
+        type=float,
+        default=20.0,
+        metavar="S",
+        help="seconds the robot strokes each texture (default 20)",
     )
     d.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
     d.set_defaults(func=_demo)

@@ -22,6 +22,11 @@ def test_list_prints_every_entry(lib_dir, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split()[:2] == ["id", "group"] and len(lines) == 3
     assert lines[1].startswith("synth_000") and lines[2].rstrip().endswith("ground-truth")
+    # the flag `render` takes names the library here too: it fell to the top-level usage
+    assert hapticlink(["library", "list", "--library", str(lib_dir)]) == 0
+    assert capsys.readouterr().out.splitlines() == lines
+    assert hapticlink(["library", "list"]) == 2
+    assert "name the library directory once" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".csv", ".wav"])
