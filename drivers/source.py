@@ -203,7 +203,9 @@ class ThreadedSource:
     and close the device before returning. Items reach the event loop through a bounded
     asyncio queue; when the consumer falls `queue_size` items behind, the oldest is dropped and
     counted in `overruns` (the reader never blocks, so the device's own buffer never overflows
-    unnoticed). An exception in `_produce` is raised from the iterator.
+    unnoticed). An exception in `_produce` is raised from the iterator. `finish()` stops reading the
+    device but lets what it already sent (the partial block `_produce` flushes last) come out before
+    the iteration ends; `aclose()` (or leaving the iteration) drops it.
     """
 
     name: str = "threaded"
@@ -212,7 +214,8 @@ class ThreadedSource:
         if queue_size < 1:
             raise ValueError(f"queue_size must be ≥ 1, got {queue_size}")
         self._queue_size = queue_size
-        self._stop = threading.Event()
+        self._stop = threading.Event()  # the reader thread stops reading the device
+        self._closed = threading.Event()  # nobody takes items any more: emit drops them
         self._thread: threading.Thread | None = None
         self._started = False
         self.overruns = 0
@@ -240,7 +243,7 @@ class ThreadedSource:
             queue.put_nowait(item)
 
         def emit(item: Item) -> None:  # runs in the reader thread
-            if not self._stop.is_set():
+            if not self._closed.is_set():
                 loop.call_soon_threadsafe(put, item)
 
         def run() -> None:
@@ -266,10 +269,16 @@ class ThreadedSource:
                 yield item
         finally:
             self._stop.set()
+            self._closed.set()
+
+    def finish(self) -> None:
+        """Stop reading the device; what it already sent still comes out, then the iteration ends."""
+        self._stop.set()
 
     async def aclose(self) -> None:
         """Stop the reader thread and wait (off the event loop) for it to close the device."""
         self._stop.set()
+        self._closed.set()
         thread = self._thread
         if thread is not None and thread.is_alive():
             await asyncio.to_thread(thread.join, 5.0)

@@ -38,6 +38,10 @@ from drivers.source import SensorSource, check_positive
 
 log = logging.getLogger("drivers.robot")
 
+#: seconds a stopped device source has to hand over what it already read (its reader thread sees a stop within
+#: 0.1 s) before its reading is cancelled
+FINISH_S = 1.0
+
 __all__ = ["RobotClient", "RobotStats"]
 
 
@@ -157,8 +161,15 @@ class RobotClient:
         """Stop reading the source; run() then delivers what is buffered (up to drain_timeout_s) and returns."""
         self._stopping = True
         self._stop_asked.set()
-        if self._reader is not None and not self._reader.done():
-            self._reader.cancel()
+        reader = self._reader
+        if reader is None or reader.done():
+            return
+        finish = getattr(self.source, "finish", None)
+        if callable(finish):  # a device source: what it already sent (its partial block) comes out first
+            finish()
+            reader.get_loop().call_later(FINISH_S, reader.cancel)  # however slowly its thread ends
+        else:
+            reader.cancel()
 
     async def run(self, duration_s: float | None = None) -> RobotStats:
         """Stream until the source ends, stop() is called or duration_s (wall clock) has passed,

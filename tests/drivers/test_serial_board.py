@@ -257,3 +257,28 @@ def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog):
     assert len(said) == 1, said
     assert "baud rate 921600" in said[0] and "comma-separated" in said[0]
     assert source.stats.samples == 0 and source.stats.garbled > 100
+
+
+def test_a_robot_stopped_mid_block_delivers_what_the_board_already_sent(kit, fake_service, pty_port):
+    """The last 30 of 130 samples (a block not yet full) were read from the board and dropped at the stop."""
+    from drivers.robot import RobotClient
+
+    master, port = pty_port
+    play_board(master, [(HEADER + "\n").encode(), *[data_line(c) for c in range(130)]])
+    source = SerialBoardSource(port, block_s=0.05)  # 50 samples a block: 130 = 2 blocks + 30 held
+    server = kit.LoopbackServer(fake_service.app)
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(server.url, source, backoff=(0.01, 0.05), seed=7)
+            return await asyncio.wait_for(client.run(duration_s=1.0), 20)  # the board is quiet long before
+        finally:
+            await server.stop()
+
+    stats = asyncio.run(main())
+    accepted = fake_service.only_session().accepted
+    assert stats.acked == stats.read == 3 and stats.unsent == 0
+    np.testing.assert_allclose(
+        kit.concat(accepted, "accel"), np.array([sample_values(c) for c in range(130)])[:, 0:3], atol=1e-4
+    )
