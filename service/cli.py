@@ -36,8 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     warnings.formatwarning = _warning_line  # a user reads what went wrong, not the line of code that said so
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:  # a Ctrl-C while the commands' modules load (the first second) is a stop, not a traceback
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        return 130
     try:
         return int(args.func(args) or 0)
     except ValueError as exc:

@@ -183,3 +183,15 @@ def test_serve_names_a_bad_host_a_busy_port_or_a_variable_that_is_not_json(capsy
     assert main(["serve", *flags]) == 2
     err = capsys.readouterr().err
     assert "HAPTICLINK_NEAREST_WEIGHTS must be JSON (a list is written [1, 2])" in err and "Traceback" not in err
+
+
+def test_a_ctrl_c_while_the_commands_load_is_a_quiet_stop(monkeypatch, capsys):
+    """A Ctrl-C in the first second of `hapticlink demo` (the commands' modules importing) printed a traceback."""
+    import service.cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(service.cli, "build_parser", interrupted)
+    assert main(["demo"]) == 130
+    assert capsys.readouterr().err == ""
