@@ -298,11 +298,16 @@ def _load_backbone(
                 "set HAPTICLINK_BACKBONE_PATH (or --backbone) to its ONNX export"
             ),
         )
-    backbone = OnnxBackbone(path, intra_op_threads=threads, expected_config_hash=config.hash())
-    if wanted.get("backbone") != backbone.name or wanted.get("visual_hash") != backbone.config_hash:
+    backbone = OnnxBackbone(path, intra_op_threads=threads)  # checked here, so that the answer names both backbones
+    if (
+        wanted.get("backbone") != backbone.name
+        or wanted.get("visual_hash") != backbone.config_hash
+        or backbone.config_hash != config.hash()
+    ):
         raise ValueError(
-            f"model {card.model} was trained on {wanted.get('backbone')} features ({wanted.get('visual_hash')}); "
-            f"{path} is {backbone.name} ({backbone.config_hash})"
+            f"model {card.model} was trained on {wanted.get('backbone')} features (visual config "
+            f"{wanted.get('visual_hash')}); {path} is {backbone.name} (visual config {backbone.config_hash}): give it "
+            "the backbone it was trained with (HAPTICLINK_BACKBONE_PATH, --backbone)"
         )
     columns, _ = part_columns(visual_layout(backbone.dim, config), wanted.get("visual_part", "both"))
     width = len(columns)

@@ -9,6 +9,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 from websockets.sync.client import connect
 
 from drivers.protocol import SCENE_CONTENT_TYPE
@@ -90,6 +91,28 @@ def test_a_visual_model_without_a_backbone_is_not_ready_and_says_why(kit, visual
         assert client.get("/health").status_code == 200
         refused = client.post("/sessions", json={}, headers=kit.FLEET)
         assert refused.status_code == 503 and "not ready" in refused.json()["detail"]
+
+
+def test_the_wrong_backbone_is_named_with_the_one_the_model_was_trained_on(visual_model, library_dir, tmp_path):
+    """A model trained on the fp32 backbone given the int8 one: the answer named two config hashes, no backbone."""
+    import onnx
+
+    from models.visual.onnx_backbone import META_PREFIX
+    from service.runtime import load_runtime
+
+    other = onnx.load(str(visual_model.backbone))
+    for prop in other.metadata_props:  # another backbone's export: its name and its visual configuration
+        if prop.key == META_PREFIX + "backbone":
+            prop.value = "efficientnet_lite0_int8"
+        elif prop.key == META_PREFIX + "config_hash":
+            prop.value = "0123456789abcdef"
+    onnx.save(other, str(tmp_path / "int8.onnx"))
+    settings = Settings(model_path=visual_model.model, library_dir=library_dir, backbone_path=tmp_path / "int8.onnx")
+    with pytest.raises(ValueError) as refused:
+        load_runtime(settings)
+    why = str(refused.value)
+    assert "was trained on efficientnet_lite0 features" in why and "is efficientnet_lite0_int8" in why
+    assert "0123456789abcdef" in why and "HAPTICLINK_BACKBONE_PATH" in why
 
 
 def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
