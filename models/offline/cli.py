@@ -224,6 +224,8 @@ def _visual_args(parser: argparse.ArgumentParser) -> None:
 
 
 def _visual_config(args: argparse.Namespace):
+    from pydantic import ValidationError
+
     from models.visual.config import VisualConfig
 
     fields: dict = {"descriptors": tuple(getattr(args, "descriptors", None) or ())}
@@ -235,7 +237,17 @@ def _visual_config(args: argparse.Namespace):
         fields["backbone_layer"] = args.backbone_layer
     if getattr(args, "backbone", None) is not None:
         fields["backbone"] = args.backbone
-    return VisualConfig(**fields)
+    try:
+        return VisualConfig(**fields)
+    except ValidationError as exc:  # pydantic's own text names the field, not the flag that set it
+        flags = {"grid": "--visual-grid", "backbone_layer": "--backbone-layer", "descriptors": "--descriptors"}
+        raise ValueError(
+            "; ".join(
+                f"{flags.get(str(e['loc'][0]), '--' + str(e['loc'][0]).replace('_', '-')) if e['loc'] else 'visual'}"
+                f": {e['msg']}"
+                for e in exc.errors()
+            )
+        ) from None
 
 
 def _tactile_config(args: argparse.Namespace):

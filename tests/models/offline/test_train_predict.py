@@ -205,3 +205,12 @@ def test_train_refuses_metrics_of_another_model(dataset, tmp_path):
     metrics.write_text(json.dumps({"model": "ridge-both", "mae": {}, "rmse": {}, "seeds": [0]}))
     with pytest.raises(ValueError, match="holds the LOOCV of 'ridge-both', not of 'ridge-tactile'"):
         train_and_export(dataset, "ridge-tactile", tmp_path / "m.onnx", metrics=metrics)
+
+
+def test_a_bad_visual_flag_is_named_by_its_flag(dataset, tmp_path, capsys):
+    """`--visual-grid 0` printed pydantic's 'validation error for VisualConfig / grid …' with its web link."""
+    status = cli(["evaluate", "--dataset", str(dataset), "--model", "ridge-visual", "--out", str(tmp_path),
+                  "--visual-grid", "0"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert status == 2 and "--visual-grid: Input should be greater than or equal to 1" in err
+    assert "pydantic" not in err
