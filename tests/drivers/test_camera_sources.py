@@ -44,6 +44,23 @@ def test_image_files_become_frames_with_their_content_type(tmp_path):
         ImageFilesSource([tmp_path / "a.png"], interval_s=0)
 
 
+def pumped(source) -> tuple[asyncio.Queue, asyncio.Task]:
+    """(a queue, the task that moves the source's frames into it); call inside the running loop."""
+    frames: asyncio.Queue = asyncio.Queue()
+
+    async def pump() -> None:
+        async for frame in source:
+            await frames.put(frame)
+
+    return frames, asyncio.create_task(pump())
+
+
+async def closed(source, task: asyncio.Task) -> None:
+    """Close the source; its pump then ends (a hang guard of 10 s)."""
+    await source.aclose()
+    await asyncio.wait_for(task, 10)
+
+
 def append(path, data: bytes) -> None:
     with open(path, "ab") as f:
         f.write(data)
@@ -55,13 +72,7 @@ def test_watched_directory_sends_new_images_and_skips_partial_and_other_files(tm
     source = WatchedDirectorySource(tmp_path, poll_s=0.02)
 
     async def main():
-        frames: asyncio.Queue = asyncio.Queue()
-
-        async def pump():
-            async for frame in source:
-                await frames.put(frame)
-
-        task = asyncio.create_task(pump())
+        frames, task = pumped(source)
         got = [await asyncio.wait_for(frames.get(), 10)]  # the file that was there at start
         # a camera app writing a file: half of it first (must not be sent), then the rest
         (tmp_path / "001.png").write_bytes(later[: len(later) // 2])
@@ -72,8 +83,7 @@ def test_watched_directory_sends_new_images_and_skips_partial_and_other_files(tm
         got.append(await asyncio.wait_for(frames.get(), 10))
         (tmp_path / "002.jpg").write_bytes(jpeg)
         got.append(await asyncio.wait_for(frames.get(), 10))
-        await source.aclose()
-        await asyncio.wait_for(task, 10)
+        await closed(source, task)
         return got
 
     with caplog.at_level(logging.WARNING, logger="drivers.camera"):
@@ -113,13 +123,7 @@ def test_watched_directory_survives_a_bomb_and_its_own_disappearance(tmp_path, c
     source = WatchedDirectorySource(watched, poll_s=0.02)
 
     async def main():
-        frames: asyncio.Queue = asyncio.Queue()
-
-        async def pump():
-            async for frame in source:
-                await frames.put(frame)
-
-        task = asyncio.create_task(pump())
+        frames, task = pumped(source)
         while source.skipped < 1:  # the bomb: skipped, not raised
             await asyncio.sleep(0.01)
         (watched / "001.png").write_bytes(image_bytes("PNG", 1))
@@ -129,8 +133,7 @@ def test_watched_directory_survives_a_bomb_and_its_own_disappearance(tmp_path, c
         watched.mkdir()  # ... and makes a new one
         (watched / "002.png").write_bytes(image_bytes("PNG", 2))
         got.append(await asyncio.wait_for(frames.get(), 10))
-        await source.aclose()
-        await asyncio.wait_for(task, 10)
+        await closed(source, task)
         return got
 
     with caplog.at_level(logging.WARNING, logger="drivers.camera"):
