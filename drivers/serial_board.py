@@ -309,16 +309,17 @@ class SerialBoardSource(ThreadedSource):
                 end = pending.find(b"\n")
                 if end < 0:
                     pending = b""
-                    continue
-                pending, discarding = pending[end + 1 :], False
-            *lines, pending = pending.split(b"\n")
-            for raw in lines:
-                for block in self._decoder.feed_line(raw):
-                    emit(block)
-            if len(pending) > MAX_LINE_BYTES:
-                # No newline in sight: noise on the line. Count it once and resynchronise on the next newline.
-                self._decoder.count_garbled()
-                pending, discarding = b"", True
+                else:
+                    pending, discarding = pending[end + 1 :], False
+            if not discarding:
+                *lines, pending = pending.split(b"\n")
+                for raw in lines:
+                    for block in self._decoder.feed_line(raw):
+                        emit(block)
+                if len(pending) > MAX_LINE_BYTES:
+                    # No newline in sight: noise on the line. Count it once and resynchronise on the next newline.
+                    self._decoder.count_garbled()
+                    pending, discarding = b"", True
             if self.stats.samples > samples:
                 undecoded_since = None
             elif undecoded_since is None:
