@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         + (f", latency median {sorted(latencies)[len(latencies) // 2]:.1f} ms" if latencies else "")
         + f", {len(stats.model_errors)} model error(s), {stats.stalls} device stall(s)"
         + (f"; {stats.ended}" if stats.ended else "")
-        + ("; never reached the service's event feed" if not stats.connects else ""),
+        + ("; never reached the service's event feed" if not stats.connects and not stats.refused else ""),
         flush=True,
     )
     return 1 if stats.refused or not stats.connects else 0

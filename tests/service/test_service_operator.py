@@ -273,3 +273,4 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
     refused = subprocess.run([*cmd[:token], "not-the-token", *cmd[token + 1 :]], capture_output=True, text=True,
                              timeout=60, env=env)  # fmt: skip
     assert refused.returncode == 1 and "refused the event feed: HTTP 401" in refused.stdout
+    assert "never reached" not in refused.stdout  # it was reached, and it refused
