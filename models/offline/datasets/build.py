@@ -7,6 +7,8 @@ from pathlib import Path
 
 def build(source: str, out: str | Path, path: str | Path | None = None, **options) -> Path:
     """Dispatch to the source's builder. Options are source-specific (see each builder)."""
+    if path is not None and not Path(path).is_dir():  # each builder would name the first file it misses instead
+        raise ValueError(f"--path {path}: no such folder")
     if source == "hatt-texnet":
         from models.offline.datasets.hatt_texnet import build_hatt
 

@@ -270,3 +270,6 @@ def test_build_dispatch_needs_a_path_and_a_known_source(tmp_path):
         build("recordings", tmp_path / "out")
     with pytest.raises(ValueError, match="unknown source 'csv'"):
         build("csv", tmp_path / "out")
+    for source in ("hatt-texnet", "hassan2023", "recordings"):  # it said "does not look like …: missing textures.csv"
+        with pytest.raises(ValueError, match="--path .*/nope: no such folder"):
+            build(source, tmp_path / "out", tmp_path / "nope")
