@@ -44,6 +44,8 @@ REOPEN_S = (0.25, 4.0)
 #: seconds of bytes arriving with no sample decoded before the source says the line format or baud rate is wrong
 UNDECODED_WARN_S = 2.0
 _TOKEN = re.compile(r"^(?P<kind>[a-z]+)(?:\[(?P<cols>\d+)\])?=(?P<value>\S+)$")
+#: a data line: a decimal counter, then decimal numbers (Python's int and float alone would take "1_2_0" as 120)
+_NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,7 @@ class BoardDecoder:
     def _set_header(self, header: BoardHeader) -> None:
         old = self._assembler
         self._header = header
+        self._line = re.compile(r"\d+\s*" + rf"(?:,\s*{_NUMBER}\s*)" * header.n_values)
         self._limits = [
             MAX_ABS[kind] / UNIT_SCALE[kind][units] for kind, cols, units in header.layout for _ in range(cols)
         ]
@@ -158,6 +161,9 @@ class BoardDecoder:
             self.count_garbled()
             return []
         if not line:
+            return []
+        if len(raw) > MAX_LINE_BYTES:  # however it arrived: noise, never a sample
+            self.count_garbled()
             return []
         if line.startswith("#"):
             return self._on_comment(line)
@@ -208,7 +214,7 @@ class BoardDecoder:
     def _parse_sample(self, line: str) -> tuple[int, list[float]] | None:
         assert self._header is not None
         fields = line.split(",")
-        if len(fields) != 1 + self._header.n_values:
+        if len(fields) != 1 + self._header.n_values or self._line.fullmatch(line) is None:
             return None
         try:
             counter = int(fields[0])

@@ -11,6 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+#: the most a file may hold once decompressed (the declared sizes of its members, read before any is inflated): a
+#: few kB of zeros can declare gigabytes, and a recording an hour long at 1 kHz is 0.1 GB
+MAX_NPZ_BYTES = 1 << 30
+
 
 def save_npz(path: str | Path, fmt: str, version: int, header: dict, arrays: dict[str, np.ndarray]) -> Path:
     path = Path(path)
@@ -29,6 +33,12 @@ def load_npz(path: str | Path, fmt: str, version: int) -> tuple[dict, dict[str, 
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
         raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
     with z:
+        declared = sum(info.file_size for info in z.zip.infolist())
+        if declared > MAX_NPZ_BYTES:
+            raise ValueError(
+                f"{path}: holds {declared / 2**20:.0f} MiB once decompressed; at most {MAX_NPZ_BYTES / 2**20:.0f} MiB "
+                "are read"
+            )
         if "header" not in z:
             raise ValueError(f"{path}: no header (not a {fmt} file)")
         try:

@@ -174,6 +174,22 @@ def test_a_value_beyond_any_sensor_is_one_lost_sample_not_the_end_of_the_stream(
     assert (dec.stats.out_of_range, dec.stats.gaps, dec.stats.missing_samples) == (2, 2, 2)
 
 
+def test_only_decimal_numbers_in_lines_of_at_most_512_bytes_are_samples():
+    """Python's int and float read '1_2_0' as 120 and '1_0.5' as 10.5; a 700-byte line that came with its newline
+    in one read was parsed as a sample."""
+    dec = BoardDecoder(0.02, parse_header(HEADER))
+    lines = [data_line(c) for c in range(30)]
+    lines[10] = b"1_0,0.01,-0.5,1.0,0.1,0.0,1.6,2.0\n"
+    lines[20] = b"20,0.02,-0.5,1_0.5,0.1,0.0,1.7,4.0\n"
+    lines[25] = b"25," + b"0" * 600 + b"1,-0.5,1.0,0.1,0.0,1.75,5.0\n"
+    lines[5] = b"5, 0.005, -0.5, 1.25, 0.1, 0.0, 1.55, 1.0\n"  # spaces after the commas: still a sample
+    blocks = _decode(dec, lines)
+    kept = [c for c in range(30) if c not in (10, 20, 25)]
+    accel = np.concatenate([b.channels["accel"].data for b in blocks])
+    np.testing.assert_allclose(accel, np.array([sample_values(c) for c in kept])[:, 0:3], atol=1e-4)
+    assert (dec.stats.garbled, dec.stats.gaps) == (3, 3)
+
+
 def test_a_garbled_header_after_a_good_one_is_skipped_and_the_stream_goes_on():
     dec = BoardDecoder(0.02, parse_header(HEADER))
     lines = [data_line(c) for c in range(40)]

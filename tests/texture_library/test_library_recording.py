@@ -194,6 +194,23 @@ def test_load_recording_of_a_missing_or_foreign_file(tmp_path):
         load_recording(tmp_path / "plain.npz")
 
 
+def test_a_file_that_inflates_past_the_limit_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    """A 0.55 MB recording of zeros declared 480 MB a channel; loading it took 1.96 GB. The declared sizes are read
+    first (here against a limit of 1 MiB, so the test writes little)."""
+    import texture_library.npzfile as npzfile
+
+    monkeypatch.setattr(npzfile, "MAX_NPZ_BYTES", 1 << 20)
+    rec = Recording(
+        accel=make_channel("accel", np.zeros((60_000, 3)), 1000.0),  # 1.4 MB of float64 once decompressed
+        force=make_channel("force", np.zeros(60_000), 1000.0),
+        speed=make_channel("speed", np.zeros(60_000), 1000.0),
+    )
+    path = save_recording(tmp_path / "zeros.npz", rec)
+    assert path.stat().st_size < 100_000
+    with pytest.raises(ValueError, match=r"zeros.npz: holds \d+ MiB once decompressed; at most 1 MiB are read"):
+        load_recording(path)
+
+
 def test_units_in_the_file_are_converted_on_load(tmp_path):
     header = {
         **GOOD,
