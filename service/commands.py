@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -63,6 +68,12 @@ FLAG_TO_FIELD = {
 }
 
 
+def named_errors(exc: ValidationError, name: Callable[[str], str], whole: str) -> str:
+    """A pydantic ValidationError as 'NAME: message; …', each field named by `name` (the flag or variable that set
+    it) rather than by pydantic's field path; `whole` names an error of the model as a whole."""
+    return "; ".join(f"{name(str(e['loc'][0])) if e['loc'] else whole}: {e['msg']}" for e in exc.errors())
+
+
 def settings_from_args(args: argparse.Namespace):
     """Settings from the environment with the given flags on top; ValueError names a bad value."""
     import re
@@ -83,8 +94,7 @@ def settings_from_args(args: argparse.Namespace):
             flags = [f"--{flag.replace('_', '-')}" for flag, f in FLAG_TO_FIELD.items() if f == field]
             return f"{flags[0]} ({env_name(field)})" if flags else env_name(field)
 
-        problems = "; ".join(f"{named(str(e['loc'][0])) if e['loc'] else 'settings'}: {e['msg']}" for e in exc.errors())
-        raise ValueError(f"invalid settings: {problems}") from None
+        raise ValueError(f"invalid settings: {named_errors(exc, named, 'settings')}") from None
     except SettingsError as exc:  # a list or mapping variable that is not JSON: pydantic names neither it nor why
         field = re.search(r'field "(\w+)"', str(exc))
         name = env_name(field.group(1)) if field else "a HAPTICLINK_ variable"

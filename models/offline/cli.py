@@ -227,6 +227,7 @@ def _visual_config(args: argparse.Namespace):
     from pydantic import ValidationError
 
     from models.visual.config import VisualConfig
+    from service.commands import named_errors
 
     fields: dict = {"descriptors": tuple(getattr(args, "descriptors", None) or ())}
     if getattr(args, "visual_grid", None) is not None:
@@ -242,11 +243,7 @@ def _visual_config(args: argparse.Namespace):
     except ValidationError as exc:  # pydantic's own text names the field, not the flag that set it
         flags = {"grid": "--visual-grid", "backbone_layer": "--backbone-layer", "descriptors": "--descriptors"}
         raise ValueError(
-            "; ".join(
-                f"{flags.get(str(e['loc'][0]), '--' + str(e['loc'][0]).replace('_', '-')) if e['loc'] else 'visual'}"
-                f": {e['msg']}"
-                for e in exc.errors()
-            )
+            named_errors(exc, lambda field: flags.get(field, "--" + field.replace("_", "-")), "visual")
         ) from None
 
 
