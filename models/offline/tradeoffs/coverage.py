@@ -25,6 +25,7 @@ from models.offline.tradeoffs.study import StudyRun
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 
 TARGETS = ("window", "ema", "texture")
+SERVED_TARGETS = ("window", "ema")  # what the service emits; `recommend` chooses among these
 SCALE_KINDS = ("none", "distance")
 LEVELS = (0.8, 0.9)
 CLEAN_TOLERANCE = 0.05
@@ -195,7 +196,7 @@ def recommend(rows: list[dict]) -> dict:
     most fault conditions meeting their target; then the narrowest. Targets per window or EMA (what the
     service emits), not per texture."""
     best = None
-    for target in ("window", "ema"):
+    for target in SERVED_TARGETS:
         for scale_kind in SCALE_KINDS:
             mine = [r for r in rows if r["target"] == target and r["scale"] == scale_kind]
             clean = [r for r in mine if r["condition"] == CLEAN]

@@ -17,6 +17,7 @@ import numpy as np
 from models.offline.faults.catalog import FAULTS
 from models.offline.tradeoffs import charts
 from models.offline.tradeoffs.common import write_json
+from models.offline.tradeoffs.coverage import SERVED_TARGETS
 from models.offline.tradeoffs.frontier import TARGET_FRAME_MS, TARGET_MAE_MARGIN
 from models.offline.tradeoffs.robustness import AUGMENTATION_LOO
 
@@ -396,6 +397,7 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
     lines = []
     for model, rec in rb["recommended_intervals"].items():
         rows = [r for r in rb["coverage"] if r["model"] == model]
+        n_settings = len({(r["target"], r["scale"]) for r in rows if r["target"] in SERVED_TARGETS})
         png = charts.coverage_chart(rows, model, rec["scale"], folder / f"coverage-{model}.png")
         lines += [
             f"### `{model}` — recommended: target **{rec['target']}**, scale **{rec['scale']}** "
@@ -403,6 +405,11 @@ def coverage_section(rb: dict, folder: Path) -> list[str]:
             f"{rec['faults_ok']} of {rec['faults_total']})",
             "",
             f"![coverage {model}]({png.name})",
+            "",
+            f"The pick is `coverage.recommend`'s rule applied to the coverages below — the same leave-one-out folds "
+            f"that report them — so the chosen setting's coverage is optimistic: {n_settings} settings were compared "
+            "on these numbers. Choosing inside each fold needs the per-texture coverages, which only a rerun of the "
+            "robustness study stores.",
             "",
             "Clean LOOCV coverage per attribute (every calibration from textures other than the held-out one):",
             "",
