@@ -55,15 +55,12 @@ def score(cal: IntervalCalibration, pred: Prediction, truth: np.ndarray, check: 
     }
 
 
-def _aggregate(scores: list[dict]) -> dict:
-    """Coverage over textures (each weighs 1); empirical_ci: the texture-level bootstrap interval of the mean."""
-    per_texture = np.array([s["covered"] for s in scores])
-    covered = per_texture.mean(axis=0)
+def _summary(scores: list[dict]) -> dict:
+    """Coverage over textures (each weighs 1), flagged share and width: what the rule reads, without an interval."""
+    covered = np.mean([s["covered"] for s in scores], axis=0)
     unflagged = [s["covered_unflagged"] for s in scores if s["covered_unflagged"] is not None]
-    ci = bootstrap_mean(per_texture.mean(axis=1))
     return {
         "empirical": float(covered.mean()),
-        "empirical_ci": [ci["lo"], ci["hi"]],
         "per_attribute": dict(zip(ATTRIBUTES, map(float, covered))),
         "flagged": float(np.mean([s["flagged"] for s in scores])),
         "unflagged_empirical": float(np.mean(unflagged)) if unflagged else None,
@@ -72,7 +69,27 @@ def _aggregate(scores: list[dict]) -> dict:
     }
 
 
-def coverage_study(
+def _aggregate(scores: list[dict]) -> dict:
+    """_summary with empirical_ci: the texture-level bootstrap interval of the mean coverage."""
+    ci = bootstrap_mean(np.array([s["covered"] for s in scores]).mean(axis=1))
+    return {**_summary(scores), "empirical_ci": [ci["lo"], ci["hi"]]}
+
+
+def meets_target(summary: dict, condition: str, level: float) -> bool:
+    """Clean: every attribute within ±5 points of nominal. A fault: coverage ≥ nominal − 10 points as emitted, and
+    on the unflagged windows too (or ≥ 90 % of windows flagged)."""
+    if condition == CLEAN:
+        return all(abs(v - level) <= CLEAN_TOLERANCE for v in summary["per_attribute"].values())
+    unflagged = summary["unflagged_empirical"]
+    ok_unflagged = unflagged is None or unflagged >= level - FAULT_TOLERANCE or summary["flagged"] >= 0.9
+    return bool(summary["empirical"] >= level - FAULT_TOLERANCE and ok_unflagged)
+
+
+#: (condition, target, scale, level) → [(texture index, its score)]
+Scores = dict[tuple[str, str, str, float], list[tuple[int, dict]]]
+
+
+def coverage_scores(
     run: StudyRun,
     truth: np.ndarray,
     part: np.ndarray,
@@ -80,12 +97,13 @@ def coverage_study(
     distances: dict,
     shift_checks: dict[int, Check] | None = None,
     groups: list[str] | None = None,
-) -> list[dict]:
-    """Coverage rows for every condition × target × scale × level of one run (with calibration tasks)."""
+) -> Scores:
+    """Every held-out texture's coverage score for every condition × target × scale × level of one run (with
+    calibration tasks)."""
     if not run.calib:
         raise ValueError(f"{run.model} seed {run.seed} has no calibration fits; run it with calibration")
     n = len(truth)
-    collected: dict[tuple, list[dict]] = {}
+    collected: Scores = {}
     for i in range(n):
         material = [(j, run.calib[key][j], distances[key][j]) for j, key in calibration_sources(part, i)]
         prior = truth[np.arange(n) != i]
@@ -99,7 +117,7 @@ def coverage_study(
                         continue
                     for level in LEVELS:
                         collected.setdefault((key, target, scale_kind, level), []).append(
-                            score(cal, preds[i], truth[i], checks[key][i], level)
+                            (i, score(cal, preds[i], truth[i], checks[key][i], level))
                         )
     if run.shift_inner and shift_checks is not None and groups is not None:
         garr = np.asarray(groups)
@@ -114,20 +132,17 @@ def coverage_study(
                 for i in np.flatnonzero(garr == g):
                     for level in LEVELS:
                         collected.setdefault(("shift", target, "none", level), []).append(
-                            score(cal, run.shift[int(i)], truth[i], shift_checks[int(i)], level)
+                            (int(i), score(cal, run.shift[int(i)], truth[i], shift_checks[int(i)], level))
                         )
+    return collected
+
+
+def coverage_rows(run: StudyRun, scores: Scores, *, with_ci: bool = True) -> list[dict]:
+    """One row per condition × target × scale × level: coverage over the textures scored, and its verdict."""
+    summarise = _aggregate if with_ci else _summary
     rows = []
-    for (condition, target, scale_kind, level), scores in sorted(collected.items(), key=lambda kv: str(kv[0])):
-        agg = _aggregate(scores)
-        tol = CLEAN_TOLERANCE if condition == CLEAN else FAULT_TOLERANCE
-        ok_all = agg["empirical"] >= level - tol
-        ok_unflagged = (
-            agg["unflagged_empirical"] is None or agg["unflagged_empirical"] >= level - tol or agg["flagged"] >= 0.9
-        )
-        if condition == CLEAN:
-            meets = all(abs(v - level) <= tol for v in agg["per_attribute"].values())
-        else:
-            meets = bool(ok_all and ok_unflagged)
+    for (condition, target, scale_kind, level), per_texture in sorted(scores.items(), key=lambda kv: str(kv[0])):
+        agg = summarise([sc for _, sc in per_texture])
         rows.append(
             {
                 "model": run.model,
@@ -137,10 +152,45 @@ def coverage_study(
                 "scale": scale_kind,
                 "nominal": level,
                 **agg,
-                "meets_target": bool(meets),
+                "meets_target": meets_target(agg, condition, level),
             }
         )
     return rows
+
+
+def nested_recommendation(run: StudyRun, scores: Scores) -> dict:
+    """`recommend` run inside the folds: for each held-out texture the rule reads only the other textures'
+    coverages, and that texture is scored with the setting it picked — what serving the rule's pick would cover
+    on a texture the pick never saw.
+
+    Returns {"picks": {"target/scale": folds}, "clean": [{"nominal", "empirical", "empirical_ci",
+    "per_attribute", "n_textures"}]}: clean coverage of the procedure per level, each texture weighing 1."""
+    served = {k: v for k, v in scores.items() if k[1] in SERVED_TARGETS}
+    textures = sorted({i for (condition, *_), per in served.items() if condition == CLEAN for i, _ in per})
+    picks: dict[str, int] = {}
+    chosen: dict[float, list[np.ndarray]] = {}
+    for i in textures:
+        others = {k: [(j, sc) for j, sc in per if j != i] for k, per in served.items()}
+        pick = recommend(coverage_rows(run, {k: v for k, v in others.items() if v}, with_ci=False))
+        name = f"{pick['target']}/{pick['scale']}"
+        picks[name] = picks.get(name, 0) + 1
+        for (condition, target, scale_kind, level), per in served.items():
+            if condition == CLEAN and (target, scale_kind) == (pick["target"], pick["scale"]):
+                chosen.setdefault(level, []).extend(np.asarray(sc["covered"], float) for j, sc in per if j == i)
+    clean = []
+    for level, covered in sorted(chosen.items()):
+        per_texture = np.array(covered)
+        ci = bootstrap_mean(per_texture.mean(axis=1))
+        clean.append(
+            {
+                "nominal": level,
+                "empirical": float(per_texture.mean()),
+                "empirical_ci": [ci["lo"], ci["hi"]],
+                "per_attribute": dict(zip(ATTRIBUTES, map(float, per_texture.mean(axis=0)))),
+                "n_textures": len(per_texture),
+            }
+        )
+    return {"picks": picks, "clean": clean}
 
 
 WINDOW_COUNTS = (1, 2, 4, 5, 10, 20)

@@ -19,7 +19,13 @@ from models.offline.evaluation.bootstrap import bootstrap_mean, per_texture_erro
 from models.offline.faults.catalog import FAULTS
 from models.offline.tradeoffs import analysis
 from models.offline.tradeoffs.common import load_state, tactile_data, views_for, with_visual
-from models.offline.tradeoffs.coverage import coverage_after_n_windows, coverage_study, recommend
+from models.offline.tradeoffs.coverage import (
+    coverage_after_n_windows,
+    coverage_rows,
+    coverage_scores,
+    nested_recommendation,
+    recommend,
+)
 from models.offline.tradeoffs.detection import calibration_distances, fold_checks, shift_checks
 from models.offline.tradeoffs.faulted import CLEAN, FaultedInputs, faulted_inputs
 from models.offline.tradeoffs.folds import CALIBRATION_GROUPS, partition
@@ -145,6 +151,7 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
     reference = analysis.variant_mae(mean_runs, truth, CLEAN)["mae"]
     clean_all = {}
     robustness, breaking, spread, shift, augmentation, coverage, recommended = [], [], {}, {}, [], [], {}
+    nested: dict[str, dict] = {}
     by_windows: list[dict] = []
     for model, model_runs in runs.items():
         held_out = model_runs[0].held_out
@@ -216,11 +223,13 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
             )
         for r in model_runs:
             if r.calib:
-                rows = coverage_study(
+                scores = coverage_scores(
                     r, truth, part, tables["folds"], tables["calibration"], tables["shift"], data.groups
                 )
+                rows = coverage_rows(r, scores)
                 coverage += rows
                 recommended[model] = recommend(rows)
+                nested[model] = nested_recommendation(r, scores)
                 by_windows += coverage_after_n_windows(r, truth, part)
                 break  # one seed's intervals per model
     flags = {k: float(np.mean([c.flags.mean() for c in v if len(c.flags)])) for k, v in tables["folds"].items()}
@@ -236,6 +245,8 @@ def summarise(data, runs: dict[str, list[StudyRun]], tables: dict, part: np.ndar
         "augmentation_loo": AUGMENTATION_LOO,
         "coverage": coverage,
         "recommended_intervals": recommended,
+        # the same rule run inside the folds: what its pick covers on textures it never saw
+        "nested_intervals": nested,
         "coverage_after_n_windows": by_windows,
         "flag_rate": flags,
         "load": load_state(),

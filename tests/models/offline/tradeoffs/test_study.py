@@ -128,6 +128,14 @@ def test_coverage_rows_for_every_condition_target_and_level(summary):
     )
     assert severe["flagged"] > 0.8 and severe["empirical"] >= 0.8
     assert s["recommended_intervals"]["ridge-both"]["target"] in ("window", "ema")
+    # the rule run inside the folds: one pick per held-out texture, and what the picks cover clean
+    nested = s["nested_intervals"]["ridge-both"]
+    n_clean = next(r["n_textures"] for r in rows if r["condition"] == CLEAN)
+    assert sum(nested["picks"].values()) == n_clean
+    assert {name.split("/")[0] for name in nested["picks"]} <= {"window", "ema"}
+    assert [c["nominal"] for c in nested["clean"]] == [0.8, 0.9]
+    for c in nested["clean"]:
+        assert c["n_textures"] == n_clean and abs(c["empirical"] - c["nominal"]) < 0.2
 
 
 def test_spread_and_shift_are_numbers(summary):
@@ -217,6 +225,7 @@ def test_report_page_charts_and_results_in_the_issue_shape(summary, tmp_path):
     page = build_tradeoffs_report(tmp_path).read_text()
     for heading in ("## 1. The frontier", "## 2. Stability", "## 3. Intervals", "## 4. Adaptive serving", "*Pending*"):
         assert heading in page
+    assert "Run inside the folds" in page and "predates the rule's nested run" not in page
     assert s["augmentation"] and "older than the fix" not in page
     write_json(tmp_path / "robustness.json", {k: v for k, v in s.items() if k != "augmentation_loo"})
     assert "older than the fix" in build_tradeoffs_report(tmp_path).read_text()  # a run from before it says so
