@@ -107,6 +107,23 @@ class Frame:
     meta: dict = field(default_factory=dict)
 
 
+class FrameTooLarge(ValueError):
+    """A frame larger than MAX_FRAME_PIXELS (check_frame_pixels)."""
+
+
+def check_frame_pixels(width: int, height: int, label: str = "image") -> int:
+    """width × height of a frame the service would decode; FrameTooLarge (a ValueError) when larger than
+    MAX_FRAME_PIXELS.
+
+    The robot (drivers.camera) and the service (service.runtime) both judge a frame's size here, from its header
+    alone, so a frame the robot sends is one the service takes."""
+    if width * height > MAX_FRAME_PIXELS:
+        raise FrameTooLarge(
+            f"{label}: {width}×{height} pixels; the service decodes at most {MAX_FRAME_PIXELS} (4096×4096)"
+        )
+    return width * height
+
+
 def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object) -> ChannelBlock:
     """Check one channel (texture_library.channels.check_channel) and keep it as float32 in its own units."""
     if units is None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.blocks import DEFAULT_MAX_BODY_BYTES, MAX_FRAME_PIXELS, Frame
+from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, FrameTooLarge, check_frame_pixels
 from drivers.source import Item, ThreadedSource, check_positive, paced
 
 log = logging.getLogger(__name__)
@@ -66,25 +66,21 @@ def encode_image(data: bytes, label: str = "image") -> tuple[bytes, str]:
     """
     from PIL import Image, UnidentifiedImageError
 
-    out, ctype = b"", ""
     try:
         with Image.open(io.BytesIO(data)) as img:
-            width, height = img.size  # from the header: nothing decoded yet
-            if width * height <= MAX_FRAME_PIXELS:
-                img.load()  # decodes fully: a half-written file fails here
-                fmt = img.format
-                if fmt in ("PNG", "JPEG") and sniff_content_type(data):
-                    out, ctype = data, f"image/{fmt.lower()}"
-                else:
-                    buf = io.BytesIO()
-                    img.save(buf, format="PNG")
-                    out, ctype = buf.getvalue(), "image/png"
+            check_frame_pixels(*img.size, label)  # from the header: nothing decoded yet
+            img.load()  # decodes fully: a half-written file fails here
+            fmt = img.format
+            if fmt in ("PNG", "JPEG") and sniff_content_type(data):
+                out, ctype = data, f"image/{fmt.lower()}"
+            else:
+                buf = io.BytesIO()
+                img.save(buf, format="PNG")
+                out, ctype = buf.getvalue(), "image/png"
+    except FrameTooLarge:
+        raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise ValueError(f"{label}: not a complete image ({exc})") from None
-    if not out:
-        raise ValueError(
-            f"{label}: {width}×{height} pixels; the service decodes at most {MAX_FRAME_PIXELS} (4096×4096)"
-        )
     if len(out) > DEFAULT_MAX_BODY_BYTES:
         raise ValueError(
             f"{label}: {len(out) / 2**20:.1f} MiB encoded; the service takes at most "

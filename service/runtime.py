@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from drivers.blocks import MAX_FRAME_PIXELS
+from drivers.blocks import check_frame_pixels
 from models.inference.ood import FrameCheck
 from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
@@ -33,8 +33,8 @@ from texture_library.selection import SelectionRule, SpectralTable, sensor_noise
 
 log = logging.getLogger(__name__)
 
-# MAX_FRAME_PIXELS: a larger declared size is refused before decoding, so a small compressed body cannot expand into
-# gigabytes (Pillow itself only warns below 179 Mpx)
+# drivers.blocks.MAX_FRAME_PIXELS: a larger declared size is refused before decoding, so a small compressed body cannot
+# expand into gigabytes (Pillow itself only warns below 179 Mpx)
 
 
 @dataclass(frozen=True)
@@ -181,9 +181,7 @@ def frame_pixels(image: bytes) -> int:
         return 0
     if kind not in FRAME_FORMATS:
         raise ValueError(f"the image is {kind}; frames are PNG or JPEG")
-    if width * height > MAX_FRAME_PIXELS:
-        raise ValueError(f"image is {width}×{height} pixels; at most {MAX_FRAME_PIXELS} pixels are decoded")
-    return width * height
+    return check_frame_pixels(width, height)
 
 
 def serving_config(model_config: TactileConfig, hop_s: float) -> TactileConfig:

@@ -293,3 +293,16 @@ def test_one_counter_out_of_sequence_never_shifts_time(sequence, kept, glitches)
     for start, counters in _counters(out):
         assert start == counters[0], (start, counters)
     assert asm.stats.glitches == glitches and asm.stats.resyncs == 0
+
+
+def test_one_frame_size_check_for_the_robot_and_the_service():
+    from drivers.blocks import MAX_FRAME_PIXELS, check_frame_pixels
+
+    assert check_frame_pixels(4096, 4096) == MAX_FRAME_PIXELS  # the largest taken
+    assert check_frame_pixels(1, 1) == 1
+    with pytest.raises(
+        ValueError, match=r"^big.png: 4097×4096 pixels; the service decodes at most 16777216 \(4096×4096\)$"
+    ):
+        check_frame_pixels(4097, 4096, "big.png")
+    with pytest.raises(ValueError, match=r"^image: 16777217×1 pixels; the service decodes at most 16777216"):
+        check_frame_pixels(MAX_FRAME_PIXELS + 1, 1)
