@@ -22,7 +22,7 @@ from service.deps import refuse
 from service.errors import ErrorResponse, ServiceError, invalid_fields
 from service.events import StatusEvent, WindowEvent
 from service.http_head import HeadAsGet
-from service.limits import BodySizeLimit, BodyTooLarge, too_large_detail
+from service.limits import BodySizeLimit
 from service.probes import ProbeAnswers
 from service.routes import events, ingest, library, ops, sessions
 from service.schemas import JsonBlock, JsonTapBlock
@@ -93,8 +93,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         live=lambda: app.state.service.health_report(),
         ready=lambda: app.state.service.ready_report(),
     )
-    app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
-    app.add_exception_handler(BodyTooLarge, _too_large)  # type: ignore[arg-type]
+    app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]  # BodyTooLarge (413) too
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(ClientDisconnect, _client_gone)  # type: ignore[arg-type]
     for module in (sessions, ingest, events, library, ops):
@@ -128,10 +127,6 @@ async def _no_socket_here(websocket: WebSocket, path: str) -> None:
 
 async def _service_error(request: Request, exc: ServiceError) -> ErrorResponse:
     return ErrorResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
-
-
-async def _too_large(request: Request, exc: BodyTooLarge) -> ErrorResponse:
-    return ErrorResponse({"detail": too_large_detail(exc.limit)}, status_code=413, headers={"Connection": "close"})
 
 
 async def _client_gone(request: Request, exc: ClientDisconnect) -> Response:

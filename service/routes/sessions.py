@@ -9,6 +9,7 @@ from pydantic import ValidationError
 
 from service.deps import EitherSession, FleetClient, OperatorSession, State, take_session_slot
 from service.errors import ServiceError, invalid_fields, not_json
+from service.limits import limit_body
 from service.routes.common import errors, media_type, try_later
 from service.schemas import (
     MAX_SESSION_REQUEST_BYTES,
@@ -47,23 +48,21 @@ async def create_session(request: Request, state: State, client: FleetClient) ->
 
 async def session_request(request: Request) -> SessionCreate | None:
     """The body of POST /sessions: None when empty (or JSON null); 413 past MAX_SESSION_REQUEST_BYTES (a declared
-    length before reading, else as it streams in), 415 for a body that is not application/json, 400 for one that
-    is not JSON Python can read, 422 naming the field."""
-    declared = request.headers.get("content-length", "")
-    if declared.isdigit() and int(declared) > MAX_SESSION_REQUEST_BYTES:
-        raise _too_large()
-    raw = bytearray()
-    async for chunk in request.stream():
-        raw += chunk
-        if len(raw) > MAX_SESSION_REQUEST_BYTES:
-            raise _too_large()
+    length before reading, else as it streams in: service.limits.limit_body), 415 for a body that is not
+    application/json, 400 for one that is not JSON Python can read, 422 naming the field."""
+    limit_body(
+        request,
+        MAX_SESSION_REQUEST_BYTES,
+        f"a session request holds at most {MAX_SESSION_REQUEST_BYTES} bytes (a name)",
+    )
+    raw = await request.body()
     if not raw:
         return None
     kind = media_type(request)
     if kind != "application/json":
         raise ServiceError(415, f"a session request is application/json, got {kind or 'no Content-Type'}")
     try:
-        obj = json.loads(bytes(raw))
+        obj = json.loads(raw)
     except (ValueError, RecursionError) as exc:  # its syntax, bytes not UTF-8, a huge integer, nesting too deep
         raise not_json(exc) from None
     if obj is None:
@@ -72,13 +71,6 @@ async def session_request(request: Request) -> SessionCreate | None:
         return SessionCreate.model_validate(obj)
     except ValidationError as exc:
         raise invalid_fields(exc.errors(), under=("body",)) from None
-
-
-def _too_large() -> ServiceError:
-    # the rest of the body is left unread: the connection cannot carry another request
-    return ServiceError(
-        413, f"a session request holds at most {MAX_SESSION_REQUEST_BYTES} bytes (a name)", {"Connection": "close"}
-    )
 
 
 @router.get(

@@ -98,6 +98,10 @@ def test_a_session_request_is_judged_key_first_body_second_rate_last(kit, base_s
         # with a key: the body's size is bounded before it is read, its media type named, its fields named
         r = client.post("/sessions", content=big, headers={**kit.FLEET, "Content-Type": "application/json"})
         assert r.status_code == 413 and "at most 4096 bytes" in r.json()["detail"]
+        streamed = (big[i : i + 1024] for i in range(0, 8192, 1024))  # no Content-Length: counted as it streams in
+        r = client.post("/sessions", content=streamed, headers={**kit.FLEET, "Content-Type": "application/json"})
+        assert r.status_code == 413 and r.headers["connection"] == "close"
+        assert r.json()["detail"] == "a session request holds at most 4096 bytes (a name)"
         for kind in ("text/plain", "application/x-www-form-urlencoded", None):
             headers = {**kit.FLEET, **({"Content-Type": kind} if kind else {})}
             r = client.post("/sessions", content=b'{"name": "ok"}', headers=headers)

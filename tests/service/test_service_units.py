@@ -8,14 +8,18 @@ import json
 
 import numpy as np
 import pytest
+from fastapi import FastAPI, Request
+from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from drivers.blocks import ChannelBlock, SampleBlock
 from models.tactile.config import TactileConfig
 from models.tactile.stream import StreamContract
+from service.app import _service_error
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, issue_credentials
 from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
+from service.limits import BodySizeLimit, limit_body
 from service.live_session import canonical_channels
 from service.metrics import ServiceMetrics
 from service.settings import Settings, env_name, settings_table
@@ -355,3 +359,37 @@ def test_the_event_bus_bounds_a_sessions_subscriptions_itself_and_releases_them(
         assert bus.subscribers == 0 and bus._per_session == {}
 
     asyncio.run(main())
+
+
+# ---- body limits -----------------------------------------------------------------------------------
+def test_a_route_tightens_the_body_limit_and_is_refused_as_the_middleware_refuses():
+    """One mechanism: BodySizeLimit counts every body; a route may lower its own request's limit (limit_body), and
+    either limit refuses 413 with its reason and Connection: close, declared or streamed."""
+    app = FastAPI()
+    app.add_middleware(BodySizeLimit, max_bytes=64)
+    app.add_exception_handler(ServiceError, _service_error)
+
+    @app.post("/small")
+    async def small(request: Request) -> int:
+        limit_body(request, 16, "a small request holds at most 16 bytes")
+        return len(await request.body())
+
+    @app.post("/any")
+    async def any_size(request: Request) -> int:
+        return len(await request.body())
+
+    def chunks(n: int):  # no Content-Length: counted as it streams in
+        yield from (b"x" for _ in range(n))
+
+    with TestClient(app) as client:
+        assert client.post("/small", content=b"x" * 16).json() == 16
+        assert client.post("/small", content=chunks(16)).json() == 16
+        assert client.post("/any", content=b"x" * 64).json() == 64
+        for route, body, detail in (
+            ("/small", b"x" * 17, "a small request holds at most 16 bytes"),
+            ("/small", chunks(17), "a small request holds at most 16 bytes"),
+            ("/any", b"x" * 65, "request body too large: at most 64 bytes (HAPTICLINK_MAX_BODY_BYTES)"),
+            ("/any", chunks(65), "request body too large: at most 64 bytes (HAPTICLINK_MAX_BODY_BYTES)"),
+        ):
+            r = client.post(route, content=body)
+            assert (r.status_code, r.json()["detail"], r.headers["connection"]) == (413, detail, "close"), route
