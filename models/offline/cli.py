@@ -276,6 +276,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     # an image-only dataset: a model that needs touch is refused here, naming the model and the missing modality
     spec = for_dataset(EstimatorSpec(args.model, _options(args)), not ds.has_recordings, f"dataset {ds.name!r}")
     modality = spec.build().modality
+    _check_test_views(args.test_views, spec.name, modality)
     data = load_texture_data(
         args.dataset,
         tactile_config=_tactile_config(args),
@@ -321,6 +322,21 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"  {k:16s} {mae[k]:6.2f} ± {sd[k]:.2f}")
     print(f"results in {args.out}/results.json ({res['wall_s']:.0f} s)")
     return 0
+
+
+def _check_test_views(views: int | None, model: str, modality: str) -> None:
+    """Refuse a bad --test-views before any feature is computed (on HaTT that takes ≈ 30 s)."""
+    if views is None:
+        return
+    from models.offline.evaluation.loocv import check_test_views
+    from models.offline.featurize import DEFAULT_VIEWS
+
+    if modality not in ("visual", "both"):
+        raise ValueError(f"--test-views: model {model!r} reads no images: it has no views to hold out")
+    try:
+        check_test_views(views, DEFAULT_VIEWS)  # load_texture_data stores DEFAULT_VIEWS views of each image
+    except ValueError as exc:
+        raise ValueError(f"--test-views: {exc}") from None
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -40,14 +40,20 @@ class LoocvRun:
     seed: int
 
 
+def check_test_views(views: int, stored: int | None) -> None:
+    """ValueError unless a held-out texture can be seen through its first `views` of `stored` image views (None:
+    the data has no visual features). The CLI asks before computing features, seen_through when it applies them."""
+    if stored is None:
+        raise ValueError("test views need visual features, but the data has none")
+    if views < 1 or stored % views:
+        raise ValueError(f"test views must divide the {stored} stored views, got {views}")
+
+
 def seen_through(data: TextureData, views: int) -> TextureData:
     """The textures as a camera that gave only their first `views` views would show them: those views
     tiled over the stored slots, so any model pools exactly them (views must divide the stored count)."""
-    if data.visual is None:
-        raise ValueError("test views need visual features, but the data has none")
-    stored = data.visual.shape[1]
-    if views < 1 or stored % views:
-        raise ValueError(f"test views must divide the {stored} stored views, got {views}")
+    stored = None if data.visual is None else data.visual.shape[1]
+    check_test_views(views, stored)
     return replace(data, visual=np.tile(data.visual[:, :views], (1, stored // views, 1)))
 
 

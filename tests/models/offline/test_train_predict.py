@@ -214,3 +214,24 @@ def test_a_bad_visual_flag_is_named_by_its_flag(dataset, tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 2 and "--visual-grid: Input should be greater than or equal to 1" in err
     assert "pydantic" not in err
+
+
+@pytest.mark.parametrize(
+    "model, views, words",
+    [
+        ("ridge-visual", "3", "--test-views: test views must divide the 8 stored views, got 3"),
+        ("ridge-visual", "0", "--test-views: test views must divide the 8 stored views, got 0"),
+        ("ridge-tactile", "2", "--test-views: model 'ridge-tactile' reads no images: it has no views to hold out"),
+    ],
+)
+def test_a_bad_test_views_is_refused_before_any_feature_is_computed(dataset, tmp_path, capsys, monkeypatch, model,
+                                                                    views, words):  # fmt: skip
+    """`--test-views 3` was refused only after the features were computed (≈ 30 s on HaTT)."""
+
+    def featurized(*args, **kwargs):
+        raise AssertionError("features were computed before --test-views was checked")
+
+    monkeypatch.setattr("models.offline.evaluation.data.load_texture_data", featurized)
+    status = cli(["evaluate", "--dataset", str(dataset), "--model", model, "--out", str(tmp_path),
+                  "--test-views", views])  # fmt: skip
+    assert status == 2 and words in capsys.readouterr().err

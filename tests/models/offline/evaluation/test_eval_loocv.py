@@ -210,3 +210,15 @@ def test_leaving_families_out_refuses_folds_left_with_too_few_textures(linear_wo
         ValueError, match=r"leaving family .a. \(3 of the 4 textures\) out leaves fewer than 2 to train on"
     ):
         loocv(world, EstimatorSpec("mean"), backend="serial", progress=False, leave_out="family")
+
+
+def test_test_views_must_divide_the_stored_views_of_data_with_images():
+    from models.offline.evaluation.loocv import check_test_views
+
+    for views in (1, 2, 4, 8):
+        check_test_views(views, 8)
+    for views in (0, -2, 3, 16):
+        with pytest.raises(ValueError, match=f"^test views must divide the 8 stored views, got {views}$"):
+            check_test_views(views, 8)
+    with pytest.raises(ValueError, match="^test views need visual features, but the data has none$"):
+        check_test_views(1, None)
