@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.blocks import Block, encode_binary
+from drivers.camera import sniff_content_type
 from drivers.robot.backoff import retry_after
 from drivers.robot.frames import FRAME_REFRESH_S, REFRESH_JITTER, FrameGate, frame_thumbnail
 from drivers.scene_change import FRAME_CHANGE, thumbnail_bytes
@@ -138,6 +139,14 @@ def frame_of(library_dir: Path, k: int) -> bytes:
             f"library {library_dir} has no image for {lib.ids[k % len(lib.ids)]}: the served configuration needs one"
         )
     return image
+
+
+def frame_content_type(image: bytes) -> str:
+    """The Content-Type a frame's bytes call for: the service refuses a PNG labelled JPEG and the reverse (415)."""
+    kind = sniff_content_type(image)
+    if kind is None:
+        raise ValueError(f"a frame must be a PNG or a JPEG; these bytes begin {image[:8]!r}")
+    return kind
 
 
 def encoded_streams(plan: Plan, ks: list[int]) -> list[list[bytes]]:
@@ -248,7 +257,7 @@ async def _frames(robot: Robot, url: str, http, start: float, plan: Plan, out: G
 
     assert robot.session is not None and robot.frame is not None
     target = url + session_path(robot.session["session_id"], "frames")
-    headers = {**bearer(robot.session["robot_token"]), "Content-Type": "image/png"}
+    headers = {**bearer(robot.session["robot_token"]), "Content-Type": frame_content_type(robot.frame)}
     scene_target = url + session_path(robot.session["session_id"], "scene")
     scene_headers = {**bearer(robot.session["robot_token"]), "Content-Type": SCENE_CONTENT_TYPE}
     # as a robot's own gate, with its refresh jitter seeded per robot

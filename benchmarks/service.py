@@ -195,6 +195,7 @@ class PacedSource:
     ) -> None:
         self.blocks, self.block_s, self.start = blocks, block_s, start
         self.frame, self.frame_every = frame, max(1, int(round(frame_every_s / block_s)))
+        self.frame_type = loadgen.frame_content_type(frame) if frame is not None else ""
         self.realtime = realtime
         self.yielded: dict[int, float] = {}
         self.send_lag_ms: list[float] = []
@@ -217,7 +218,7 @@ class PacedSource:
             elif i % 256 == 0:
                 await asyncio.sleep(0)
             if self.frame is not None and (n - 1) % self.frame_every == 0:
-                yield Frame(block.t0, self.frame, "image/png")
+                yield Frame(block.t0, self.frame, self.frame_type)
             self.yielded[i] = time.perf_counter()
             yield block
 

@@ -170,8 +170,8 @@ FRAME_FORMATS = frozenset({"PNG", "JPEG", "MPO"})
 def frame_pixels(image: bytes) -> int:
     """An encoded frame's width × height, read from its header alone (nothing is decoded, ≈ 20 µs); 0 when the bytes
     are not an image Pillow recognises (decoding them says why); ValueError when it is not a PNG or JPEG (Pillow
-    would decode GIF, BMP, TIFF, WebP … as well: frames are PNG or JPEG, whatever their Content-Type says) or larger
-    than MAX_FRAME_PIXELS."""
+    would decode GIF, BMP, TIFF, WebP … as well: frames are PNG or JPEG; the frames route has already refused one
+    whose Content-Type names the other of the two) or larger than MAX_FRAME_PIXELS."""
     try:
         with Image.open(io.BytesIO(image)) as probe:
             width, height, kind = *probe.size, probe.format

@@ -10,6 +10,7 @@ import time
 from fastapi import APIRouter, Query, Request, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from drivers.camera import sniff_content_type
 from drivers.protocol import (
     BINARY_CONTENT_TYPE,
     FRAME_CONTENT_TYPES,
@@ -74,7 +75,15 @@ async def post_frame(request: Request, state: State, session: RobotSession, runt
     if kind not in FRAME_CONTENT_TYPES:
         state.frames.rejected(session)
         raise ServiceError(415, f"frames are {' or '.join(FRAME_CONTENT_TYPES)}, got {kind or 'no Content-Type'}")
-    return await state.frames.receive(session, runtime, await request.body())
+    image = await request.body()
+    # A label that lies is the client's bug, refused before anything is decoded; bytes that are neither format
+    # are left to the decoder, which says what they are (422).
+    sniffed = sniff_content_type(image)
+    if sniffed is not None and sniffed != kind:
+        state.frames.rejected(session)
+        what = sniffed.removeprefix("image/").upper()
+        raise ServiceError(415, f"the frame is declared {kind}, but the bytes are a {what} ({sniffed})")
+    return await state.frames.receive(session, runtime, image)
 
 
 @router.post(

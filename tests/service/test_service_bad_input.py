@@ -474,3 +474,25 @@ def test_a_session_body_that_is_not_json_is_refused_as_a_block_would_be(kit, cli
     assert r.status_code == 400, r.text
     detail = r.json()["detail"]
     assert detail.startswith("body is not valid JSON: ") and all(w in detail for w in words), detail
+
+
+@pytest.mark.parametrize(
+    ("encoding", "declared", "words"),
+    [
+        ("PNG", "image/jpeg", "declared image/jpeg, but the bytes are a PNG (image/png)"),
+        ("JPEG", "image/png", "declared image/png, but the bytes are a JPEG (image/jpeg)"),
+    ],
+)
+def test_a_frame_labelled_with_the_other_image_type_is_refused_415_naming_both(kit, client, encoding, declared, words):
+    """A PNG sent as image/jpeg (or the reverse) was decoded whatever its label: a client whose labels lie would
+    go unnoticed until one of them sends a format the service cannot read."""
+    session = kit.create_session(client)
+    encoded = io.BytesIO()
+    Image.new("RGB", (256, 256), (120, 80, 40)).save(encoded, format=encoding)
+    r = client.post(
+        f"/sessions/{session['session_id']}/frames",
+        content=encoded.getvalue(),
+        headers={"Authorization": f"Bearer {session['robot_token']}", "Content-Type": declared},
+    )
+    assert r.status_code == 415 and words in r.json()["detail"], r.text
+    assert kit.session_status(client, session)["counters"]["frames_rejected"] == 1
