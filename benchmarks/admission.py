@@ -55,6 +55,7 @@ from service.metrics import LATENCY_BUCKETS_S
 
 DEFAULT_OUT = Path("reports/bench/admission.json")
 API_KEY = "admission-benchmark-key-0123456789"
+METRICS_TOKEN = "admission-benchmark-metrics-0123456789"  # the server's GET /metrics credential
 BLOCK_S = 0.02  # the default block: the robot client's before it grew to 50 ms, the harder case
 HOP_S = 0.5  # the service's window hop: `--start spread` offsets robots within one
 #: the end-to-end bound windows are held to (block arrival → window event published), s; a histogram bucket bound
@@ -281,7 +282,7 @@ def drained(url: str, timeout_s: float = 15.0) -> str:
     """The metrics text once every admitted window is published (or timeout_s passed: the rest are lost)."""
     deadline = time.monotonic() + timeout_s
     while True:
-        text = httpx.get(f"{url}/metrics", timeout=30).text
+        text = httpx.get(f"{url}/metrics", headers=bearer(METRICS_TOKEN), timeout=30).text
         done = metric(text, "hapticlink_windows_total") >= metric(text, "hapticlink_windows_admitted_total")
         if done or time.monotonic() > deadline:
             return text
@@ -310,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         probe_port = free_port()
         env = {
             "HAPTICLINK_API_KEYS": API_KEY,
+            "HAPTICLINK_METRICS_TOKEN": METRICS_TOKEN,
             "HAPTICLINK_PROBE_PORT": str(probe_port),
             "HAPTICLINK_SESSION_BURST": str(args.burst + 10),
             "HAPTICLINK_MAX_SESSIONS": str(args.burst + 10),
@@ -364,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
             peak = report["rss_mb"]["idle"]
             while time.monotonic() < deadline:
                 time.sleep(1.0)
-                text = httpx.get(f"{server.url}/metrics", timeout=30).text
+                text = httpx.get(f"{server.url}/metrics", headers=bearer(METRICS_TOKEN), timeout=30).text
                 lag_samples.append(metric(text, "hapticlink_loop_lag_seconds") * 1e3)
                 cpu_samples.append(metric(text, "hapticlink_loop_cpu_share"))
                 process_samples.append(metric(text, "hapticlink_process_cpu_share"))

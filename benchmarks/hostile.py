@@ -41,6 +41,7 @@ from benchmarks.report_file import write_report
 from benchmarks.service import (
     DEFAULT_ASSETS,
     HOP_S,
+    SCRAPER,
     Assets,
     ServerProcess,
     _metric_sum,
@@ -245,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         results = {role: receive(pipes[role], procs[role], "result") for role in roles}
         stop.set()
         health = polled.get(timeout=30)["health"]
-        metrics = httpx.get(f"{server.url}/metrics").text
+        metrics = httpx.get(f"{server.url}/metrics", headers=SCRAPER).text
     finally:
         server.stop()
         for proc in [*procs.values(), poller]:

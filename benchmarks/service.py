@@ -77,6 +77,9 @@ DEFAULT_OUT = Path("reports/bench/service.json")
 HOP_S = 0.5
 GENERATOR_LAG_LIMIT_MS = 10.0  # send lag p99 beyond which a row's load generator fell behind (see measure)
 CONFIGS = ("served", "tactile")
+#: this process's scrape credential of its servers' GET /metrics (ServerProcess.service gives it to each)
+METRICS_TOKEN = secrets.token_urlsafe(24)
+SCRAPER = {"Authorization": f"Bearer {METRICS_TOKEN}"}
 
 
 # ---- assets --------------------------------------------------------------------------------------
@@ -155,6 +158,7 @@ class ServerProcess(launcher.ServerProcess):
             argv += ["--backbone", str(assets.backbone)]
         env = {
             "HAPTICLINK_API_KEYS": api_key,
+            "HAPTICLINK_METRICS_TOKEN": METRICS_TOKEN,
             # one benchmark process is one client address for every robot: lift the per-client session rate;
             # every session is opened before any streams: give them time to start
             "HAPTICLINK_SESSION_BURST": "100000",
@@ -435,7 +439,7 @@ def measure(
             frame_refresh_jitter=frame_refresh_jitter,
             hop_s=HOP_S,
         )
-        metrics0 = [httpx.get(f"{s.url}/metrics").text for s in servers]
+        metrics0 = [httpx.get(f"{s.url}/metrics", headers=SCRAPER).text for s in servers]
         at_start: list[float] = []
 
         def started() -> None:  # the service's CPU from the moment the streams start (sessions already open)
@@ -450,7 +454,7 @@ def measure(
         cpu0, machine0, wall0 = at_start
         cpu1, machine1, wall1 = at_end
         memory = [s.memory_mb() for s in servers]
-        metrics = [httpx.get(f"{s.url}/metrics").text for s in servers]
+        metrics = [httpx.get(f"{s.url}/metrics", headers=SCRAPER).text for s in servers]
     finally:
         for s in servers:
             s.stop()

@@ -17,7 +17,9 @@ and the start order and health gates of `depends_on`. Two kinds of thing are rew
 A broken pinning map, upstream, header, timeout or HAPTICLINK_* value is therefore broken here too.
 Opening a session needs a fleet API key: the replicas read theirs from HAPTICLINK_API_KEYS_FILE (compose puts it
 in the assets folder); `Topology` uses the file's first key, or writes a new key there when there is no file, and
-hands it to robots in `robot_options`. `Topology` is what tests/deploy/test_topology.py drives; the process that
+hands it to robots in `robot_options`. `/metrics` needs the metrics token compose passes on from the shell
+(HAPTICLINK_METRICS_TOKEN): `Topology` uses the shell's, or sets a new one as that shell variable would, and
+keeps it as `metrics_token` for scrapers. `Topology` is what tests/deploy/test_topology.py drives; the process that
 starts it must outlive it.
 """
 
@@ -334,6 +336,7 @@ class Topology:
     lb_port: nginx's loopback port (0: a free one). workdir: logs, configs and nginx's folders (default: a
     new temporary folder, removed by stop() unless keep_workdir). api_key: the fleet key robots open sessions
     with (default: the first key of the replicas' key file, or a new one written there; see `fleet_key`).
+    metrics_token: what scrapes the replicas' /metrics (the shell's HAPTICLINK_METRICS_TOKEN, else a new one).
     After start(): `url` is nginx's, `replicas` maps instance id → Service (each reachable directly, as an
     operator inside the network would), `redis_url`, `api_key`, and `robot_options` the keyword arguments a
     RobotClient needs besides url and source (the API key).
@@ -367,6 +370,10 @@ class Topology:
         self.services: dict[str, Service] = {}
         self.replicas: dict[str, Service] = {}  # instance id → service
         self.api_key = api_key
+        # The scraper's token of the replicas' /metrics: this shell's HAPTICLINK_METRICS_TOKEN, which compose hands
+        # them, else one made for this run (no token would close /metrics).
+        self.metrics_token = self.host_env.get(env_name("metrics_token")) or secrets.token_urlsafe(24)
+        self.host_env[env_name("metrics_token")] = self.metrics_token
         # What every robot must present to open a session: the fleet API key (set by start()).
         self.robot_options: dict[str, object] = {}
 

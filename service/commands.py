@@ -170,6 +170,10 @@ def _serve(args: argparse.Namespace) -> int:
             "no fleet API key is configured (HAPTICLINK_API_KEYS or HAPTICLINK_API_KEYS_FILE): every robot's "
             "session request will be refused (503)"
         )
+    if settings.metrics_token is None:
+        logging.getLogger("service").warning(
+            "no metrics token is configured (HAPTICLINK_METRICS_TOKEN): GET /metrics refuses every scrape (403)"
+        )
     # SIGINT/SIGTERM: the sessions end (operators told), then uvicorn stops accepting, lets open requests finish and
     # runs the lifespan shutdown.
     serve(create_app(settings), settings)

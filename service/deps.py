@@ -10,6 +10,7 @@ handshake the protocol's way (`drivers.protocol.Close`) instead of raising.
 
 from __future__ import annotations
 
+import hmac
 from collections.abc import Callable
 from typing import Annotated
 
@@ -19,7 +20,7 @@ from starlette.requests import HTTPConnection
 from starlette.websockets import WebSocket
 
 from drivers.protocol import HANDSHAKE_REFUSALS, Close
-from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role
+from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, digest
 from service.errors import ErrorResponse, ServiceError
 from service.events import status_event
 from service.fleet import NOT_CONFIGURED
@@ -105,6 +106,28 @@ def fleet_member(request: Request, state: State, token: Token) -> str:
     return client
 
 
+METRICS_CLOSED = (
+    "GET /metrics is closed: no metrics token is configured; set HAPTICLINK_METRICS_TOKEN and have the scraper "
+    "send 'Authorization: Bearer <token>'"
+)
+
+
+async def metrics_reader(state: State, token: Token) -> None:
+    """The scraper's token, or 401 (none, or another); 403 when no token is configured: no credential opens it."""
+    configured = state.settings.metrics_token
+    if configured is None:
+        raise ServiceError(403, METRICS_CLOSED)
+    if token is None:
+        raise ServiceError(
+            401,
+            "a metrics token is required: send 'Authorization: Bearer <token>' (HAPTICLINK_METRICS_TOKEN)",
+            {"WWW-Authenticate": "Bearer"},
+        )
+    # digests of equal length: compare_digest's time then says nothing of the token's length either
+    if not hmac.compare_digest(digest(token), digest(configured.get_secret_value())):
+        raise ServiceError(401, "the metrics token is not valid", {"WWW-Authenticate": "Bearer"})
+
+
 def take_session_slot(state: ServiceState, client: str) -> None:
     """One session from `client`'s session-creation rate; 429 + Retry-After past it (refund it with
     state.session_limiter.refund when no session is opened after all)."""
@@ -120,6 +143,7 @@ def take_session_slot(state: ServiceState, client: str) -> None:
 
 
 FleetClient = Annotated[str, Depends(fleet_member)]
+MetricsReader = Depends(metrics_reader)
 
 
 async def socket_session(

@@ -95,6 +95,11 @@ class Settings(BaseSettings):
         description="file of fleet API keys, one per line (# comments); re-read when it changes, so keys rotate "
         "without a restart",
     )
+    metrics_token: SecretStr | None = Field(
+        None,
+        description="the read-only credential of `GET /metrics` (`Authorization: Bearer <token>`), for the "
+        "scraper; without it /metrics refuses every request (403)",
+    )
     session_rate_per_s: float = Field(
         0.5,
         gt=0,
@@ -298,6 +303,12 @@ class Settings(BaseSettings):
                 f"({self.session_queue_windows}): such a block could never be admitted"
             )
         return self
+
+    @field_validator("metrics_token")
+    @classmethod
+    def _blank_token_is_none(cls, value: SecretStr | None) -> SecretStr | None:
+        # compose's `${HAPTICLINK_METRICS_TOKEN:-}` hands an unset variable on as "": that must not be a token
+        return value if value is not None and value.get_secret_value().strip() else None
 
     @field_validator("instance_id")
     @classmethod

@@ -1,4 +1,4 @@
-"""What ops and operators read: liveness, readiness, metrics, the console page.
+"""What ops and operators read: liveness, readiness, metrics (the scraper's token), the console page.
 
 GET /health and GET /ready are answered before routing by `service.probes.ProbeAnswers` (installed by
 create_app); their routes here describe them in the OpenAPI schema and answer the same way for an app
@@ -10,11 +10,12 @@ from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 
 from service import console
-from service.deps import State
+from service.deps import MetricsReader, State
 from service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from service.schemas import HealthOut, ReadyOut
 
 router = APIRouter(tags=["service"])
+ERROR_SCHEMA = {"$ref": "#/components/schemas/ErrorOut"}
 #: the console page's headers
 CONSOLE_HEADERS = {
     "Referrer-Policy": "no-referrer",
@@ -42,8 +43,16 @@ async def ready(state: State) -> JSONResponse:
 @router.get(
     "/metrics",
     response_class=PlainTextResponse,
-    responses={200: {"content": {"text/plain": {"example": "hapticlink_windows_total 1234\n"}}}},
-    summary="Prometheus metrics (text exposition)",
+    responses={
+        200: {"content": {"text/plain": {"example": "hapticlink_windows_total 1234\n"}}},
+        # its refusals are JSON, not the text/plain FastAPI would document them as after the route's response class
+        **{
+            code: {"description": why, "content": {"application/json": {"schema": ERROR_SCHEMA}}}
+            for code, why in ((401, "no metrics token, or another"), (403, "no metrics token is configured"))
+        },
+    },
+    dependencies=[MetricsReader],
+    summary="Prometheus metrics (text exposition; the metrics token, HAPTICLINK_METRICS_TOKEN)",
 )
 async def metrics(state: State) -> Response:
     return Response(state.metrics.render(), media_type=METRICS_CONTENT_TYPE)

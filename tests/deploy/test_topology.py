@@ -193,7 +193,11 @@ def assert_no_secret_logged(topology: Topology, secrets: list[str]) -> None:
 
 
 def session_secrets(topology: Topology, robots: list[RobotClient]) -> list[str]:
-    return [topology.api_key, *(t for r in robots for t in (r.session.robot_token, r.session.operator_token))]
+    return [
+        topology.api_key,
+        topology.metrics_token,
+        *(t for r in robots for t in (r.session.robot_token, r.session.operator_token)),
+    ]
 
 
 # ---- the rewriting is only addresses and paths ----------------------------------------------------------
@@ -313,7 +317,7 @@ async def _pinning_and_fan_out(topology: Topology) -> None:
             windows = status["counters"]["windows"]
             assert windows >= 5 and operator.windows == list(range(windows)), (windows, operator.windows)
         for instance, replica in topology.replicas.items():
-            text = (await http.get(f"{replica.url}/metrics")).text
+            text = (await http.get(f"{replica.url}/metrics", headers=bearer(topology.metrics_token))).text
             assert metric(text, "hapticlink_blocks_total", '{outcome="accepted"}') == accepted_by[instance]
         unpinned = {(await http.get(f"{topology.url}/health")).json()["instance"] for _ in range(8)}
         assert unpinned == set(instances)  # so the pinned answers above are nginx's routing, not luck
@@ -453,7 +457,9 @@ async def _kill_a_replica(topology: Topology) -> None:
             assert pinned[k].windows == list(range(status["counters"]["windows"]))
             assert pinned[k].final is None
 
-        survivor_metrics = (await http.get(f"{topology.replicas[survivor].url}/metrics")).text
+        survivor_metrics = (
+            await http.get(f"{topology.replicas[survivor].url}/metrics", headers=bearer(topology.metrics_token))
+        ).text
         assert metric(survivor_metrics, "hapticlink_sessions_lost_total") == len(lost)
 
         # the victim's robots open new sessions through nginx, which land on the survivor, and stream again

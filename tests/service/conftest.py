@@ -36,6 +36,8 @@ from texture_library.trajectory import freehand, model_ranges
 FIXED_SEED = 1234
 API_KEY = "test-fleet-key-0123456789"  # the fleet key every test server accepts
 FLEET = {"Authorization": f"Bearer {API_KEY}"}
+METRICS_TOKEN = "test-metrics-token-0123456789"  # the scrape credential every test server accepts on /metrics
+SCRAPER = {"Authorization": f"Bearer {METRICS_TOKEN}"}
 
 
 # ---- the real server -----------------------------------------------------------------------------
@@ -270,6 +272,7 @@ def base_settings(tactile_model, library_dir) -> Settings:
         session_first_block_s=600,
         session_queue_windows=64,
         api_keys=API_KEY,
+        metrics_token=METRICS_TOKEN,
         session_burst=10_000,
         session_lag_s=600,
         shed_lag_s=600,
@@ -308,4 +311,6 @@ def kit() -> SimpleNamespace:
         FIXED_SEED=FIXED_SEED,
         API_KEY=API_KEY,
         FLEET=FLEET,
+        METRICS_TOKEN=METRICS_TOKEN,
+        SCRAPER=SCRAPER,
     )

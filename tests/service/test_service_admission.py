@@ -108,7 +108,7 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
         answer = refused.value.response
         assert answer.status_code == 429 and float(answer.headers["Retry-After"]) > 0
         assert "capacity" in json.loads(answer.body)["detail"]
-        metrics = client.get("/metrics").text
+        metrics = client.get("/metrics", headers=kit.SCRAPER).text
         assert 'hapticlink_sessions_refused_total{reason="capacity"}' in metrics
         assert "hapticlink_loop_lag_seconds" in metrics and "hapticlink_loop_cpu_share" in metrics
 

@@ -117,3 +117,33 @@ def test_a_token_never_begins_with_a_dash(monkeypatch):
     draws = iter(["-starts-with-a-dash", "fine-token"])
     monkeypatch.setattr(secrets, "token_urlsafe", lambda n: next(draws))
     assert new_token() == "fine-token"
+
+
+def test_metrics_open_only_to_the_metrics_token(kit, client, two_sessions):
+    """GET /metrics answered anyone: session counts, refusals and load, to any client that could reach the port. The
+    scraper's token reads it; nothing else does, not even the fleet key (it opens sessions, a scraper needs not)."""
+    a, _ = two_sessions
+    for method in ("GET", "HEAD"):
+        ok = client.request(method, "/metrics", headers=kit.SCRAPER)
+        assert ok.status_code == 200, (method, ok.text)
+        missing = client.request(method, "/metrics")
+        assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer", method
+        for token in (kit.API_KEY, a["robot_token"], a["operator_token"], "not-a-token"):
+            refused = client.request(method, "/metrics", headers={"Authorization": f"Bearer {token}"})
+            assert refused.status_code == 401, (method, token)
+    assert "HAPTICLINK_METRICS_TOKEN" in client.get("/metrics").json()["detail"]
+    assert "not valid" in client.get("/metrics", headers=kit.FLEET).json()["detail"]
+    assert "hapticlink_sessions_active" in client.get("/metrics", headers=kit.SCRAPER).text
+
+
+def test_metrics_are_closed_while_no_metrics_token_is_configured(kit, base_settings):
+    """Secure by default: with no token set, no credential opens /metrics, and the refusal says which setting to set."""
+    import httpx
+
+    settings = base_settings.model_copy(update={"metrics_token": None, "instance_id": "no-scrape"})
+    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+        for headers in (None, kit.SCRAPER, kit.FLEET):
+            for method in ("GET", "HEAD"):
+                r = client.request(method, "/metrics", headers=headers)
+                assert r.status_code == 403, (method, headers, r.text)
+        assert "HAPTICLINK_METRICS_TOKEN" in client.get("/metrics").json()["detail"]

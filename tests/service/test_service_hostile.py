@@ -128,7 +128,7 @@ def test_a_burst_of_session_requests_is_refused_early_not_taking_every_slot(kit,
         assert codes[:5] == [201] * 5 and set(codes[5:]) == {429}
         assert int(answers[-1].headers["retry-after"]) >= 1 and "too many sessions" in answers[-1].json()["detail"]
         assert len(srv.app.state.service.sessions) == 5
-        assert 'hapticlink_sessions_refused_total{reason="rate"} 35' in client.get("/metrics").text
+        assert 'hapticlink_sessions_refused_total{reason="rate"} 35' in client.get("/metrics", headers=kit.SCRAPER).text
 
 
 def test_sessions_that_never_stream_are_reclaimed_before_idle_ones():
@@ -280,6 +280,9 @@ def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_sett
                     with connect(f"{srv.ws_url}/sessions/{session['session_id']}/ingest?token={refused_token}") as ws:
                         ws.recv(timeout=5)
             kit.wait_for(lambda: any("disconnected" in r.getMessage() for r in capture.records), timeout_s=5)
+            # the scraper's token, and one that is not it: neither may reach a line
+            assert client.get("/metrics", headers=kit.SCRAPER).status_code == 200
+            assert client.get("/metrics", headers={"Authorization": f"Bearer {refused_token}"}).status_code == 401
         finally:
             for name in names:
                 logging.getLogger(name).removeHandler(capture)
@@ -289,7 +292,7 @@ def test_no_token_reaches_a_log_line_and_refusals_log_one_warning(kit, base_sett
     # uvicorn's two INFO lines per accepted socket: the robot's, then those of a wrong token once in 10 s, not twice
     # per wrong token (any client could)
     assert sum("[accepted]" in line for line in lines) == 2 and lines.count("connection open") == 2
-    for secret in (session["robot_token"], session["operator_token"], refused_token, kit.API_KEY):
+    for secret in (session["robot_token"], session["operator_token"], refused_token, kit.API_KEY, kit.METRICS_TOKEN):
         assert not any(secret in line for line in lines), [line for line in lines if secret in line]
     refusals = [r for r in capture.records if "refused" in r.getMessage() and "ingest socket" in r.getMessage()]
     assert len(refusals) == 1 and refusals[0].levelno == logging.WARNING

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import httpx
 
-from tests.service.conftest import FLEET, create_session
+from tests.service.conftest import FLEET, SCRAPER, create_session
 
 
 def _same_head(client: httpx.Client, path: str, headers: dict[str, str] | None = None) -> httpx.Response:
@@ -28,7 +28,7 @@ def test_every_get_route_answers_head_without_a_body(client):
     for path, headers in [
         ("/library", FLEET),
         (f"/library/{entry}/model", FLEET),
-        ("/metrics", FLEET),
+        ("/metrics", SCRAPER),
         (f"/sessions/{session['session_id']}", operator),
         ("/console", None),
         ("/console/render-worklet.js", None),

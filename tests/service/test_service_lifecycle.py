@@ -145,7 +145,7 @@ def test_health_ready_library_and_metrics(kit, server, client, library_dir):
     for block in kit.recording_blocks(kit.stroke_recording(library_dir, "synth_000", 1.0)):
         kit.post_block(client, session, block)
     kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 2)
-    metrics = client.get("/metrics")
+    metrics = client.get("/metrics", headers=kit.SCRAPER)
     assert metrics.headers["content-type"].startswith("text/plain; version=0.0.4")
     text = metrics.text
     assert "hapticlink_ready 1" in text

@@ -156,7 +156,7 @@ def test_when_a_replicas_heartbeat_lapses_its_sessions_are_lost_for_operators_an
         with pytest.raises(InvalidStatus) as refused:
             connect(kit.socket_url(b, session, "ingest"))
         assert refused.value.response.status_code == 410
-        assert "hapticlink_sessions_lost_total 1" in client.get("/metrics").text
+        assert "hapticlink_sessions_lost_total 1" in client.get("/metrics", headers=kit.SCRAPER).text
         for transport in ("ws", "http"):  # the robot client stops with the reason instead of retrying forever
             error = _robot_error(b.url, session, transport, library_dir)
             assert type(error).__name__ == "SessionLostError" and "open a new session" in str(error), repr(error)

@@ -122,6 +122,7 @@ def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
         library_dir=library_dir,
         backbone_path=visual_model.backbone,
         api_keys=kit.API_KEY,
+        metrics_token=kit.METRICS_TOKEN,
         session_queue_windows=64,
         **extra,
     )
@@ -223,7 +224,7 @@ def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(
         not_grey = check(thumbnail_bytes(np.full((2, 16, 16), np.nan, np.float32)))
         assert not_grey.status_code == 422 and "finite grey levels" in not_grey.json()["detail"]
         assert check(image, "image/png").status_code == 415
-        metrics = client.get("/metrics", headers={"Authorization": f"Bearer {kit.API_KEY}"}).text
+        metrics = client.get("/metrics", headers=kit.SCRAPER).text
         assert 'hapticlink_scene_checks_total{answer="held"} 1.0' in metrics
         assert 'hapticlink_scene_checks_total{answer="frame_needed"} 2.0' in metrics
 
@@ -270,7 +271,7 @@ def test_the_visual_queue_takes_frames_up_to_its_pixels_refuses_beyond_and_gives
         assert all(a.json()["outcome"] == "embedding" for a in answers)
         kit.wait_for(lambda: state.frames.visual_pixels == 0, timeout_s=60)  # both embeddings gave their pixels back
         assert kit.session_status(client, sessions[2])["counters"]["frames_refused"] == 1
-        assert 'hapticlink_frames_total{outcome="refused"} 1' in client.get("/metrics").text
+        assert 'hapticlink_frames_total{outcome="refused"} 1' in client.get("/metrics", headers=kit.SCRAPER).text
         # the queue is free again: the refused robot's newest frame goes through
         assert _post_frame(srv.url, sessions[2], image).status_code == 202
 
