@@ -357,7 +357,7 @@ async def run_demo(
 
     from drivers.robot import RobotClient
     from service.app import create_app, server_options
-    from service.server import SessionEndingServer
+    from service.server import SessionEndingServer, bind_socket
     from service.settings import Settings
 
     class DemoServer(SessionEndingServer):
@@ -382,6 +382,10 @@ async def run_demo(
 
     with on_stop_signals(on_signal):  # removed after the service has stopped and the summary is printed
         api_key = secrets.token_urlsafe(24)  # this run's fleet key: the demo's robot is its only member
+        # bound here, not by uvicorn: with port 0 (any free port) the robot, the console URL and the summary need
+        # the port the system picked before the service starts
+        listening = bind_socket(host, port)
+        port = listening.getsockname()[1]
         settings = Settings(
             model_path=assets.model,
             tactile_model_path=assets.tactile,
@@ -394,7 +398,7 @@ async def run_demo(
         )
         app = create_app(settings)
         server = DemoServer(uvicorn.Config(app, **server_options(settings)))
-        serving = asyncio.create_task(server.serve())
+        serving = asyncio.create_task(server.serve(sockets=[listening]))
         url = f"http://{local_address(host)}:{port}"
         tour = ProbeTour(assets.probes, per_texture_s)
         # a short drain: at a stop the service goes too, so what is still unacknowledged after it cannot be delivered
@@ -446,6 +450,7 @@ async def run_demo(
                 serving.cancel()
                 await asyncio.gather(serving, return_exceptions=True)
             _stop_runtime(app)  # the lifespan's close did, unless serving had to be cancelled before it
+            listening.close()  # uvicorn's shutdown closed it, unless serving was cancelled first
             if report.summary():
                 print(report.summary(), flush=True)
             print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)

@@ -262,11 +262,11 @@ class SessionEndingServer(uvicorn.Server):
 
 
 def check_port_free(host: str, port: int) -> None:
-    """ValueError naming the port when something already listens on (host, port), the port is outside 1–65535 or the
+    """ValueError naming the port when something already listens on (host, port), the port is outside 0–65535 or the
     host is no address of this machine: `serve` and the demo say so before they load anything (uvicorn found it only
-    after start-up, with an ERROR line or a traceback)."""
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
-        raise ValueError(f"--port must be a TCP port, 1–65535, got {port!r}")
+    after start-up, with an ERROR line or a traceback). Port 0 is any free port: only the host is checked."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port < 65536:
+        raise ValueError(f"--port must be a TCP port, 1–65535, or 0 for any free one; got {port!r}")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a closing socket is no user
         try:
@@ -278,6 +278,19 @@ def check_port_free(host: str, port: int) -> None:
                 f"{host}:{port} is not free ({exc.strerror}): stop what uses it (another demo or service?) or pass "
                 "--port"
             ) from None
+
+
+def bind_socket(host: str, port: int) -> socket.socket:
+    """A socket bound to (host, port) as uvicorn binds one, for `Server.serve(sockets=…)`: a caller that passes port
+    0 (any free port) learns the bound one from getsockname() before it serves. OSError when it cannot bind."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 def serve(app: Any, settings: Settings, **overrides: Any) -> None:

@@ -415,7 +415,7 @@ def register_demo(sub: argparse._SubParsersAction) -> None:
         help="where demo assets are built and cached (default artifacts/demo)",
     )
     d.add_argument("--host", default="127.0.0.1", help="address the demo's service listens on (default 127.0.0.1)")
-    d.add_argument("--port", type=int, default=8000, help="its TCP port (default 8000)")
+    d.add_argument("--port", type=int, default=8000, help="its TCP port (default 8000; 0: any free port)")
     d.add_argument(
         "--per-texture",
         type=float,
