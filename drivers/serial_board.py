@@ -44,8 +44,10 @@ REOPEN_S = (0.25, 4.0)
 #: seconds of bytes arriving with no sample decoded before the source says the line format or baud rate is wrong
 UNDECODED_WARN_S = 2.0
 _TOKEN = re.compile(r"^(?P<kind>[a-z]+)(?:\[(?P<cols>\d+)\])?=(?P<value>\S+)$")
-#: a data line: a decimal counter, then decimal numbers (Python's int and float alone would take "1_2_0" as 120)
-_NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+#: a data line: a decimal counter, then decimal numbers (Python's int and float alone would take "1_2_0" as 120).
+#: Each number matches one way only: "\d+\.?\d*" split a run of digits between its two parts in as many ways as it
+#: had digits, so a long line failing at its end backtracked through their product (seconds per line)
+_NUMBER = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?"
 
 
 @dataclass(frozen=True)

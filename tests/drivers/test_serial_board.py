@@ -304,3 +304,21 @@ def test_a_robot_stopped_mid_block_delivers_what_the_board_already_sent(kit, fak
     np.testing.assert_allclose(
         kit.concat(accepted, "accel"), np.array([sample_values(c) for c in range(130)])[:, 0:3], atol=1e-4
     )
+
+
+def test_a_long_line_that_fails_at_its_end_is_judged_at_once():
+    """Seven 16-digit values and a stray last byte: a number pattern that can split a run of digits in several
+    ways backtracks through every split before it gives up (over a minute here). Run apart, so a hang fails the test
+    instead of stalling the suite."""
+    import subprocess
+    import sys
+
+    script = (
+        "from drivers.serial_board import BoardDecoder, parse_header\n"
+        f"dec = BoardDecoder(0.02, parse_header({HEADER!r}))\n"
+        "dec.feed_line(('1,' + ','.join(['1234567890123456'] * 7) + 'x').encode())\n"
+        "print(dec.stats.garbled)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["1"]  # one garbled line, nothing else
