@@ -228,6 +228,9 @@ class UsbDaqSource(ThreadedSource):
                         continue
                     for block in self._decoder.feed(bytes(data)):
                         emit(block)
+                # stopped (finish() or close): the block being filled, and a packet held for judgement, still go
+                for block in self._decoder.flush():
+                    emit(block)
             finally:
                 try:
                     dev.ctrl_transfer(REQ_TYPE_VENDOR_OUT, REQ_STREAM, 0, 0)
