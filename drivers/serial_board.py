@@ -110,6 +110,25 @@ class BoardStats(StreamStats):
     reopened: int = 0  # times the port went away and was opened again
 
 
+def undecoded_advice(stats: BoardStats, baudrate: int) -> str:
+    """What to check when bytes arrive and no sample decodes from them: the line's counts, then the likeliest cause —
+    values beyond their sensors' ranges (the header's units), or else the baud rate and the line format."""
+    counts = (
+        f"{stats.lines} line(s), {stats.garbled} garbled, {stats.out_of_range} out of range, "
+        f"{stats.skipped} before a header"
+    )
+    if stats.out_of_range > stats.garbled + stats.skipped:
+        cause = (
+            "the lines decode, but their values lie beyond the sensors' ranges: do the header's units match what "
+            "the board sends (e.g. accel in g, not mg)?"
+        )
+    else:
+        cause = f"is the baud rate {baudrate} the board's, and does each line end in \\n with comma-separated fields?"
+    return (
+        f"bytes for {UNDECODED_WARN_S:.0f} s and no sample decoded from them ({counts}): {cause} (docs/drivers.md, HL1)"
+    )
+
+
 class BoardDecoder:
     """Turns HL1 lines into SampleBlocks of block_s seconds; no I/O, one thread.
 
@@ -272,17 +291,24 @@ class SerialBoardSource(ThreadedSource):
     def _produce(self, stop: threading.Event, emit: Callable[[Item], None]) -> None:
         import serial  # pyserial: imported here so the rest of drivers loads without it
 
-        opened = False
+        opened = gone = False
         wait = REOPEN_S[0]
+
+        def back() -> None:
+            # the port delivers again: only now is it back, and the next loss starts the backoff afresh (a port that
+            # opens and fails its first read — a board in a reset loop, another process on it — keeps backing off)
+            nonlocal gone, wait
+            if gone:
+                log.warning("serial board %s is back; reading again", self.port)
+            gone, wait = False, REOPEN_S[0]
+
         while not stop.is_set():
             try:
                 # timeout: a read returns at least every 0.1 s so the stop flag is seen promptly.
                 with serial.Serial(self.port, self.baudrate, timeout=0.1) as ser:
-                    if opened:
-                        self.stats.reopened += 1
-                        log.warning("serial board %s is back; reading again", self.port)
-                    opened, wait = True, REOPEN_S[0]
-                    self._read(ser, stop, emit)
+                    self.stats.reopened += opened
+                    opened = True
+                    self._read(ser, stop, emit, back)
             except (serial.SerialException, OSError) as exc:
                 if stop.is_set():
                     break
@@ -291,26 +317,32 @@ class SerialBoardSource(ThreadedSource):
                 # unplugged, or the board reset its USB link: what it sent so far goes, then the port is reopened
                 for block in self._decoder.flush():
                     emit(block)
-                if wait == REOPEN_S[0]:
+                if not gone:
+                    gone = True
                     log.warning("serial board %s went away (%s); reopening it until it is back", self.port, exc)
                 stop.wait(wait)
                 wait = min(2 * wait, REOPEN_S[1])
         for block in self._decoder.flush():
             emit(block)
 
-    def _read(self, ser, stop: threading.Event, emit: Callable[[Item], None]) -> None:
-        """Read lines from the open port `ser` until `stop` (SerialException when the port goes away)."""
+    def _read(self, ser, stop: threading.Event, emit: Callable[[Item], None], delivering: Callable[[], None]) -> None:
+        """Read lines from the open port `ser` until `stop` (SerialException when the port goes away); `delivering()`
+        is called once, at the first bytes read."""
         ser.write(HEADER_REQUEST)
         pending = b""
         discarding = False  # inside an over-long line: drop bytes up to the next newline
         undecoded_since: float | None = None  # when bytes began arriving with no sample decoded from them
         warned = False
+        first = True
         while not stop.is_set():
             chunk = ser.read(max(1, ser.in_waiting))
             if not chunk:  # 0.1 s of silence: a sample held to see what follows it is judged as it came
                 for block in self._decoder.settle():
                     emit(block)
                 continue
+            if first:
+                first = False
+                delivering()
             samples = self.stats.samples
             pending += chunk
             if discarding:
@@ -334,15 +366,4 @@ class SerialBoardSource(ThreadedSource):
                 undecoded_since = time.monotonic()
             elif not warned and time.monotonic() - undecoded_since > UNDECODED_WARN_S:
                 warned = True
-                s = self.stats
-                log.warning(
-                    "serial board %s: bytes for %.0f s and no sample decoded from them (%d line(s), %d garbled, %d "
-                    "before a header): is the baud rate %d the board's, and does each line end in \\n with "
-                    "comma-separated fields (docs/drivers.md, HL1)?",
-                    self.port,
-                    UNDECODED_WARN_S,
-                    s.lines,
-                    s.garbled,
-                    s.skipped,
-                    self.baudrate,
-                )
+                log.warning("serial board %s: %s", self.port, undecoded_advice(self.stats, self.baudrate))

@@ -244,14 +244,23 @@ def test_a_board_unplugged_and_plugged_back_keeps_the_stream(kit, tmp_path):
     assert (s.reopened, s.gaps, s.missing_samples, s.resyncs) == (1, 1, 50, 0)
 
 
+def _in_milli_g(line: bytes) -> bytes:
+    """The board sends accel in mg while its header says g: every value 1000× too large, beyond any accelerometer."""
+    counter, *values = line.decode().strip().split(",")
+    scaled = [f"{float(v) * 1e3 + 20000:.1f}" if i < 3 else v for i, v in enumerate(values)]
+    return (",".join([counter, *scaled]) + "\n").encode()
+
+
 @pytest.mark.parametrize(
-    "wrong",
+    ("wrong", "advice"),
     [
-        pytest.param(lambda line: line.replace(b",", b";"), id="semicolons"),
-        pytest.param(lambda line: line.replace(b"\n", b"\r"), id="cr-line-endings"),  # one endless 'line'
+        pytest.param(lambda line: line.replace(b",", b";"), "baud rate 921600", id="semicolons"),
+        # one endless 'line'
+        pytest.param(lambda line: line.replace(b"\n", b"\r"), "baud rate 921600", id="cr-line-endings"),
+        pytest.param(_in_milli_g, "do the header's units match", id="values-in-other-units"),
     ],
 )
-def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog, wrong):
+def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog, wrong, advice):
     master, port = pty_port
     source = SerialBoardSource(port, block_s=0.02)
     stop = threading.Event()
@@ -277,8 +286,8 @@ def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog, wrong):
     stop.set()
     said = [r.getMessage() for r in caplog.records if "no sample decoded" in r.getMessage()]
     assert len(said) == 1, said
-    assert "baud rate 921600" in said[0] and "comma-separated" in said[0]
-    assert source.stats.samples == 0 and source.stats.garbled >= 1
+    assert advice in said[0] and "out of range" in said[0]
+    assert source.stats.samples == 0 and source.stats.garbled + source.stats.out_of_range >= 1
 
 
 def test_a_robot_stopped_mid_block_delivers_what_the_board_already_sent(kit, fake_service, pty_port):
@@ -322,3 +331,46 @@ def test_a_long_line_that_fails_at_its_end_is_judged_at_once():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["1"]  # one garbled line, nothing else
+
+
+def test_a_port_that_opens_and_fails_at_once_is_retried_with_backoff_and_said_once(monkeypatch, caplog):
+    """A board in a reset loop, or another process on the port: every open succeeds and the first read fails. The
+    port is not back until it delivers, so the retries back off (0.25, 0.5, 1 s …) and it is said to be gone once,
+    not gone and back at every try."""
+    import serial
+
+    opens = []
+
+    class FlappingPort:
+        in_waiting = 0
+
+        def __init__(self, *args, **kwargs) -> None:
+            opens.append(time.monotonic())
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc) -> None:
+            pass
+
+        def write(self, data: bytes) -> int:
+            return len(data)
+
+        def read(self, n: int) -> bytes:
+            raise serial.SerialException("device reports readiness to read but returned no data")
+
+    monkeypatch.setattr(serial, "Serial", FlappingPort)
+    source = SerialBoardSource("/dev/ttyFLAPPING", block_s=0.02)
+    stop = threading.Event()
+    reader = threading.Thread(target=source._produce, args=(stop, lambda item: None), daemon=True)
+    with caplog.at_level("WARNING", logger="drivers.serial_board"):
+        reader.start()
+        time.sleep(1.5)
+        stop.set()
+        reader.join(5)
+    assert not reader.is_alive()
+    gaps = np.diff(opens)
+    assert len(opens) == 3 and np.all(gaps > [0.2, 0.45]), gaps  # opened at 0, 0.25, 0.75 s; the next at 1.75 s
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "went away" in said[0], said
+    assert source.stats.reopened == 2
