@@ -338,7 +338,9 @@ class StreamAssembler:
     next continues *it*, the jump was real (a gap or a reset, as above); if the next continues the old
     sequence, that one counter was the glitch — a corrupted digit (its rows are kept in the slot the
     sequence gave them) or a repeated or swapped packet (dropped) — counted in `glitches`, and time is
-    not shifted by it. The first samples after a real jump thus arrive one packet late.
+    not shifted by it. When the next continues neither exactly (a packet lost right after the odd one),
+    it sides with whichever sequence it lies nearer ahead of. The first samples after a real jump thus
+    arrive one packet late.
     """
 
     def __init__(
@@ -390,7 +392,12 @@ class StreamAssembler:
             # the old sequence first: after a repeat of the last packet, the next counter continues both
             if counter != self._expected and counter == (held + held_rows.shape[0]) % self.wrap:
                 return self._take(held, held_rows) + self._take(counter, rows)  # it continues the held one: real
-            if counter in (self._expected, (self._expected + held_rows.shape[0]) % self.wrap):
+            # a line lost right after it: neither continues exactly, so the next counter sides with the nearer
+            # sequence ahead of it — the old one (the held counter was garbled, then a small gap) or the held one
+            ahead_of_old = (counter - self._expected) % self.wrap
+            ahead_of_held = (counter - held - held_rows.shape[0]) % self.wrap
+            nearer_old = ahead_of_old < min(ahead_of_held, self.wrap // 2)
+            if nearer_old or counter in (self._expected, (self._expected + held_rows.shape[0]) % self.wrap):
                 self.stats.glitches += 1
                 log.warning(
                     "device counter %d out of sequence between %d and %d: one garbled or misplaced packet; time "
@@ -399,7 +406,7 @@ class StreamAssembler:
                     (self._expected - 1) % self.wrap,
                     counter,
                 )
-                if counter == self._expected:  # a repeat or a swapped packet: what follows goes on without it
+                if ahead_of_old < held_rows.shape[0]:  # a repeat or a swapped packet (no room for it): dropped
                     return self._take(counter, rows)
                 return self._take(self._expected, held_rows) + self._take(counter, rows)  # its counter garbled
             return self._take(held, held_rows) + self.add(counter, rows)  # neither: the held jump was real

@@ -275,8 +275,12 @@ def _counters(blocks, rate_hz: float = 1000.0) -> list[tuple[int, list[int]]]:
         ([*range(0, 12), 11, *range(12, 20)], list(range(20)), 1),
         # two lines swapped: the early one is dropped, its place shows as a one-sample gap
         ([*range(0, 12), 13, 12, *range(14, 20)], [c for c in range(20) if c != 13], 1),
-        # a real gap and a real restart are still what they were
+        # a real gap is still one
         ([*range(0, 12), *range(15, 20)], [*range(0, 12), *range(15, 20)], 0),
+        # a corrupted counter, and the line after it lost: the next counter is nearer the old sequence
+        ([*range(0, 12), 4_000_012, *range(14, 20)], [c for c in range(20) if c != 13], 1),
+        # a real gap, and the line after it lost: the next counter is nearer the jump's own sequence
+        ([*range(0, 12), 500, *range(502, 510)], [*range(0, 12), 500, *range(502, 510)], 0),
     ],
 )
 def test_one_counter_out_of_sequence_never_shifts_time(sequence, kept, glitches):
