@@ -25,10 +25,19 @@ CACHE_CONTROL = "private, no-cache"
 @router.get(
     "/library",
     response_model=LibraryOut,
-    responses=errors(503),
-    summary="The texture library: ids, names, groups, ratings and each entry's model_version",
+    responses=errors(401, 403, 404, 410, 422, 503),
+    summary="The texture library: ids, names, groups, ratings and each entry's model_version (a session's robot or "
+    "operator token with ?session=, or a fleet API key)",
 )
-async def library(runtime: ReadyRuntime) -> LibraryOut:
+async def library(
+    state: State,
+    runtime: ReadyRuntime,
+    token: Token,
+    session: Annotated[
+        str | None, Query(max_length=200, description="the session whose robot or operator token is sent")
+    ] = None,
+) -> LibraryOut:
+    await _authorize(state, token, session)
     lib = runtime.library
     return LibraryOut(
         name=lib.name,

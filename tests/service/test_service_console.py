@@ -623,10 +623,11 @@ def _show(driver, event: dict) -> None:
     _wait(driver, lambda d: _text(d, "chosen") == event["chosen"] and _text(d, "window") == str(event["window_index"]))
 
 
-def test_console_says_when_hysteresis_holds_the_choice(server, browser):
+def test_console_says_when_hysteresis_holds_the_choice(kit, server, client, browser):
     """`selection` (rule, reason, held_by_hysteresis, switch_margin) is shown; without it, a chosen entry that is not
     the nearest is still explained as hysteresis; an older server's plain events show the nearest entry's reason."""
-    browser.get(f"{server.url}/console")
+    session = kit.create_session(client, "console")  # the library, as any state, opens to a session's operator
+    browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
     _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
     held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
             "switch_margin": 3.25}  # fmt: skip
@@ -650,10 +651,11 @@ def test_console_says_when_hysteresis_holds_the_choice(server, browser):
     assert _text(browser, "selection") == "nearest entry to the smoothed ratings"
 
 
-def test_console_marks_the_estimate_and_the_chosen_entry(server, browser):
+def test_console_marks_the_estimate_and_the_chosen_entry(kit, server, client, browser):
     """The estimate and the chosen entry have their own symbols, the chosen one in none of the sticky→slippery
     colours; the legend names both."""
-    browser.get(f"{server.url}/console")
+    session = kit.create_session(client, "console")  # the library, as any state, opens to a session's operator
+    browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
     _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
     _show(browser, _window_event(chosen="synth_002"))
     dot = browser.find_element("css selector", "#library-dots circle[data-id='synth_002']")

@@ -134,7 +134,17 @@ def test_health_ready_library_and_metrics(kit, server, client, library_dir):
     assert client.get("/health").json() == {"status": "ok", "instance": "test-a"}
     ready = client.get("/ready").json()
     assert ready["ready"] is True and ready["model"] == "ridge-tactile" and ready["library_entries"] == 6
-    lib = client.get("/library").json()
+    refused = client.get("/library")  # the library is state: it takes a credential, as its models do
+    assert refused.status_code == 401 and "fleet API key" in refused.json()["detail"]
+    session = kit.create_session(client)
+    as_operator = client.get(
+        "/library",
+        params={"session": session["session_id"]},
+        headers={"Authorization": f"Bearer {session['operator_token']}"},
+    )
+    assert as_operator.status_code == 200
+    lib = client.get("/library", headers=kit.FLEET).json()
+    assert lib == as_operator.json()
     expected = Library.load(library_dir)
     assert [e["id"] for e in lib["entries"]] == expected.ids
     assert lib["entries"][0]["ratings"] == pytest.approx(

@@ -103,7 +103,7 @@ class Proxy:
 
 def test_the_operator_renders_the_robots_textures_to_a_wav(kit, server, client, library_dir, tmp_path):
     a, b = far_apart(library_dir)
-    versions = {e["id"]: e["model_version"] for e in client.get("/library").json()["entries"]}
+    versions = {e["id"]: e["model_version"] for e in client.get("/library", headers=kit.FLEET).json()["entries"]}
     session = kit.create_session(client)
     wav = WavOutput(tmp_path / "operator.wav")
     operator = OperatorClient(

@@ -33,7 +33,7 @@ def test_a_model_is_served_with_its_version_as_a_strong_etag(kit, client, librar
     assert served == want
     assert r.headers["etag"] == f'"{want.model_version}"'
     assert r.headers["cache-control"] == "private, no-cache"
-    listed = {e["id"]: e["model_version"] for e in client.get("/library").json()["entries"]}
+    listed = {e["id"]: e["model_version"] for e in client.get("/library", headers=kit.FLEET).json()["entries"]}
     assert listed["synth_001"] == want.model_version and len(set(listed.values())) == len(listed)
 
     for tag in (r.headers["etag"], f"W/{r.headers['etag']}", f'"0000000000000000", {r.headers["etag"]}', "*"):
@@ -77,7 +77,7 @@ def test_a_model_needs_a_credential(kit, client):
 
 
 def test_window_events_name_the_chosen_models_version_and_the_render_view_is_lean(kit, server, client, library_dir):
-    versions = {e["id"]: e["model_version"] for e in client.get("/library").json()["entries"]}
+    versions = {e["id"]: e["model_version"] for e in client.get("/library", headers=kit.FLEET).json()["entries"]}
     rec = kit.stroke_recording(library_dir, "synth_003", 6.2)
     session = kit.create_session(client)
     with (
