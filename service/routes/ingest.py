@@ -21,11 +21,12 @@ from drivers.protocol import (
     ack_ok,
     peek_seq,
 )
-from drivers.scene_change import check_thumbnail_length
+from drivers.scene_change import THUMBNAIL_BYTES, check_thumbnail_length
 from service.auth import ROBOT_ONLY
 from service.capacity import AtCapacity
 from service.deps import ReadyRuntime, Refused, RobotSession, State, socket_session
 from service.errors import ServiceError
+from service.limits import limit_body
 from service.routes.common import errors, media_type, try_later
 from service.schemas import BLOCK_REQUEST_BODY, FRAME_REQUEST_BODY, SCENE_REQUEST_BODY, BlockAck, FrameAck, SceneCheck
 from service.state import ServiceState
@@ -103,6 +104,8 @@ async def post_scene(request: Request, state: State, session: RobotSession, runt
             check_thumbnail_length(int(declared))
         except ValueError as exc:
             raise ServiceError(422, f"scene check: {exc}") from None
+    # a body of undeclared length is cut where a thumbnail ends, not at the service's 8 MiB
+    limit_body(request, THUMBNAIL_BYTES, f"scene check: a scene thumbnail is {THUMBNAIL_BYTES} bytes")
     return state.frames.check_scene(session, await request.body())
 
 

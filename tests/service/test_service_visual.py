@@ -221,6 +221,13 @@ def test_a_scene_check_asks_for_the_frame_only_when_the_session_lacks_its_scene(
         assert short.status_code == 422 and "2048 bytes" in short.json()["detail"]
         large = check(image)  # a whole frame posted as a thumbnail: refused by its declared length
         assert large.status_code == 422 and f"got {len(image)}" in large.json()["detail"]
+        # the same without a declared length (chunked): cut where a thumbnail ends, not read to the service's 8 MiB
+        chunked = client.post(
+            scene_url, content=iter([image[i : i + 4096] for i in range(0, len(image), 4096)]),
+            headers={**robot, "Content-Type": SCENE_CONTENT_TYPE},
+        )  # fmt: skip
+        assert chunked.status_code == 413 and chunked.json()["detail"] == "scene check: a scene thumbnail is 2048 bytes"
+        assert chunked.headers["connection"] == "close"
         not_grey = check(thumbnail_bytes(np.full((2, 16, 16), np.nan, np.float32)))
         assert not_grey.status_code == 422 and "finite grey levels" in not_grey.json()["detail"]
         assert check(image, "image/png").status_code == 415
