@@ -6,6 +6,7 @@ version they do not know, and every failure is a ValueError naming the file.
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -16,10 +17,40 @@ import numpy as np
 MAX_NPZ_BYTES = 1 << 30
 
 
+def _size(nbytes: int) -> str:
+    # bytes, so that a file one byte over the limit never reads as the limit itself
+    return f"{nbytes:,} bytes ({nbytes / 2**20:.1f} MiB)"
+
+
+def _check_size(path: Path, nbytes: int, *, writing: bool) -> None:
+    """One limit, counted the same way, for writing and reading: save_npz never writes what load_npz refuses."""
+    if nbytes > MAX_NPZ_BYTES:
+        verb, outcome = ("would hold", ", so it is not written") if writing else ("holds", "")
+        raise ValueError(
+            f"{path}: {verb} {_size(nbytes)} once decompressed; at most {_size(MAX_NPZ_BYTES)} are read{outcome}"
+        )
+
+
+def _member_size(array: np.ndarray) -> int:
+    """What a member of np.savez declares as its size: its .npy header, then its data."""
+    array = np.asanyarray(array)
+    d = np.lib.format.header_data_from_array_1_0(array)
+    buf = io.BytesIO()
+    try:
+        np.lib.format.write_array_header_1_0(buf, d)
+    except ValueError:  # a header past 64 KiB: np.save falls back to format 2.0 too
+        buf = io.BytesIO()
+        np.lib.format.write_array_header_2_0(buf, d)
+    return buf.tell() + array.nbytes
+
+
 def save_npz(path: str | Path, fmt: str, version: int, header: dict, arrays: dict[str, np.ndarray]) -> Path:
+    """Write the file; ValueError (nothing written) if load_npz would refuse it for its size."""
     path = Path(path)
     doc = {"format": fmt, "version": version, **header}
-    np.savez_compressed(path, allow_pickle=False, header=np.array(json.dumps(doc)), **arrays)
+    header_array = np.array(json.dumps(doc))
+    _check_size(path, _member_size(header_array) + sum(_member_size(a) for a in arrays.values()), writing=True)
+    np.savez_compressed(path, allow_pickle=False, header=header_array, **arrays)
     return path
 
 
@@ -33,12 +64,7 @@ def load_npz(path: str | Path, fmt: str, version: int) -> tuple[dict, dict[str, 
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the same problem to the user
         raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
     with z:
-        declared = sum(info.file_size for info in z.zip.infolist())
-        if declared > MAX_NPZ_BYTES:
-            raise ValueError(
-                f"{path}: holds {declared / 2**20:.0f} MiB once decompressed; at most {MAX_NPZ_BYTES / 2**20:.0f} MiB "
-                "are read"
-            )
+        _check_size(path, sum(info.file_size for info in z.zip.infolist()), writing=False)
         if "header" not in z:
             raise ValueError(f"{path}: no header (not a {fmt} file)")
         try:

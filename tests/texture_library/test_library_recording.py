@@ -199,15 +199,17 @@ def test_a_file_that_inflates_past_the_limit_is_refused_before_it_is_read(tmp_pa
     first (here against a limit of 1 MiB, so the test writes little)."""
     import texture_library.npzfile as npzfile
 
-    monkeypatch.setattr(npzfile, "MAX_NPZ_BYTES", 1 << 20)
     rec = Recording(
         accel=make_channel("accel", np.zeros((60_000, 3)), 1000.0),  # 1.4 MB of float64 once decompressed
         force=make_channel("force", np.zeros(60_000), 1000.0),
         speed=make_channel("speed", np.zeros(60_000), 1000.0),
     )
-    path = save_recording(tmp_path / "zeros.npz", rec)
+    path = save_recording(tmp_path / "zeros.npz", rec)  # saved as float32: 1.2 MB
     assert path.stat().st_size < 100_000
-    with pytest.raises(ValueError, match=r"zeros.npz: holds \d+ MiB once decompressed; at most 1 MiB are read"):
+    monkeypatch.setattr(npzfile, "MAX_NPZ_BYTES", 1 << 20)  # after saving, which checks the same limit
+    with pytest.raises(
+        ValueError, match=r"zeros.npz: holds [\d,]+ bytes \(1\.1 MiB\) once decompressed; at most 1,048,576 bytes"
+    ):
         load_recording(path)
 
 

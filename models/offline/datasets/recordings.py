@@ -189,7 +189,11 @@ def build_recordings(src: str | Path, out: str | Path, *, rating_scale: str = "b
         names = []
         for k, item in enumerate(items):
             name = f"recording_{k:03d}.npz"
-            save_recording(tdir / name, read_any_recording(item))
+            recording = read_any_recording(item)
+            try:
+                save_recording(tdir / name, recording)
+            except ValueError as exc:  # too long for a dataset to load back: the message names the copy, not item
+                raise ValueError(f"{item}: cannot be imported ({exc}); split it into shorter recordings") from None
             names.append(name)
         image_names = []
         for k, img in enumerate(images[tid]):

@@ -265,6 +265,21 @@ def test_bad_sources_are_named(source, tmp_path, edit, message):
         build_recordings(source["src"], tmp_path / "out", rating_scale="0-100")
 
 
+def test_a_recording_too_long_to_load_back_is_refused_by_name(source, tmp_path, monkeypatch, capsys):
+    """It was written, and the dataset then could not be loaded. The CSV recording is 30 kB as float32."""
+    import texture_library.npzfile as npzfile
+
+    monkeypatch.setattr(npzfile, "MAX_NPZ_BYTES", 20_000)
+    out = tmp_path / "out"
+    argv = ["dataset", "build", "--source", "recordings", "--path", str(source["src"]), "--out", str(out)]
+    assert hapticlink([*argv, "--rating-scale", "0-100", "--no-features"]) == 2
+    err = capsys.readouterr().err
+    rec1, written = source["src"] / "recordings" / "wood" / "rec1", out / "textures" / "wood" / "recording_000.npz"
+    assert err.startswith(f"hapticlink dataset: error: {rec1}: cannot be imported ({written}: would hold ")
+    assert "at most 20,000 bytes (0.0 MiB) are read, so it is not written); split it into shorter recordings" in err
+    assert not written.exists()
+
+
 def test_build_dispatch_needs_a_path_and_a_known_source(tmp_path):
     with pytest.raises(ValueError, match="--source recordings needs --path"):
         build("recordings", tmp_path / "out")
