@@ -98,6 +98,15 @@ def frame_from_file(path: str | Path, t: float = 0.0) -> Frame:
     return Frame(t=t, image=data, content_type=ctype, meta={"path": str(path)})
 
 
+def _warn_skip_once(source: str, warned: set[str], key: str, what: str, why: str) -> bool:
+    """Say once per key why `what` is not sent (a source skips what the service would refuse); True the first time."""
+    if key in warned:
+        return False
+    warned.add(key)
+    log.warning("%s: skipping %s: %s", source, what, why)
+    return True
+
+
 class ImageFilesSource:
     """Frames from a list of image files, one every interval_s seconds (stream time i·interval_s).
 
@@ -175,10 +184,8 @@ class WatchedDirectorySource:
         return out
 
     def _warn_once(self, name: str, why: str) -> None:
-        if name not in self._warned:
-            self._warned.add(name)
+        if _warn_skip_once(self.name, self._warned, name, name, why):
             self.skipped += 1
-            log.warning("%s: skipping %s: %s", self.name, name, why)
 
     def _read(self, name: str, t: float) -> Frame | str:
         """The file as a Frame, or why it cannot be sent (yet: a partial file)."""
@@ -244,7 +251,8 @@ class OpenCVCameraSource(ThreadedSource):
     """JPEG frames from an OpenCV camera (cv2.VideoCapture(index)), one every interval_s seconds.
 
     Needs OpenCV (`pip install opencv-python-headless`); ImportError says so otherwise.
-    Frame.t: seconds since the first capture.
+    Frame.t: seconds since the first capture. A frame the service would refuse (encode_image) is skipped and
+    counted in `skipped`, with one warning for each kind of refusal: a camera's every frame would be the same.
     """
 
     def __init__(self, index: int = 0, interval_s: float = 1.0, jpeg_quality: int = 90) -> None:
@@ -262,6 +270,20 @@ class OpenCVCameraSource(ThreadedSource):
         self.interval_s = interval_s
         self.jpeg_quality = jpeg_quality
         self.name = f"opencv:{index}"
+        self.skipped = 0
+        self._warned: set[str] = set()
+
+    def _frame(self, jpeg: bytes, t: float) -> Frame | None:
+        """The encoded capture as a Frame, or None (counted, said once) when the service would refuse it."""
+        try:
+            data, ctype = encode_image(jpeg, "frame")
+        except ValueError as exc:
+            self.skipped += 1
+            # keyed by the kind of refusal: too many pixels (the camera's mode), too many bytes (the scene)
+            why = str(exc).removeprefix("frame: ")
+            _warn_skip_once(self.name, self._warned, type(exc).__name__, "frames like this", why)
+            return None
+        return Frame(t=t, image=data, content_type=ctype, meta={"camera": self.index})
 
     def _produce(self, stop: threading.Event, emit: Callable[[Item], None]) -> None:
         import cv2
@@ -276,15 +298,9 @@ class OpenCVCameraSource(ThreadedSource):
                 if not ok:
                     raise OSError(f"camera {self.index} stopped delivering frames")
                 ok, jpeg = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), self.jpeg_quality])
-                if ok:
-                    emit(
-                        Frame(
-                            t=time.monotonic() - t0,
-                            image=jpeg.tobytes(),
-                            content_type="image/jpeg",
-                            meta={"camera": self.index},
-                        )
-                    )
+                frame = self._frame(jpeg.tobytes(), time.monotonic() - t0) if ok else None
+                if frame is not None:
+                    emit(frame)
                 stop.wait(self.interval_s)
         finally:
             cap.release()

@@ -1,4 +1,4 @@
-"""Image files, a watched directory, and the OpenCV camera's error without cv2."""
+"""Image files, a watched directory, and the OpenCV camera (its error without cv2; its frames through a stand-in)."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import asyncio
 import importlib.util
 import io
 import logging
+import sys
+import types
 
 import numpy as np
 import pytest
@@ -166,6 +168,70 @@ def test_watched_directory_can_ignore_what_is_already_there(tmp_path):
 def test_opencv_camera_without_cv2_says_what_to_install():
     with pytest.raises(ImportError, match="opencv-python-headless"):
         OpenCVCameraSource(0)
+
+
+def fake_cv2(captures: list[bytes]) -> types.ModuleType:
+    """A stand-in for cv2 whose camera delivers `captures` (each already "encoded": imencode hands it back), then
+    stops."""
+    cv2 = types.ModuleType("cv2")
+    cv2.IMWRITE_JPEG_QUALITY = 1  # type: ignore[attr-defined]
+
+    class VideoCapture:
+        def __init__(self, index: int) -> None:
+            self.left = list(captures)
+
+        def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+            return True
+
+        def read(self) -> tuple[bool, np.ndarray | None]:
+            if not self.left:
+                return False, None
+            return True, np.frombuffer(self.left.pop(0), np.uint8)
+
+        def release(self) -> None:
+            pass
+
+    cv2.VideoCapture = VideoCapture  # type: ignore[attr-defined]
+    cv2.imencode = lambda ext, image, params: (True, image)  # type: ignore[attr-defined]
+    return cv2
+
+
+def test_opencv_camera_skips_frames_the_service_would_refuse_with_one_warning(monkeypatch, caplog):
+    """It sent cv2's JPEG unchecked: a camera over 4096×4096 had every frame refused by the service instead."""
+    buf = io.BytesIO()
+    Image.new("L", (5000, 4000)).save(buf, format="JPEG")
+    small, huge = image_bytes("JPEG"), buf.getvalue()
+    monkeypatch.setitem(sys.modules, "cv2", fake_cv2([small, huge, huge, small]))
+    source = OpenCVCameraSource(0, interval_s=0.001)
+    frames = []
+
+    async def main():
+        async for frame in source:
+            frames.append(frame)
+
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"), pytest.raises(OSError, match="stopped"):
+        asyncio.run(main())
+    assert [f.image for f in frames] == [small, small] and source.skipped == 2
+    assert caplog.text.count("skipping") == 1
+    assert "opencv:0: skipping frames like this: 5000×4000 pixels; the service decodes at most" in caplog.text
+
+
+def test_opencv_camera_skips_a_frame_over_the_body_limit(monkeypatch, caplog):
+    small = image_bytes("JPEG")
+    larger = small + b"\0" * 64  # a reader ignores what follows a JPEG's end marker
+    monkeypatch.setattr("drivers.camera.DEFAULT_MAX_BODY_BYTES", len(small))
+    monkeypatch.setitem(sys.modules, "cv2", fake_cv2([larger, small]))
+    source = OpenCVCameraSource(0, interval_s=0.001)
+    frames = []
+
+    async def main():
+        async for frame in source:
+            frames.append(frame)
+
+    with caplog.at_level(logging.WARNING, logger="drivers.camera"), pytest.raises(OSError, match="stopped"):
+        asyncio.run(main())
+    assert [f.image for f in frames] == [small] and source.skipped == 1
+    assert "opencv:0: skipping frames like this: 0.0 MiB encoded; the service takes at most" in caplog.text
 
 
 def test_encoding_helpers():
