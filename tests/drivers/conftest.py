@@ -364,13 +364,19 @@ async def take(source, n: int | None = None, *, samples: int | None = None) -> l
 
 def stream(app, items, **options):
     """Serve `app` on loopback and stream `items` to it with a RobotClient(**options) → its stats."""
+    return stream_source(app, ListSource(items), **options)
+
+
+def stream_source(app, source, duration_s: float | None = None, **options):
+    """Serve `app` on loopback and stream `source` to it with a RobotClient(**options) for `duration_s` (None: until
+    the source ends; 60 s at most) → its stats."""
     from drivers.robot import RobotClient
 
     async def main():
         server = LoopbackServer(app)
         await server.start()
         try:
-            return await RobotClient(server.url, ListSource(items), **options).run()
+            return await asyncio.wait_for(RobotClient(server.url, source, **options).run(duration_s=duration_s), 60)
         finally:
             await server.stop()
 
@@ -391,4 +397,5 @@ def kit() -> SimpleNamespace:
         concat=concat,
         take=take,
         stream=stream,
+        stream_source=stream_source,
     )

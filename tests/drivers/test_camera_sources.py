@@ -196,13 +196,8 @@ def fake_cv2(captures: list[bytes]) -> types.ModuleType:
     return cv2
 
 
-def test_opencv_camera_skips_frames_the_service_would_refuse_with_one_warning(monkeypatch, caplog):
-    """It sent cv2's JPEG unchecked: a camera over 4096×4096 had every frame refused by the service instead."""
-    buf = io.BytesIO()
-    Image.new("L", (5000, 4000)).save(buf, format="JPEG")
-    small, huge = image_bytes("JPEG"), buf.getvalue()
-    monkeypatch.setitem(sys.modules, "cv2", fake_cv2([small, huge, huge, small]))
-    source = OpenCVCameraSource(0, interval_s=0.001)
+def _until_the_camera_stops(source: OpenCVCameraSource, caplog) -> list:
+    """The frames a (fake) camera gave before it stopped delivering, its warnings in caplog."""
     frames = []
 
     async def main():
@@ -211,6 +206,17 @@ def test_opencv_camera_skips_frames_the_service_would_refuse_with_one_warning(mo
 
     with caplog.at_level(logging.WARNING, logger="drivers.camera"), pytest.raises(OSError, match="stopped"):
         asyncio.run(main())
+    return frames
+
+
+def test_opencv_camera_skips_frames_the_service_would_refuse_with_one_warning(monkeypatch, caplog):
+    """It sent cv2's JPEG unchecked: a camera over 4096×4096 had every frame refused by the service instead."""
+    buf = io.BytesIO()
+    Image.new("L", (5000, 4000)).save(buf, format="JPEG")
+    small, huge = image_bytes("JPEG"), buf.getvalue()
+    monkeypatch.setitem(sys.modules, "cv2", fake_cv2([small, huge, huge, small]))
+    source = OpenCVCameraSource(0, interval_s=0.001)
+    frames = _until_the_camera_stops(source, caplog)
     assert [f.image for f in frames] == [small, small] and source.skipped == 2
     assert caplog.text.count("skipping") == 1
     assert "opencv:0: skipping frames like this: 5000×4000 pixels; the service decodes at most" in caplog.text
@@ -222,14 +228,7 @@ def test_opencv_camera_skips_a_frame_over_the_body_limit(monkeypatch, caplog):
     monkeypatch.setattr("drivers.camera.DEFAULT_MAX_BODY_BYTES", len(small))
     monkeypatch.setitem(sys.modules, "cv2", fake_cv2([larger, small]))
     source = OpenCVCameraSource(0, interval_s=0.001)
-    frames = []
-
-    async def main():
-        async for frame in source:
-            frames.append(frame)
-
-    with caplog.at_level(logging.WARNING, logger="drivers.camera"), pytest.raises(OSError, match="stopped"):
-        asyncio.run(main())
+    frames = _until_the_camera_stops(source, caplog)
     assert [f.image for f in frames] == [small] and source.skipped == 1
     assert "opencv:0: skipping frames like this: 0.0 MiB encoded; the service takes at most" in caplog.text
 

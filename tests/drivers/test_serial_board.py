@@ -292,22 +292,11 @@ def test_bytes_that_never_decode_are_said_once(kit, pty_port, caplog, wrong, adv
 
 def test_a_robot_stopped_mid_block_delivers_what_the_board_already_sent(kit, fake_service, pty_port):
     """The last 30 of 130 samples (a block not yet full) were read from the board and dropped at the stop."""
-    from drivers.robot import RobotClient
-
     master, port = pty_port
     play_board(master, [(HEADER + "\n").encode(), *[data_line(c) for c in range(130)]])
     source = SerialBoardSource(port, block_s=0.05)  # 50 samples a block: 130 = 2 blocks + 30 held
-    server = kit.LoopbackServer(fake_service.app)
-
-    async def main():
-        await server.start()
-        try:
-            client = RobotClient(server.url, source, backoff=(0.01, 0.05), seed=7)
-            return await asyncio.wait_for(client.run(duration_s=1.0), 20)  # the board is quiet long before
-        finally:
-            await server.stop()
-
-    stats = asyncio.run(main())
+    # the robot stops at 1 s; the board is quiet long before
+    stats = kit.stream_source(fake_service.app, source, 1.0, backoff=(0.01, 0.05), seed=7)
     accepted = fake_service.only_session().accepted
     assert stats.acked == stats.read == 3 and stats.unsent == 0
     np.testing.assert_allclose(
