@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 
@@ -118,10 +119,19 @@ def check_frame_pixels(width: int, height: int, label: str = "image") -> int:
     The robot (drivers.camera) and the service (service.runtime) both judge a frame's size here, from its header
     alone, so a frame the robot sends is one the service takes."""
     if width * height > MAX_FRAME_PIXELS:
-        raise FrameTooLarge(
-            f"{label}: {width}×{height} pixels; the service decodes at most {MAX_FRAME_PIXELS} (4096×4096)"
-        )
+        raise _too_large(f"{width}×{height} pixels", label)
     return width * height
+
+
+def frame_bomb(exc: Exception, label: str = "image") -> FrameTooLarge:
+    """Pillow's DecompressionBombError — a header declaring more pixels than Pillow opens at all, far past
+    MAX_FRAME_PIXELS — as check_frame_pixels' refusal, with the pixel count Pillow's message gives."""
+    declared = re.search(r"\((\d+) pixels\)", str(exc))
+    return _too_large(f"{declared.group(1)} pixels" if declared else f"over {MAX_FRAME_PIXELS} pixels", label)
+
+
+def _too_large(size: str, label: str) -> FrameTooLarge:
+    return FrameTooLarge(f"{label}: {size}; the service decodes at most {MAX_FRAME_PIXELS} (4096×4096)")
 
 
 def validate_channel(kind: str, data: np.ndarray, rate_hz: object, units: object) -> ChannelBlock:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, FrameTooLarge, check_frame_pixels
+from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, FrameTooLarge, check_frame_pixels, frame_bomb
 from drivers.source import Item, ThreadedSource, check_positive, paced
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,9 @@ def encode_image(data: bytes, label: str = "image") -> tuple[bytes, str]:
                 out, ctype = buf.getvalue(), "image/png"
     except FrameTooLarge:
         raise
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+    except Image.DecompressionBombError as exc:
+        raise frame_bomb(exc, label) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise ValueError(f"{label}: not a complete image ({exc})") from None
     if len(out) > DEFAULT_MAX_BODY_BYTES:
         raise ValueError(

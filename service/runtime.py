@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from drivers.blocks import check_frame_pixels
+from drivers.blocks import check_frame_pixels, frame_bomb
 from models.inference.ood import FrameCheck
 from models.inference.predictor import Predictor
 from models.tactile.config import TactileConfig
@@ -176,7 +176,7 @@ def frame_pixels(image: bytes) -> int:
         with Image.open(io.BytesIO(image)) as probe:
             width, height, kind = *probe.size, probe.format
     except Image.DecompressionBombError as exc:
-        raise ValueError(f"image is too large: {exc}") from None
+        raise frame_bomb(exc) from None
     except Exception:  # noqa: BLE001 - not an image: decoding says why
         return 0
     if kind not in FRAME_FORMATS:
