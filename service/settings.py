@@ -306,9 +306,12 @@ class Settings(BaseSettings):
 
     @field_validator("metrics_token")
     @classmethod
-    def _blank_token_is_none(cls, value: SecretStr | None) -> SecretStr | None:
-        # compose's `${HAPTICLINK_METRICS_TOKEN:-}` hands an unset variable on as "": that must not be a token
-        return value if value is not None and value.get_secret_value().strip() else None
+    def _token_is_stripped(cls, value: SecretStr | None) -> SecretStr | None:
+        # stripped as fleet keys are: a header value never carries the newline a secret file ends with, so an unstripped
+        # token could never match; and compose's `${HAPTICLINK_METRICS_TOKEN:-}` hands an unset variable on as "",
+        # which must not be a token
+        token = "" if value is None else value.get_secret_value().strip()
+        return SecretStr(token) if token else None
 
     @field_validator("instance_id")
     @classmethod

@@ -393,3 +393,20 @@ def test_a_route_tightens_the_body_limit_and_is_refused_as_the_middleware_refuse
         ):
             r = client.post(route, content=body)
             assert (r.status_code, r.json()["detail"], r.headers["connection"]) == (413, detail, "close"), route
+
+
+@pytest.mark.parametrize(
+    ("raw", "kept"),
+    [
+        ("scrape-0123456789\n", "scrape-0123456789"),
+        ("  scrape-0123456789 ", "scrape-0123456789"),
+        ("", None),
+        (" \n", None),
+    ],
+)
+def test_the_metrics_token_is_stripped_as_fleet_keys_are(monkeypatch, raw, kept):
+    """A token read from a secret file ends in a newline no Authorization header can carry: kept as is, it could never
+    match, and /metrics answered 'not valid' to the right token; blank is no token (compose passes unset as '')."""
+    monkeypatch.setenv("HAPTICLINK_METRICS_TOKEN", raw)
+    token = Settings().metrics_token
+    assert (None if token is None else token.get_secret_value()) == kept
