@@ -324,6 +324,11 @@ class StreamStats:
     glitches: int = 0  # one packet's counter out of sequence, the sequence going on after it: not a gap (see add)
 
 
+def _signed(difference: int, wrap: int) -> int:
+    """A counter difference mod `wrap` as the signed step it most likely was: in [−wrap/2, wrap/2)."""
+    return (difference + wrap // 2) % wrap - wrap // 2
+
+
 class StreamAssembler:
     """Rows of samples stamped with a device sample counter → SampleBlocks of block_s seconds (None:
     default_block_s of rate_hz).
@@ -339,8 +344,12 @@ class StreamAssembler:
     sequence, that one counter was the glitch — a corrupted digit (its rows are kept in the slot the
     sequence gave them) or a repeated or swapped packet (dropped) — counted in `glitches`, and time is
     not shifted by it. When the next continues neither exactly (a packet lost right after the odd one),
-    it sides with whichever sequence it lies nearer ahead of. The first samples after a real jump thus
-    arrive one packet late.
+    it sides with the sequence it lies near (a few packets or a block), the one it lies nearer ahead of
+    when near both — a held counter just behind the expected one is garbled, a device never steps back a
+    few samples; a held packet that repeats the one before it is dropped; when the next is near neither
+    (two garbled counters in a row) the held packet keeps its slot and the next is judged by the one
+    after it. The first samples after a real jump thus arrive one packet late. Two counters garbled
+    alike, so that the second continues the first, still read as a real jump: that takes a third.
     """
 
     def __init__(
@@ -375,6 +384,7 @@ class StreamAssembler:
         self._held = 0  # rows held in _rows
         self._block_start = 0
         self._suspect: tuple[int, np.ndarray] | None = None  # a packet that broke the sequence, until the next one
+        self._previous: int | None = None  # device counter of the last packet taken
 
     @property
     def end_time(self) -> float:
@@ -388,32 +398,53 @@ class StreamAssembler:
             raise ValueError(f"rows must have shape (n, {self.columns}), got {rows.shape}")
         if self._suspect is not None:
             (held, held_rows), self._suspect = self._suspect, None
-            assert self._expected is not None
-            # the old sequence first: after a repeat of the last packet, the next counter continues both
-            if counter != self._expected and counter == (held + held_rows.shape[0]) % self.wrap:
-                return self._take(held, held_rows) + self._take(counter, rows)  # it continues the held one: real
-            # a line lost right after it: neither continues exactly, so the next counter sides with the nearer
-            # sequence ahead of it — the old one (the held counter was garbled, then a small gap) or the held one
-            ahead_of_old = (counter - self._expected) % self.wrap
-            ahead_of_held = (counter - held - held_rows.shape[0]) % self.wrap
-            nearer_old = ahead_of_old < min(ahead_of_held, self.wrap // 2)
-            if nearer_old or counter in (self._expected, (self._expected + held_rows.shape[0]) % self.wrap):
-                self.stats.glitches += 1
-                log.warning(
-                    "device counter %d out of sequence between %d and %d: one garbled or misplaced packet; time "
-                    "goes on unshifted",
-                    held,
-                    (self._expected - 1) % self.wrap,
-                    counter,
-                )
-                if ahead_of_old < held_rows.shape[0]:  # a repeat or a swapped packet (no room for it): dropped
-                    return self._take(counter, rows)
-                return self._take(self._expected, held_rows) + self._take(counter, rows)  # its counter garbled
-            return self._take(held, held_rows) + self.add(counter, rows)  # neither: the held jump was real
+            return self._judge(held, held_rows, counter, rows)
         if self._expected is not None and counter != self._expected:
             self._suspect = (counter, rows)
             return []
         return self._take(counter, rows)
+
+    def _judge(self, held: int, held_rows: np.ndarray, counter: int, rows: np.ndarray) -> list[SampleBlock]:
+        """The held packet (its counter broke the sequence), judged by the next one (counter, rows)."""
+        assert self._expected is not None
+        expected, n, wrap = self._expected, held_rows.shape[0], self.wrap
+        continued = (held + n) % wrap
+        if counter != expected and counter in (continued, held):  # it continues (or repeats) the held one: real
+            return self._take(held, held_rows) + self.add(counter, rows)
+        if held == self._previous:  # a repeat of the packet before it, and the one after that lost
+            return self._glitch(held, counter, None) + self.add(counter, rows)
+        # how far the next lies from each sequence's next slot (signed, mod wrap), and what counts as near: a few
+        # packets or a block, the most a lost packet or a small real gap moves it
+        from_old, from_held = _signed(counter - expected, wrap), _signed(counter - continued, wrap)
+        near = max(4 * n, self.per_block)
+        near_old, near_held = abs(from_old) <= near, abs(from_held) <= near
+        if counter in (expected, (expected + n) % wrap) or (near_old and not near_held):
+            pass  # the old sequence goes on: the held counter was the glitch
+        elif near_held and not near_old:
+            return self._take(held, held_rows) + self.add(counter, rows)  # the held jump was real
+        elif near_old:  # near both (a small jump): the sequence it lies nearer ahead of; a device never steps back
+            # a few samples, so a held counter just behind the expected one was garbled
+            ahead = _signed(held - expected, wrap) > 0
+            if ahead and (counter - continued) % wrap <= (counter - expected) % wrap:
+                return self._take(held, held_rows) + self.add(counter, rows)
+        else:  # near neither: two garbled counters in a row; the held one keeps its slot, the next is judged next
+            return self._glitch(held, counter, held_rows) + self.add(counter, rows)
+        if (counter - expected) % wrap < n:  # a repeat or a swapped packet (no room for it): dropped
+            return self._glitch(held, counter, None) + self._take(counter, rows)
+        return self._glitch(held, counter, held_rows) + self._take(counter, rows)  # its counter garbled
+
+    def _glitch(self, held: int, counter: int, rows: np.ndarray | None) -> list[SampleBlock]:
+        """Count and say one packet out of sequence; its rows (None: dropped) go in the slot the sequence gives."""
+        assert self._expected is not None
+        self.stats.glitches += 1
+        log.warning(
+            "device counter %d out of sequence between %d and %d: one garbled or misplaced packet; time goes on "
+            "unshifted",
+            held,
+            (self._expected - 1) % self.wrap,
+            counter,
+        )
+        return [] if rows is None else self._take(self._expected, rows)
 
     def _take(self, counter: int, rows: np.ndarray) -> list[SampleBlock]:
         """Rows whose first sample carries `counter`, judged: a jump from the expected counter is a gap or a resync."""
@@ -434,6 +465,7 @@ class StreamAssembler:
                     self._expected,
                 )
         self._expected = (counter + rows.shape[0]) % self.wrap
+        self._previous = counter
         i = 0
         while i < rows.shape[0]:
             if self._held == 0:

@@ -281,15 +281,27 @@ def _counters(blocks, rate_hz: float = 1000.0) -> list[tuple[int, list[int]]]:
         ([*range(0, 12), 4_000_012, *range(14, 20)], [c for c in range(20) if c != 13], 1),
         # a real gap, and the line after it lost: the next counter is nearer the jump's own sequence
         ([*range(0, 12), 500, *range(502, 510)], [*range(0, 12), 500, *range(502, 510)], 0),
+        # two corrupted counters in a row: each keeps its slot (the second was judged as a jump of 5 million)
+        ([*range(0, 12), 4_000_012, 5_000_013, *range(14, 20)], list(range(20)), 2),
+        # a real gap, then its first line repeated: the jump stands (the line went into the slot before the gap)
+        ([*range(0, 12), 500, 500, *range(501, 506)], [*range(0, 12), *range(500, 506)], 1),
+        # a real gap, then two lines swapped: the early one is dropped, nothing lands before the gap
+        ([*range(0, 12), 501, 500, *range(502, 506)], [*range(0, 12), 501, *range(502, 506)], 1),
+        # a line repeated and the one after it lost: the repeat is dropped (every later sample was one late)
+        ([*range(0, 12), 11, *range(13, 20)], [c for c in range(20) if c != 12], 1),
+        # a counter garbled to just behind (9 for 12), and the line after it lost: it keeps its slot
+        ([*range(0, 12), (9, 12), *range(14, 20)], [c for c in range(20) if c != 13], 1),
     ],
 )
 def test_one_counter_out_of_sequence_never_shifts_time(sequence, kept, glitches):
     """A corrupted counter (4 000 012 for 12) used to shift every later block by 4 000 s: a 'gap' of 4 million
-    samples, then a 'resync' after it; a repeated line put every later sample one late."""
+    samples, then a 'resync' after it; a repeated line put every later sample one late. A line is its counter, or
+    (counter, the sample it really is) where the counter was garbled into another number below 1000."""
     asm = StreamAssembler(1000.0, LAYOUT, 0.005)  # 5 samples per block
     out = []
-    for c in sequence:
-        out += asm.add(c, _rows([c % 1000]))
+    for line in sequence:
+        c, true = line if isinstance(line, tuple) else (line, line % 1000)
+        out += asm.add(c, _rows([true]))
     out += asm.flush()
     got = [c for _, counters in _counters(out) for c in counters]
     assert got == [c % 1000 for c in kept]
