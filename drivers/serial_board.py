@@ -107,7 +107,7 @@ class BoardStats(StreamStats):
     garbled: int = 0  # lines that could not be decoded (skipped; the counter shows the hole)
     out_of_range: int = 0  # lines with a value beyond any sensor's range (skipped, as garbled ones)
     skipped: int = 0  # data lines before any header (layout unknown)
-    reopened: int = 0  # times the port went away and was opened again
+    reopened: int = 0  # times the port went away and came back (delivered samples again)
 
 
 def undecoded_advice(stats: BoardStats, baudrate: int) -> str:
@@ -295,10 +295,11 @@ class SerialBoardSource(ThreadedSource):
         wait = REOPEN_S[0]
 
         def back() -> None:
-            # the port delivers again: only now is it back, and the next loss starts the backoff afresh (a port that
-            # opens and fails its first read — a board in a reset loop, another process on it — keeps backing off)
+            # the port delivers samples again: only now is it back, and the next loss starts the backoff afresh (a
+            # port that opens and fails its first reads — a board in a reset loop, another process on it — backs off)
             nonlocal gone, wait
             if gone:
+                self.stats.reopened += 1
                 log.warning("serial board %s is back; reading again", self.port)
             gone, wait = False, REOPEN_S[0]
 
@@ -306,7 +307,6 @@ class SerialBoardSource(ThreadedSource):
             try:
                 # timeout: a read returns at least every 0.1 s so the stop flag is seen promptly.
                 with serial.Serial(self.port, self.baudrate, timeout=0.1) as ser:
-                    self.stats.reopened += opened
                     opened = True
                     self._read(ser, stop, emit, back)
             except (serial.SerialException, OSError) as exc:
@@ -327,7 +327,7 @@ class SerialBoardSource(ThreadedSource):
 
     def _read(self, ser, stop: threading.Event, emit: Callable[[Item], None], delivering: Callable[[], None]) -> None:
         """Read lines from the open port `ser` until `stop` (SerialException when the port goes away); `delivering()`
-        is called once, at the first bytes read."""
+        is called once, at the first sample decoded."""
         ser.write(HEADER_REQUEST)
         pending = b""
         discarding = False  # inside an over-long line: drop bytes up to the next newline
@@ -340,9 +340,6 @@ class SerialBoardSource(ThreadedSource):
                 for block in self._decoder.settle():
                     emit(block)
                 continue
-            if first:
-                first = False
-                delivering()
             samples = self.stats.samples
             pending += chunk
             if discarding:
@@ -362,6 +359,9 @@ class SerialBoardSource(ThreadedSource):
                     pending, discarding = b"", True
             if self.stats.samples > samples:
                 undecoded_since = None
+                if first:  # a sample decoded: the board delivers (a boot byte from a board in a reset loop does not)
+                    first = False
+                    delivering()
             elif undecoded_since is None:
                 undecoded_since = time.monotonic()
             elif not warned and time.monotonic() - undecoded_since > UNDECODED_WARN_S:
