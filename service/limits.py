@@ -77,7 +77,7 @@ class BodySizeLimit:
         try:
             body.check()
         except BodyTooLarge as exc:
-            await _reject(send, exc)
+            await _reject(scope, send, exc)
             return
         scope[SCOPE_KEY] = body
 
@@ -93,14 +93,14 @@ class BodySizeLimit:
 def _content_length(scope: Scope) -> int | None:
     for name, value in scope.get("headers", []):
         if name == b"content-length":
-            try:
-                return int(value)
-            except ValueError:
-                return None
+            # digits only: int() would also read "1_000" or "+13", which no HTTP parser should pass on
+            digits = value.strip()
+            return int(digits) if digits.isdigit() else None
     return None
 
 
-async def _reject(send: Send, exc: BodyTooLarge) -> None:
+async def _reject(scope: Scope, send: Send, exc: BodyTooLarge) -> None:
+    """The refusal, answered here (the app never runs); a HEAD gets its headers alone, as HeadAsGet gives them."""
     body = json.dumps({"detail": exc.detail}).encode()
     await send(
         {
@@ -113,4 +113,4 @@ async def _reject(send: Send, exc: BodyTooLarge) -> None:
             ],
         }
     )
-    await send({"type": "http.response.body", "body": body})
+    await send({"type": "http.response.body", "body": b"" if scope.get("method") == "HEAD" else body})

@@ -410,3 +410,38 @@ def test_the_metrics_token_is_stripped_as_fleet_keys_are(monkeypatch, raw, kept)
     monkeypatch.setenv("HAPTICLINK_METRICS_TOKEN", raw)
     token = Settings().metrics_token
     assert (None if token is None else token.get_secret_value()) == kept
+
+
+def test_the_body_limit_answers_a_head_without_a_body_and_reads_only_digit_lengths():
+    """Driven as plain ASGI (a server in front may not drop a HEAD's body, nor refuse a length Python's int() reads):
+    a HEAD refused for its declared length gets the refusal's headers and no body; a Content-Length that is not
+    digits ("1_000", "+13") is no declared length: the body is judged as it streams in."""
+    import asyncio
+
+    reached = []
+
+    async def app(scope, receive, send):
+        reached.append(scope["method"])
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    def call(method: str, length: bytes) -> list[dict]:
+        sent: list[dict] = []
+
+        async def receive():
+            return {"type": "http.request", "body": b"x" * 10, "more_body": False}
+
+        async def send(message):
+            sent.append(message)
+
+        scope = {"type": "http", "method": method, "path": "/", "headers": [(b"content-length", length)]}
+        asyncio.run(BodySizeLimit(app, max_bytes=100)(scope, receive, send))
+        return sent
+
+    head = call("HEAD", b"1000")
+    get = call("GET", b"1000")
+    assert head[0] == get[0] and head[0]["status"] == 413 and not reached
+    assert head[1]["body"] == b"" and b"at most 100 bytes" in get[1]["body"]
+    for odd in (b"1_000", b"+1000", b"1e3"):
+        assert call("POST", odd)[0]["status"] == 200  # 10 bytes came: under the limit
+    assert reached == ["POST"] * 3
