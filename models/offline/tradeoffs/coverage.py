@@ -160,13 +160,18 @@ def coverage_rows(run: StudyRun, scores: Scores, *, with_ci: bool = True) -> lis
 
 def nested_recommendation(run: StudyRun, scores: Scores) -> dict:
     """`recommend` run inside the folds: for each held-out texture the rule reads only the other textures'
-    coverages, and that texture is scored with the setting it picked — what serving the rule's pick would cover
-    on a texture the pick never saw.
+    coverages, and that texture is scored with the setting it picked. Not strictly blind to it: the other
+    textures' coverages come from calibrations that drew on its residuals too (a doubly held-out calibration per
+    fold would remove that, at the cost of refitting every one).
 
     Returns {"picks": {"target/scale": folds}, "clean": [{"nominal", "empirical", "empirical_ci",
-    "per_attribute", "n_textures"}]}: clean coverage of the procedure per level, each texture weighing 1."""
+    "per_attribute", "n_textures"}]}: clean coverage of the procedure per level, each texture weighing 1.
+    ValueError unless every served setting scores the same textures clean (a pick could leave one unscored)."""
     served = {k: v for k, v in scores.items() if k[1] in SERVED_TARGETS}
-    textures = sorted({i for (condition, *_), per in served.items() if condition == CLEAN for i, _ in per})
+    scored = {tuple(sorted(i for i, _ in per)) for (condition, *_), per in served.items() if condition == CLEAN}
+    if len(scored) != 1 or len(next(iter(scored))) < 2:
+        raise ValueError(f"every served setting must score the same ≥ 2 textures clean, got {sorted(scored)}")
+    textures = list(next(iter(scored)))
     picks: dict[str, int] = {}
     chosen: dict[float, list[np.ndarray]] = {}
     for i in textures:

@@ -50,3 +50,13 @@ def test_the_report_says_how_the_pick_was_made():
     assert "ema/none in 2, window/none in 1 of 3 folds" in line and "80: 79.3%" not in line and "80%: 79.3%" in line
     (old,) = _pick_provenance(None, 4)  # a run from before the nested rule: its pick is flagged as optimistic
     assert "optimistic" in old and "4 settings" in old
+
+
+def test_the_nested_rule_refuses_settings_that_score_different_textures():
+    """A pick could otherwise leave a fold's texture unscored and drop it from the procedure's coverage."""
+    import pytest
+
+    scores = _scores()
+    scores[(CLEAN, "window", "none", 0.8)] = scores[(CLEAN, "window", "none", 0.8)][:1]
+    with pytest.raises(ValueError, match="same ≥ 2 textures"):
+        nested_recommendation(RUN, scores)
