@@ -408,30 +408,40 @@ class StreamAssembler:
         """The held packet (its counter broke the sequence), judged by the next one (counter, rows)."""
         assert self._expected is not None
         expected, n, wrap = self._expected, held_rows.shape[0], self.wrap
-        continued = (held + n) % wrap
-        if counter != expected and counter in (continued, held):  # it continues (or repeats) the held one: real
-            return self._take(held, held_rows) + self.add(counter, rows)
-        if held == self._previous:  # a repeat of the packet before it, and the one after that lost
+        if held == self._previous and counter not in ((held + n) % wrap, held):
+            # a repeat of the packet before it, and the one after that lost
             return self._glitch(held, counter, None) + self.add(counter, rows)
-        # how far the next lies from each sequence's next slot (signed, mod wrap), and what counts as near: a few
-        # packets or a block, the most a lost packet or a small real gap moves it
-        from_old, from_held = _signed(counter - expected, wrap), _signed(counter - continued, wrap)
-        near = max(4 * n, self.per_block)
-        near_old, near_held = abs(from_old) <= near, abs(from_held) <= near
-        if counter in (expected, (expected + n) % wrap) or (near_old and not near_held):
-            pass  # the old sequence goes on: the held counter was the glitch
-        elif near_held and not near_old:
-            return self._take(held, held_rows) + self.add(counter, rows)  # the held jump was real
-        elif near_old:  # near both (a small jump): the sequence it lies nearer ahead of; a device never steps back
-            # a few samples, so a held counter just behind the expected one was garbled
-            ahead = _signed(held - expected, wrap) > 0
-            if ahead and (counter - continued) % wrap <= (counter - expected) % wrap:
-                return self._take(held, held_rows) + self.add(counter, rows)
-        else:  # near neither: two garbled counters in a row; the held one keeps its slot, the next is judged next
+        side = self._side(held, n, counter)
+        if side == "held":  # the jump was real
+            return self._take(held, held_rows) + self.add(counter, rows)
+        if side == "neither":  # two garbled counters in a row: the held one keeps its slot, the next is judged next
             return self._glitch(held, counter, held_rows) + self.add(counter, rows)
-        if (counter - expected) % wrap < n:  # a repeat or a swapped packet (no room for it): dropped
+        if (counter - expected) % wrap < n:  # the old sequence goes on; a repeat or a swap (no room for it): dropped
             return self._glitch(held, counter, None) + self._take(counter, rows)
         return self._glitch(held, counter, held_rows) + self._take(counter, rows)  # its counter garbled
+
+    def _side(self, held: int, n: int, counter: int) -> str:
+        """Which sequence the next counter goes on: "old" (the held counter was garbled), "held" (its jump was real)
+        or "neither" (the next is garbled too). Near: within a few packets or a block, the most a lost packet or a
+        small real gap moves it."""
+        assert self._expected is not None
+        expected, wrap = self._expected, self.wrap
+        continued = (held + n) % wrap
+        if counter != expected and counter in (continued, held):  # it continues, or repeats, the held packet
+            return "held"
+        if counter in (expected, (expected + n) % wrap):  # it continues the old sequence, or one packet after it
+            return "old"
+        near = max(4 * n, self.per_block)
+        near_old = abs(_signed(counter - expected, wrap)) <= near
+        near_held = abs(_signed(counter - continued, wrap)) <= near
+        if near_old != near_held:
+            return "old" if near_old else "held"
+        if not near_old:
+            return "neither"
+        # near both (a small jump): the sequence it lies nearer ahead of; a device never steps back a few samples,
+        # so a held counter just behind the expected one was garbled
+        ahead = _signed(held - expected, wrap) > 0
+        return "held" if ahead and (counter - continued) % wrap <= (counter - expected) % wrap else "old"
 
     def _glitch(self, held: int, counter: int, rows: np.ndarray | None) -> list[SampleBlock]:
         """Count and say one packet out of sequence; its rows (None: dropped) go in the slot the sequence gives."""
