@@ -134,7 +134,8 @@ class BoardDecoder:
 
     Timing and gap handling: drivers.source.StreamAssembler (stream time = sample index ÷ rate).
     A new, different header mid-stream means the board restarted: counted as a resync, and
-    stream time continues after the last sample.
+    stream time continues after the last sample — unless the next data line's counter goes on with the
+    old stream (a restarted board counts afresh): then the header was garbled, and is skipped.
     """
 
     def __init__(self, block_s: float | None = None, header: BoardHeader | None = None) -> None:
@@ -143,6 +144,7 @@ class BoardDecoder:
         self.block_s = block_s
         self.stats = BoardStats()
         self._header: BoardHeader | None = None
+        self._pending: BoardHeader | None = None  # a new header, until the next data line says whether it was one
         self._assembler: StreamAssembler | None = None
         self._limits: list[float] = []  # largest |value| per column, in the board's units
         if header is not None:
@@ -194,6 +196,26 @@ class BoardDecoder:
                 log.warning("serial board: data before any %s header; waiting for one", HEADER_TAG)
             self.stats.skipped += 1
             return []
+        if self._pending is not None:
+            return self._judge_header(line)
+        return self._sample(line)
+
+    def _judge_header(self, line: str) -> list[SampleBlock]:
+        """The data line after a new header: a board that restarted counts afresh, so a line that goes on with the
+        old counter says the header was garbled into another valid one (a digit of its rate, say) — skipped, the
+        stream unchanged. Otherwise the board restarted, and the line is its first sample."""
+        assert self._assembler is not None and self._pending is not None
+        header, self._pending = self._pending, None
+        parsed = self._parse_sample(line)
+        if parsed is not None and self._assembler.goes_on(parsed[0]):
+            log.warning("serial board: a header unlike the board's, and the stream went on after it: garbled, skipped")
+            self.count_garbled()
+            return self._sample(line)
+        return self._restart(header) + self._sample(line)
+
+    def _sample(self, line: str) -> list[SampleBlock]:
+        """One data line under the current header: its sample added, or counted as garbled or out of range."""
+        assert self._assembler is not None
         parsed = self._parse_sample(line)
         if parsed is None:
             self.stats.garbled += 1
@@ -223,10 +245,18 @@ class BoardDecoder:
             self.count_garbled()
             return []
         if header == self._header:
+            self._pending = None  # the board's own header again: one that differed before it was garbled
             return []  # the answer to our request, or a repeat: nothing changes
+        if self._header is None:
+            return self._restart(header)
+        self._pending = header  # a restart, or a header garbled into another valid one: the next data line says
+        return []
+
+    def _restart(self, header: BoardHeader) -> list[SampleBlock]:
+        """The board (re)started with `header`: what the old one held goes out; from the second header on, how long
+        the board was away is unknown, so stream time continues after the last sample (a resync)."""
         out = self.flush()
         if self._header is not None:
-            # How long the board was away is unknown, so time continues after the last sample; say so.
             self.stats.resyncs += 1
             log.warning("serial board sent a new header (restart?): stream time continues after the last sample")
         self._set_header(header)

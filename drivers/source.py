@@ -404,6 +404,13 @@ class StreamAssembler:
             return []
         return self._take(counter, rows)
 
+    def goes_on(self, counter: int) -> bool:
+        """Whether a packet's counter goes on with this stream: the one expected next, or at most a block ahead of it
+        (lost packets). False before any packet."""
+        if self._expected is None:
+            return False
+        return 0 <= _signed(counter - self._expected, self.wrap) <= self.per_block
+
     def _judge(self, held: int, held_rows: np.ndarray, counter: int, rows: np.ndarray) -> list[SampleBlock]:
         """The held packet (its counter broke the sequence), judged by the next one (counter, rows)."""
         assert self._expected is not None

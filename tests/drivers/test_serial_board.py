@@ -368,3 +368,17 @@ def test_a_port_that_opens_and_fails_at_once_is_retried_with_backoff_and_said_on
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and "went away" in said[0], said
     assert source.stats.reopened == 0  # opened again twice, never back
+
+
+def test_a_header_garbled_into_another_valid_one_is_skipped_and_time_goes_on():
+    """'rate=1000' garbled to 'rate=1800' parses: it was taken as a board restart, and every later block was timed
+    at 1.8 kHz from a resync. A board that restarts counts afresh; here the counter goes on, so it was noise."""
+    dec = BoardDecoder(0.02, parse_header(HEADER))
+    lines = [data_line(c) for c in range(40)]
+    lines.insert(20, HEADER.replace("rate=1000", "rate=1800").encode() + b"\n")
+    blocks = _decode(dec, lines)
+    assert [round(b.t0 * 1000) for b in blocks] == [0, 20]
+    assert all(b.channels["accel"].rate_hz == 1000.0 for b in blocks)
+    accel = np.concatenate([b.channels["accel"].data for b in blocks])
+    np.testing.assert_allclose(accel, np.array([sample_values(c) for c in range(40)])[:, 0:3], atol=1e-4)
+    assert (dec.stats.garbled, dec.stats.resyncs, dec.stats.gaps) == (1, 0, 0)
