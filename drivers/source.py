@@ -415,12 +415,11 @@ class StreamAssembler:
         """The held packet (its counter broke the sequence), judged by the next one (counter, rows)."""
         assert self._expected is not None
         expected, n, wrap = self._expected, held_rows.shape[0], self.wrap
-        if held == self._previous and counter not in ((held + n) % wrap, held):
-            # a repeat of the packet before it, and the one after that lost
-            return self._glitch(held, counter, None) + self.add(counter, rows)
         side = self._side(held, n, counter)
         if side == "held":  # the jump was real
             return self._take(held, held_rows) + self.add(counter, rows)
+        if held == self._previous:  # a repeat of the packet before it (and the one after that lost): dropped
+            return self._glitch(held, counter, None) + self.add(counter, rows)
         if side == "neither":  # two garbled counters in a row: the held one keeps its slot, the next is judged next
             return self._glitch(held, counter, held_rows) + self.add(counter, rows)
         if (counter - expected) % wrap < n:  # the old sequence goes on; a repeat or a swap (no room for it): dropped
