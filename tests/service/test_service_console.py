@@ -711,9 +711,9 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     demo's session has chosen, fetched from the demo's own service."""
     import asyncio
 
-    from models.offline.demo_assets import prepare_assets
+    from demo.assets import prepare_assets
+    from demo.run import run_demo
     from service.app import create_app
-    from service.demo import run_demo
     from service.settings import Settings
 
     if not _serves_models(create_app(Settings())):

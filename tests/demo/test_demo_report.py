@@ -2,7 +2,7 @@
 
 import pytest
 
-from service.demo import SCENE_GAP_S, ProbeReport, rating_error
+from demo.run import SCENE_GAP_S, ProbeReport, rating_error
 from texture_library.attributes import ATTRIBUTES
 
 

@@ -48,7 +48,7 @@ STOP_S = 2.0  # one Ctrl-C stops robot, feed and service within this
 
 @dataclasses.dataclass(frozen=True)
 class DemoAssets:
-    """What the demo runs on; built by `models.offline.demo_assets.prepare_assets`."""
+    """What the demo runs on; built by `demo.assets.prepare_assets`."""
 
     dataset: Path
     model: Path
