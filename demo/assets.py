@@ -97,9 +97,9 @@ def prepare_assets(
             f"building a synthetic world of {n_textures} textures",
             lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed),
         ),
-        (
-            True,
-            "computing features (cached after the first run)",
+        (  # only the training reads them: a warm run (both models current) skips the step and its line
+            not (assets.model.is_file() and assets.tactile.is_file()),
+            "computing features",
             lambda: featurize_dataset(assets.dataset, tactile_config=features, visual_config=visual),
         ),
         (

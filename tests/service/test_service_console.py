@@ -629,24 +629,22 @@ def test_console_says_when_hysteresis_holds_the_choice(kit, server, client, brow
     session = kit.create_session(client, "console")  # the library, as any state, opens to a session's operator
     browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
     _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
-    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
-            "switch_margin": 3.25}  # fmt: skip
+    keeping = "keeping synth_001: synth_003 is closer by 0.8; it must be closer by 12 (2 windows in a row) to take over"
+    held = {"rule": "perceptual", "reason": keeping, "held_by_hysteresis": True, "switch_margin": 3.25}
     _show(browser, _window_event(chosen="synth_001", selection=held))
-    text = _text(browser, "selection")
-    assert text.startswith("held by hysteresis: synth_003 must get 3.25 closer"), text
-    assert "rule perceptual: nearest to the smoothed ratings" in text
+    assert _text(browser, "selection") == f"rule perceptual: {keeping}"  # the terminal's sentence, word for word
     assert browser.find_element("id", "selection").get_attribute("data-held") == "true"
 
     free = held | {"held_by_hysteresis": False, "switch_margin": 1.5, "reason": "the nearest entry"}
     _show(browser, _window_event(window_index=13, selection=free))
     assert (
         _text(browser, "selection")
-        == "rule perceptual: the nearest entry (a challenger must get 1.50 closer to take over)"
+        == "rule perceptual: the nearest entry (another entry must come 1.5 closer to take over)"
     )
     assert browser.find_element("id", "selection").get_attribute("data-held") == "false"
 
     _show(browser, _window_event(window_index=14, chosen="synth_001"))  # no `selection`: an older server
-    assert _text(browser, "selection").startswith("held by hysteresis: synth_003 is nearer")
+    assert _text(browser, "selection").startswith("keeping synth_001: synth_003 is closer, but not yet")
     _show(browser, _window_event(window_index=15, selection=None))
     assert _text(browser, "selection") == "nearest entry to the smoothed ratings"
 
