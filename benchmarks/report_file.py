@@ -6,12 +6,19 @@ from __future__ import annotations
 import json
 import os
 import platform
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from models.offline.provenance import Input, provenance
 
-def write_report(path: str | Path, report: dict[str, Any]) -> Path:
-    """Write `report` as indented JSON to `path` (parents created); returns the path."""
+
+def write_report(path: str | Path, report: dict[str, Any], inputs: Sequence[Input] = ()) -> Path:
+    """Write `report` as indented JSON to `path` (parents created); returns the path. inputs: the files the run
+    read (a dataset, a photo), recorded with their SHA-256 under `provenance` beside the commit that ran
+    (`models.offline.provenance`; none: a run on generated input records the commit alone), so the reports'
+    staleness test can check them."""
+    report = {**report, "provenance": provenance(inputs, report.get("command"))}
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.faults.catalog import FAULTS
+from models.offline.provenance import file_input, provenance
 from models.offline.tradeoffs import charts
 from models.offline.tradeoffs.common import write_json
 from models.offline.tradeoffs.coverage import SERVED_TARGETS
@@ -675,5 +676,10 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
             "intervals": None if not rb else rb["recommended_intervals"],
         },
     }
+    read = [*(folder / f"frontier-{name}.json" for name in named), *(p for p in (rb_path, ad_path) if p.is_file())]
+    read += [Path(s["source"]) for s in (results["stability"] or {}).get("evaluation_seed_spread", {}).values()]
+    results["provenance"] = provenance(
+        [file_input("study", p) for p in read], f"hapticlink tradeoffs report --reports {folder}"
+    )
     write_json(folder / "results.json", results)
     return folder / "README.md"

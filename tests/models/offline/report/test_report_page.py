@@ -52,6 +52,9 @@ def test_evaluate_writes_results_and_results_figures_draws_them(reports):
     assert list(res["predictions_per_seed"]) == ["0"] and len(res["predictions_per_seed"]["0"]) == 8
     assert res["latency_us"]["runtime"] == "onnxruntime" and res["latency_us"]["p50_us"] > 0
     assert res["vs_true_mapping"]["mae"]["mean"] > 0  # the synthetic world knows its noise-free ratings
+    # what it was made from: the commit (None outside a git checkout) and the inputs it was handed (none here)
+    commit = res["provenance"]["commit"]
+    assert res["provenance"]["inputs"] == [] and (commit is None or len(commit) == 40)
     for fig in ("actual_vs_predicted.png", "group_mae.png", "perceptual_space.png"):
         assert (folder / "ridge-tactile" / fig).stat().st_size > 10_000
 
