@@ -135,13 +135,15 @@ def _shared_source(src: Path) -> Path | None:
 
 
 def git_commit() -> dict[str, Any]:
-    """The commit the writing code came from and whether the tree had uncommitted changes (None: no git here)."""
+    """The commit the writing code came from and whether the tree had uncommitted changes outside reports/ (None:
+    no git here)."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
         ).stdout.strip()
         status = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            # the reports a run rewrites are not the code that ran: only changes outside reports/ make it dirty
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)reports"],
             cwd=REPO_ROOT,
             capture_output=True,
             text=True,
