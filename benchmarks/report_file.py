@@ -1,5 +1,6 @@
 """Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline; its charts, as
-PNG files; and what a report says about its run (the command, the machine and how busy it was)."""
+PNG files; and what a report says about its run (the command, the machine and how busy it was, the CPU and the
+instruction sets an absolute time depends on)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ def write_report(path: str | Path, report: dict[str, Any], inputs: Sequence[Inpu
     read (a dataset, a photo), recorded with their SHA-256 under `provenance` beside the commit that ran
     (`models.offline.provenance`; none: a run on generated input records the commit alone), so the reports'
     staleness test can check them."""
-    report = {**report, "provenance": provenance(inputs, report.get("command"))}
+    report = {**report, "host": host(), "provenance": provenance(inputs, report.get("command"))}
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")
@@ -50,4 +51,28 @@ def machine(load_before: tuple[float, float, float]) -> dict[str, Any]:
         "python": platform.python_version(),
         "load_average_before": [round(x, 2) for x in load_before],
         "load_average_after": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+#: the instruction-set flags that decide which kernels numpy, onnxruntime and numba run (an absolute time is only
+#: comparable between hosts that share them)
+ISA_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx_vnni", "amx_int8")
+
+
+def host(cpuinfo: str | Path = "/proc/cpuinfo") -> dict[str, Any]:
+    """The CPU a run used, as `lscpu` names it: its model name and which of ISA_FLAGS it has (None where the
+    file cannot be read, e.g. off Linux)."""
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return {"model": platform.processor() or platform.machine(), "isa": None}
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() not in fields:
+            fields[key.strip()] = value.strip()
+    flags = set(fields.get("flags", "").split())
+    return {
+        "model": fields.get("model name") or platform.processor() or platform.machine(),
+        "isa": [f for f in ISA_FLAGS if f in flags],
     }
