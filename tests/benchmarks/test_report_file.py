@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 
-from benchmarks.report_file import host, write_report
+from benchmarks.report_file import write_report
+from models.offline.host import host
 from models.offline.provenance import file_input, file_sha256
 
 

@@ -18,6 +18,7 @@ from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import LoocvRun, loocv_seeds
 from models.offline.evaluation.metrics import error_table, group_errors
+from models.offline.host import host
 from models.offline.provenance import Input, provenance
 from texture_library.attributes import ATTRIBUTES
 
@@ -28,6 +29,7 @@ def hardware() -> dict:
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
+        "host": host(),  # the CPU model and ISA flags: per-window latencies are absolute times on this host
     }
     try:
         import torch
