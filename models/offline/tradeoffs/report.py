@@ -580,7 +580,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
         "# Speed, stability and calibrated uncertainty",
         "",
         f"Regenerate everything on this page: `{REGENERATE}` (the long steps cache their work under "
-        "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on a shared 2-core machine: "
+        "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on the project's shared "
+        "2-core AMD EPYC host: "
         "ratios within one run hold, absolute milliseconds do not. No per-texture rating appears in this folder.",
         "",
     ]
