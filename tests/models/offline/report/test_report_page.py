@@ -247,3 +247,13 @@ def test_the_headline_says_when_the_served_image_features_were_picked_on_its_own
     (work / "selected" / "results.json").write_text(json.dumps(run))
     headline = build_report(dataset, work).read_text().split("## Headline")[1].split("\n## ")[0]
     assert "picked by the frontier's fixed rule applied to leave-one-texture-out numbers of this model" in headline
+
+
+def test_the_speed_section_names_the_hosts_its_latencies_were_timed_on():
+    from models.offline.report.markdown import _hosts_line
+
+    epyc = {"hardware": {"host": {"model": "AMD EPYC", "isa": ["avx2", "avx512_vnni"]}}}
+    old = {"hardware": {"platform": "Linux"}}
+    assert _hosts_line([epyc, epyc]) == "Timed on AMD EPYC (avx2, avx512_vnni)."
+    line = _hosts_line([epyc, old])
+    assert line.startswith("Timed on AMD EPYC") and "1 of 2 runs predate the record of their CPU" in line
