@@ -30,6 +30,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 #: where the licensed data lives, beside the repository
 SHARED_ROOT = REPO_ROOT.parent / "shared"
 KINDS = ("repo", "shared", "built")
+#: git-ignored folders of the repository whose files are made on one machine (datasets, models, feature caches)
+BUILT_DIRS = ("data", "artifacts", "cache")
 _CHUNK = 1 << 20
 
 
@@ -67,12 +69,12 @@ def _inside(path: Path, root: Path) -> bool:
 
 
 def locate(path: str | Path) -> tuple[str, str]:
-    """(kind, stored path) of an input: `repo` for a file the repository tracks or could (outside data/ and
-    artifacts/), `shared` below ../shared, `built` otherwise. Stored paths are relative to the repository root."""
+    """(kind, stored path) of an input: `repo` for a file the repository tracks or could (outside BUILT_DIRS),
+    `shared` below ../shared, `built` otherwise. Stored paths are relative to the repository root."""
     p = Path(os.path.abspath(path))  # a link under data/ to a dataset built elsewhere keeps its data/ name
     if _inside(p, REPO_ROOT):
         rel = p.relative_to(REPO_ROOT)
-        built = rel.parts[0] in ("data", "artifacts")
+        built = rel.parts[0] in BUILT_DIRS
         return ("built" if built else "repo"), rel.as_posix()
     real, shared = p.resolve(), SHARED_ROOT.resolve()
     if _inside(real, shared):
