@@ -2,8 +2,8 @@
 # Regenerates every number under reports/: datasets, leave-one-texture-out evaluations, report pages,
 # the exported model and the withheld-texture predictions. Run from the repository root after
 # `make test` (or `make demo`) has created .venv. About 7 hours on 2 CPU cores (the nested-CV
-# `selected` runs are the longest part; the benchmarks at the end about an hour); each step is cached or skippable by hand. Seeds are fixed;
-# folds run in parallel processes. The report reads the human ratings from $H (never stored in results).
+# `selected` runs are the longest part; the benchmarks at the end about an hour); each step is cached or
+# skippable by hand. Seeds are fixed; folds run in parallel processes. The report reads the human ratings from $H (never stored in results).
 # Steps run in dependency order: each report after every input it reads (evaluations → their pages and the
 # served model → fidelity, which reads `selected` and the synthetic ridge-both run → the frontier study, which
 # reads the evaluations and the service benchmark's adaptive.json → the benchmarks, whose bandwidth run fills
