@@ -27,6 +27,7 @@ import numpy as np
 import onnxruntime as ort
 
 from benchmarks.report_file import write_report
+from models.offline.provenance import file_input
 
 DEFAULT_OUT = Path("reports") / "bench" / "backbone_int8.json"
 BASELINE = "fp32 (served: ENABLE_ALL, batch of 4)"
@@ -171,7 +172,9 @@ def main(argv: list[str] | None = None) -> dict:
     if args.images is not None:
         photos = sorted(p for p in args.images.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
         result["fidelity"] = fidelity(photos, embedders[BASELINE], embedders["int8 (batch of 4)"])
-    write_report(args.out, result)
+    read = [file_input("image", args.image)] if args.image else []
+    read += [file_input("photos", args.images)] if args.images else []
+    write_report(args.out, result, read)
     print(f"one served frame (decode + 2×2 patches, no GLCM), 1 thread, {source}, median of {args.repeats}:")
     for k, v in medians.items():
         print(f"  {k:40s} {v:7.1f} ms  ×{v / base:.2f}")

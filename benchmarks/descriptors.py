@@ -22,6 +22,7 @@ import numpy as np
 
 from benchmarks.report_file import write_report
 from benchmarks.visual import benchmark_image, summarise, time_call
+from models.offline.provenance import file_input
 
 DEFAULT_OUT = Path("reports") / "bench" / "descriptors.json"
 
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         "all_descriptors_median_ms": total,
         "ratio_all_to_glcm_floor": total / floor,
     }
-    write_report(args.out, out)
+    write_report(args.out, out, [file_input("image", args.image)] if args.image else ())
     print(f"per frame, 1 thread (load average {os.getloadavg()[0]:.1f}):")
     for name, r in results.items():
         print(f"  {name:45s} {r['median_ms']:8.1f} ms")

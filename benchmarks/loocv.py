@@ -27,6 +27,7 @@ from benchmarks.report_file import write_report
 from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import loocv_seeds, ray_init
+from models.offline.provenance import dataset_inputs
 
 DEFAULT_OUT = Path("reports/bench/loocv.json")
 
@@ -109,7 +110,7 @@ def main(argv: list[str]) -> int:
     result = run(data, args.model, tuple(args.seeds), args.workers)
     print(json.dumps({k: result[k] for k in ("wall_s", "speedup_over_serial", "speedup_ray_with_start")}, indent=1))
     out = Path(args.out)
-    write_report(out, result)
+    write_report(out, result, dataset_inputs(args.dataset) if args.dataset else ())
     print(f"wrote {out}")
     return 0
 

@@ -1,17 +1,26 @@
 """Where every benchmark's numbers land: one JSON file, its folder made if missing, ending in a newline; its charts, as
-PNG files; and what a report says about its run (the command, the machine and how busy it was)."""
+PNG files; and what a report says about its run (the command, the machine and how busy it was, the CPU and the
+instruction sets an absolute time depends on)."""
 
 from __future__ import annotations
 
 import json
 import os
 import platform
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from models.offline.host import host
+from models.offline.provenance import Input, provenance
 
-def write_report(path: str | Path, report: dict[str, Any]) -> Path:
-    """Write `report` as indented JSON to `path` (parents created); returns the path."""
+
+def write_report(path: str | Path, report: dict[str, Any], inputs: Sequence[Input] = ()) -> Path:
+    """Write `report` as indented JSON to `path` (parents created); returns the path. inputs: the files the run
+    read (a dataset, a photo), recorded with their SHA-256 under `provenance` beside the commit that ran
+    (`models.offline.provenance`; none: a run on generated input records the commit alone), so the reports'
+    staleness test can check them."""
+    report = {**report, "host": host(), "provenance": provenance(inputs, report.get("command"))}
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.report_file import write_report
+from models.offline.provenance import file_input
 
 DEFAULT_OUT = Path("reports") / "bench" / "served_frame.json"
 DEFAULT_IMAGE = Path("..") / "shared" / "data" / "hatt-texnet" / "images"
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict:
         "load_before": load_before,
         "load_after": list(os.getloadavg()),
     }
-    write_report(args.out, result)
+    write_report(args.out, result, [file_input("image", args.image)] if args.image else ())
     print(f"one frame, {args.threads} thread(s), {source} {gray.shape[1]}×{gray.shape[0]}, median of {args.repeats}:")
     for k, v in medians.items():
         print(f"  {k:32s} {v:8.1f} ms")

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.report_file import write_report
+from models.offline.provenance import file_input
 
 DEFAULT_OUT = Path("reports") / "bench" / "visual.json"
 
@@ -220,7 +221,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "backbones": rows,
         "loadavg_after": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
-    write_report(args.out, result)
+    write_report(args.out, result, [file_input("image", args.image)] if args.image else ())
     print_table(result)
     print(f"wrote {args.out}")
     return result

@@ -1,9 +1,14 @@
 #!/usr/bin/env bash
 # Regenerates every number under reports/: datasets, leave-one-texture-out evaluations, report pages,
 # the exported model and the withheld-texture predictions. Run from the repository root after
-# `make test` (or `make demo`) has created .venv. About 6 hours on 2 CPU cores (the nested-CV
-# `selected` runs are the longest part); each step is cached or skippable by hand. Seeds are fixed;
-# folds run in parallel processes. The report reads the human ratings from $H (never stored in results).
+# `make test` (or `make demo`) has created .venv. About 7 hours on 2 CPU cores (the nested-CV
+# `selected` runs are the longest part; the benchmarks at the end about an hour); each step is cached or
+# skippable by hand. Seeds are fixed; folds run in parallel processes. The report reads the human ratings from $H (never stored in results).
+# Steps run in dependency order: each report after every input it reads (evaluations → their pages and the
+# served model → fidelity, which reads `selected` and the synthetic ridge-both run → the frontier study, which
+# reads the evaluations and the service benchmark's adaptive.json → the benchmarks, whose bandwidth run fills
+# keys of reports/fidelity/results.json). Every report records the SHA-256 of what it read; the last step checks
+# that none is stale (tests/reports/test_report_inputs.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 hl() { .venv/bin/hapticlink "$@"; }
@@ -116,6 +121,8 @@ hl fidelity --dataset $H --predictions reports/hatt-texnet/selected/results.json
   --out reports/fidelity
 
 # ---- speed–accuracy frontier, robustness, calibrated intervals --------------------------------
+# adaptive serving first: the tradeoffs page merges reports/tradeoffs/adaptive.json
+.venv/bin/python -m benchmarks.adaptive
 bash reports/tradeoffs/regenerate.sh
 
 # ---- hassan2023: touch-rated textures, image only (reports/hassan2023) ---------------------------
@@ -153,3 +160,9 @@ done
 hl evaluate --dataset $H --model selected-image --out $HR/hatt-image/selected-image --seeds 0 1 2 "${HV[@]}" --no-figures
 py report --dataset $H --results $HR/hatt-image
 py report --dataset $HS --results $HR
+
+# ---- speed (reports/bench; the bandwidth and renderer keys of reports/fidelity/results.json) ---------------
+# after fidelity, whose results.json the bandwidth benchmark fills (each writer keeps the other's keys)
+.venv/bin/python -m benchmarks
+# ---- nothing above may be stale: every report's recorded inputs still hash the same -------------------
+.venv/bin/python -m pytest -q tests/reports/test_report_inputs.py

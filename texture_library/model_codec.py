@@ -34,8 +34,9 @@ from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel, co
 
 MAGIC = b"HLM1"
 CONTENT_TYPE = "application/x-hapticlink-model"
-#: default LSF resolution: 2^11 steps over (0, π) (≈ 0.24 Hz at 1 kHz): ≤ 0.31 dB added on every HaTT model, where
-#: 10 bits added up to 0.97 dB (4 of 100 over 0.5 dB)
+#: default LSF resolution: 2^11 steps over (0, π) (≈ 0.24 Hz at 1 kHz): ≤ 0.31 dB added on each HaTT model at the
+#: nine operating points of texture_library.spectrum (not measured elsewhere on its grid), where 10 bits added up
+#: to 0.97 dB (4 of 100 over 0.5 dB)
 LSF_BITS = 11
 
 

@@ -7,6 +7,13 @@ variance σ²: its one-sided power spectral density is
 
 with B the MA polynomial, g its gain and A the AR polynomial, interpolated at that point exactly as
 the renderer interpolates them (`texture_library.synthesis.interpolate`). Units: (m/s²)²/Hz.
+
+The distance between two models is defined once: `spectral_distance_db`, the RMS dB difference over
+[20, 500) Hz, averaged over the operating points. The Nyquist bin (500 Hz at 1 kHz) is left out, as the
+selection's `band_mask` leaves it out: nearly every HaTT MA polynomial has a zero there, where its PSD
+sits about 60 dB below the next bin and reaches `PSD_FLOOR`, so that one bin would weigh as much as a
+wide stretch of the band. `pooled_spectral_distance_db` is the variant that pools the squared
+differences of every operating point and frequency into one RMS, reported beside it.
 """
 
 from __future__ import annotations
@@ -16,7 +23,8 @@ import numpy as np
 from texture_library.synthesis import interpolate
 from texture_library.vibration import VibrationModel
 
-#: the band the log-spectral distance covers, Hz (the tactile features' band; 500 Hz is Nyquist at 1 kHz)
+#: the band the log-spectral distance covers, Hz, low end in, high end out (the tactile features' band;
+#: 500 Hz is Nyquist at 1 kHz)
 BAND_HZ = (20.0, 500.0)
 #: operating points (speed mm/s, normal force N) a model-to-model distance averages over
 OPERATING_POINTS: tuple[tuple[float, float], ...] = tuple((s, f) for s in (50.0, 100.0, 200.0) for f in (0.5, 1.0, 2.0))
@@ -25,13 +33,14 @@ PSD_FLOOR = 1e-12
 
 
 def band_frequencies(n: int = 240, band_hz: tuple[float, float] = BAND_HZ) -> np.ndarray:
-    """(n,) evenly spaced frequencies over band_hz, Hz (both ends included)."""
+    """(n,) evenly spaced frequencies over [low, high), Hz: the low end included, the high end (Nyquist) not.
+    The default grid: 20, 22, …, 498 Hz."""
     if n < 2:
         raise ValueError(f"n must be ≥ 2 frequencies, got {n}")
     lo, hi = band_hz
     if not 0.0 <= lo < hi:
         raise ValueError(f"band_hz must satisfy 0 ≤ low < high, got {band_hz}")
-    return np.linspace(lo, hi, n)
+    return np.linspace(lo, hi, n, endpoint=False)
 
 
 def arma_psd(model: VibrationModel, speeds: np.ndarray, forces: np.ndarray, freqs_hz: np.ndarray) -> np.ndarray:
@@ -98,9 +107,33 @@ def spectral_distance_db(
     points: tuple[tuple[float, float], ...] = OPERATING_POINTS,
     weights: np.ndarray | None = None,
 ) -> float:
-    """Log-spectral distance between two models over the band, averaged over the operating points, dB."""
+    """Log-spectral distance between two models, dB: the RMS over the band's frequencies (`band_frequencies`,
+    Nyquist left out) at each operating point, then the mean over the points."""
     return float(
         np.mean(
             log_spectral_distance_db(model_spectra(a, freqs_hz, points), model_spectra(b, freqs_hz, points), weights)
         )
     )
+
+
+def pooled_spectral_distance_db(
+    a: VibrationModel,
+    b: VibrationModel,
+    freqs_hz: np.ndarray | None = None,
+    points: tuple[tuple[float, float], ...] = OPERATING_POINTS,
+) -> float:
+    """The pooled variant, dB: one RMS over every (operating point, frequency) pair. Never below
+    `spectral_distance_db` (a quadratic mean is at least the arithmetic mean of the per-point RMS), equal
+    to it when every point is equally far."""
+    return float(pooled_distance_db(model_spectra(a, freqs_hz, points), model_spectra(b, freqs_hz, points)))
+
+
+def pooled_distance_db(spectra_a: np.ndarray, spectra_b: np.ndarray) -> np.ndarray:
+    """RMS of the 10·log10 differences over the last two axes (operating points, frequencies), dB.
+
+    spectra_a, spectra_b: (..., k, n) (m/s²)²/Hz. Returns (...) dB."""
+    a, b = np.asarray(spectra_a, float), np.asarray(spectra_b, float)
+    if a.ndim < 2:
+        raise ValueError(f"spectra must be (..., points, frequencies), got shape {a.shape}")
+    flat = a.shape[:-2] + (a.shape[-2] * a.shape[-1],)
+    return log_spectral_distance_db(a.reshape(flat), b.reshape(b.shape[:-2] + (-1,)))

@@ -270,6 +270,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from models.offline.evaluation.data import load_texture_data
     from models.offline.evaluation.estimator_registry import EstimatorSpec, for_dataset
     from models.offline.evaluation.evaluate import evaluate
+    from models.offline.provenance import dataset_inputs
 
     ds = Dataset(args.dataset)
     # an image-only dataset: a model that needs touch is refused here, naming the model and the missing modality
@@ -310,6 +311,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         ray_address=args.ray_address,
         test_views=args.test_views,
         leave_out=args.leave_out,
+        inputs=dataset_inputs(args.dataset),
     )
     if not args.no_figures:
         from models.offline.report.evaluation_figures import results_figures

@@ -8,6 +8,7 @@ import platform
 import shlex
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,6 +18,8 @@ from models.offline.evaluation.data import TextureData
 from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.loocv import LoocvRun, loocv_seeds
 from models.offline.evaluation.metrics import error_table, group_errors
+from models.offline.host import host
+from models.offline.provenance import Input, provenance
 from texture_library.attributes import ATTRIBUTES
 
 
@@ -26,6 +29,7 @@ def hardware() -> dict:
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
+        "host": host(),  # the CPU model and ISA flags: per-window latencies are absolute times on this host
     }
     try:
         import torch
@@ -115,10 +119,12 @@ def evaluate(
     ray_address: str | None = None,
     test_views: int | None = None,
     leave_out: str = "texture",
+    inputs: Sequence[Input] = (),
 ) -> dict:
     """LOOCV for every seed (all folds of all seeds as one batch of jobs); writes out/results.json
     and returns the results dict. leave_out "family": each fold keeps the held-out texture's family out of
-    training too (models.offline.evaluation.families)."""
+    training too (models.offline.evaluation.families). inputs: the files `data` was read from
+    (`models.offline.provenance.dataset_inputs`), recorded with their digests under `provenance`."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -133,6 +139,7 @@ def evaluate(
         test_views=test_views,
         leave_out=leave_out,
     )
+    command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None
     results = {
         "dataset": data.meta.get("dataset"),
         "model": spec.name,
@@ -159,7 +166,8 @@ def evaluate(
             "tactile_features": data.meta["tactile_config"]["feature_set"] if data.has_tactile else None,
             "extra_groups": list(data.meta.get("tactile_config", {}).get("extra_groups", [])),
         },
-        "command": "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "evaluate" in sys.argv else None,
+        "command": command,
+        "provenance": provenance(inputs, command),
     }
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return results

@@ -22,6 +22,7 @@ import numpy as np
 from models.offline.datasets.format import Dataset
 from models.offline.evaluation.bootstrap import bootstrap_errors, paired_ratio, texture_errors
 from models.offline.evaluation.data import TextureData, load_texture_data
+from models.offline.provenance import dataset_inputs, file_input, provenance
 from models.visual.config import VisualConfig
 from texture_library.attributes import ATTRIBUTES, RATING_MAX, RATING_MIN
 
@@ -97,6 +98,10 @@ def report(dataset: str | Path, results: str | Path) -> dict:
     if ds.reference_predictions is not None:
         ref = read_reference(ds, textures)
         summary["reference"] = {"name": ds.reference_predictions["name"], **score(ref, truth, mean_pred)}
+    inputs = [*dataset_inputs(dataset), *(file_input("results", results / n / "results.json") for n in runs)]
+    summary["provenance"] = provenance(
+        inputs, f"python -m models.offline.evaluation.image_benchmark report --dataset {dataset} --results {results}"
+    )
     (results / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -139,7 +144,13 @@ def withheld_predictions(
         for t, p in zip(test.textures, pred):
             w.writerow([t, *(f"{v:.2f}" for v in p)])
     info = out.with_suffix(".json")
-    info.write_text(json.dumps({"model": model, "seed": seed, "fit_info": est.fit_info()}, indent=1, default=str))
+    made = provenance(
+        dataset_inputs(dataset),
+        f"python -m models.offline.evaluation.image_benchmark withheld --dataset {dataset} --model {model} "
+        f"--seed {seed} --out {out}",
+    )
+    doc = {"model": model, "seed": seed, "fit_info": est.fit_info(), "provenance": made}
+    info.write_text(json.dumps(doc, indent=1, default=str))
     return out
 
 
@@ -219,6 +230,10 @@ def transfer(a: str | Path, b: str | Path, out: str | Path, *, cfg: VisualConfig
             }
         res["directions"][direction] = {"n_train": len(s), "n_test": len(d), "rows": rows}
     out = Path(out)
+    res["provenance"] = provenance(
+        [*dataset_inputs(a, "dataset a"), *dataset_inputs(b, "dataset b")],
+        f"python -m models.offline.evaluation.image_benchmark transfer --a {a} --b {b} --out {out}",
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))
     return res

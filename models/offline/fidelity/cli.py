@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _fidelity(args: argparse.Namespace) -> int:
     from models.offline.fidelity.report import write_report
     from models.offline.fidelity.study import RULE_ORDER, load_world, run_rules, summarise
+    from models.offline.provenance import dataset_inputs, file_input, provenance
 
     # ValueError: `hapticlink` says it as every command does ("hapticlink fidelity: error: …", exit 2)
     if args.default_rule not in RULE_ORDER:
@@ -35,6 +36,7 @@ def _fidelity(args: argparse.Namespace) -> int:
     if args.windows < 1:
         raise ValueError(f"--windows must be ≥ 1, got {args.windows}")
     parts: list = []
+    inputs: list = []
     for dataset, predictions in (
         (args.dataset, args.predictions),
         (args.synthetic_dataset, args.synthetic_predictions),
@@ -46,6 +48,7 @@ def _fidelity(args: argparse.Namespace) -> int:
             world = load_world(dataset, predictions, args.windows)
         except KeyError as exc:
             raise ValueError(f"{dataset}: no {exc} in its files") from None
+        inputs += [file_input("predictions", predictions), *dataset_inputs(dataset)]
         per_texture, info = run_rules(world)
         rows = summarise(world, per_texture)
         parts.append((world, per_texture, rows, info))
@@ -53,9 +56,11 @@ def _fidelity(args: argparse.Namespace) -> int:
         for r in rows:
             print(
                 f"  {r['rule']:<24} rating {r['rating_distance']:6.2f}  spectral {r['spectral_distance_db']:6.2f} dB"
+                f"  pooled {r['pooled_spectral_distance_db']:6.2f} dB"
                 f"  weighted {r['weighted_spectral_distance_db']:6.2f} dB  |Δμ| {r['mu_difference']:.3f}"
             )
     command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    out = write_report(Path(args.out), command, args.default_rule, parts[0], parts[1])
+    made_from = provenance(inputs, command)
+    out = write_report(Path(args.out), command, args.default_rule, parts[0], parts[1], made_from)
     print(f"wrote {out}/README.md and results.json")
     return 0

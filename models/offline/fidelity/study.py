@@ -22,7 +22,7 @@ from models.tactile.config import TactileConfig
 from models.tactile.preprocess import TactilePreprocessor
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
 from texture_library.selection import SpectralTable
-from texture_library.spectrum import band_frequencies, log_spectral_distance_db, model_spectra
+from texture_library.spectrum import band_frequencies, log_spectral_distance_db, model_spectra, pooled_distance_db
 from texture_library.vibration import VibrationModel
 from texture_library.vibrotactile import sensitivity_weights
 
@@ -31,15 +31,22 @@ WEIGHTS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 RATING_TARGET = 5.5
 SPECTRAL_TARGET_DB = 6.0
 WINDOWS_PER_TEXTURE = 24
-METRICS = ("rating_distance", "spectral_distance_db", "weighted_spectral_distance_db", "mu_difference")
+METRICS = (
+    "rating_distance",
+    "spectral_distance_db",
+    "pooled_spectral_distance_db",
+    "weighted_spectral_distance_db",
+    "mu_difference",
+)
 
 
 @dataclass(frozen=True)
 class World:
     """Everything the rules and the metrics read, for T textures.
 
-    truth, predicted: (T, 4) bipolar; rating_d, spectral_d, weighted_d, mu_d: (T, T) pairwise metrics
-    (0–100 scale, dB, dB, |Δμ|); perceptual_d: (T, T) bipolar distance from texture i's estimated ratings
+    truth, predicted: (T, 4) bipolar; rating_d, spectral_d, pooled_d, weighted_d, mu_d: (T, T) pairwise metrics
+    (0–100 scale, dB, dB, dB, |Δμ|; pooled_d: `texture_library.spectrum.pooled_distance_db`); perceptual_d:
+    (T, T) bipolar distance from texture i's estimated ratings
     to texture j's true ratings; whittle, lsd: (T, W, T) window w of texture i against model j, dB;
     whittle_bare: the same as whittle against the bare model spectra, without the sensor's noise floor
     (the physical rule as first written down, kept to show what the noise floor changed)."""
@@ -50,6 +57,7 @@ class World:
     predicted: np.ndarray
     rating_d: np.ndarray
     spectral_d: np.ndarray
+    pooled_d: np.ndarray
     weighted_d: np.ndarray
     mu_d: np.ndarray
     perceptual_d: np.ndarray
@@ -61,6 +69,7 @@ class World:
         return {
             "rating_distance": self.rating_d,
             "spectral_distance_db": self.spectral_d,
+            "pooled_spectral_distance_db": self.pooled_d,
             "weighted_spectral_distance_db": self.weighted_d,
             "mu_difference": self.mu_d,
         }
@@ -90,9 +99,11 @@ def load_world(dataset: str | Path, predictions: str | Path, windows: int = WIND
     log_s = 10.0 * np.log10(np.maximum(spectra, 1e-12))
     T = len(textures)
     spectral_d = np.zeros((T, T))
+    pooled_d = np.zeros((T, T))
     weighted_d = np.zeros((T, T))
     for i in range(T):
         spectral_d[i] = log_spectral_distance_db(np.broadcast_to(spectra[i], spectra.shape), spectra).mean(axis=1)
+        pooled_d[i] = pooled_distance_db(np.broadcast_to(spectra[i], spectra.shape), spectra)
         diff2 = (log_s[i][None] - log_s) ** 2  # (T, 9, n)
         weighted_d[i] = np.sqrt((diff2 * weights).sum(axis=-1) / weights.sum()).mean(axis=1)
     mu = np.array([m.mu for m in models])
@@ -118,6 +129,7 @@ def load_world(dataset: str | Path, predictions: str | Path, windows: int = WIND
         predicted=predicted,
         rating_d=np.abs(truth[:, None, :] - truth[None, :, :]).mean(axis=-1) * REPORT_SCALE,
         spectral_d=spectral_d,
+        pooled_d=pooled_d,
         weighted_d=weighted_d,
         mu_d=np.abs(mu[:, None] - mu[None, :]),
         perceptual_d=np.linalg.norm(predicted[:, None, :] - truth[None, :, :], axis=-1),

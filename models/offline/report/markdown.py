@@ -582,7 +582,27 @@ def _families_section(families: list[dict], main: list[dict]) -> list[str]:
     return lines + [""]
 
 
+def _hosts_line(runs: list[dict]) -> str:
+    """Which hosts the latencies were timed on (absolute times belong to them): each results.json's `hardware`."""
+    hosts = sorted(
+        {
+            f"{h['model']} ({', '.join(h['isa']) if h.get('isa') else 'ISA flags unknown'})"
+            for h in (r.get("hardware", {}).get("host") for r in runs)
+            if h
+        }
+    )
+    missing = sum(1 for r in runs if not r.get("hardware", {}).get("host"))
+    said = f"Timed on {'; '.join(hosts)}." if hosts else ""
+    if missing:
+        said += (
+            f" {missing} of {len(runs)} runs predate the record of their CPU (their `hardware` names the platform "
+            "and core count only): absolute times, comparable only between runs of one host."
+        )
+    return said.strip()
+
+
 def _speed_section(main: list[dict], folder: Path, mean_pred: dict | None, ceiling: dict | None) -> list[str]:
+    timed = [r for r in main if r.get("latency_us") and not r["model"].startswith(("mean", "shuffled"))]
     rows = [
         {
             "model": r["dir"],
@@ -591,8 +611,7 @@ def _speed_section(main: list[dict], folder: Path, mean_pred: dict | None, ceili
             "n_params": r.get("n_params"),
             "runtime": r["latency_us"]["runtime"],
         }
-        for r in main
-        if r.get("latency_us") and not r["model"].startswith(("mean", "shuffled"))
+        for r in timed
     ]
     if not rows:
         return []
@@ -607,7 +626,8 @@ def _speed_section(main: list[dict], folder: Path, mean_pred: dict | None, ceili
         "## Speed against accuracy",
         "",
         "Per-window latency: p50 of 200 single-window calls (batch 1, one thread) of the model fit on all "
-        "rated textures — onnxruntime for models that export to ONNX, the estimator's own predict otherwise.",
+        "rated textures — onnxruntime for models that export to ONNX, the estimator's own predict otherwise. "
+        + _hosts_line(timed),
         "",
         "![speed against accuracy](speed_accuracy.png)",
         "",

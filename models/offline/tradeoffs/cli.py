@@ -131,6 +131,8 @@ def parse_runs(specs: list[str]) -> list[tuple[str, list[int], bool, bool, bool]
 
 @_one_blas_thread
 def _robustness(args: argparse.Namespace) -> int:
+    from models.offline.host import host
+    from models.offline.provenance import dataset_inputs, provenance
     from models.offline.tradeoffs.common import write_json
     from models.offline.tradeoffs.robustness import held_out_subset, run_model, study_inputs, summarise
 
@@ -167,6 +169,8 @@ def _robustness(args: argparse.Namespace) -> int:
             "net_options": _options(args),
             "served": args.served,
             "command": _command(args),
+            "host": host(),
+            "provenance": provenance(dataset_inputs(args.dataset), _command(args)),
         },
     )
     print(f"wrote {out}")
@@ -209,6 +213,8 @@ def _options(args: argparse.Namespace) -> dict:
 
 @_one_blas_thread
 def _frontier(args: argparse.Namespace) -> int:
+    from models.offline.host import host
+    from models.offline.provenance import dataset_inputs, provenance
     from models.offline.tradeoffs.common import write_json
     from models.offline.tradeoffs.frontier import run_frontier
 
@@ -232,7 +238,15 @@ def _frontier(args: argparse.Namespace) -> int:
         descriptor_sets=tuple(descriptor_set(s) for s in args.descriptor_sets),
     )
     out = Path(args.out or DEFAULT_REPORT / f"frontier-{args.model}.json")
-    write_json(out, {**result, "command": _command(args)})
+    write_json(
+        out,
+        {
+            **result,
+            "command": _command(args),
+            "host": host(),
+            "provenance": provenance(dataset_inputs(args.dataset), _command(args)),
+        },
+    )
     rec = result["recommendation"]
     if rec:
         print(

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import random
 import time
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ from models.offline.evaluation.estimator_registry import EstimatorSpec
 from models.offline.evaluation.evaluate import window_latency
 from models.offline.evaluation.loocv import loocv
 from models.offline.featurize import backbone_onnx, cache_root
+from models.offline.host import host
 from models.offline.report.speed_accuracy import pareto_front
 from models.offline.tradeoffs.common import load_state, tactile_data, views_for, with_visual, write_json
 from models.visual.config import VisualConfig
@@ -520,8 +522,16 @@ def run_frontier(
         "recommendation": recommended,
         "load_before": timed.get("load", started),
         "load_after": load_state(),
-        "note": "timed under load on a shared 2-core machine; ratios within this run hold, absolute times do not",
+        "note": f"timed on {_host_words()} under whatever load it had; ratios within this run hold, absolute times "
+        "belong to this host",
     }
+
+
+def _host_words() -> str:
+    """`AMD EPYC (avx2, avx512f, …), 2 cores`: the host an absolute time belongs to."""
+    h = host()
+    isa = ", ".join(h["isa"]) if h["isa"] else "ISA flags unknown"
+    return f"{h['model']} ({isa}), {os.cpu_count()} cores"
 
 
 def _read_timing(path: Path, key: dict) -> dict | None:

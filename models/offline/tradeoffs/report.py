@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from models.offline.faults.catalog import FAULTS
+from models.offline.provenance import file_input, provenance
 from models.offline.tradeoffs import charts
 from models.offline.tradeoffs.common import write_json
 from models.offline.tradeoffs.coverage import SERVED_TARGETS
@@ -579,7 +580,8 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
         "# Speed, stability and calibrated uncertainty",
         "",
         f"Regenerate everything on this page: `{REGENERATE}` (the long steps cache their work under "
-        "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on a shared 2-core machine: "
+        "`artifacts/tradeoffs/`, git-ignored). Every timing was taken **under load** on the project's shared "
+        "2-core AMD EPYC host: "
         "ratios within one run hold, absolute milliseconds do not. No per-texture rating appears in this folder.",
         "",
     ]
@@ -675,5 +677,10 @@ def build_tradeoffs_report(folder: str | Path) -> Path:
             "intervals": None if not rb else rb["recommended_intervals"],
         },
     }
+    read = [*(folder / f"frontier-{name}.json" for name in named), *(p for p in (rb_path, ad_path) if p.is_file())]
+    read += [Path(s["source"]) for s in (results["stability"] or {}).get("evaluation_seed_spread", {}).values()]
+    results["provenance"] = provenance(
+        [file_input("study", p) for p in read], f"hapticlink tradeoffs report --reports {folder}"
+    )
     write_json(folder / "results.json", results)
     return folder / "README.md"

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from models.offline.fidelity import study
 from models.offline.fidelity.cli import register
+from models.offline.provenance import file_sha256
 from texture_library.attributes import ATTRIBUTES
 
 
@@ -59,6 +61,12 @@ def test_the_report_scores_every_rule_with_intervals_and_keeps_other_keys(world_
     assert rules["oracle-spectral"]["spectral_distance_db"] <= min(r["spectral_distance_db"] for r in doc["selection"])
     assert rules["oracle-perceptual"]["rating_distance"] < rules["random"]["rating_distance"]
     assert len(doc["selection_synthetic"]) == len(doc["selection"])
+    # the inputs it read, with their digests: both predictions files and both dataset manifests
+    made = doc["selection_study"]["provenance"]
+    by_role = [(i["role"], i["sha256"]) for i in made["inputs"]]
+    assert ("predictions", file_sha256(predictions)) in by_role
+    assert ("dataset manifest", file_sha256(Path(dataset) / "dataset.json")) in by_role and len(by_role) == 4
+    assert made["command"] == doc["selection_study"]["command"]
     readme = (out / "README.md").read_text()
     assert "pareto_hatt.png" in readme and (out / "pareto_hatt.png").stat().st_size > 1000
     assert (out / "pareto_synthetic.png").is_file() and (out / "hybrid_weight.png").is_file()

@@ -52,6 +52,9 @@ def test_evaluate_writes_results_and_results_figures_draws_them(reports):
     assert list(res["predictions_per_seed"]) == ["0"] and len(res["predictions_per_seed"]["0"]) == 8
     assert res["latency_us"]["runtime"] == "onnxruntime" and res["latency_us"]["p50_us"] > 0
     assert res["vs_true_mapping"]["mae"]["mean"] > 0  # the synthetic world knows its noise-free ratings
+    # what it was made from: the commit (None outside a git checkout) and the inputs it was handed (none here)
+    commit = res["provenance"]["commit"]
+    assert res["provenance"]["inputs"] == [] and (commit is None or len(commit) == 40)
     for fig in ("actual_vs_predicted.png", "group_mae.png", "perceptual_space.png"):
         assert (folder / "ridge-tactile" / fig).stat().st_size > 10_000
 
@@ -244,3 +247,13 @@ def test_the_headline_says_when_the_served_image_features_were_picked_on_its_own
     (work / "selected" / "results.json").write_text(json.dumps(run))
     headline = build_report(dataset, work).read_text().split("## Headline")[1].split("\n## ")[0]
     assert "picked by the frontier's fixed rule applied to leave-one-texture-out numbers of this model" in headline
+
+
+def test_the_speed_section_names_the_hosts_its_latencies_were_timed_on():
+    from models.offline.report.markdown import _hosts_line
+
+    epyc = {"hardware": {"host": {"model": "AMD EPYC", "isa": ["avx2", "avx512_vnni"]}}}
+    old = {"hardware": {"platform": "Linux"}}
+    assert _hosts_line([epyc, epyc]) == "Timed on AMD EPYC (avx2, avx512_vnni)."
+    line = _hosts_line([epyc, old])
+    assert line.startswith("Timed on AMD EPYC") and "1 of 2 runs predate the record of their CPU" in line
