@@ -680,16 +680,24 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
     last = _stream_until(kit, client, server, session, blocks, 4)
     _wait(browser, lambda d: int(_text(d, "window")) >= last["window_index"])
     # the longest explanation the page gives, so the layout is checked at its fullest
-    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
-            "switch_margin": 3.25}  # fmt: skip
-    later = {"window_index": 99, "t_start_s": last["t_start_s"] + 5, "t_end_s": last["t_end_s"] + 5, "selection": held}
+    keeping = (
+        "keeping synth_001: synth_003 is closer by 2.4; it must be closer by 12 (2 windows in a row), or by 69.6 more "
+        "in all, to take over"
+    )
+    held = {"rule": "perceptual", "reason": keeping, "held_by_hysteresis": True, "switch_margin": 3.25}
+    later = {"window_index": 99, "provisional": True, "t_start_s": last["t_start_s"] + 5, "t_end_s": last["t_end_s"] + 5, "selection": held}
     browser.execute_script("onEvent(JSON.parse(arguments[0]))", json.dumps(last | later))
     _wait(browser, lambda d: _text(d, "window") == "99")
+    browser.execute_script("for (let i = 0; i < 40; i++) log('a status line long enough to wrap: ' + 'x'.repeat(60))")
     width, height = browser.execute_script("return [innerWidth, innerHeight]")
     assert width <= 1366 and height <= 768
     for element_id in ("chosen", "selection", "matches", "latency-panel", "lat-total", "pad", "audio-toggle", "space"):
         box = browser.execute_script(BOX, browser.find_element("id", element_id))
         assert box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height, (element_id, box, width, height)
+    for panel in browser.find_elements("css selector", "main section"):  # every panel, the status log's too
+        box = browser.execute_script(BOX, panel)
+        label = panel.get_attribute("aria-label")
+        assert box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height, (label, box, width, height)
     assert browser.execute_script("return document.scrollingElement.scrollWidth") <= width  # no sideways scrolling
     cut = browser.execute_script(
         "return [...document.querySelectorAll('.pole, .plot-label, .conf, .legend span, header span, h2')]"
