@@ -23,16 +23,18 @@ what it decodes under the version window events name. Decoding gives a RenderMod
 `model_version` is that of the quantised content. What quantisation adds to the spectra is measured by
 `python -m benchmarks.bandwidth` (log-spectral distance, texture_library.spectrum).
 
-Layout (little-endian): b"HLM1", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
+Layout (little-endian): b"HLM2", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
 (1: surface present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source version,
 f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
 f32 speeds (m), f32 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
-AR codes (m × p, u16 gap codes), MA codes (m × q, same). (b"HLM1", the uniform coding before it, is refused by
-name.)
+AR codes (m × p, u16 gap codes), MA codes (m × q, same). A delta (`encode_delta`): b"HLD2", 8 bytes naming the
+base payload (SHA-256), then the same body deflated with the base's body as the preset dictionary. b"HLM1" (the
+uniform coding before) is refused by name.
 """
 
 from __future__ import annotations
 
+import hashlib
 import struct
 import zlib
 
@@ -41,6 +43,8 @@ import numpy as np
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel, content_version
 
 MAGIC = b"HLM2"
+#: a model sent as a delta against an earlier payload (`encode_delta`)
+DELTA_MAGIC = b"HLD2"
 #: the previous layout (uniform LSF codes): refused by name
 OLD_MAGIC = b"HLM1"
 CONTENT_TYPE = "application/x-hapticlink-model"
@@ -95,6 +99,41 @@ def dequantise_lsf(codes: np.ndarray, bits: int) -> np.ndarray:
 
 def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
     """The compact payload of `model` (see the module's layout)."""
+    return MAGIC + zlib.compress(_body(model, bits), 9)
+
+
+def encode_delta(model: RenderModel, base: bytes, bits: int = LSF_BITS) -> bytes:
+    """`model` as a delta against `base`, a compact payload the receiver holds (an earlier version of the same
+    surface): the body deflated with the base's body as the preset dictionary, so what did not change — the grid,
+    the rows of the regions no new data reached — costs a few bytes. b"HLD2", the first 8 bytes of the SHA-256 of
+    `base`, then the deflated body. ValueError if `base` is not a compact payload."""
+    zdict = _inflate(base)[-32768:]  # deflate's window
+    co = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY, zdict=zdict)
+    return DELTA_MAGIC + _digest(base) + co.compress(_body(model, bits)) + co.flush()
+
+
+def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel]:
+    """A delta payload and the base it was made against → as `decode`. ValueError naming the problem, also when
+    the base is not the one the delta was made against."""
+    if payload[:4] != DELTA_MAGIC:
+        raise ValueError(f"not a compact rendering model delta (starts {payload[:4]!r}, expected {DELTA_MAGIC!r})")
+    if payload[4:12] != _digest(base):
+        raise ValueError(
+            f"the delta was made against base {payload[4:12].hex()}, not the one held ({_digest(base).hex()})"
+        )
+    zdict = _inflate(base)[-32768:]
+    try:
+        body = zlib.decompressobj(zdict=zdict).decompress(payload[12:], MAX_RENDER_MODEL_BYTES)
+    except zlib.error as exc:
+        raise ValueError(f"compact rendering model delta: the body does not inflate ({exc})") from None
+    return _parse_checked(body)
+
+
+def _digest(payload: bytes) -> bytes:
+    return hashlib.sha256(payload).digest()[:8]
+
+
+def _body(model: RenderModel, bits: int) -> bytes:
     m, p, q = len(model.speeds_mm_s), len(model.ar_lsf[0]), len(model.ma_lsf[0])
     ar = quantise_lsf(np.asarray(model.ar_lsf, float).reshape(m, p), bits)
     ma = quantise_lsf(np.asarray(model.ma_lsf, float).reshape(m, q), bits)
@@ -114,13 +153,18 @@ def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
     parts.append(tri.astype("<u1" if m <= 255 else "<u2").tobytes())
     for codes in (ar, ma):
         parts.append(codes.astype("<u2").tobytes())
-    return MAGIC + zlib.compress(b"".join(parts), 9)
+    return b"".join(parts)
 
 
 def decode(payload: bytes) -> tuple[str, RenderModel]:
     """A compact payload → (the source JSON document's model_version, the decoded RenderModel).
 
     ValueError naming the problem for anything that is not a well-formed payload or model."""
+    return _parse_checked(_inflate(payload))
+
+
+def _inflate(payload: bytes) -> bytes:
+    """The body of a compact payload; ValueError naming the problem."""
     if payload[:4] == OLD_MAGIC:
         raise ValueError(
             f"compact rendering model of the old layout {OLD_MAGIC!r} (uniform LSF codes); this client reads {MAGIC!r}"
@@ -128,9 +172,12 @@ def decode(payload: bytes) -> tuple[str, RenderModel]:
     if payload[:4] != MAGIC:
         raise ValueError(f"not a compact rendering model (starts {payload[:4]!r}, expected {MAGIC!r})")
     try:
-        body = zlib.decompressobj().decompress(payload[4:], MAX_RENDER_MODEL_BYTES)
+        return zlib.decompressobj().decompress(payload[4:], MAX_RENDER_MODEL_BYTES)
     except zlib.error as exc:
         raise ValueError(f"compact rendering model: the body does not inflate ({exc})") from None
+
+
+def _parse_checked(body: bytes) -> tuple[str, RenderModel]:
     try:
         return _parse(body)
     except (struct.error, IndexError, UnicodeDecodeError) as exc:

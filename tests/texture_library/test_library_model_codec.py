@@ -116,3 +116,30 @@ def test_bad_payloads_are_named(model):
         model_codec.decode(good[:4] + zlib.compress(body[:-3]))
     with pytest.raises(ValueError, match="unexpected bytes"):
         model_codec.decode(good[:4] + zlib.compress(body + b"xx"))
+
+
+def _with_row_moved(doc: RenderModel, row: int) -> RenderModel:
+    """`doc` with one grid point's AR LSFs moved by 1 % (a refit where new data arrived)."""
+    from texture_library.render_model import content_version
+
+    content = doc.content()
+    content["ar_lsf"][row] = (np.asarray(content["ar_lsf"][row]) * 0.99).tolist()
+    envelope = {"schema": doc.schema_, "schema_version": doc.schema_version, "id": doc.id}
+    return RenderModel.model_validate({**envelope, "model_version": content_version(content), **content})
+
+
+def test_a_delta_round_trips_and_costs_what_changed(model):
+    doc = RenderModel.from_vibration_model("e", model)
+    base = model_codec.encode(doc)
+    new = _with_row_moved(doc, 4)
+    delta = model_codec.encode_delta(new, base)
+    source, back = model_codec.decode_delta(delta, base)
+    _, whole = model_codec.decode(model_codec.encode(new))
+    assert source == new.model_version and back == whole  # the same model as the whole payload decodes to
+    assert len(delta) < len(model_codec.encode(new)) / 2
+    # a delta made against another base is refused by name, not decoded into a wrong model
+    other = model_codec.encode(_with_row_moved(doc, 2))
+    with pytest.raises(ValueError, match="made against base"):
+        model_codec.decode_delta(delta, other)
+    with pytest.raises(ValueError, match="not a compact rendering model delta"):
+        model_codec.decode_delta(base, base)
