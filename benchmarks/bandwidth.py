@@ -13,10 +13,24 @@ headers (2 bytes below 126, 4 below 65 536), and for each model fetch the status
 the HTTP answer. Rates are per second of stream time.
 
 Cases: (a) the library shared in advance — only the feed travels; (b) models fetched on demand — the feed plus
-the fetches. References: raw acceleration (1 kHz × 3 axes × 16 bit = 48 kbit/s) and the perceptual texture
+the fetches; (c) `hatt_session`: the same session with HaTT-sized models and the surface's own model learnt online
+(below). References: raw acceleration (1 kHz × 3 axes × 16 bit = 48 kbit/s) and the perceptual texture
 codec anchor ≈ 2.3 kbit/s (Chaudhari et al. 2015). Also the spectral error the compact encoding adds
 (texture_library.spectrum, log-spectral distance over 20–500 Hz at the nine operating points) over the
 synthetic library and, when at hand, HaTT's 100 models. Writes reports/fidelity/bandwidth.json.
+
+The HaTT session (c), every byte per second of stream time. Measured in this run: the lean feed (its bytes, spread
+evenly over the stream), a choice message's frame, an HTTP answer's status line and headers (around a compact
+body), the number of library entries fetched. Measured on HaTT's models: their compact payloads (the n-th texture
+stroked is HaTT's n-th model in a seeded order). Assumed — the online model's serving is not this benchmark's:
+on each texture the service's own model of the surface goes out as a new version at ONLINE_UPDATES_S seconds
+into the stroking (at most one per second, only when perceptibly different: a model that converges as data accrue
+differs perceptibly ever more rarely), each with a choice message and a fetch; the first is a whole model (the
+surface's own grid, not the library entry's), each later one differs from the last in the rows of the (speed,
+force) region the robot visits (speed ≤ 200 mm/s, force ≤ 3 N: every such row refitted, LSFs moved by 0.3 % and
+variance by 10 % — more change than a converging fit makes). Two ways to send the later ones: whole compact
+models (what the service serves today) and deltas against the version the operator holds
+(`model_codec.encode_delta`, not yet served).
 """
 
 from __future__ import annotations
@@ -42,7 +56,7 @@ from drivers.source import blocks_from_arrays
 from service.launcher import ServerProcess
 from texture_library import atomic_file, model_codec
 from texture_library.library import Library
-from texture_library.render_model import RenderModel
+from texture_library.render_model import RenderModel, content_version
 from texture_library.spectrum import spectral_distance_db
 from texture_library.stroke import stroke
 from texture_library.trajectory import freehand, model_ranges
@@ -60,6 +74,20 @@ TARGET_BPS = 230
 TCP_IP_BYTES = 52
 #: how much faster than real time the scripted robot streams
 SPEED = 5.0
+#: seconds into each texture's stroking at which the online model goes out as a new version (assumed; see above)
+ONLINE_UPDATES_S = (1, 2, 3, 5, 8, 13, 21, 34, 55)
+#: the HaTT session's target, bit/s
+HATT_TARGET_BPS = 500
+#: the (speed mm/s, force N) region an online fit refits between versions (the robot's strokes reach it)
+VISITED = (200.0, 3.0)
+#: other assumptions the HaTT session is also costed under: (update times, rows refitted, library shared)
+WHAT_IF: tuple[tuple[tuple[int, ...], int | None, bool], ...] = (
+    (ONLINE_UPDATES_S, 3, False),
+    (ONLINE_UPDATES_S, 3, True),
+    ((1, 5, 21), 3, True),
+    ((1, 5, 21), None, True),
+    ((1,), None, True),
+)
 
 
 def ws_frame_bytes(payload: int) -> int:
@@ -188,9 +216,97 @@ async def session_run(url: str, library: Library, textures: list[str], seconds: 
                     a = await http.get(f"/library/{msg.chosen}/model", headers={**bearer(API_KEY), "Accept": accept})
                 a.raise_for_status()
                 sizes[name] = http_answer_bytes(a)
+                sizes[name + "_envelope"] = http_answer_bytes(a) - len(a.content)
             fetched[str(msg.version)] = sizes
     latencies = [sw.latency_ms for sw in operator.stats.switches if sw.latency_ms is not None]
     return {"lean": lean, "full": full, "choices": choices, "fetched": fetched, "switch_latency_ms": latencies}
+
+
+def refitted(doc: RenderModel, rng: np.random.Generator, rows: int | None = None) -> RenderModel:
+    """`doc` with rows of the VISITED region refitted (see the module): LSFs × (1 + 0.3 % noise), kept sorted
+    inside (0, π); variance × 1.1. rows: how many of the region's rows, drawn at random (None: all of them)."""
+    content = doc.content()
+    region = [i for i, (s, f) in enumerate(zip(doc.speeds_mm_s, doc.forces_n)) if s <= VISITED[0] and f <= VISITED[1]]
+    if rows is not None:
+        region = list(rng.choice(region, min(rows, len(region)), replace=False)) if region else []
+    for i in region:
+        for key in ("ar_lsf", "ma_lsf"):
+            row = np.asarray(content[key][i], float)
+            moved = np.sort(np.clip(row * (1 + 0.003 * rng.standard_normal(row.size)), 1e-4, np.pi - 1e-4))
+            content[key][i] = moved.tolist()
+        content["variance"][i] *= 1.1
+    envelope = {"schema": doc.schema_, "schema_version": doc.schema_version, "id": doc.id}
+    return RenderModel.model_validate({**envelope, "model_version": content_version(content), **content})
+
+
+def hatt_session(
+    hatt: list[RenderModel],
+    *,
+    stream_s: float,
+    seconds_per_texture: float,
+    feed_bytes: int,
+    choice_frame_bytes: float,
+    envelope_bytes: float,
+    entry_fetches: int,
+    seed: int = 0,
+    updates_s: tuple[int, ...] = ONLINE_UPDATES_S,
+    rows: int | None = None,
+    library_shared: bool = False,
+) -> dict:
+    """Bytes the service sends per second of a HaTT session (the module's case c): (n,) per-second series for the
+    whole-model and the delta way of sending updates, their means in bit/s, and what they are made of.
+
+    updates_s: when each texture's online model goes out; rows: rows refitted between versions (None: the whole
+    visited region); library_shared: the operator holds the library already (no entry fetches)."""
+    n_s = int(np.ceil(stream_s))
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(hatt))
+    feed = np.full(n_s, feed_bytes / stream_s)
+    whole, delta = feed.copy(), feed.copy()
+    n_textures = int(round(stream_s / seconds_per_texture))
+    parts = {"feed": float(feed_bytes), "entry_fetches": 0.0, "updates_whole": 0.0, "updates_delta": 0.0}
+    fetch_every = max(1, round(n_textures / max(entry_fetches, 1)))  # the run fetched this many library entries
+    update_sizes: list[tuple[int, int]] = []
+    for k in range(n_textures):
+        t0 = int(k * seconds_per_texture)
+        doc = hatt[order[k % len(hatt)]]
+        # the library entry the camera and the estimate pick, fetched whole
+        if not library_shared and k % fetch_every == 0:
+            cost = envelope_bytes + len(model_codec.encode(doc))
+            whole[t0] += cost
+            delta[t0] += cost
+            parts["entry_fetches"] += cost
+        held: bytes | None = None
+        held_doc = doc
+        for u in updates_s:
+            if u >= seconds_per_texture:
+                break
+            version = doc if held is None else refitted(held_doc, rng, rows)
+            payload = model_codec.encode(version)
+            sent = payload if held is None else model_codec.encode_delta(version, held)
+            whole[t0 + u] += choice_frame_bytes + envelope_bytes + len(payload)
+            delta[t0 + u] += choice_frame_bytes + envelope_bytes + len(sent)
+            parts["updates_whole"] += choice_frame_bytes + envelope_bytes + len(payload)
+            parts["updates_delta"] += choice_frame_bytes + envelope_bytes + len(sent)
+            update_sizes.append((len(payload), len(sent)))
+            held, held_doc = payload, version
+    sizes = np.array(update_sizes)
+    return {
+        "assumed_updates_at_s_per_texture": list(updates_s),
+        "rows_refitted_per_update": "the whole visited region" if rows is None else rows,
+        "library_shared": library_shared,
+        "updates": len(update_sizes),
+        "update_bytes_whole_mean": round(float(sizes[:, 0].mean()), 1),
+        "update_bytes_delta_mean": round(float(sizes[:, 1].mean()), 1),
+        "bps_whole_models": round(8 * float(whole.sum()) / stream_s, 1),
+        "bps_deltas": round(8 * float(delta.sum()) / stream_s, 1),
+        "peak_second_bytes_whole": round(float(whole.max()), 1),
+        "peak_second_bytes_delta": round(float(delta.max()), 1),
+        "bytes": {k: round(v) for k, v in parts.items()},
+        "per_second_bytes_whole": [round(float(v), 1) for v in whole],
+        "per_second_bytes_delta": [round(float(v), 1) for v in delta],
+        "target_bps": HATT_TARGET_BPS,
+    }
 
 
 def train_model(root: Path) -> Path:
@@ -269,10 +385,34 @@ def main(argv: list[str] | None = None) -> int:
     }
     hatt = sorted((args.hatt_source / "models").glob("*.xml")) if args.hatt_source else []
     errors = {"synthetic": encoding_error(synthetic_models)}
+    hatt_doc = None
     if hatt:
         from texture_library.hatt_xml import read_model
 
-        errors["hatt"] = encoding_error([(p.stem, read_model(p)) for p in hatt])
+        hatt_models = [(p.stem, read_model(p)) for p in hatt]
+        errors["hatt"] = encoding_error(hatt_models)
+        choice_frames = [ws_frame_bytes(size) for size, m in got["lean"] if render_feed.parse(m).kind == "choice"]
+        measured = {
+            "stream_s": stream_s,
+            "seconds_per_texture": args.seconds_per_texture,
+            "feed_bytes": lean_bytes,
+            "choice_frame_bytes": float(np.mean(choice_frames)) if choice_frames else 0.0,
+            "envelope_bytes": float(np.mean([f["compact_envelope"] for f in got["fetched"].values()])),
+            "entry_fetches": len(got["fetched"]),
+            "seed": args.seed,
+        }
+        served = [RenderModel.from_vibration_model(name, m) for name, m in hatt_models]
+        hatt_doc = {"measured_in_this_run": measured, **hatt_session(served, **measured)}
+        bps["c_hatt_session"] = hatt_doc["bps_whole_models"]
+        bps["c_hatt_session_deltas"] = hatt_doc["bps_deltas"]
+        hatt_doc["what_if"] = [
+            {
+                k: v
+                for k, v in hatt_session(served, **measured, updates_s=u, rows=r, library_shared=shared).items()
+                if not k.startswith("per_second")
+            }
+            for u, r, shared in WHAT_IF
+        ]
     load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"
     doc = {
         "command": "python -m benchmarks.bandwidth " + " ".join(argv),
@@ -295,6 +435,7 @@ def main(argv: list[str] | None = None) -> int:
         "model_mediated_bps": round(bps["b_models_on_demand"], 1),
         "raw_bps": RAW_BPS,
         "encoding": errors,
+        "hatt_session": hatt_doc,
         "switch_latency_ms": {
             "what": "hapticlink operator's client on loopback: from the arrival of the window event that chose an "
             "entry "
@@ -331,6 +472,8 @@ def update_fidelity_results(doc: dict, results_path: Path, renderer_path: Path) 
         "model_mediated_bps": doc["model_mediated_bps"],
         "raw_bps": doc["raw_bps"],
         "library_shared_bps": doc["bps"]["a_library_shared"],
+        "hatt_session_bps": doc["bps"].get("c_hatt_session"),
+        "hatt_session_bps_deltas": doc["bps"].get("c_hatt_session_deltas"),
         "command": doc["command"],
     }
     renderer = dict(results.get("renderer") or {})

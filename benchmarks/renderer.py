@@ -2,17 +2,23 @@
 
 `python -m benchmarks.renderer [--hatt-source DIR] [--seconds 10] [--repeats 5]`
 
-For a synthetic-world texture (AR order 8, MA 2) and, when HaTT's models are at hand, a HaTT model (AR 18-20,
-MA 16-18), a seeded 10 s freehand stroke is rendered by `texture_library.renderer.StreamRenderer` in blocks of
-1, 10 and 20 ms (the operator client renders 10 ms blocks), one thread. The floor: `scipy.signal.lfilter` of
-the same length with the model fixed at one operating point (no interpolation, no per-sample coefficients: the
-least an ARMA renderer can cost in Python). Also `synthesis.render` of the whole stroke at once. The best of
-`repeats` runs of each, process CPU time. Writes reports/bench/renderer.json.
+For a synthetic-world texture (AR order 8, MA 2, with bumps and taps) and, when HaTT's models are at hand, a HaTT
+model with its recorded taps (AR 18-20, MA 16-18; no bumps), a seeded 10 s freehand stroke is rendered by
+`texture_library.renderer.StreamRenderer` in blocks of 1, 10 and 20 ms (the operator client renders 10 ms blocks),
+one thread, in all four dimensions: vibration, friction, the bumps at the stroke's position and a touchdown (a
+tap) every 0.5 s at 20 mm/s. The floor: `scipy.signal.lfilter` of the same length with the model fixed at one
+operating point (no interpolation, no per-sample coefficients: the least an ARMA renderer can cost in Python).
+Also `synthesis.render` of the whole stroke at once (vibration only). The best of `repeats` runs of each,
+process CPU time. `realtime_factor` is 1 s of output over the CPU it took; `over_floor` the renderer's cost in
+units of the floor's, both measured in the same run (the ratio holds on a busy host; the factor less so).
+Writes reports/bench/renderer.json with the host's CPU model.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -20,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
-from benchmarks.report_file import write_report
+from benchmarks.report_file import machine, write_report
 from texture_library.procedural import make_world
 from texture_library.renderer import StreamRenderer
 from texture_library.synthesis import interpolate, render
@@ -30,6 +36,7 @@ from texture_library.vibration import VibrationModel
 DEFAULT_HATT = Path("../shared/data/hatt-texnet")
 OUT = Path("reports/bench/renderer.json")
 BLOCKS_MS = (1, 10, 20)
+TOUCHDOWN_MM_S = 20.0
 
 
 def cpu_us_per_s(run, seconds: float, repeats: int) -> float:
@@ -50,7 +57,11 @@ def measure(model: VibrationModel, seconds: float, repeats: int) -> dict:
     params = interpolate(model, np.array([100.0]), np.array([1.0]))
     b, a = params["ma"][0] * params["gain"][0], params["ar"][0]
     e = rng.standard_normal(n) * np.sqrt(params["variance"][0])
+    position = traj.position
+    touchdown = np.zeros(n)
+    touchdown[:: int(0.5 * model.rate_hz)] = TOUCHDOWN_MM_S
     render(model, speed[:100], force[:100], excitation=np.zeros(100))  # compile the kernels before timing
+    StreamRenderer(model).process(speed[:100], force[:100], position=position[:100], touchdown=touchdown[:100])
     floor = cpu_us_per_s(lambda: lfilter(b, a, e), seconds, repeats)
     offline = cpu_us_per_s(lambda: render(model, speed, force, rng), seconds, repeats)
     row = {
@@ -58,6 +69,9 @@ def measure(model: VibrationModel, seconds: float, repeats: int) -> dict:
         "ar_order": model.ar_order,
         "ma_order": model.ma_order,
         "grid_points": int(np.shape(model.speeds)[0]),
+        "dimensions": ["vibration", "friction"]
+        + (["bumps"] if model.surface is not None else [])
+        + (["taps"] if model.taps is not None else []),
         "floor_lfilter_us_per_s": round(floor, 1),
         "offline_render_us_per_s": round(offline, 1),
         "streaming": [],
@@ -68,7 +82,8 @@ def measure(model: VibrationModel, seconds: float, repeats: int) -> dict:
         def stream(k: int = k) -> None:
             r = StreamRenderer(model, np.random.default_rng(1))
             for lo in range(0, n, k):
-                r.process(speed[lo : lo + k], force[lo : lo + k])
+                sl = slice(lo, lo + k)
+                r.process(speed[sl], force[sl], position=position[sl], touchdown=touchdown[sl])
 
         us = cpu_us_per_s(stream, seconds, repeats)
         row["streaming"].append(
@@ -89,12 +104,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
+    load_before = os.getloadavg()
     models = [make_world(1, 0, image_size=64)[0].model]
     hatt = sorted((args.hatt_source / "models").glob("*.xml")) if args.hatt_source else []
     if hatt:
         from texture_library.hatt_xml import read_model
 
-        models.append(read_model(hatt[0]))
+        taps = args.hatt_source / "taps" / hatt[0].name
+        models.append(read_model(hatt[0], taps if taps.is_file() else None, name=hatt[0].stem))
     else:
         print(f"(no HaTT models under {args.hatt_source}: synthetic texture only)", flush=True)
     rows = [measure(m, args.seconds, args.repeats) for m in models]
@@ -114,11 +131,23 @@ def main(argv: list[str] | None = None) -> int:
         "what": "process CPU µs per second of 1 kHz output, best of repeats; floor: scipy.signal.lfilter of the "
         "same length at one fixed operating point",
         "load_average_1min_at_end": load,
+        "host": _cpu_model(),
+        "machine": machine(load_before),
         "rows": rows,
     }
     write_report(args.out, doc)
     print(f"wrote {args.out} (1-min load average {load})", flush=True)
     return 0
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what platform says."""
+    info = Path("/proc/cpuinfo")
+    if info.exists():
+        for line in info.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
 
 
 if __name__ == "__main__":

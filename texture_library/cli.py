@@ -74,7 +74,7 @@ def _render(args: argparse.Namespace) -> int:
     import numpy as np
 
     from texture_library.library import Library
-    from texture_library.synthesis import render
+    from texture_library.renderer import render_stroke
 
     if args.seconds <= 0 or args.speed < 0 or args.force < 0:
         raise ValueError("--seconds must be > 0 and --speed, --force ≥ 0")
@@ -82,7 +82,8 @@ def _render(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must end in .wav, .csv or .npy, got {Path(args.out).name!r}")
     model = Library.load(args.library).model(args.id)
     n = int(round(args.seconds * model.rate_hz))
-    accel = render(model, np.full(n, args.speed), np.full(n, args.force), np.random.default_rng(args.seed))
+    excitation = np.random.default_rng(args.seed).standard_normal(n)  # what `synthesis.render` would draw
+    accel = render_stroke(model, np.full(n, args.speed), np.full(n, args.force), excitation=excitation)
     out = Path(args.out)
     if out.suffix == ".wav":
         from scipy.io import wavfile

@@ -3,10 +3,17 @@
 A served model (`texture_library.render_model.RenderModel`, JSON) spends ≈ 20 characters on each float.
 This encoding keeps what rendering needs and quantises it:
 
-- LSFs: each row's frequencies as integer codes on a uniform grid of 2^bits steps over (0, π), strictly
-  increasing (a collision is pushed one step up, so every decoded row is a valid, minimum-phase LSF set),
-  then stored as first differences (small numbers, alike from one grid point to the next);
-- grid speeds and forces, √variance and gain as float16 (0.05 % relative error: ≈ 0.004 dB of level);
+- LSFs: each row as the gaps between adjacent frequencies (the first from 0), each gap coded on a logarithmic
+  scale — step ρ = 2^(3 − bits) relative to the gap (1/256 at 11 bits), from GAP_FLOOR_RAD up — and taken from
+  the previous frequency *as decoded* (closed loop), so errors never add up along a row. A close pair of LSFs
+  is a root near the unit circle, a sharp resonance or a deep notch whose depth follows the pair's gap: a
+  uniform step (the old coding, 2^11 steps over (0, π)) rounded gaps narrower than one step to one step, and
+  moved HaTT's notches by up to 1.48 dB at the models' own grid points (textured_metal); coded relative to
+  the gap, the depth keeps ≈ ρ/2 of its width. Every decoded row is strictly increasing inside (0, π): a valid,
+  minimum-phase LSF set;
+- grid speeds and forces as float32: a grid point moved by float16's rounding (1.2328 N → 1.2324 on
+  plastic_mesh_2) moves the interpolation near it — 0.75 dB at that model's own point;
+- √variance and gain as float16 (0.05 % relative error: ≈ 0.004 dB of level);
 - μ and the grid's range as float32; triangles as uint8 (uint16 beyond 255 grid points);
 - the whole body deflated (zlib).
 
@@ -16,15 +23,18 @@ what it decodes under the version window events name. Decoding gives a RenderMod
 `model_version` is that of the quantised content. What quantisation adds to the spectra is measured by
 `python -m benchmarks.bandwidth` (log-spectral distance, texture_library.spectrum).
 
-Layout (little-endian): b"HLM1", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
+Layout (little-endian): b"HLM2", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
 (1: surface present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source version,
 f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
-f16 speeds (m), f16 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
-AR codes (m × p, u16 first differences), MA codes (m × q, same).
+f32 speeds (m), f32 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
+AR codes (m × p, u16 gap codes), MA codes (m × q, same). A delta (`encode_delta`): b"HLD2", 8 bytes naming the
+base payload (SHA-256), then the same body deflated with the base's body as the preset dictionary. b"HLM1" (the
+uniform coding before) is refused by name.
 """
 
 from __future__ import annotations
 
+import hashlib
 import struct
 import zlib
 
@@ -32,34 +42,98 @@ import numpy as np
 
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel, content_version
 
-MAGIC = b"HLM1"
+MAGIC = b"HLM2"
+#: a model sent as a delta against an earlier payload (`encode_delta`)
+DELTA_MAGIC = b"HLD2"
+#: the previous layout (uniform LSF codes): refused by name
+OLD_MAGIC = b"HLM1"
 CONTENT_TYPE = "application/x-hapticlink-model"
-#: default LSF resolution: 2^11 steps over (0, π) (≈ 0.24 Hz at 1 kHz): ≤ 0.31 dB added on each HaTT model at the
-#: nine operating points of texture_library.spectrum (not measured elsewhere on its grid), where 10 bits added up
-#: to 0.97 dB (4 of 100 over 0.5 dB)
+#: default LSF resolution: gaps coded to a relative step of 2^(3 − 11) = 1/256
 LSF_BITS = 11
+#: the narrowest gap between adjacent LSFs the coding holds, rad (code 0); a narrower one decodes to this
+GAP_FLOOR_RAD = 1e-6
+
+
+def _gap_step(bits: int) -> float:
+    """ln(1 + ρ), ρ = 2^(3 − bits): the width of one gap code on the log scale."""
+    if not 4 <= bits <= 15:
+        raise ValueError(f"bits must lie in [4, 15], got {bits}")
+    return float(np.log1p(2.0 ** (3 - bits)))
 
 
 def quantise_lsf(lsf: np.ndarray, bits: int) -> np.ndarray:
-    """(m, p) LSFs in (0, π) → (m, p) int codes in [1, 2^bits − 1], strictly increasing along each row."""
-    if not 4 <= bits <= 16:
-        raise ValueError(f"bits must lie in [4, 16], got {bits}")
-    levels = 1 << bits
+    """(m, p) LSFs in (0, π) → (m, p) int gap codes in [0, 65535] (see the module: log scale, closed loop)."""
+    step = _gap_step(bits)
     lsf = np.asarray(lsf, float)
-    codes = np.clip(np.rint(lsf / np.pi * levels), 1, levels - 1).astype(np.int64)
-    for j in range(1, codes.shape[1]):  # keep the order: a collision moves one step up
-        codes[:, j] = np.maximum(codes[:, j], codes[:, j - 1] + 1)
-    if codes.size and codes.max() > levels - 1:
-        raise ValueError(f"{lsf.shape[1]} LSFs per row do not fit {bits}-bit codes with distinct values")
+    m, p = lsf.shape
+    codes = np.zeros((m, p), np.int64)
+    decoded = np.zeros(m)  # the previous frequency as the decoder will have it
+    for j in range(p):
+        gap = np.maximum(lsf[:, j] - decoded, GAP_FLOOR_RAD)
+        code = np.clip(np.rint(np.log(gap / GAP_FLOOR_RAD) / step), 0, 65535).astype(np.int64)
+        # the row must stay inside (0, π) with room for the gaps still to come
+        room = np.pi - (p - 1 - j) * GAP_FLOOR_RAD
+        while True:
+            over = decoded + GAP_FLOOR_RAD * np.exp(code * step) >= room
+            if not over.any():
+                break
+            if np.any(code[over] == 0):
+                raise ValueError(f"{p} LSFs per row do not fit inside (0, π) at gaps of at least {GAP_FLOOR_RAD} rad")
+            code[over] -= 1
+        codes[:, j] = code
+        decoded = decoded + GAP_FLOOR_RAD * np.exp(code * step)
     return codes
 
 
 def dequantise_lsf(codes: np.ndarray, bits: int) -> np.ndarray:
-    return np.asarray(codes, float) * np.pi / (1 << bits)
+    """(m, p) gap codes → (m, p) LSFs, rad: the running sum of the decoded gaps (as `quantise_lsf` decodes them)."""
+    step = _gap_step(bits)
+    codes = np.asarray(codes, np.int64)
+    out = np.zeros(codes.shape)
+    decoded = np.zeros(codes.shape[0])
+    for j in range(codes.shape[1]):  # the encoder's own order of additions: the same doubles
+        decoded = decoded + GAP_FLOOR_RAD * np.exp(codes[:, j] * step)
+        out[:, j] = decoded
+    return out
 
 
 def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
     """The compact payload of `model` (see the module's layout)."""
+    return MAGIC + zlib.compress(_body(model, bits), 9)
+
+
+def encode_delta(model: RenderModel, base: bytes, bits: int = LSF_BITS) -> bytes:
+    """`model` as a delta against `base`, a compact payload the receiver holds (an earlier version of the same
+    surface): the body deflated with the base's body as the preset dictionary, so what did not change — the grid,
+    the rows of the regions no new data reached — costs a few bytes. b"HLD2", the first 8 bytes of the SHA-256 of
+    `base`, then the deflated body. ValueError if `base` is not a compact payload."""
+    zdict = _inflate(base)[-32768:]  # deflate's window
+    co = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY, zdict=zdict)
+    return DELTA_MAGIC + _digest(base) + co.compress(_body(model, bits)) + co.flush()
+
+
+def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel]:
+    """A delta payload and the base it was made against → as `decode`. ValueError naming the problem, also when
+    the base is not the one the delta was made against."""
+    if payload[:4] != DELTA_MAGIC:
+        raise ValueError(f"not a compact rendering model delta (starts {payload[:4]!r}, expected {DELTA_MAGIC!r})")
+    if payload[4:12] != _digest(base):
+        raise ValueError(
+            f"the delta was made against base {payload[4:12].hex()}, not the one held ({_digest(base).hex()})"
+        )
+    zdict = _inflate(base)[-32768:]
+    try:
+        body = zlib.decompressobj(zdict=zdict).decompress(payload[12:], MAX_RENDER_MODEL_BYTES)
+    except zlib.error as exc:
+        raise ValueError(f"compact rendering model delta: the body does not inflate ({exc})") from None
+    return _parse_checked(body)
+
+
+def _digest(payload: bytes) -> bytes:
+    return hashlib.sha256(payload).digest()[:8]
+
+
+def _body(model: RenderModel, bits: int) -> bytes:
     m, p, q = len(model.speeds_mm_s), len(model.ar_lsf[0]), len(model.ma_lsf[0])
     ar = quantise_lsf(np.asarray(model.ar_lsf, float).reshape(m, p), bits)
     ma = quantise_lsf(np.asarray(model.ma_lsf, float).reshape(m, q), bits)
@@ -74,24 +148,36 @@ def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
     ]
     if model.surface is not None:
         parts.append(struct.pack("<dd", model.surface.bump_height_mm, model.surface.bump_period_mm))
-    for values in (model.speeds_mm_s, model.forces_n, np.sqrt(model.variance), model.gain):
-        parts.append(np.asarray(values, "<f2").tobytes())
+    parts += [np.asarray(v, "<f4").tobytes() for v in (model.speeds_mm_s, model.forces_n)]
+    parts += [np.asarray(v, "<f2").tobytes() for v in (np.sqrt(model.variance), model.gain)]
     parts.append(tri.astype("<u1" if m <= 255 else "<u2").tobytes())
     for codes in (ar, ma):
-        parts.append(np.diff(codes, axis=1, prepend=0).astype("<u2").tobytes())
-    return MAGIC + zlib.compress(b"".join(parts), 9)
+        parts.append(codes.astype("<u2").tobytes())
+    return b"".join(parts)
 
 
 def decode(payload: bytes) -> tuple[str, RenderModel]:
     """A compact payload → (the source JSON document's model_version, the decoded RenderModel).
 
     ValueError naming the problem for anything that is not a well-formed payload or model."""
+    return _parse_checked(_inflate(payload))
+
+
+def _inflate(payload: bytes) -> bytes:
+    """The body of a compact payload; ValueError naming the problem."""
+    if payload[:4] == OLD_MAGIC:
+        raise ValueError(
+            f"compact rendering model of the old layout {OLD_MAGIC!r} (uniform LSF codes); this client reads {MAGIC!r}"
+        )
     if payload[:4] != MAGIC:
         raise ValueError(f"not a compact rendering model (starts {payload[:4]!r}, expected {MAGIC!r})")
     try:
-        body = zlib.decompressobj().decompress(payload[4:], MAX_RENDER_MODEL_BYTES)
+        return zlib.decompressobj().decompress(payload[4:], MAX_RENDER_MODEL_BYTES)
     except zlib.error as exc:
         raise ValueError(f"compact rendering model: the body does not inflate ({exc})") from None
+
+
+def _parse_checked(body: bytes) -> tuple[str, RenderModel]:
     try:
         return _parse(body)
     except (struct.error, IndexError, UnicodeDecodeError) as exc:
@@ -117,11 +203,14 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
     if flags & 1:
         h, period = struct.unpack("<dd", take(16))
         surface = {"bump_height_mm": float(h), "bump_period_mm": float(period)}
-    speeds, forces, std, gain = (np.frombuffer(take(2 * m), "<f2").astype(float) for _ in range(4))
+    speeds, forces = (np.frombuffer(take(4 * m), "<f4").astype(float) for _ in range(2))
+    std, gain = (np.frombuffer(take(2 * m), "<f2").astype(float) for _ in range(2))
     width = 1 if m <= 255 else 2
     tri = np.frombuffer(take(3 * t * width), "<u1" if width == 1 else "<u2").astype(np.int64).reshape(t, 3)
-    ar = np.cumsum(np.frombuffer(take(2 * m * p), "<u2").astype(np.int64).reshape(m, p), axis=1)
-    ma = np.cumsum(np.frombuffer(take(2 * m * q), "<u2").astype(np.int64).reshape(m, q), axis=1)
+    if not 4 <= bits <= 15:
+        raise ValueError(f"compact rendering model: LSF bits {bits} outside [4, 15]")
+    ar = np.frombuffer(take(2 * m * p), "<u2").astype(np.int64).reshape(m, p)
+    ma = np.frombuffer(take(2 * m * q), "<u2").astype(np.int64).reshape(m, q)
     if pos != len(body):
         raise ValueError(f"compact rendering model: {len(body) - pos} unexpected bytes at the end")
     content = {

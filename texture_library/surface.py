@@ -68,9 +68,17 @@ class SurfaceProfile:
             raise ValueError(f"position and velocity must be 1-D of equal length, got {x.shape} and {v.shape}")
         if x.size < 2:
             return np.zeros(x.size)
+        return self.accel_at(x, v, np.gradient(v) * rate_hz)
+
+    def accel_at(self, position: np.ndarray, velocity: np.ndarray, dvelocity: np.ndarray) -> np.ndarray:
+        """z''(x)·v² + z'(x)·v̇ (n,) m/s² from position (n,) mm, velocity (n,) mm/s and its derivative (n,) mm/s².
+
+        The one formula of the bump train: `normal_accel` (the robot's stroke, derivatives by central differences)
+        and the operator's renderer (texture_library.renderer, backward differences carried across blocks) both
+        evaluate it."""
+        x, v, dv = (np.asarray(a, float) for a in (position, velocity, dvelocity))
         k = 2 * np.pi / self.bump_period_mm
         half = 0.5 * self.bump_height_mm
         dz = -half * k * np.sin(k * x)  # z'(x), mm/mm
         d2z = -half * k * k * np.cos(k * x)  # z''(x), 1/mm
-        dv = np.gradient(v) * rate_hz  # mm/s²
         return (d2z * v * v + dz * dv) * MM_TO_M

@@ -67,8 +67,43 @@ def barycentric(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> 
     return idx, w
 
 
-def interpolate(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-point ARMA parameters: AR/MA coefficients (n, p+1)/(n, q+1), variance (n,), gain (n,)."""
+def quietest_point(model: VibrationModel) -> tuple[float, float, float] | None:
+    """(speed mm/s, force N, variance (m/s²)²) of the grid point with the smallest non-zero variance (the first of
+    equals); None when every point's variance is 0."""
+    variance = np.asarray(model.variance, float)
+    live = np.flatnonzero(variance > 0)
+    if live.size == 0:
+        return None
+    k = int(live[np.argmin(variance[live])])
+    return float(model.speeds[k]), float(model.forces[k]), float(variance[k])
+
+
+def corner_floor(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """The least variance (n,) the operator's renderer plays at (speed, force): v_r·min(1, s/s_r)²·min(1, f/f_r), with
+    (s_r, f_r, v_r) the model's quietest vibrating grid point (`quietest_point`) and s, f clamped to the grid's range.
+
+    Why: a grid whose edge rows (speed 0, force 0) hold no vibration has triangles between them whose three
+    corners are all silent — the synthetic world's cell below 87.5 mm/s and 1.25 N — so plain barycentric blending
+    is silent over a whole region where the surface does vibrate. The floor lets the level there fall smoothly
+    towards the silent edges instead (amplitude ∝ speed, power ∝ force); it never binds where every corner of
+    the triangle vibrates (a blend is at least its smallest corner), so HaTT's models render as before."""
+    s = np.clip(np.asarray(speed, float), 0.0, model.max_speed)
+    f = np.clip(np.asarray(force, float), 0.0, model.max_force)
+    ref = quietest_point(model)
+    if ref is None:
+        return np.zeros(s.shape)
+    s_r, f_r, v_r = ref
+    rs = np.minimum(1.0, s / s_r) if s_r > 0 else np.ones(s.shape)
+    rf = np.minimum(1.0, f / f_r) if f_r > 0 else np.ones(f.shape)
+    return v_r * (rs * rs) * rf
+
+
+def interpolate(
+    model: VibrationModel, speed: np.ndarray, force: np.ndarray, *, floor: bool = False
+) -> dict[str, np.ndarray]:
+    """Per-point ARMA parameters: AR/MA coefficients (n, p+1)/(n, q+1), variance (n,), gain (n,).
+
+    floor: raise the variance to `corner_floor` (the operator's renderer does; the robot's world does not)."""
     idx, w = barycentric(model, speed, force)
 
     def mix(arr: np.ndarray) -> np.ndarray:
@@ -77,11 +112,14 @@ def interpolate(model: VibrationModel, speed: np.ndarray, force: np.ndarray) -> 
             return np.einsum("nk,nk->n", w, arr[idx])
         return _mix(w, idx, arr)
 
+    variance = np.maximum(mix(model.variance), 0.0)
+    if floor:
+        variance = np.maximum(variance, corner_floor(model, speed, force))
     return {
         # The model's rows were checked when it was made; their blends need no second check.
         "ar": poly_from_checked_lsf(mix(model.ar_lsf)),
         "ma": poly_from_checked_lsf(mix(model.ma_lsf)),
-        "variance": np.maximum(mix(model.variance), 0.0),
+        "variance": variance,
         "gain": mix(model.gain),
     }
 

@@ -293,7 +293,7 @@ class OperatorClient:
             self._emit(np.zeros(motion.speed.size), np.zeros(motion.speed.size), True)
             return
         try:
-            out = self.renderer.process(motion.speed, motion.force)
+            out = self.renderer.process(motion.speed, motion.force, position=motion.position)
         except ValueError as exc:  # a glitch in the device's data: this block is silent, the next one renders
             log.error("the device sent a bad block (%s); it is rendered as silence", exc)
             self._emit(np.zeros(motion.speed.size), np.zeros(motion.speed.size), True)

@@ -29,10 +29,12 @@ RATE_HZ = 1000.0
 
 @dataclass(frozen=True)
 class Motion:
-    """speed: (n,) mm/s (≥ 0); force: (n,) normal force, N; at RATE_HZ."""
+    """speed: (n,) mm/s (≥ 0); force: (n,) normal force, N; position: (n,) mm along the surface's x axis (where the
+    bumps are felt) or None for a device that reports none; at RATE_HZ."""
 
     speed: np.ndarray
     force: np.ndarray
+    position: np.ndarray | None = None
 
 
 async def paced(speed: np.ndarray, force: np.ndarray, block_s: float, realtime: bool) -> AsyncIterator[Motion]:
@@ -132,6 +134,10 @@ def motion_of(block: SampleBlock) -> Motion:
     f = ch["force"]
     force = np.asarray(f.data, float) * UNIT_SCALE["force"][f.units]
     force = force if force.ndim == 1 else force[:, -1]
+    position = None
+    if "position" in ch:
+        p = ch["position"]
+        position = np.asarray(p.data, float).reshape(len(p.data), -1)[:, 0] * UNIT_SCALE["position"][p.units]
     if "speed" in ch:
         s = ch["speed"]
         speed = np.abs(np.asarray(s.data, float).ravel()) * UNIT_SCALE["speed"][s.units]
@@ -140,7 +146,7 @@ def motion_of(block: SampleBlock) -> Motion:
         pos = np.asarray(p.data, float).reshape(len(p.data), -1) * UNIT_SCALE["position"][p.units]
         speed = np.linalg.norm(np.gradient(pos, axis=0), axis=1) * RATE_HZ if len(pos) > 1 else np.zeros(len(pos))
     n = min(speed.size, force.size)
-    return Motion(speed[:n], force[:n])
+    return Motion(speed[:n], force[:n], None if position is None else position[:n])
 
 
 class SerialDevice:

@@ -1,12 +1,13 @@
 // hapticlink texture renderer for the operator console: an AudioWorklet that synthesises a served rendering model
 // (GET /library/{id}/model, schema "hapticlink.render-model" v1) from the operator's speed and force.
 //
-// Rendering semantics are those of texture_library/synthesis.py `render`, sample for sample at the model's rate
-// (1 kHz): clamp speed to [0, max_speed] and force to [0, max_force]; find the enclosing triangle of the
+// Rendering semantics are those of the operator's Python renderer (texture_library/renderer.py StreamRenderer),
+// sample for sample at the model's rate (1 kHz): clamp speed to [0, max_speed] and force to [0, max_force]; find the enclosing triangle of the
 // (speed, force) grid with both axes normalised by their max (a point outside every triangle takes the one it is
 // least outside of, weights clipped ≥ 0 and renormalised); interpolate ar_lsf, ma_lsf, variance and gain
-// barycentrically; LSF → polynomial (texture_library/lsf.py); then
-//     y[n] = Σ_j gain·ma[j]·e[n−j] − Σ_{i≥1} ar[i]·y[n−i],   e[n] = N(0, 1)·√variance.
+// barycentrically; LSF → polynomial (texture_library/lsf.py); then, poles first (renderer.py arma_poles_first:
+// the same filter as synthesis.py render's direct form, without its bursts when the coefficients move fast)
+//     w[n] = e[n] − Σ_{i≥1} ar[i]·w[n−i],   y[n] = Σ_j gain·ma[j]·w[n−j],   e[n] = N(0, 1)·√variance.
 //
 // From the model's rate to the AudioContext's rate (44.1 kHz, 48 kHz, …): band-limited interpolation with a
 // Kaiser-windowed sinc of RESAMPLE_HALF_WIDTH source samples on each side, cut off at the source's Nyquist
@@ -17,15 +18,32 @@
 // stream is recovered exactly by taking those samples. The kernel is tabulated at 1/512 of a source sample and
 // interpolated linearly (error < 1e-5 of full scale).
 //
+// The four dimensions, as texture_library/renderer.py renders them (StreamRenderer; the same arithmetic):
+// - vibration: the ARMA model above, its variance held at or above the corner floor v_r·min(1, s/s_r)²·min(1, f/f_r)
+//   ((s_r, f_r, v_r): the grid point with the smallest non-zero variance, texture_library/synthesis.py corner_floor),
+//   so a grid corner whose three points are silent does not silence a slow stroke;
+// - bumps: the model's surface profile z(x) = h·(1 + cos 2πx/P)/2 felt as z''(x)·v² + z'(x)·v̇ (m/s², ×1e-3) at the
+//   operator's position x (mm), with v and v̇ by backward differences (at the first position the tool is at rest);
+// - taps: at a touchdown (the contact speed, mm/s), the recorded tap nearest that speed (the first of equals)
+//   scaled by contact speed / its recorded speed, played out whole;
+// - friction is the device's (μ·F); a sound card cannot render it.
+// A `trajectory` (speed, force, position and touchdown per 1 kHz sample) is rendered exactly so, sample for sample
+// (no smoothing, no gate): the parity tests feed the same trajectory to both renderers.
+//
 // On top of the renderer, as the console's input conditioning (none of it changes the synthesis):
 // - a model switch is crossfaded (equal power, `crossfade_ms`, 50 ms by default) between two renderers that run
 //   side by side; the incoming one is pre-rolled for PREROLL_SAMPLES at the current speed and force so its filter
 //   state is settled when it becomes audible;
 // - speed and force are smoothed with a one-pole filter (`smoothing_ms`, 15 ms by default; 0 = none);
 // - a contact gate: silent while the pad is not touched, ramping in and out over 5 ms; at speeds under
-//   GATE_SPEED_MM_S the output fades in proportion to speed (a finger held still makes no vibration);
+//   GATE_SPEED_MM_S the vibration and bumps fade in proportion to speed (a finger held still makes no vibration);
+//   taps are not gated (a touchdown is at speed 0);
+// - the position along the bumps (the pad's x axis, mm) is smoothed by two such one-pole stages in a row, so the
+//   velocity the bumps read is continuous between the page's control messages; a touch starts at its own
+//   position (no sweep from the last one), at rest;
+// - a touch (contact going from off to on) taps at the control message's `touchdown_mm_s`;
 // - acceleration (m/s²) is scaled to the audio signal by `full_scale` (the acceleration that maps to ±1; 40 m/s² by
-//   default, as `hapticlink operator --full-scale`: a firm stroke of a rough texture stays clear of clipping) and
+//   default, as `hapticlink operator --full-scale`; the console page sets its own) and
 //   clipped to ±1; the level messages say what share of their samples clipped.
 //
 // The file also runs outside an AudioWorklet (a page or a test can import the classes): the processor is
@@ -44,6 +62,8 @@ const GATE_SPEED_MM_S = 5.0;
 const GATE_RAMP_MS = 5.0;
 const MAX_GRID_POINTS = 4096;
 const MAX_ORDER = 128;
+const MAX_TAPS = 64;
+const MAX_TAP_SAMPLES = 4096;
 
 // ---- the model ---------------------------------------------------------------------------------------------------
 function fail(message) {
@@ -106,11 +126,62 @@ function parseModel(json) {
   if (!(maxSpeed > 0 && Number.isFinite(maxSpeed))) fail("max_speed_mm_s must be > 0");
   if (!(maxForce > 0 && Number.isFinite(maxForce))) fail("max_force_n must be > 0");
   if (!(Number.isInteger(rate) && rate >= 100 && rate <= 20000)) fail(`rate_hz must be a whole number of Hz in [100, 20000], got ${rate}`);
+  let surface = null;
+  if (json.surface !== null && json.surface !== undefined) {
+    const h = json.surface.bump_height_mm, period = json.surface.bump_period_mm;
+    if (!(Number.isFinite(h) && h >= 0)) fail("surface.bump_height_mm must be a finite number ≥ 0");
+    if (!(Number.isFinite(period) && period > 0)) fail("surface.bump_period_mm must be a finite number > 0");
+    surface = {height: h, period};
+  }
+  let taps = null;
+  if (json.taps !== null && json.taps !== undefined) {
+    const tapSpeeds = finiteArray(json.taps.speeds_mm_s, "taps.speeds_mm_s");
+    const k = tapSpeeds.length;
+    if (k < 1 || k > MAX_TAPS) fail(`taps must hold 1 to ${MAX_TAPS} transients, got ${k}`);
+    if (!Array.isArray(json.taps.accel) || json.taps.accel.length !== k) fail(`taps.accel must have ${k} rows`);
+    const width = Array.isArray(json.taps.accel[0]) ? json.taps.accel[0].length : -1;
+    if (width < 1 || width > MAX_TAP_SAMPLES) fail(`taps.accel rows must hold 1 to ${MAX_TAP_SAMPLES} samples`);
+    taps = {speeds: tapSpeeds, accel: json.taps.accel.map((row, i) => finiteArray(row, `taps.accel[${i}]`, width))};
+  }
+  // the quietest vibrating grid point: the corner floor's reference (synthesis.py quietest_point)
+  let quiet = null;
+  for (let i = 0; i < m; i++) if (variance[i] > 0 && (quiet === null || variance[i] < variance[quiet])) quiet = i;
   return {
     id: String(json.id), modelVersion: String(json.model_version), name: String(json.name),
     rateHz: rate, speeds, forces, triangles, arLsf: ar.data, p: ar.order, maLsf: ma.data, q: ma.order,
-    variance, gain, maxSpeed, maxForce, mu: Number(json.mu),
+    variance, gain, maxSpeed, maxForce, mu: Number(json.mu), surface, taps,
+    floorRef: quiet === null ? null : {speed: speeds[quiet], force: forces[quiet], variance: variance[quiet]},
   };
+}
+
+/** The least variance played at (speed, force): texture_library/synthesis.py corner_floor. */
+function cornerFloor(model, speed, force) {
+  const ref = model.floorRef;
+  if (ref === null) return 0;
+  const s = Math.min(Math.max(speed, 0), model.maxSpeed), f = Math.min(Math.max(force, 0), model.maxForce);
+  const rs = ref.speed > 0 ? Math.min(1, s / ref.speed) : 1, rf = ref.force > 0 ? Math.min(1, f / ref.force) : 1;
+  return ref.variance * (rs * rs) * rf;
+}
+
+/** Bump acceleration z''(x)·v² + z'(x)·v̇, m/s², of a surface {height, period} (texture_library/surface.py accel_at). */
+function bumpAccel(surface, x, v, dv) {
+  const k = (2 * Math.PI) / surface.period, half = 0.5 * surface.height;
+  const dz = -half * k * Math.sin(k * x), d2z = -half * k * k * Math.cos(k * x);
+  return (d2z * v * v + dz * dv) * 1e-3;
+}
+
+/** The tap played at a touchdown at contactSpeed mm/s (texture_library/renderer.py tap_transient), or null. */
+function tapTransient(model, contactSpeed) {
+  const taps = model.taps;
+  if (taps === null || !(contactSpeed > 0) || model.rateHz !== 1000) return null;
+  let best = 0;
+  for (let i = 1; i < taps.speeds.length; i++) {
+    if (Math.abs(taps.speeds[i] - contactSpeed) < Math.abs(taps.speeds[best] - contactSpeed)) best = i;
+  }
+  const scale = taps.speeds[best] > 0 ? contactSpeed / taps.speeds[best] : 1;
+  const row = taps.accel[best], out = new Float64Array(row.length);
+  for (let i = 0; i < row.length; i++) out[i] = scale * row[i];
+  return out;
 }
 
 // ---- the maths of texture_library/synthesis.py and lsf.py -------------------------------------------------------
@@ -194,8 +265,7 @@ function lsfToPoly(lsf) {
 class ArmaVoice {
   constructor(model) {
     this.model = model;
-    this.y = new Float64Array(Math.max(model.p, 1)); // y[n−1 … n−p], newest first
-    this.e = new Float64Array(model.q + 1); // scaled excitation e[n … n−q], newest first
+    this.w = new Float64Array(Math.max(model.p, model.q, 1) + 1); // w[n … n−L], newest first
     this.n = 0;
     this.lastSpeed = NaN; this.lastForce = NaN;
     this.ar = new Float64Array(model.p + 1); this.bma = new Float64Array(model.q + 1); this.sd = 0;
@@ -216,23 +286,21 @@ class ArmaVoice {
     const g = w[0] * m.gain[idx[0]] + w[1] * m.gain[idx[1]] + w[2] * m.gain[idx[2]];
     for (let j = 0; j < ma.length; j++) ma[j] *= g;
     const v = w[0] * m.variance[idx[0]] + w[1] * m.variance[idx[1]] + w[2] * m.variance[idx[2]];
-    this.sd = Math.sqrt(Math.max(v, 0));
+    this.sd = Math.sqrt(Math.max(v, 0, cornerFloor(m, speed, force)));
     this.lastSpeed = speed; this.lastForce = force;
   }
 
   step(speed, force, unitNormal) {
     if (speed !== this.lastSpeed || force !== this.lastForce) this.parameters(speed, force);
-    const e = this.e, y = this.y, p = this.model.p, q = this.model.q;
-    for (let j = q; j > 0; j--) e[j] = e[j - 1];
-    e[0] = unitNormal * this.sd;
-    let acc = 0.0;
-    const qn = Math.min(q, this.n), pn = Math.min(p, this.n);
-    for (let j = 0; j <= qn; j++) acc += this.bma[j] * e[j];
-    for (let i = 1; i <= pn; i++) acc -= this.ar[i] * y[i - 1];
-    for (let i = p - 1; i > 0; i--) y[i] = y[i - 1];
-    if (p > 0) y[0] = acc;
+    const w = this.w, p = this.model.p, q = this.model.q;
+    for (let j = w.length - 1; j > 0; j--) w[j] = w[j - 1]; // w[1 …] now hold w[n−1 …]
+    let acc = unitNormal * this.sd;
+    for (let i = 1; i <= p; i++) acc -= this.ar[i] * w[i];
+    w[0] = acc;
+    let out = 0.0;
+    for (let j = 0; j <= q; j++) out += this.bma[j] * w[j];
     this.n++;
-    return acc;
+    return out;
   }
 }
 
@@ -325,9 +393,21 @@ class Resampler {
 }
 
 // ---- the console's renderer: switches, input conditioning, gate ---------------------------------------------------
+/** A trajectory option checked: {n, speed, force, position|null, touchdown|null} as Float64Arrays. */
+function checkTrajectory(tr) {
+  const speed = finiteArray(tr.speed_mm_s, "trajectory.speed_mm_s"), n = speed.length;
+  if (n < 1) throw new Error("trajectory: speed_mm_s is empty");
+  const force = finiteArray(tr.force_n, "trajectory.force_n", n);
+  const position = tr.position_mm ? finiteArray(tr.position_mm, "trajectory.position_mm", n) : null;
+  const touchdown = tr.touchdown_mm_s ? finiteArray(tr.touchdown_mm_s, "trajectory.touchdown_mm_s", n) : null;
+  return {n, speed, force, position, touchdown};
+}
+
 class TextureRenderer {
   /** options: {seed, excitation (unit normals to use first, for reproducing a Python render), speed_mm_s, force_n,
-   *  contact, smoothing_ms, crossfade_ms, full_scale (m/s² at ±1)}. */
+   *  position_mm, contact, touchdown_mm_s, smoothing_ms, crossfade_ms, full_scale (m/s² at ±1), trajectory:
+   *  {speed_mm_s, force_n, position_mm?, touchdown_mm_s?} (arrays, one entry per 1 kHz sample, rendered as given
+   *  with neither smoothing nor gate; after its end the last speed and force hold, still without a gate)}. */
   constructor(outputRate, options = {}) {
     this.outputRate = outputRate;
     this.rateHz = 1000; // until a model says otherwise
@@ -338,6 +418,14 @@ class TextureRenderer {
     this.targetSpeed = this.speed; this.targetForce = this.force;
     this.contact = !!options.contact;
     this.gate = this.gateTarget();
+    this.trajectory = options.trajectory ? checkTrajectory(options.trajectory) : null;
+    // position along the bumps (mm): the target, two smoothing stages; null until a position is known
+    this.targetPosition = Number.isFinite(options.position_mm) ? options.position_mm : null;
+    this.p1 = this.targetPosition; this.position = this.targetPosition;
+    this.lastX = null; this.lastV = 0; // backward differences: the sample before (at rest at the first position)
+    this.touchdown = Number.isFinite(options.touchdown_mm_s) ? options.touchdown_mm_s : 0;
+    this.tapNow = this.contact && this.touchdown > 0; // a renderer made in contact starts with its touchdown
+    this.taps = []; // sounding taps: {data, at}
     this.smoothingMs = options.smoothing_ms === undefined ? 15 : options.smoothing_ms;
     this.crossfadeMs = options.crossfade_ms === undefined ? 50 : options.crossfade_ms;
     this.fullScale = options.full_scale || FULL_SCALE;
@@ -365,10 +453,33 @@ class TextureRenderer {
     this.pending.push({ model, atSample: atSample === undefined ? this.sample : atSample, crossfadeMs });
   }
 
-  control(speed, force, contact) {
+  control(speed, force, contact, position, touchdown) {
     if (Number.isFinite(speed)) this.targetSpeed = Math.max(0, speed);
     if (Number.isFinite(force)) this.targetForce = Math.max(0, force);
-    if (contact !== undefined) this.contact = !!contact;
+    if (Number.isFinite(touchdown)) this.touchdown = Math.max(0, touchdown);
+    const touching = contact === undefined ? this.contact : !!contact;
+    if (touching && !this.contact) {
+      this.tapNow = this.touchdown > 0;
+      this.p1 = null; this.position = null; // a touch starts where it lands, at rest
+    }
+    this.contact = touching;
+    if (Number.isFinite(position)) this.targetPosition = position;
+  }
+
+  /** The next position (mm) and its backward-difference velocity (mm/s) and acceleration (mm/s²), or null. */
+  motion(x) {
+    if (x === null) { this.lastX = null; this.lastV = 0; return null; }
+    const x0 = this.lastX === null ? x : this.lastX, v0 = this.lastX === null ? 0 : this.lastV;
+    const v = (x - x0) * this.rateHz, dv = (v - v0) * this.rateHz;
+    this.lastX = x; this.lastV = v;
+    return {x, v, dv};
+  }
+
+  /** One voice's sample: its vibration plus its model's bumps at `m` (null: no position). */
+  voiceSample(voice, unitNormal, m) {
+    let y = voice.step(this.speed, this.force, unitNormal);
+    if (m !== null && voice.model.surface !== null) y += bumpAccel(voice.model.surface, m.x, m.v, m.dv);
+    return y;
   }
 
   startSwitch(item) {
@@ -399,21 +510,48 @@ class TextureRenderer {
   /** One source-rate sample (m/s², after crossfade and gate; before full-scale). */
   sourceSample() {
     while (this.pending.length && this.pending[0].atSample <= this.sample) this.startSwitch(this.pending.shift());
-    const alpha = this.smoothingMs > 0 ? 1 - Math.exp(-1000 / (this.rateHz * this.smoothingMs)) : 1;
-    this.speed += alpha * (this.targetSpeed - this.speed);
-    this.force += alpha * (this.targetForce - this.force);
-    const ramp = 1000 / (this.rateHz * GATE_RAMP_MS), target = this.gateTarget();
-    this.gate += Math.max(-ramp, Math.min(ramp, target - this.gate));
+    const tr = this.trajectory;
+    let x = null, touchdown = 0;
+    if (tr !== null) {
+      const k = Math.min(this.sample, tr.n - 1), inside = this.sample < tr.n;
+      this.speed = tr.speed[k]; this.force = tr.force[k]; this.gate = 1;
+      x = tr.position === null || !inside ? null : tr.position[k];
+      touchdown = tr.touchdown === null || !inside ? 0 : tr.touchdown[k];
+    } else {
+      const alpha = this.smoothingMs > 0 ? 1 - Math.exp(-1000 / (this.rateHz * this.smoothingMs)) : 1;
+      this.speed += alpha * (this.targetSpeed - this.speed);
+      this.force += alpha * (this.targetForce - this.force);
+      const ramp = 1000 / (this.rateHz * GATE_RAMP_MS), target = this.gateTarget();
+      this.gate += Math.max(-ramp, Math.min(ramp, target - this.gate));
+      if (this.contact && this.targetPosition !== null) {
+        if (this.position === null) { this.p1 = this.targetPosition; this.position = this.targetPosition; }
+        this.p1 += alpha * (this.targetPosition - this.p1);
+        this.position += alpha * (this.p1 - this.position);
+        x = this.position;
+      }
+      if (this.tapNow) { touchdown = this.touchdown; this.tapNow = false; }
+    }
+    const m = this.motion(x);
     this.sample++;
     if (this.voice === null) return 0;
-    let y = this.voice.step(this.speed, this.force, this.unitNormal());
+    let y = this.voiceSample(this.voice, this.unitNormal(), m);
     if (this.incoming !== null) {
       const u = (this.fade + 0.5) / this.fadeLength;
-      const z = this.incoming.step(this.speed, this.force, this.noise.next());
+      const z = this.voiceSample(this.incoming, this.noise.next(), m);
       y = Math.cos(0.5 * Math.PI * u) * y + Math.sin(0.5 * Math.PI * u) * z;
       if (++this.fade >= this.fadeLength) { this.voice = this.incoming; this.incoming = null; }
     }
-    return y * this.gate;
+    y *= this.gate;
+    if (touchdown > 0) {
+      const tap = tapTransient((this.incoming || this.voice).model, touchdown);
+      if (tap !== null) this.taps.push({data: tap, at: 0});
+    }
+    for (let i = this.taps.length - 1; i >= 0; i--) {
+      const t = this.taps[i];
+      y += t.data[t.at++];
+      if (t.at >= t.data.length) this.taps.splice(i, 1);
+    }
+    return y;
   }
 
   /** Fill `out` (Float32Array at the output rate) with the signal scaled by full_scale and clipped to ±1. */
@@ -433,7 +571,7 @@ if (typeof registerProcessor === "function") {
   class HapticlinkRenderProcessor extends AudioWorkletProcessor {
     // processorOptions: TextureRenderer's options, and models: [{model, at_s?, crossfade_ms?}] to schedule at once.
     // Messages in: {type: "model", model: <render-model JSON>, at_s?, crossfade_ms?}, {type: "control", speed_mm_s,
-    // force_n, contact}, {type: "full_scale", value}. Out: {type: "switched" | "error" | "level", …}.
+    // force_n, contact, position_mm?, touchdown_mm_s?}, {type: "full_scale", value}. Out: {type: "switched" | "error" | "level", …}.
     constructor(options) {
       super();
       const opts = (options && options.processorOptions) || {};
@@ -455,7 +593,7 @@ if (typeof registerProcessor === "function") {
           this.port.postMessage({ type: "error", message: String(err.message || err) }); // the last good model plays on
         }
       } else if (msg.type === "control") {
-        r.control(msg.speed_mm_s, msg.force_n, msg.contact);
+        r.control(msg.speed_mm_s, msg.force_n, msg.contact, msg.position_mm, msg.touchdown_mm_s);
       } else if (msg.type === "full_scale" && msg.value > 0) {
         r.fullScale = msg.value;
       }

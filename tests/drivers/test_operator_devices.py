@@ -66,6 +66,26 @@ def test_a_haptic_device_on_a_serial_port_gives_speed_and_force(pty_port):
     np.testing.assert_allclose(force, 1.0 + 0.001 * c, rtol=1e-5)  # the normal column of (tx, ty, normal)
 
 
+def test_a_device_that_reports_position_gives_the_bumps_their_position():
+    """Position (m here, 2 axes) → mm along x, passed on to the renderer (which feels the bumps there)."""
+    x = np.arange(100) * 1.2e-4  # m: 0.12 mm a sample, 120 mm/s
+    block = SampleBlock(
+        0.0,
+        {
+            "force": ChannelBlock(np.ones(100, np.float32), 1000.0, "N"),
+            "position": ChannelBlock(np.stack([x, 0 * x], axis=1).astype(np.float32), 1000.0, "m"),
+        },
+    )
+    m = motion_of(block)
+    assert m.position is not None
+    np.testing.assert_allclose(m.position, x * 1000, rtol=1e-6)
+    np.testing.assert_allclose(m.speed[1:-1], 120.0, rtol=1e-3)
+    speed_only = SampleBlock(
+        0.0, {"force": block.channels["force"], "speed": ChannelBlock(np.ones(100), 1000.0, "mm/s")}
+    )
+    assert motion_of(speed_only).position is None
+
+
 def test_a_device_block_without_speed_or_at_another_rate_is_named():
     block = SampleBlock(0.0, {"force": ChannelBlock(np.ones(10, np.float32), 1000.0, "N")})
     with pytest.raises(ValueError, match="force and speed"):

@@ -1,7 +1,8 @@
 """The operator console in a real headless Chromium: it connects, and its bars (with their intervals), bubble,
 chosen texture, matches, latencies, out-of-distribution flag and last-minute plot follow the window events; it says
 why the chosen entry is chosen and fits a 1366×768 screen; and its touch pad renders the chosen entry's served model
-in an AudioWorklet (service/static/render-worklet.js) exactly as texture_library.synthesis.render does."""
+in an AudioWorklet (service/static/render-worklet.js) exactly as texture_library.renderer does, in all four
+dimensions, loud enough to hear and never silent on a slow stroke."""
 
 from __future__ import annotations
 
@@ -22,8 +23,9 @@ from websockets.sync.client import connect
 from texture_library.attributes import ATTRIBUTES
 from texture_library.library import Library
 from texture_library.lsf import poles_to_poly, poly_to_lsf
+from texture_library.procedural import make_world
+from texture_library.renderer import render_stroke
 from texture_library.spectrum import arma_psd
-from texture_library.synthesis import render
 from texture_library.vibration import VibrationModel
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -300,7 +302,7 @@ def test_pad_renderer_equals_the_python_renderer_sample_for_sample(pad_page, lib
     assert report["latency_ms"] == 16 and report["errors"] == []
     assert [s["id"] for s in report["switched"]] == ["synth_003"]
     browser_1k = _at_source_instants(out, report["latency_ms"], n)
-    python = render(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
+    python = render_stroke(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
     scale = max(np.abs(python).max(), 1e-9)
     assert np.abs(browser_1k - python).max() <= 1e-5 * max(scale, 1.0), np.abs(browser_1k - python).max()
     if speed > 0:
@@ -332,10 +334,92 @@ def test_pad_renderer_equals_the_python_renderer_on_hatt_models(pad_page, textur
             force_n=force,
             excitation=excitation.tolist(),
         )
-        python = render(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
+        python = render_stroke(model, np.full(n, speed), np.full(n, force), excitation=excitation[:n])
         error = np.abs(_at_source_instants(out, report["latency_ms"], n) - python).max()
         assert error <= 1e-5 * max(np.abs(python).max(), 1.0), (speed, force, error)
         assert np.std(python) > 1e-3
+
+
+def test_pad_renders_all_four_dimensions_as_the_python_renderer(pad_page):
+    """A trajectory sample by sample — speed and force moving, the position going back and forth over the bumps,
+    four touchdowns (two overlapping) — on a synthetic texture with bumps and taps: the worklet gives
+    texture_library.renderer's output to float32 precision."""
+    model = make_world(7, 0, image_size=32)[6].model
+    assert model.surface is not None and model.taps is not None
+    n = 1500
+    t = np.arange(n) / 1000.0
+    speed, force = 100 + 90 * np.sin(2 * np.pi * 1.3 * t), 1 + 0.8 * np.cos(2 * np.pi * 0.5 * t)
+    position = np.cumsum(speed * np.sign(np.sin(2 * np.pi * 0.8 * t) + 1e-9)) / 1000.0
+    touchdown = np.zeros(n)
+    touchdown[[10, 700, 701, 1300]] = [30.0, 12.5, 80.0, 5.0]
+    excitation = np.random.default_rng(6).standard_normal(n + 100)
+    trajectory = {"speed_mm_s": speed.tolist(), "force_n": force.tolist(), "position_mm": position.tolist(),
+                  "touchdown_mm_s": touchdown.tolist()}  # fmt: skip
+    out, report = _render_offline(
+        pad_page,
+        models=[{"model": render_model_json(model, "synth_006")}],
+        seconds=(n + 100) / 1000,
+        excitation=excitation.tolist(),
+        trajectory=trajectory,
+    )
+    assert report["errors"] == []
+    python = render_stroke(model, speed, force, excitation=excitation[:n], position=position, touchdown=touchdown)
+    plain = render_stroke(model, speed, force, excitation=excitation[:n])
+    assert np.std(python - plain) > 0.1 * np.std(plain)  # the bumps and taps are a real part of the signal
+    error = np.abs(_at_source_instants(out, report["latency_ms"], n) - python).max()
+    assert error <= 1e-5 * np.abs(python).max(), error
+
+
+@pytest.mark.parametrize("speed", [5.0, 8.0, 12.0, 17.0])
+def test_pad_is_not_silent_at_5_mm_s_and_up(pad_page, speed):
+    """A synthetic texture whose lowest grid cell has three silent corners (below 17.5 mm/s at 1 N a plain blend
+    is silent): at 5 mm/s and up the pad plays it, at the console's default full scale, at the corner floor's
+    level (the Python renderer's, within 1 dB)."""
+    model = make_world(8, 0, image_size=32)[7].model
+    seconds = 2.0
+    out, report = _render_offline(
+        pad_page,
+        models=[{"model": render_model_json(model, "synth_007")}],
+        seconds=seconds,
+        speed_mm_s=speed,
+        force_n=1.0,
+        seed=4,
+        full_scale=10.0,
+    )
+    n = int((seconds - 0.1) * 1000)
+    played = _at_source_instants(out, report["latency_ms"], n)[300:]
+    python = render_stroke(
+        model, np.full(n, speed), np.ones(n), excitation=np.random.default_rng(4).standard_normal(n)
+    )[300:]
+    level_db = 20 * np.log10(np.sqrt(np.mean(played**2)) / 10.0)
+    assert level_db > -70, level_db  # audible: the worklet's own level readout says so (not "silent")
+    assert abs(20 * np.log10(np.std(played) / np.std(python))) <= 1.0
+
+
+def test_pad_level_of_a_typical_stroke(pad_page):
+    """A mouse stroke back and forth at 159 mm/s and 1 N (benchmarks.pad_level's, sample by sample), bumps included,
+    on each of the synthetic world's 24 textures: at the console's default full scale (10 m/s²) the median texture
+    peaks between −20 and −6 dBFS (the largest 100 ms RMS, as the page measures it) in the worklet's output."""
+    from benchmarks.pad_level import pad_stroke
+
+    speed, position = pad_stroke()
+    n, rate = speed.size, 8000  # 8 kHz output: the same 1 kHz synthesis, six times fewer samples to bring back
+    trajectory = {"speed_mm_s": speed.tolist(), "force_n": [1.0] * n, "position_mm": position.tolist()}
+    peaks = {}
+    for texture in make_world(24, 0, image_size=32):
+        out, _ = _render_offline(
+            pad_page,
+            models=[{"model": render_model_json(texture.model, texture.model.name)}],
+            seconds=n / 1000 + 0.05,
+            sampleRate=rate,
+            trajectory=trajectory,
+            seed=1,
+            full_scale=1000.0,  # far from clipping here; levels are read against the default, 10 m/s²
+        )
+        blocks = (out[int(0.2 * rate) : int(1.2 * rate)] / 10.0).reshape(-1, rate // 10)
+        peaks[texture.model.name] = float(20 * np.log10(np.sqrt((blocks**2).mean(axis=1)).max()))
+    print("\npad peaks, dBFS at 10 m/s²:", {k: round(v, 1) for k, v in peaks.items()})
+    assert -20 <= np.median(list(peaks.values())) <= -6, peaks
 
 
 def test_pad_interpolates_to_44100_hz_with_the_documented_kernel(pad_page, library_dir):
@@ -354,7 +438,7 @@ def test_pad_interpolates_to_44100_hz_with_the_documented_kernel(pad_page, libra
         force_n=3.0,
         excitation=excitation.tolist(),
     )
-    x = render(model, np.full(n + 100, 200.0), np.full(n + 100, 3.0), excitation=excitation)
+    x = render_stroke(model, np.full(n + 100, 200.0), np.full(n + 100, 3.0), excitation=excitation)
     k = np.arange(int(0.05 * rate), int(n / 1000 * rate))  # past the start, where every tap has a source sample
     t = k * 1000.0 / rate - half
     taps = np.floor(t)[:, None] + np.arange(-half + 1, half + 1)[None, :]
@@ -390,7 +474,9 @@ def test_pad_spectrum_matches_the_python_renderer_within_1_db(pad_page, library_
     )
     n = seconds * 1000
     browser_1k = _at_source_instants(out, report["latency_ms"], n)
-    python = render(model, np.full(n, speed), np.full(n, force), np.random.default_rng(seed))
+    python = render_stroke(
+        model, np.full(n, speed), np.full(n, force), excitation=np.random.default_rng(seed).standard_normal(n)
+    )
     freqs, browser_db = _welch_db(browser_1k, 1000.0, 512)
     _, python_db = _welch_db(python, 1000.0, 512)
     band = (freqs >= BAND[0]) & (freqs <= BAND[1])
