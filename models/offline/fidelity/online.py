@@ -1,0 +1,283 @@
+"""What the operator holds over time: the surface's own model, learnt online, scored leave-one-texture-out.
+
+For each stroked texture (a fixed, evenly spaced subsample of the world's rated textures; see
+`pick_textures`), the prior is the served `hybrid` rule's pick from a library of every *other* texture (its
+weight tuned inside the fold, `study.run_rules`; the pick most windows made). A simulated robot then hovers
+FREE_S seconds (contact-free: gravity and sensor noise), and strokes the texture's true model along a
+seeded freehand trajectory for up to 30 s with the simulated robot's sensor noise (`texture_library.stroke`);
+its blocks go through `models.tactile.surface_fit.SurfaceFitter` exactly as a session's would. After each
+checkpoint the model the operator would hold (`online+prior`: the fit blended with the prior; at 0 s the prior
+itself) is scored against the true model:
+
+  grid      mean log-spectral distance (texture_library.spectrum) over the report's nine operating points;
+  visited   the same over 60 (speed, force) points of the trajectory stroked so far (at 0 s: the first 2 s);
+  friction  |Δμ|;  bumps (models with a profile) the profile's spatial-spectrum line, 20·log10 of the height
+            ratio, and the period's relative error.
+
+Noise sensitivity: the same robot with no contact-free blocks, the fitter told a noise density of ½× and 2×
+the true one, scored at NOISE_SECONDS. Every mean gets a texture-level bootstrap 95 % interval; differences
+against `hybrid` are paired over the same textures.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.offline.evaluation.bootstrap import bootstrap_mean
+from models.offline.fidelity.study import World, hybrid_costs, run_rules
+from models.tactile.surface_fit import SurfaceFitter
+from texture_library.atomic_file import write_text
+from texture_library.spectrum import arma_psd, band_frequencies, log_spectral_distance_db, spectral_distance_db
+from texture_library.stroke import GRAVITY, random_rotation, stroke
+from texture_library.trajectory import freehand, model_ranges
+from texture_library.vibration import VibrationModel
+
+CHECKPOINTS_S = (0.0, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0)
+#: the simulated robot's accelerometer noise, m/s² RMS per axis (texture_library.stroke's default)
+NOISE_STD = 0.05
+FREE_S = 0.5
+BLOCK = 100
+NOISE_SECONDS = 10.0
+VISITED_POINTS = 60
+
+
+@dataclass(frozen=True)
+class TextureRun:
+    """One stroked texture's scores: per checkpoint (len(CHECKPOINTS_S),) grid and visited dB, |Δμ|; the
+    prior's (hybrid's) own; noise sensitivity at NOISE_SECONDS for ½× and 2×; bump errors (NaN: no bumps)."""
+
+    texture: str
+    prior: str
+    grid_db: np.ndarray
+    visited_db: np.ndarray
+    mu_diff: np.ndarray
+    hybrid_grid_db: float
+    hybrid_visited_db: np.ndarray
+    hybrid_mu_diff: float
+    noise_half_db: float
+    noise_double_db: float
+    bump_height_db: float
+    bump_period_rel: float
+
+
+def pick_textures(textures: list[str], count: int) -> list[int]:
+    """`count` evenly spaced indices into the (sorted) texture list: a fixed subsample, chosen before scoring."""
+    if count >= len(textures):
+        return list(range(len(textures)))
+    return sorted(set(np.linspace(0, len(textures) - 1, count).round().astype(int).tolist()))
+
+
+def hybrid_picks(world: World) -> list[int]:
+    """Per stroked texture, the hybrid rule's most frequent window pick from the other textures, with the
+    weight tuned inside its fold (as `run_rules` scores it)."""
+    _, info = run_rules(world)
+    picks = []
+    T = len(world.textures)
+    for i in range(T):
+        library = np.ones(T, bool)
+        library[i] = False
+        costs = np.where(library, hybrid_costs(world, i, info["fold_weights"][i]), np.inf)
+        picks.append(int(np.bincount(costs.argmin(axis=-1), minlength=T).argmax()))
+    return picks
+
+
+def _visited(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, force: np.ndarray) -> float:
+    keep = np.linspace(0, speed.size - 1, VISITED_POINTS).round().astype(int)
+    freqs = band_frequencies()
+    a = arma_psd(model, speed[keep], force[keep], freqs)
+    b = arma_psd(truth, speed[keep], force[keep], freqs)
+    return float(np.mean(log_spectral_distance_db(a, b)))
+
+
+def _robot(truth: VibrationModel, seconds: float, seed: int, free_s: float):
+    rng = np.random.default_rng(seed)
+    traj = freehand(seconds, rng, **model_ranges(truth.max_speed, truth.max_force))
+    rot = random_rotation(rng)
+    sig = stroke(truth, traj, rng, rotation=rot, noise_std=NOISE_STD)
+    n = int(free_s * 1000)
+    free = (
+        (rot @ np.array([0.0, 0.0, GRAVITY]))[None] + NOISE_STD * rng.standard_normal((n, 3)),
+        0.01 * rng.standard_normal((n, 3)),
+        np.zeros(n),
+        np.zeros(n),
+    )
+    return traj, sig, free
+
+
+def _feed(fitter: SurfaceFitter, sig, start: int, stop: int) -> None:
+    for a in range(start, stop, BLOCK):
+        b = min(a + BLOCK, stop)
+        fitter.push(sig.accel[a:b], sig.force[a:b], sig.speed[a:b], sig.position[a:b])
+
+
+def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: str, prior_name: str) -> TextureRun:
+    """One texture's curve (see the module docstring)."""
+    traj, sig, free = _robot(truth, max(CHECKPOINTS_S), seed, FREE_S)
+    fitter = SurfaceFitter()
+    fitter.push(*free)
+    grid, visited, mu, hybrid_visited = [], [], [], []
+    done = 0
+    fit = None
+    for t in CHECKPOINTS_S:
+        stop = int(t * 1000)
+        _feed(fitter, sig, done, stop)
+        done = stop
+        model = prior if t == 0 else fitter.fit(prior, name).model
+        upto = max(stop, 2000)
+        grid.append(spectral_distance_db(model, truth))
+        visited.append(_visited(model, truth, traj.speed[:upto], traj.force[:upto]))
+        hybrid_visited.append(_visited(prior, truth, traj.speed[:upto], traj.force[:upto]))
+        mu.append(abs(model.mu - truth.mu))
+        if t == NOISE_SECONDS:
+            fit = model
+    noise = []
+    true_psd = 2.0 * NOISE_STD**2 / 1000.0
+    for factor in (0.5, 2.0):
+        traj_n, sig_n, _ = _robot(truth, NOISE_SECONDS, seed, 0.0)
+        told = SurfaceFitter(declared_noise_psd=factor * true_psd)
+        _feed(told, sig_n, 0, sig_n.speed.size)
+        noise.append(_visited(told.fit(prior, name).model, truth, traj_n.speed, traj_n.force))
+    bump_h = bump_p = float("nan")
+    if truth.surface is not None and truth.surface.bump_height_mm > 0 and fit is not None:
+        got = fit.surface
+        if got is None or got.bump_height_mm <= 0:
+            bump_h, bump_p = float("-inf"), float("nan")
+        else:
+            bump_h = 20.0 * float(np.log10(got.bump_height_mm / truth.surface.bump_height_mm))
+            bump_p = got.bump_period_mm / truth.surface.bump_period_mm - 1.0
+    return TextureRun(
+        texture=name,
+        prior=prior_name,
+        grid_db=np.array(grid),
+        visited_db=np.array(visited),
+        mu_diff=np.array(mu),
+        hybrid_grid_db=float(spectral_distance_db(prior, truth)),
+        hybrid_visited_db=np.array(hybrid_visited),
+        hybrid_mu_diff=abs(prior.mu - truth.mu),
+        noise_half_db=noise[0],
+        noise_double_db=noise[1],
+        bump_height_db=bump_h,
+        bump_period_rel=bump_p,
+    )
+
+
+def _ci(values: np.ndarray, seed: int = 0) -> dict:
+    r = bootstrap_mean(np.asarray(values, float), seed=seed)
+    return {"mean": round(r["mean"], 3), "ci95": [round(r["lo"], 3), round(r["hi"], 3)]}
+
+
+def summarise_online(runs: list[TextureRun], models_by_name: dict[str, VibrationModel]) -> dict:
+    """The world's `online` entry: the curve, the hybrid baseline, paired differences, noise, per dimension."""
+    curve = []
+    for k, t in enumerate(CHECKPOINTS_S):
+        for scope, values in (
+            ("grid", [r.grid_db[k] for r in runs]),
+            ("visited", [r.visited_db[k] for r in runs]),
+        ):
+            s = _ci(np.array(values))
+            curve.append(
+                {
+                    "seconds": t,
+                    "scope": scope,
+                    "rule": "online+prior",
+                    "spectral_distance_db": s["mean"],
+                    "ci95": s["ci95"],
+                    "st_sim": None,
+                    "spqi": None,
+                }
+            )
+    paired = {}
+    for k, t in enumerate(CHECKPOINTS_S):
+        paired[str(t)] = {
+            "visited_minus_hybrid_db": _ci(np.array([r.visited_db[k] - r.hybrid_visited_db[k] for r in runs])),
+            "grid_minus_hybrid_db": _ci(np.array([r.grid_db[k] - r.hybrid_grid_db for r in runs])),
+        }
+    bumps = [r for r in runs if np.isfinite(r.bump_period_rel) or r.bump_height_db == float("-inf")]
+    return {
+        "textures": [r.texture for r in runs],
+        "priors": [r.prior for r in runs],
+        "curve": curve,
+        "baseline": {
+            "rule": "hybrid",
+            "grid": _ci(np.array([r.hybrid_grid_db for r in runs])),
+            "visited_2s": _ci(np.array([r.hybrid_visited_db[CHECKPOINTS_S.index(2.0)] for r in runs])),
+            "visited_10s": _ci(np.array([r.hybrid_visited_db[CHECKPOINTS_S.index(10.0)] for r in runs])),
+        },
+        "paired": paired,
+        "noise_sensitivity": {
+            "seconds": NOISE_SECONDS,
+            "declared_half_visited_db": _ci(np.array([r.noise_half_db for r in runs])),
+            "declared_double_visited_db": _ci(np.array([r.noise_double_db for r in runs])),
+        },
+        "friction": {
+            str(t): _ci(np.array([r.mu_diff[k] for r in runs])) for k, t in enumerate(CHECKPOINTS_S) if t in (0, 2, 10)
+        },
+        "friction_hybrid": _ci(np.array([r.hybrid_mu_diff for r in runs])),
+        "bumps": {
+            "textures_with_bumps": len(bumps),
+            "height_db": [None if not np.isfinite(r.bump_height_db) else round(r.bump_height_db, 2) for r in bumps],
+            "period_relative_error": [
+                None if not np.isfinite(r.bump_period_rel) else round(r.bump_period_rel, 4) for r in bumps
+            ],
+        },
+        "not_measured": (
+            "signal scope, ST-SIM and SPQI (vibromaf), taps against held-out recorded taps, the `online` rule "
+            "without a prior"
+        ),
+    }
+
+
+def run_world(world: World, models: list[VibrationModel], count: int, seed: int = 0) -> dict:
+    """The `online` entry of one world: `count` textures (pick_textures), each with its hybrid prior."""
+    picks = hybrid_picks(world)
+    runs = []
+    for i in pick_textures(world.textures, count):
+        j = picks[i]
+        runs.append(run_texture(models[i], models[j], seed + i, world.textures[i], world.textures[j]))
+    return summarise_online(runs, dict(zip(world.textures, models)))
+
+
+def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
+    """results.json's `online` key (the rest kept) and online.md beside README.md."""
+    out.mkdir(parents=True, exist_ok=True)
+    results = out / "results.json"
+    doc = json.loads(results.read_text()) if results.exists() else {}
+    doc["online"] = {"command": command, **entries}
+    write_text(results, json.dumps(doc, indent=1) + "\n")
+    lines = [
+        "# The surface's own model, learnt online: what the operator holds over time",
+        "",
+        f"Regenerate: `{command}` (fixed seeds). Method: `models/offline/fidelity/online.py` (docstring);",
+        "the fit: `models/tactile/surface_fit.py`. Rule scored: `online+prior` (the fit blended with the served",
+        "`hybrid` rule's pick from the other textures). Brackets: texture-level bootstrap 95 % intervals.",
+        "",
+    ]
+    for world, e in entries.items():
+        lines += [f"## {world} ({len(e['textures'])} textures, an evenly spaced subsample)", ""]
+        lines += ["| seconds | grid dB [95 %] | visited dB [95 %] | visited − hybrid [95 %] |", "|---:|---:|---:|---:|"]
+        by = {(c["seconds"], c["scope"]): c for c in e["curve"]}
+        for t in CHECKPOINTS_S:
+            g, v, p = by[(t, "grid")], by[(t, "visited")], e["paired"][str(t)]["visited_minus_hybrid_db"]
+            lines.append(
+                f"| {t:g} | {g['spectral_distance_db']:.2f} {g['ci95']} | {v['spectral_distance_db']:.2f} {v['ci95']} "
+                f"| {p['mean']:+.2f} {p['ci95']} |"
+            )
+        b, ns = e["baseline"], e["noise_sensitivity"]
+        lines += [
+            "",
+            f"hybrid (the prior): grid {b['grid']['mean']:.2f} {b['grid']['ci95']}, visited over the first 10 s "
+            f"{b['visited_10s']['mean']:.2f} {b['visited_10s']['ci95']} dB. Noise floor declared at ½× / 2× the "
+            f"true noise, visited at {ns['seconds']:g} s: {ns['declared_half_visited_db']['mean']:.2f} / "
+            f"{ns['declared_double_visited_db']['mean']:.2f} dB. |Δμ| at 0 / 2 / 10 s: "
+            + " / ".join(f"{e['friction'][k]['mean']:.3f}" for k in ("0.0", "2.0", "10.0"))
+            + f" (hybrid {e['friction_hybrid']['mean']:.3f}). Bumps (textures with a profile, at 10 s): height "
+            f"error dB {e['bumps']['height_db']}, period relative error {e['bumps']['period_relative_error']}.",
+            "",
+        ]
+    lines += [f"Not measured yet: {next(iter(entries.values()))['not_measured']}.", ""]
+    write_text(out / "online.md", "\n".join(lines))
+    return out
