@@ -30,7 +30,7 @@ are what explains all segments best:
      The polynomials become LSFs as every stored model keeps them.
 
 Why not Burg on the samples (librosa.lpc)? Burg fits one recording at one operating point and cannot take a
-known noise floor out; the averaged periodograms can, and cost bounded memory (MAX_SEGMENTS rows of 65 bins).
+known noise floor out; the averaged periodograms can, at bounded memory (MAX_SEGMENTS segments of 128 samples).
 
 Friction μ: Σ F_t·F_n / Σ F_n² over contact samples (models.tactile.friction's estimator), blended with the
 prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else the
@@ -62,8 +62,8 @@ GRID_FORCES = (0.1, 0.6, 1.5, 2.7, 4.2)
 PRIOR_SEGMENTS = 2.0
 MAX_ORDER = 24
 MIN_ORDER = 2
-#: at most this many contact segments are kept (the newest): 4096 × 64 samples ≈ 262 s at 1 kHz
-MAX_SEGMENTS = 4096
+#: at most this many contact segments are kept (the newest): 2048 × 64 samples ≈ 131 s at 1 kHz
+MAX_SEGMENTS = 2048
 #: contact: normal force at least this (N; force-sensor noise ≈ 0.01 N) and speed at least MIN_SPEED_MM_S
 CONTACT_N = 0.05
 #: contact-free: normal force below this, N
@@ -273,7 +273,8 @@ def bump_regressors(x: np.ndarray, v: np.ndarray, dv: np.ndarray, periods_mm: np
 class SurfaceFitter:
     """Accumulates a session's accepted blocks into bounded statistics; `fit(prior)` makes the model.
 
-    Memory: at most MAX_SEGMENTS periodogram rows (65 float32 bins each, ≈ 1 MB), the bump normal
+    Memory: at most MAX_SEGMENTS segments (normal acceleration, velocity and position, 128 float32 each: 3 MB;
+    kept raw so that bumps found later come off every segment before its spectrum is taken), the bump normal
     equations (240 periods × 5 numbers), MAX_TAPS taps, a few running sums; CPU per block: one FFT per
     64 samples and 240 × n trigonometric terms. `fit` costs a (30 × 30) solve and 30 Levinson recursions.
     """
@@ -314,7 +315,7 @@ class SurfaceFitter:
         self._pending = np.zeros((0, 6))  # accel x3, normal force, signed speed, position
         self._gravity = np.zeros(3)
         self._gravity_n = 0
-        self._rows = np.zeros((MAX_SEGMENTS, SEGMENT // 2 + 1), np.float32)
+        self._raw = np.zeros((MAX_SEGMENTS, 3, SEGMENT), np.float32)  # normal accel, signed velocity, position
         self._idx = np.zeros((MAX_SEGMENTS, 3), np.int64)
         self._w = np.zeros((MAX_SEGMENTS, 3))
         self._vrange = np.zeros((MAX_SEGMENTS, 2))
@@ -462,7 +463,7 @@ class SurfaceFitter:
             an = seg[:, :3] @ axis
             self._accumulate_bumps(an, seg[:, 4], seg[:, 5])
             slot = self._count % MAX_SEGMENTS
-            self._rows[slot] = self._periodogram(an)
+            self._raw[slot] = an, seg[:, 4], seg[:, 5]
             idx, w = barycentric(self._template, np.array([speed.mean()]), np.array([normal.mean()]))
             self._idx[slot], self._w[slot] = idx[0], w[0]
             self._vrange[slot] = speed.min(), speed.max()
@@ -504,8 +505,13 @@ class SurfaceFitter:
     def bumps(self) -> tuple[SurfaceProfile | None, bool]:
         """(the bump profile, whether the stream has decided): decided once MIN_BUMP_PATH_MM of contact; a
         profile only when the best period explains BUMP_SIGNIFICANCE × its chance share."""
+        profile, decided, _ = self._bump_fit()
+        return profile, decided
+
+    def _bump_fit(self) -> tuple[SurfaceProfile | None, bool, np.ndarray]:
+        """bumps() and the phase coefficients β (2,) of the profile's period (zeros without a profile)."""
         if self._path_mm < MIN_BUMP_PATH_MM or self._bump_n < 4 * SEGMENT:
-            return None, False
+            return None, False, np.zeros(2)
         g = self._bump_g + 1e-12 * np.eye(2)[None]
         beta = np.linalg.solve(g, self._bump_b[..., None])[..., 0]  # (P, 2)
         explained = np.einsum("pi,pi->p", beta, self._bump_b)
@@ -513,14 +519,38 @@ class SurfaceFitter:
         residual = max(self._bump_ss - explained[best], 1e-300) / max(self._bump_n - 2, 1)
         height = 2.0 * float(np.hypot(*beta[best]))  # β = (h/2)(cos, sin) of the phase
         if explained[best] < BUMP_SIGNIFICANCE * 2 * residual or height < MIN_BUMP_MM:
-            return None, True
-        return SurfaceProfile(height, float(BUMP_PERIODS_MM[best])), True
+            return None, True, np.zeros(2)
+        return SurfaceProfile(height, float(BUMP_PERIODS_MM[best])), True, beta[best]
+
+    def _with_other_dimensions(
+        self,
+        vibration: VibrationModel,
+        prior: VibrationModel,
+        decided: bool,
+        bumps: SurfaceProfile | None,
+        name: str,
+        contact_s: float,
+    ) -> VibrationModel:
+        """`vibration` with the stream's friction, bumps (once decided; else the prior's) and taps (else the
+        prior's), named and with its provenance."""
+        taps = prior.taps
+        if self._taps:
+            length = min(t.size for _, t in self._taps)
+            taps = TapSet(np.array([s for s, _ in self._taps]), np.array([t[:length] for _, t in self._taps]))
+        return replace(
+            vibration,
+            name=name,
+            mu=min(max(self.mu(prior.mu), 0.0), 4.99),
+            taps=taps,
+            surface=bumps if decided else prior.surface,
+            provenance=f"learnt online from {contact_s:.1f} s of contact, prior {prior.name!r}",
+        )
 
     def fit(self, prior: VibrationModel, name: str = "surface") -> SurfaceFit:
         """The surface's model: the data where they are, the prior where they are thin."""
         m = self.grid_speeds.size
         noise_psd, noise_source = self.noise()
-        bumps, decided = self.bumps()
+        bumps, decided, beta = self._bump_fit()
         contact_s = self._contact_samples / self.rate_hz
         k = self.segments
 
@@ -533,10 +563,34 @@ class SurfaceFitter:
             return keep_prior(self._last_reason or FitStatus.no_contact)
         if k < MIN_SEGMENTS:
             return keep_prior(FitStatus.too_short)
-        rows = self._rows[:k].astype(float)
+        raw = self._raw[:k].astype(float)
+        an = raw[:, 0]
+        if bumps is not None:
+            # the bumps' own acceleration, phase and all, comes off each segment: its line is tens of dB above
+            # the texture's vibration and would leak through the taper's sidelobes over the whole band
+            v, x = raw[:, 1], raw[:, 2]
+            dv = np.gradient(v, axis=1) * self.rate_hz
+            kk = 2 * np.pi / bumps.bump_period_mm
+            c, sn = np.cos(kk * x), np.sin(kk * x)
+            r1 = -1e-3 * (kk * kk * v * v * c + kk * dv * sn)
+            r2 = -1e-3 * (-kk * kk * v * v * sn + kk * dv * c)
+            an = an - (beta[0] * r1 + beta[1] * r2)
+        y = (an - an.mean(axis=1, keepdims=True)) * self._taper
+        rows = np.abs(np.fft.rfft(y, axis=1)) ** 2 / (self.rate_hz * self._win_power)
+        rows[:, 1:-1] *= 2.0
         band = (self.freqs >= BAND_HZ[0]) & (self.freqs < BAND_HZ[1])
         if noise_psd > 0 and float(np.median(rows[:, band].mean(axis=1))) < MIN_SNR * noise_psd:
-            return keep_prior(FitStatus.too_noisy)
+            # the vibration is lost in the noise; friction, bumps and taps come from other signals and stand
+            return SurfaceFit(
+                self._with_other_dimensions(prior, prior, decided, bumps, name, contact_s),
+                FitStatus.too_noisy,
+                np.zeros(m),
+                0,
+                noise_psd,
+                noise_source,
+                contact_s,
+                bumps=bumps,
+            )
         if bumps is not None and bumps.bump_height_mm > 0:
             rows = _bridge_bump_lines(rows, self.freqs, self._vrange[:k], bumps.bump_period_mm)
         weights = np.zeros((k, m))
@@ -550,9 +604,11 @@ class SurfaceFitter:
         log_rows[:, [0, -1]] += np.log(2.0)  # DC and Nyquist are real: χ² with 1 dof, E[ln] = ln S − γ − ln 2
         rhs = weights.T @ log_rows + PRIOR_SEGMENTS * np.log(np.maximum(prior_psd + noise_psd, 1e-300))
         spectra = np.exp(np.linalg.solve(lhs, rhs)) - noise_psd
-        # below NOISE_CLIP × the floor the stream cannot see the surface: the prior says how far below, capped there
-        hidden = NOISE_CLIP * noise_psd
-        spectra = np.where(spectra < hidden, np.minimum(prior_psd, hidden), spectra)
+        # below the noise floor the stream only bounds the surface from above: there the prior stands where it
+        # lies below what was measured, and the measurement (at least NOISE_CLIP × the floor) where it does not
+        hidden = spectra < noise_psd
+        measured = np.maximum(spectra, NOISE_CLIP * noise_psd)
+        spectra = np.where(hidden, np.minimum(prior_psd, measured), spectra)
         spectra = np.maximum(spectra, 1e-12)
         low = self.freqs < BAND_HZ[0]
         first = int(np.argmax(~low))
@@ -569,15 +625,7 @@ class SurfaceFitter:
             a, b, var, _ = per[best]
             ar_lsf[j], ma_lsf[j], variance[j] = poly_to_lsf(a), poly_to_lsf(b), var
         order = p
-        if not decided:
-            surface = prior.surface
-        else:
-            surface = bumps
-        taps = prior.taps
-        if self._taps:
-            length = min(t.size for _, t in self._taps)
-            taps = TapSet(np.array([s for s, _ in self._taps]), np.array([t[:length] for _, t in self._taps]))
-        model = VibrationModel(
+        vibration = VibrationModel(
             name=name,
             speeds=self.grid_speeds.copy(),
             forces=self.grid_forces.copy(),
@@ -586,14 +634,12 @@ class SurfaceFitter:
             ma_lsf=ma_lsf,
             variance=variance,
             gain=np.ones(m),
-            mu=min(max(self.mu(prior.mu), 0.0), 4.99),
+            mu=prior.mu,
             max_speed=max(GRID_SPEEDS),
             max_force=max(GRID_FORCES),
-            taps=taps,
             rate_hz=self.rate_hz,
-            provenance=f"learnt online from {contact_s:.1f} s of contact, prior {prior.name!r}",
-            surface=surface,
         )
+        model = self._with_other_dimensions(vibration, prior, decided, bumps, name, contact_s)
         return SurfaceFit(
             model,
             FitStatus.ok,

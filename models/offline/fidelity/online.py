@@ -11,6 +11,11 @@ itself) is scored against the true model:
 
   grid      mean log-spectral distance (texture_library.spectrum) over the report's nine operating points;
   visited   the same over 60 (speed, force) points of the trajectory stroked so far (at 0 s: the first 2 s);
+  signal    along an operator's own 10 s stroke (its own seed, not the robot's): the operator's rendering of the
+            held model (vibration and bumps, texture_library.stroke with the tool upright, no sensor noise)
+            against what the tool on the true surface measures along the normal (with sensor noise), per 2 s
+            window: RMS dB between Welch spectra over 20 ≤ f < 500 Hz, SPQI and ST-SIM (vibromaf); the true
+            model rendered the same way is the floor. Taps are not in these strokes;
   friction  |Δμ|;  bumps (models with a profile) the profile's spatial-spectrum line, 20·log10 of the height
             ratio, and the period's relative error.
 
@@ -31,6 +36,7 @@ from models.offline.evaluation.bootstrap import bootstrap_mean
 from models.offline.fidelity.study import World, hybrid_costs, run_rules
 from models.tactile.surface_fit import SurfaceFitter
 from texture_library.atomic_file import write_text
+from texture_library.selection import band_mask, welch_frequencies, window_psd
 from texture_library.spectrum import arma_psd, band_frequencies, log_spectral_distance_db, spectral_distance_db
 from texture_library.stroke import GRAVITY, random_rotation, stroke
 from texture_library.trajectory import freehand, model_ranges
@@ -43,6 +49,9 @@ FREE_S = 0.5
 BLOCK = 100
 NOISE_SECONDS = 10.0
 VISITED_POINTS = 60
+#: the operator's stroke (not the robot's: its own seed), s, scored in windows of SIGNAL_WINDOW_S
+OPERATOR_S = 10.0
+SIGNAL_WINDOW_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -62,6 +71,11 @@ class TextureRun:
     noise_double_db: float
     bump_height_db: float
     bump_period_rel: float
+    signal_db: np.ndarray
+    spqi: np.ndarray
+    st_sim: np.ndarray
+    hybrid_signal: tuple[float, float, float]
+    floor_signal: tuple[float, float, float]
 
 
 def pick_textures(textures: list[str], count: int) -> list[int]:
@@ -93,6 +107,38 @@ def _visited(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, fo
     return float(np.mean(log_spectral_distance_db(a, b)))
 
 
+def _normal_stroke(model: VibrationModel, traj, seed: int, noise_std: float) -> np.ndarray:
+    """(n,) acceleration along the surface normal, m/s², of `model` stroked along `traj` (vibration and bumps,
+    texture_library.stroke with the tool upright), plus white sensor noise of noise_std."""
+    sig = stroke(model, traj, np.random.default_rng(seed), rotation=np.eye(3), noise_std=noise_std)
+    return sig.accel[:, 2] - GRAVITY
+
+
+def signal_scores(rendered: np.ndarray, real: np.ndarray) -> tuple[float, float, float]:
+    """(spectral distance dB, SPQI, ST-SIM) of the operator's rendering against the real surface's signal, each
+    the mean over SIGNAL_WINDOW_S windows: RMS dB between Welch spectra (128-sample segments) over 20 Hz ≤ f
+    < 500 Hz, and vibromaf's SPQI and ST-SIM (reference: the real signal). ST-SIM is NaN when vibromaf returns
+    a complex number (its temporal term is negative: two draws of a random texture are uncorrelated waveforms)."""
+    from vibromaf.metrics.spqi import spqi
+    from vibromaf.metrics.stsim import st_sim
+
+    band = band_mask(welch_frequencies())
+    n = int(SIGNAL_WINDOW_S * 1000)
+    dbs, quality, similarity = [], [], []
+    for a in range(0, real.size - n + 1, n):
+        x, y = rendered[a : a + n], real[a : a + n]
+        px, py = window_psd(x)[band], window_psd(y)[band]
+        dbs.append(float(np.sqrt(np.mean((10 * np.log10(np.maximum(px, 1e-12) / np.maximum(py, 1e-12))) ** 2))))
+        quality.append(float(spqi(x, y)))
+        value = complex(st_sim(x, y))
+        similarity.append(value.real if value.imag == 0 else float("nan"))
+    return (
+        float(np.mean(dbs)),
+        float(np.mean(quality)),
+        float(np.nanmean(similarity)) if np.isfinite(similarity).any() else float("nan"),
+    )
+
+
 def _robot(truth: VibrationModel, seconds: float, seed: int, free_s: float):
     rng = np.random.default_rng(seed)
     traj = freehand(seconds, rng, **model_ranges(truth.max_speed, truth.max_force))
@@ -117,6 +163,10 @@ def _feed(fitter: SurfaceFitter, sig, start: int, stop: int) -> None:
 def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: str, prior_name: str) -> TextureRun:
     """One texture's curve (see the module docstring)."""
     traj, sig, free = _robot(truth, max(CHECKPOINTS_S), seed, FREE_S)
+    op_rng = np.random.default_rng(seed + 100_000)
+    operator = freehand(OPERATOR_S, op_rng, **model_ranges(truth.max_speed, truth.max_force))
+    real = _normal_stroke(truth, operator, seed + 200_000, NOISE_STD)
+    signal = []
     fitter = SurfaceFitter()
     fitter.push(*free)
     grid, visited, mu, hybrid_visited = [], [], [], []
@@ -132,6 +182,7 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
         visited.append(_visited(model, truth, traj.speed[:upto], traj.force[:upto]))
         hybrid_visited.append(_visited(prior, truth, traj.speed[:upto], traj.force[:upto]))
         mu.append(abs(model.mu - truth.mu))
+        signal.append(signal_scores(_normal_stroke(model, operator, seed + 300_000, 0.0), real))
         if t == NOISE_SECONDS:
             fit = model
     noise = []
@@ -162,12 +213,32 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
         noise_double_db=noise[1],
         bump_height_db=bump_h,
         bump_period_rel=bump_p,
+        signal_db=np.array([x[0] for x in signal]),
+        spqi=np.array([x[1] for x in signal]),
+        st_sim=np.array([x[2] for x in signal]),
+        hybrid_signal=signal[0],
+        floor_signal=signal_scores(_normal_stroke(truth, operator, seed + 300_000, 0.0), real),
     )
 
 
 def _ci(values: np.ndarray, seed: int = 0) -> dict:
     r = bootstrap_mean(np.asarray(values, float), seed=seed)
     return {"mean": round(r["mean"], 3), "ci95": [round(r["lo"], 3), round(r["hi"], 3)]}
+
+
+def _nanmean(values: list[float]) -> float | None:
+    v = np.asarray(values, float)
+    return round(float(np.nanmean(v)), 4) if np.isfinite(v).any() else None
+
+
+def _signal_row(triples: list[tuple[float, float, float]]) -> dict:
+    db = _ci(np.array([t[0] for t in triples]))
+    return {
+        "spectral_distance_db": db["mean"],
+        "ci95": db["ci95"],
+        "spqi": round(float(np.mean([t[1] for t in triples])), 4),
+        "st_sim": _nanmean([t[2] for t in triples]),
+    }
 
 
 def summarise_online(runs: list[TextureRun], models_by_name: dict[str, VibrationModel]) -> dict:
@@ -177,8 +248,10 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
         for scope, values in (
             ("grid", [r.grid_db[k] for r in runs]),
             ("visited", [r.visited_db[k] for r in runs]),
+            ("signal", [r.signal_db[k] for r in runs]),
         ):
             s = _ci(np.array(values))
+            signal = scope == "signal"
             curve.append(
                 {
                     "seconds": t,
@@ -186,8 +259,9 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
                     "rule": "online+prior",
                     "spectral_distance_db": s["mean"],
                     "ci95": s["ci95"],
-                    "st_sim": None,
-                    "spqi": None,
+                    "st_sim": _nanmean([r.st_sim[k] for r in runs]) if signal else None,
+                    "spqi": round(float(np.mean([r.spqi[k] for r in runs])), 4) if signal else None,
+                    "spqi_ci95": _ci(np.array([r.spqi[k] for r in runs]))["ci95"] if signal else None,
                 }
             )
     paired = {}
@@ -195,6 +269,8 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
         paired[str(t)] = {
             "visited_minus_hybrid_db": _ci(np.array([r.visited_db[k] - r.hybrid_visited_db[k] for r in runs])),
             "grid_minus_hybrid_db": _ci(np.array([r.grid_db[k] - r.hybrid_grid_db for r in runs])),
+            "signal_minus_hybrid_db": _ci(np.array([r.signal_db[k] - r.hybrid_signal[0] for r in runs])),
+            "spqi_minus_hybrid": _ci(np.array([r.spqi[k] - r.hybrid_signal[1] for r in runs])),
         }
     bumps = [r for r in runs if np.isfinite(r.bump_period_rel) or r.bump_height_db == float("-inf")]
     return {
@@ -206,6 +282,19 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             "grid": _ci(np.array([r.hybrid_grid_db for r in runs])),
             "visited_2s": _ci(np.array([r.hybrid_visited_db[CHECKPOINTS_S.index(2.0)] for r in runs])),
             "visited_10s": _ci(np.array([r.hybrid_visited_db[CHECKPOINTS_S.index(10.0)] for r in runs])),
+        },
+        "baseline_signal": {
+            "hybrid": {
+                "seconds": 0.0,
+                "scope": "signal",
+                "rule": "hybrid",
+                **_signal_row([r.hybrid_signal for r in runs]),
+            },
+            "floor": {
+                "scope": "signal",
+                "rule": "the true model rendered",
+                **_signal_row([r.floor_signal for r in runs]),
+            },
         },
         "paired": paired,
         "noise_sensitivity": {
@@ -225,8 +314,8 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             ],
         },
         "not_measured": (
-            "signal scope, ST-SIM and SPQI (vibromaf), taps against held-out recorded taps, the `online` rule "
-            "without a prior"
+            "taps (the signal scope strokes without tapping; recorded taps against rendered ones), the `online` "
+            "rule without a prior"
         ),
     }
 
@@ -258,14 +347,30 @@ def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
     ]
     for world, e in entries.items():
         lines += [f"## {world} ({len(e['textures'])} textures, an evenly spaced subsample)", ""]
-        lines += ["| seconds | grid dB [95 %] | visited dB [95 %] | visited − hybrid [95 %] |", "|---:|---:|---:|---:|"]
+        lines += [
+            "| seconds | grid dB [95 %] | visited dB [95 %] | visited − hybrid | signal dB [95 %] | signal − hybrid "
+            "| SPQI | SPQI − hybrid | ST-SIM |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         by = {(c["seconds"], c["scope"]): c for c in e["curve"]}
         for t in CHECKPOINTS_S:
-            g, v, p = by[(t, "grid")], by[(t, "visited")], e["paired"][str(t)]["visited_minus_hybrid_db"]
+            g, v, sg = by[(t, "grid")], by[(t, "visited")], by[(t, "signal")]
+            pv, ps = e["paired"][str(t)]["visited_minus_hybrid_db"], e["paired"][str(t)]["signal_minus_hybrid_db"]
+            pq = e["paired"][str(t)]["spqi_minus_hybrid"]
             lines.append(
                 f"| {t:g} | {g['spectral_distance_db']:.2f} {g['ci95']} | {v['spectral_distance_db']:.2f} {v['ci95']} "
-                f"| {p['mean']:+.2f} {p['ci95']} |"
+                f"| {pv['mean']:+.2f} {pv['ci95']} | {sg['spectral_distance_db']:.2f} {sg['ci95']} "
+                f"| {ps['mean']:+.2f} {ps['ci95']} | {sg['spqi']:.4f} | {pq['mean']:+.4f} {pq['ci95']} "
+                f"| {sg['st_sim']} |"
             )
+        hs, fl = e["baseline_signal"]["hybrid"], e["baseline_signal"]["floor"]
+        lines += [
+            "",
+            f"Signal scope, for reference: `hybrid` {hs['spectral_distance_db']:.2f} {hs['ci95']} dB, SPQI "
+            f"{hs['spqi']:.4f}; the true model itself rendered along the operator's stroke (the floor: two draws of "
+            f"the same surface, one with sensor noise) {fl['spectral_distance_db']:.2f} {fl['ci95']} dB, SPQI "
+            f"{fl['spqi']:.4f}.",
+        ]
         b, ns = e["baseline"], e["noise_sensitivity"]
         lines += [
             "",

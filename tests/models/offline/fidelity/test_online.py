@@ -48,7 +48,11 @@ def test_curve_moves_from_the_prior_towards_the_surface():
     assert run.visited_db[CHECKPOINTS_S.index(10.0)] < 0.5 * run.hybrid_visited_db[CHECKPOINTS_S.index(10.0)]
     assert run.mu_diff[CHECKPOINTS_S.index(10.0)] < 0.05 < run.hybrid_mu_diff
     assert abs(run.bump_height_db) <= 3.0 and abs(run.bump_period_rel) <= 0.05
+    # along the operator's own stroke, bumps and all, the held model comes to sound like the surface
+    assert run.signal_db[0] == run.hybrid_signal[0]
+    assert run.signal_db[CHECKPOINTS_S.index(10.0)] < 0.5 * run.hybrid_signal[0]
+    assert run.floor_signal[0] < run.signal_db[CHECKPOINTS_S.index(10.0)] + 1.0
     entry = summarise_online([run, run], {})
     scopes = {(c["seconds"], c["scope"]) for c in entry["curve"]}
-    assert scopes == {(t, s) for t in CHECKPOINTS_S for s in ("grid", "visited")}
+    assert scopes == {(t, s) for t in CHECKPOINTS_S for s in ("grid", "visited", "signal")}
     assert all(set(c) >= {"seconds", "scope", "spectral_distance_db", "ci95", "st_sim", "spqi"} for c in entry["curve"])
