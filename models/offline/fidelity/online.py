@@ -16,6 +16,9 @@ itself) is scored against the true model:
             against what the tool on the true surface measures along the normal (with sensor noise), per 2 s
             window: RMS dB between Welch spectra over 20 ≤ f < 500 Hz, SPQI and ST-SIM (vibromaf); the true
             model rendered the same way is the floor. Taps are not in these strokes;
+  taps      the robot sends every other recorded tap of the texture; each held-out tap against the transient
+            the held model renders at its speed (its stored tap nearest in speed, scaled by speed), RMS dB of
+            the spectra over 20–500 Hz, beside the same distance between the texture's own held-out taps;
   friction  |Δμ|;  bumps (models with a profile) the profile's spatial-spectrum line, 20·log10 of the height
             ratio, and the period's relative error.
 
@@ -39,6 +42,7 @@ from texture_library.atomic_file import write_text
 from texture_library.selection import band_mask, welch_frequencies, window_psd
 from texture_library.spectrum import arma_psd, band_frequencies, log_spectral_distance_db, spectral_distance_db
 from texture_library.stroke import GRAVITY, random_rotation, stroke
+from texture_library.taps import TapSet
 from texture_library.trajectory import freehand, model_ranges
 from texture_library.vibration import VibrationModel
 
@@ -49,6 +53,9 @@ FREE_S = 0.5
 BLOCK = 100
 NOISE_SECONDS = 10.0
 VISITED_POINTS = 60
+#: the `online` rule: the prior counts as this many segments (the data alone wherever a segment fell; the prior
+#: only where none did), against `online+prior`'s surface_fit.PRIOR_SEGMENTS
+DATA_ONLY_SEGMENTS = 1e-3
 #: the operator's stroke (not the robot's: its own seed), s, scored in windows of SIGNAL_WINDOW_S
 OPERATOR_S = 10.0
 SIGNAL_WINDOW_S = 2.0
@@ -76,6 +83,10 @@ class TextureRun:
     st_sim: np.ndarray
     hybrid_signal: tuple[float, float, float]
     floor_signal: tuple[float, float, float]
+    data_only: np.ndarray
+    taps_db: float
+    hybrid_taps_db: float
+    taps_spread_db: float
 
 
 def pick_textures(textures: list[str], count: int) -> list[int]:
@@ -139,6 +150,41 @@ def signal_scores(rendered: np.ndarray, real: np.ndarray) -> tuple[float, float,
     )
 
 
+def tap_distance_db(x: np.ndarray, y: np.ndarray) -> float:
+    """RMS dB between two tap transients' power spectra (128-point FFT at 1 kHz) over 20 ≤ f < 500 Hz."""
+    f = np.fft.rfftfreq(128, 1e-3)
+    band = (f >= 20.0) & (f < 500.0)
+    px = np.abs(np.fft.rfft(x, 128))[band] ** 2
+    py = np.abs(np.fft.rfft(y, 128))[band] ** 2
+    return float(np.sqrt(np.mean((10 * np.log10(np.maximum(px, 1e-12) / np.maximum(py, 1e-12))) ** 2)))
+
+
+def rendered_tap(taps: TapSet, speed: float) -> np.ndarray:
+    """The transient a renderer plays for a tap at `speed` mm/s: the stored tap nearest in speed, scaled by
+    speed (a tap's peak grows with its speed: models.tactile.taps)."""
+    k = int(np.argmin(np.abs(np.log(np.maximum(taps.speeds, 1e-3) / max(speed, 1e-3)))))
+    return taps.accel[k] * (speed / max(float(taps.speeds[k]), 1e-3))
+
+
+def tap_scores(model_taps: TapSet | None, held: TapSet) -> float:
+    """Mean over the held-out taps of tap_distance_db(rendered, recorded); NaN without model taps."""
+    if model_taps is None:
+        return float("nan")
+    return float(np.mean([tap_distance_db(rendered_tap(model_taps, v), a) for v, a in zip(held.speeds, held.accel)]))
+
+
+def tap_spread(held: TapSet) -> float:
+    """The between-tap spread: each held-out tap against the texture's other held-out tap nearest in speed,
+    scaled the same way (NaN with fewer than two)."""
+    if held.speeds.size < 2:
+        return float("nan")
+    out = []
+    for i, (v, a) in enumerate(zip(held.speeds, held.accel)):
+        others = TapSet(np.delete(held.speeds, i), np.delete(held.accel, i, axis=0))
+        out.append(tap_distance_db(rendered_tap(others, v), a))
+    return float(np.mean(out))
+
+
 def _robot(truth: VibrationModel, seconds: float, seed: int, free_s: float):
     rng = np.random.default_rng(seed)
     traj = freehand(seconds, rng, **model_ranges(truth.max_speed, truth.max_force))
@@ -166,8 +212,15 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
     op_rng = np.random.default_rng(seed + 100_000)
     operator = freehand(OPERATOR_S, op_rng, **model_ranges(truth.max_speed, truth.max_force))
     real = _normal_stroke(truth, operator, seed + 200_000, NOISE_STD)
-    signal = []
+    signal: list[tuple[float, float, float]] = []
+    data_only: list[tuple[float, ...]] = []
     fitter = SurfaceFitter()
+    held = None
+    if truth.taps is not None:
+        # the robot taps before it strokes and sends every other recorded tap; the rest are held out
+        fitter.push_taps(truth.taps.speeds[0::2], truth.taps.accel[0::2])
+        if truth.taps.speeds.size >= 4:
+            held = TapSet(truth.taps.speeds[1::2], truth.taps.accel[1::2])
     fitter.push(*free)
     grid, visited, mu, hybrid_visited = [], [], [], []
     done = 0
@@ -183,6 +236,14 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
         hybrid_visited.append(_visited(prior, truth, traj.speed[:upto], traj.force[:upto]))
         mu.append(abs(model.mu - truth.mu))
         signal.append(signal_scores(_normal_stroke(model, operator, seed + 300_000, 0.0), real))
+        alone = prior if t == 0 else fitter.fit(prior, name, prior_segments=DATA_ONLY_SEGMENTS).model
+        data_only.append(
+            (
+                spectral_distance_db(alone, truth),
+                _visited(alone, truth, traj.speed[:upto], traj.force[:upto]),
+                *signal_scores(_normal_stroke(alone, operator, seed + 300_000, 0.0), real),
+            )
+        )
         if t == NOISE_SECONDS:
             fit = model
     noise = []
@@ -218,6 +279,10 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
         st_sim=np.array([x[2] for x in signal]),
         hybrid_signal=signal[0],
         floor_signal=signal_scores(_normal_stroke(truth, operator, seed + 300_000, 0.0), real),
+        data_only=np.array(data_only),
+        taps_db=float("nan") if held is None or fit is None else tap_scores(fit.taps, held),
+        hybrid_taps_db=float("nan") if held is None else tap_scores(prior.taps, held),
+        taps_spread_db=float("nan") if held is None else tap_spread(held),
     )
 
 
@@ -238,6 +303,22 @@ def _signal_row(triples: list[tuple[float, float, float]]) -> dict:
         "ci95": db["ci95"],
         "spqi": round(float(np.mean([t[1] for t in triples])), 4),
         "st_sim": _nanmean([t[2] for t in triples]),
+    }
+
+
+def _taps_summary(runs: list[TextureRun]) -> dict | None:
+    """Held-out recorded taps against the held model's rendering at NOISE_SECONDS, the prior's, and the spread
+    between the texture's own taps; each a mean over the textures that have taps, with its interval."""
+    have = [r for r in runs if np.isfinite(r.taps_db) and np.isfinite(r.taps_spread_db)]
+    if not have:
+        return None
+    return {
+        "textures": len(have),
+        "online_db": _ci(np.array([r.taps_db for r in have])),
+        "hybrid_db": _ci(np.array([r.hybrid_taps_db for r in have])),
+        "spread_db": _ci(np.array([r.taps_spread_db for r in have])),
+        "online_minus_spread_db": _ci(np.array([r.taps_db - r.taps_spread_db for r in have])),
+        "within_spread": int(sum(r.taps_db <= r.taps_spread_db for r in have)),
     }
 
 
@@ -262,6 +343,22 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
                     "st_sim": _nanmean([r.st_sim[k] for r in runs]) if signal else None,
                     "spqi": round(float(np.mean([r.spqi[k] for r in runs])), 4) if signal else None,
                     "spqi_ci95": _ci(np.array([r.spqi[k] for r in runs]))["ci95"] if signal else None,
+                }
+            )
+    for k, t in enumerate(CHECKPOINTS_S):
+        for col, scope in enumerate(("grid", "visited", "signal")):
+            s = _ci(np.array([r.data_only[k, col] for r in runs]))
+            signal = scope == "signal"
+            curve.append(
+                {
+                    "seconds": t,
+                    "scope": scope,
+                    "rule": "online",
+                    "spectral_distance_db": s["mean"],
+                    "ci95": s["ci95"],
+                    "st_sim": _nanmean([r.data_only[k, 4] for r in runs]) if signal else None,
+                    "spqi": round(float(np.mean([r.data_only[k, 3] for r in runs])), 4) if signal else None,
+                    "spqi_ci95": _ci(np.array([r.data_only[k, 3] for r in runs]))["ci95"] if signal else None,
                 }
             )
     paired = {}
@@ -306,6 +403,7 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             str(t): _ci(np.array([r.mu_diff[k] for r in runs])) for k, t in enumerate(CHECKPOINTS_S) if t in (0, 2, 10)
         },
         "friction_hybrid": _ci(np.array([r.hybrid_mu_diff for r in runs])),
+        "taps": _taps_summary(runs),
         "bumps": {
             "textures_with_bumps": len(bumps),
             "height_db": [None if not np.isfinite(r.bump_height_db) else round(r.bump_height_db, 2) for r in bumps],
@@ -314,8 +412,8 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             ],
         },
         "not_measured": (
-            "taps (the signal scope strokes without tapping; recorded taps against rendered ones), the `online` "
-            "rule without a prior"
+            "taps inside the signal scope (its strokes do not tap; taps are scored on their own); serving the "
+            "model as it grows (the service does not run the fitter yet)"
         ),
     }
 
@@ -330,6 +428,17 @@ def run_world(world: World, models: list[VibrationModel], count: int, seed: int 
     return summarise_online(runs, dict(zip(world.textures, models)))
 
 
+def _taps_line(taps: dict | None) -> str:
+    if taps is None:
+        return ""
+    return (
+        f" Taps (every other recorded tap sent, the rest held out; RMS dB of the spectrum, 20–500 Hz): the held "
+        f"model's rendering {taps['online_db']['mean']:.2f} {taps['online_db']['ci95']}, the prior's "
+        f"{taps['hybrid_db']['mean']:.2f}, between the texture's own taps {taps['spread_db']['mean']:.2f} "
+        f"{taps['spread_db']['ci95']} (within the spread on {taps['within_spread']} of {taps['textures']})."
+    )
+
+
 def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
     """results.json's `online` key (the rest kept) and online.md beside README.md."""
     out.mkdir(parents=True, exist_ok=True)
@@ -341,8 +450,9 @@ def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
         "# The surface's own model, learnt online: what the operator holds over time",
         "",
         f"Regenerate: `{command}` (fixed seeds). Method: `models/offline/fidelity/online.py` (docstring);",
-        "the fit: `models/tactile/surface_fit.py`. Rule scored: `online+prior` (the fit blended with the served",
-        "`hybrid` rule's pick from the other textures). Brackets: texture-level bootstrap 95 % intervals.",
+        "the fit: `models/tactile/surface_fit.py`. The tables: `online+prior` (the fit blended with the served",
+        "`hybrid` rule's pick from the other textures); the `online` rule (the data alone) in the line below each.",
+        "Brackets: texture-level bootstrap 95 % intervals; differences are paired over the same textures.",
         "",
     ]
     for world, e in entries.items():
@@ -352,7 +462,8 @@ def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
             "| SPQI | SPQI − hybrid | ST-SIM |",
             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
-        by = {(c["seconds"], c["scope"]): c for c in e["curve"]}
+        by = {(c["seconds"], c["scope"]): c for c in e["curve"] if c["rule"] == "online+prior"}
+        alone = {(c["seconds"], c["scope"]): c for c in e["curve"] if c["rule"] == "online"}
         for t in CHECKPOINTS_S:
             g, v, sg = by[(t, "grid")], by[(t, "visited")], by[(t, "signal")]
             pv, ps = e["paired"][str(t)]["visited_minus_hybrid_db"], e["paired"][str(t)]["signal_minus_hybrid_db"]
@@ -365,6 +476,15 @@ def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
             )
         hs, fl = e["baseline_signal"]["hybrid"], e["baseline_signal"]["floor"]
         lines += [
+            "",
+            "The `online` rule (the data alone wherever a segment fell, the prior only where none did), visited / "
+            "signal dB at 2, 10 and 30 s: "
+            + ", ".join(
+                f"{alone[(t, 'visited')]['spectral_distance_db']:.2f} / "
+                f"{alone[(t, 'signal')]['spectral_distance_db']:.2f}"
+                for t in (2.0, 10.0, 30.0)
+            )
+            + ".",
             "",
             f"Signal scope, for reference: `hybrid` {hs['spectral_distance_db']:.2f} {hs['ci95']} dB, SPQI "
             f"{hs['spqi']:.4f}; the true model itself rendered along the operator's stroke (the floor: two draws of "
@@ -380,7 +500,8 @@ def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
             f"{ns['declared_double_visited_db']['mean']:.2f} dB. |Δμ| at 0 / 2 / 10 s: "
             + " / ".join(f"{e['friction'][k]['mean']:.3f}" for k in ("0.0", "2.0", "10.0"))
             + f" (hybrid {e['friction_hybrid']['mean']:.3f}). Bumps (textures with a profile, at 10 s): height "
-            f"error dB {e['bumps']['height_db']}, period relative error {e['bumps']['period_relative_error']}.",
+            f"error dB {e['bumps']['height_db']}, period relative error {e['bumps']['period_relative_error']}."
+            + _taps_line(e["taps"]),
             "",
         ]
     lines += [f"Not measured yet: {next(iter(entries.values()))['not_measured']}.", ""]

@@ -213,3 +213,13 @@ def test_bad_shapes_name_the_problem():
         SurfaceFitter().push(np.zeros((10, 2)), np.zeros(10), np.zeros(10))
     with pytest.raises(ValueError, match="finite"):
         SurfaceFitter().push(np.full((10, 3), np.nan), np.zeros(10), np.zeros(10))
+
+
+def test_prior_strength_sets_the_confidence(fitted):
+    _, fitter, fit = fitted
+    alone = fitter.fit(PRIOR, prior_segments=1e-3)
+    touched = fit.confidence > 0
+    assert np.all(alone.confidence[touched] > fit.confidence[touched])
+    assert np.all(alone.confidence[touched] > 0.99)
+    with pytest.raises(ValueError, match="prior_segments"):
+        fitter.fit(PRIOR, prior_segments=0.0)

@@ -56,3 +56,19 @@ def test_curve_moves_from_the_prior_towards_the_surface():
     scopes = {(c["seconds"], c["scope"]) for c in entry["curve"]}
     assert scopes == {(t, s) for t in CHECKPOINTS_S for s in ("grid", "visited", "signal")}
     assert all(set(c) >= {"seconds", "scope", "spectral_distance_db", "ci95", "st_sim", "spqi"} for c in entry["curve"])
+
+
+def test_tap_scores_known_answers():
+    from models.offline.fidelity.online import rendered_tap, tap_distance_db, tap_scores, tap_spread
+    from texture_library.taps import TapSet
+
+    t = np.arange(100) / 1000.0
+    ring = np.exp(-t / 0.01) * np.sin(2 * np.pi * 150 * t)
+    taps = TapSet(np.array([20.0, 80.0]), np.stack([20.0 * ring, 80.0 * ring]))
+    # a tap is rendered from the stored one nearest in speed, scaled by speed: the same ringing at 40 mm/s
+    np.testing.assert_allclose(rendered_tap(taps, 40.0), 40.0 * ring)
+    assert tap_scores(taps, TapSet(np.array([40.0]), (40.0 * ring)[None])) == 0.0
+    assert tap_spread(taps) == 0.0
+    other = np.exp(-t / 0.002) * np.sin(2 * np.pi * 400 * t)
+    assert tap_distance_db(ring, other) > 10.0
+    assert np.isnan(tap_spread(TapSet(np.array([20.0]), ring[None])))
