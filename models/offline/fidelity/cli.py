@@ -21,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--default-rule", default="hybrid", help="the rule the service serves (marked in the report)")
     f.add_argument("--out", default="reports/fidelity")
     f.set_defaults(func=_fidelity)
+    register_online(sub)
 
 
 def _fidelity(args: argparse.Namespace) -> int:
@@ -63,4 +64,44 @@ def _fidelity(args: argparse.Namespace) -> int:
     made_from = provenance(inputs, command)
     out = write_report(Path(args.out), command, args.default_rule, parts[0], parts[1], made_from)
     print(f"wrote {out}/README.md and results.json")
+    return 0
+
+
+def register_online(sub: argparse._SubParsersAction) -> None:
+    f = sub.add_parser(
+        "fidelity-online",
+        help="what the operator holds over time: the surface's own model learnt online, leave-one-texture-out",
+    )
+    f.add_argument("--dataset", required=True, help="HaTT–TexNet dataset directory")
+    f.add_argument("--predictions", required=True, help="results.json of the served model's leave-one-texture-out run")
+    f.add_argument("--synthetic-dataset", help="synthetic-world dataset directory")
+    f.add_argument("--synthetic-predictions", help="results.json of a leave-one-texture-out run on it")
+    f.add_argument("--textures", type=int, default=8, help="stroked textures per world (an evenly spaced subsample)")
+    f.add_argument("--out", default="reports/fidelity")
+    f.set_defaults(func=_fidelity_online)
+
+
+def _fidelity_online(args: argparse.Namespace) -> int:
+    from models.offline.datasets.format import Dataset
+    from models.offline.fidelity.online import run_world, write_online
+    from models.offline.fidelity.study import load_world
+    from texture_library.vibration import VibrationModel
+
+    if args.textures < 2:
+        raise ValueError(f"--textures must be ≥ 2, got {args.textures}")
+    entries = {}
+    for key, dataset, predictions in (
+        ("hatt-texnet", args.dataset, args.predictions),
+        ("synthetic", args.synthetic_dataset, args.synthetic_predictions),
+    ):
+        if dataset is None:
+            continue
+        world = load_world(dataset, predictions)
+        ds = Dataset(dataset)
+        models = [VibrationModel.load(ds.vibration_model_path(t)) for t in world.textures]
+        entries[key] = run_world(world, models, args.textures)
+        print(f"{key}: done", flush=True)
+    command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    out = write_online(Path(args.out), command, entries)
+    print(f"wrote {out}/online.md and results.json's online key")
     return 0
