@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.report_file import write_report
+from models.offline.provenance import file_input
 from texture_library.procedural import make_world
 from texture_library.renderer import render_stroke
 from texture_library.synthesis import render
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = [level(m, args.full_scale) for m in models]
         doc[name] = {"summary": summary(rows), "rows": rows}
         print(name, doc[name]["summary"], flush=True)
-    write_report(args.out, doc)
+    write_report(args.out, doc, [file_input("HaTT models", args.hatt_source / "models")] if hatt else ())
     print(f"wrote {args.out}", flush=True)
     return 0
 

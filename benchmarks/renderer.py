@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from benchmarks.report_file import machine, write_report
+from models.offline.provenance import file_input
 from texture_library.procedural import make_world
 from texture_library.renderer import StreamRenderer
 from texture_library.synthesis import interpolate, render
@@ -131,23 +131,12 @@ def main(argv: list[str] | None = None) -> int:
         "what": "process CPU µs per second of 1 kHz output, best of repeats; floor: scipy.signal.lfilter of the "
         "same length at one fixed operating point",
         "load_average_1min_at_end": load,
-        "host": _cpu_model(),
         "machine": machine(load_before),
         "rows": rows,
     }
-    write_report(args.out, doc)
+    write_report(args.out, doc, [file_input("HaTT models", args.hatt_source / "models")] if hatt else ())
     print(f"wrote {args.out} (1-min load average {load})", flush=True)
     return 0
-
-
-def _cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo), else what platform says."""
-    info = Path("/proc/cpuinfo")
-    if info.exists():
-        for line in info.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
 
 
 if __name__ == "__main__":
