@@ -226,9 +226,10 @@ async def print_events(
                     terminal.say(line)
             selection = event.get("selection") or {}
             held = bool(selection.get("held_by_hysteresis"))
-            if (event["chosen"], held) != shown:
-                shown = (event["chosen"], held)
+            # a line when the rendered entry changes, or when hysteresis starts keeping it; not when it is free again
+            if shown is None or event["chosen"] != shown[0] or (held and not shown[1]):
                 terminal.say(wrapped(f"{t:7.1f} s rendering {event['chosen']} — {_why(event)}"))
+            shown = (event["chosen"], held)
             if bool(event.get("out_of_distribution")) != flagged:
                 flagged = not flagged
                 reasons = ", ".join(event.get("ood_reasons") or ()) or "no reason given"

@@ -98,7 +98,9 @@ class Terminal:
 def summary_table(errors: Sequence[tuple[str, float, float]], after_s: float) -> Table:
     """Each probe's error after `after_s` seconds of its stroke: the console's estimate and the mean of its
     windows (0–100), with their mean."""
-    table = Table(title=f"error after {after_s:g} s of each probe's stroke (mean |estimate − truth|, 0–100)")
+    table = Table(  # as wide as its title, so the title stays on one line
+        title=f"error after {after_s:g} s of each probe's stroke (mean |estimate − truth|, 0–100)", min_width=78
+    )
     table.add_column("probe (unseen)")
     table.add_column("console estimate", justify="right")
     table.add_column("mean of windows", justify="right")
