@@ -771,7 +771,13 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
         "in all, to take over"
     )
     held = {"rule": "perceptual", "reason": keeping, "held_by_hysteresis": True, "switch_margin": 3.25}
-    later = {"window_index": 99, "provisional": True, "t_start_s": last["t_start_s"] + 5, "t_end_s": last["t_end_s"] + 5, "selection": held}
+    later = {
+        "window_index": 99,
+        "provisional": True,
+        "t_start_s": last["t_start_s"] + 5,
+        "t_end_s": last["t_end_s"] + 5,
+        "selection": held,
+    }
     browser.execute_script("onEvent(JSON.parse(arguments[0]))", json.dumps(last | later))
     _wait(browser, lambda d: _text(d, "window") == "99")
     browser.execute_script("for (let i = 0; i < 40; i++) log('a status line long enough to wrap: ' + 'x'.repeat(60))")
