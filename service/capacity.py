@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import math
 import time
@@ -340,6 +341,8 @@ class CapacityGuard:
         or the last one's effect has not shown yet."""
         if not self._frames_flow(now) and self.visual_queue_s <= self.settings.shed_visual_queue_s:
             return False
+        if sum(1 for _ in itertools.islice(self._sessions(), 2)) < 2:
+            return False  # the oldest session's frames are never degraded, as it is never shed: none to degrade
         if self.frame_level < FRAMES_DROPPED:
             if now - self._frame_step >= SETTLE_S:
                 self.frame_level += 1
@@ -375,11 +378,15 @@ class CapacityGuard:
             self._frame_step = now
             self.metrics.frame_level.set(self.frame_level)
 
-    def _frame_budget_s(self) -> float:
-        """Embedding work (s) a frame may find queued ahead of it at this frame level."""
-        if self.frame_level >= FRAMES_DROPPED:
+    def _frame_budget_s(self, level: int | None = None) -> float:
+        """Embedding work (s) a frame may find queued ahead of it at frame `level` (the current one by default)."""
+        level = self.frame_level if level is None else level
+        if level >= FRAMES_DROPPED:
             return 0.0
-        return self.settings.shed_visual_queue_s / (2**self.frame_level)
+        return self.settings.shed_visual_queue_s / (2**level)
+
+    def _is_oldest(self, session: Session) -> bool:
+        return next(iter(self._sessions()), None) is session
 
     def _refuse_frame_for_load(self, session: Session, now: float) -> None:
         """The frame level, and the embedding queue bounded in time: ServiceError 429 with the Retry-After at which a
@@ -390,6 +397,8 @@ class CapacityGuard:
         if level == FRAMES_ALL and visual.ahead_s() <= self._frame_budget_s() and not self._frames_waiting:
             self._frame_taken_now(session, now)
             return
+        if level > FRAMES_ALL and self._is_oldest(session):
+            level = FRAMES_ALL  # the oldest session is never shed, nor are its frames degraded: only bounded
         waiting_for_frame = getattr(session, "waiting_for_frame", None)
         if waiting_for_frame is not None and waiting_for_frame():
             self._frame_taken_now(session, now)
@@ -411,7 +420,7 @@ class CapacityGuard:
                 why = f"camera frames are sampled once every {FRAME_SAMPLE_S:g} s per robot"
                 retry = FRAME_SAMPLE_S - since
         if why is None:
-            budget = self._frame_budget_s()
+            budget = self._frame_budget_s(level)
             if visual.ahead_s() + ahead * visual.embed_s <= budget or visual.jobs == 0:
                 self._frame_taken_now(session, now)
                 return

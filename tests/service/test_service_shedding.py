@@ -92,8 +92,10 @@ def test_over_capacity_with_the_camera_busy_frames_are_sampled_then_dropped_and_
     _update(guard, sessions, SETTLE_S)
     assert guard.frame_level == FRAMES_DROPPED and _shed(guard, sessions) == []
     with pytest.raises(AtCapacity, match="camera frames are dropped") as refused:
-        guard.admit_frame(sessions[0])  # type: ignore[arg-type]  # even the oldest robot's
+        guard.admit_frame(sessions[1])  # type: ignore[arg-type]
     assert float(refused.value.headers["Retry-After"]) > 0
+    guard.admit_frame(sessions[0])  # type: ignore[arg-type]  # the oldest is never shed, nor its frames dropped
+    guard._frame_at = -10.0  # (taken on the real clock: back on the test's)
     _update(guard, sessions, 1.5 * SETTLE_S)  # frames dropped, their effect not shown yet
     assert _shed(guard, sessions) == []
     queue.done(job, now=2 * SETTLE_S)
