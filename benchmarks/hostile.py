@@ -331,10 +331,9 @@ def crowd_run(assets: Assets, api_key: str, robots: int, seconds: float, block_s
         for pipe in pipes:
             pipe.send("go")
         results = [receive(pipe, proc, "result") for pipe, proc in zip(pipes, procs)]
-        time.sleep(1.0)
         stop.set()
         health = polled.get(timeout=30)
-        metrics = httpx.get(f"{server.url}/metrics", headers=SCRAPER).text
+        metrics = _drained_metrics(server.url)
     finally:
         server.stop()
         for proc in [*procs, poller]:
@@ -374,7 +373,8 @@ def crowd_run(assets: Assets, api_key: str, robots: int, seconds: float, block_s
             "max_robot_gap_s": round(max(gaps), 3) if gaps else None,
             "robots_gap_over_2s": sum(g > CROWD_GAP_S for g in gaps),
             "robot_gap_s_p50": percentile(gaps, 50) if gaps else None,
-            "robots_without_a_window": len(admitted) - len(streamed),
+            "robots_without_a_window": sum(not r["received_at"] for r in per_robot),
+            "robots_never_started": len(per_robot) - len(admitted),
             "max_robot_gap_after_first_window_s": round(max(gaps_after), 3) if gaps_after else None,
             "first_window_s": {
                 "p50": percentile(first_window_s, 50) if first_window_s else None,
@@ -407,6 +407,18 @@ def crowd_run(assets: Assets, api_key: str, robots: int, seconds: float, block_s
         }
     )
     return report
+
+
+def _drained_metrics(url: str, within_s: float = 15.0) -> str:
+    """The service's metrics once every window admitted has been published (or `within_s` has passed): windows still
+    being estimated at the end are not lost."""
+    deadline = time.monotonic() + within_s
+    while True:
+        metrics = httpx.get(f"{url}/metrics", headers=SCRAPER, timeout=30).text
+        admitted = _metric_sum(metrics, "hapticlink_windows_admitted_total")
+        if admitted <= _metric_sum(metrics, "hapticlink_windows_total") or time.monotonic() > deadline:
+            return metrics
+        time.sleep(0.5)
 
 
 async def session_burst(url: str, api_key: str) -> dict:
