@@ -61,6 +61,20 @@ would hide the delay of each burst's last windows. From them:
   sessions keep streaming at full quality, and the refused robots back off and resend later from their oldest
   unacknowledged block (nothing accepted is lost). A refused robot is told to come back (`retry_after`) after the
   readmission steps of the refused sessions older than its own.
+
+**Pictures before robots.** Camera frames are degraded before any robot is refused. The frames' wait for the
+embedder (the **visual queue delay**, service/visual_queue.py) is measured apart from the window queue and never sheds
+a session: a slow visual pool degrades frames, not windows. Before a frame is taken, the embedding work queued ahead
+of it is bounded (`shed_visual_queue_s`, halved at `FRAMES_SAMPLED`): a frame beyond it is refused with the
+Retry-After at which it would be taken, frames refused earlier going first. While the process is over its limits and
+the camera path holds CPU (a frame taken within `FRAMES_WITHIN_S`, or embeddings queued), or frames wait past
+`shed_visual_queue_s`, `frame_level` rises a step instead of a session being shed — `FRAMES_SAMPLED` (a session with
+a visual input gets a frame every `FRAME_SAMPLE_S`), then `FRAMES_DROPPED` (none) — at once, then after `SETTLE_S`;
+sessions are shed only once frames are dropped and that has had `SETTLE_S` to show. Meanwhile a late window queue
+does not refuse new sessions either. A session without its frame is served tactile-only, its windows marked
+(service/pipeline.py); the oldest session's frames are never degraded (it is never shed), and a session whose windows
+wait for a first frame (no tactile-only model) always gets one. On the way back the shed sessions come first; frames
+come back a level every `READMIT_EVERY_S` once none is shed.
 """
 
 from __future__ import annotations
