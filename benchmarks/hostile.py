@@ -18,6 +18,18 @@ and the service. Reported: /health p50/p99/max, the well-behaved robots' windows
 (overall and while the burst streamed), each robots process's own send lag and event-loop lag (a generator
 that falls behind inflates the latencies it reports), what was refused (and how), and whether the seq-2^62
 session still produced windows. Writes reports/bench/hostile.json.
+
+`--case crowd` runs the crowd instead (`crowd_case`): one service process (the `served` configuration, its probe port
+on), a burst of 300 `POST /sessions` from one client address that then sends nothing, and two seconds later
+`--burst-robots` real RobotClients (two processes) with a camera frame at 1 fps each, starting within one hop and
+streaming `--duration` s in the robot client's default blocks, an operator each, while a process of its own polls
+/health on the service port and on the probe port every 20 ms. Per robot it records every window's arrival and
+what the window was estimated from. It writes the `crowd` object into the report file (the other objects there are
+kept): per run the fraction of the admitted robots' windows estimated (tactile-only ones, and those marked missing
+the frame), the longest any admitted robot went without a window, the readmission wait of refused robots (the
+service's `hapticlink_readmit_seconds`: from room for the robot to its next block accepted), /health p99 on both
+ports, accepted windows lost (`hapticlink_windows_admitted_total` − `hapticlink_windows_total` after the drain), what
+was refused and the ERROR lines of the service's log; the top-level figures are the worst of `--runs` runs.
 """
 
 from __future__ import annotations
@@ -26,7 +38,9 @@ import argparse
 import asyncio
 import dataclasses
 import json
+import math
 import multiprocessing as mp
+import os
 import secrets
 import sys
 import time
@@ -46,6 +60,7 @@ from benchmarks.service import (
     ServerProcess,
     _metric_sum,
     _run,
+    generator_lag_limit_ms,
     percentile,
     prepare_assets,
     run_load,
@@ -53,6 +68,8 @@ from benchmarks.service import (
 )
 from drivers.blocks import ChannelBlock, SampleBlock, encode_binary
 from drivers.protocol import BINARY_CONTENT_TYPE, bearer, session_path
+from drivers.source import DEFAULT_BLOCK_S
+from service.launcher import free_port
 
 DEFAULT_OUT = Path("reports/bench/hostile.json")
 
@@ -185,6 +202,316 @@ def robots_process(
     )
 
 
+# ---- the crowd: robots with cameras after a session burst ----------------------------------------------------------
+#: requests of the session burst that comes before the crowd (one client address, nothing sent after)
+CROWD_BURST = 300
+#: the crowd's robots, the longest any admitted one may go without a window (s)
+CROWD_GAP_S = 2.0
+
+
+def crowd_robots_process(
+    url: str, assets: Assets, ks: list[int], seconds: float, block_s: float, api_key: str, seed: int, conn
+) -> None:
+    """A process of crowd robots (real RobotClients with camera frames, an operator each): as robots_process, but
+    what comes back is per robot — its start, every window's arrival (perf_counter), what its windows were estimated
+    from, its counters — so that gaps and the admitted robots can be told apart."""
+    streams = robot_streams(assets.library, len(ks), seconds, block_s, taps=assets.taps, indices=ks)
+    frames = [frame_of(assets.library, k) for k in ks]
+    conn.send(("ready", None))
+    conn.recv()
+
+    async def go():
+        lag: list[float] = []
+        ticking = loop_lag(lag)
+        try:
+            return await run_load([url], streams, frames, block_s, api_key, seed), lag
+        finally:
+            ticking.cancel()
+
+    try:
+        (stats, views, sources), lag = _run(go())
+    except Exception as exc:  # noqa: BLE001 - reported in the row
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    robots = [
+        {
+            "start": src.start,
+            "received_at": list(v.received_at),
+            "e2e_ms": list(v.e2e_ms),
+            "windows": v.windows,
+            "tactile_only": v.inputs.get("tactile", 0),
+            "marked_frame": v.missing.get("frame", 0),
+            "operator_error": v.error,
+            **{name: getattr(st, name) for name in ("acked", "sent", "saturated", "frames_sent", "frames_refused")},
+        }
+        for st, v, src in zip(stats, views, sources)
+    ]
+    conn.send(
+        (
+            "result",
+            {
+                "robots": robots,
+                "send_lag_ms": [x for src in sources for x in src.send_lag_ms],
+                "loop_lag_ms": lag,
+            },
+        )
+    )
+
+
+def robot_gap_s(start: float, received_at: list[float], seconds: float, first_window_s: float) -> float:
+    """The longest a robot streaming from `start` (perf_counter, s) for `seconds` went without a window: from its first
+    window's due time (start + first_window_s) to its first window, between windows, and from its last window to the
+    end of its stream (its last window is due then). No window at all: the whole stream. A robot refused a start
+    counts from its stream's start: its session was admitted, its robot was not served."""
+    times = [start + first_window_s, *sorted(received_at)]
+    end = start + seconds
+    gaps = [b - a for a, b in zip(times[:-1], times[1:])]
+    if times[-1] < end:
+        gaps.append(end - times[-1])
+    return max([0.0, *gaps])
+
+
+def histogram_quantile(metrics: str, name: str, q: float) -> tuple[float | None, int]:
+    """(the q-quantile's bucket upper bound, observations) of Prometheus histogram `name` in the exposition `metrics`:
+    the upper bound of the first bucket that holds a q share of the observations (None when there are none, inf when
+    beyond the last finite bucket)."""
+    buckets: list[tuple[float, float]] = []
+    for line in metrics.splitlines():
+        if line.startswith(f"{name}_bucket{{"):
+            le = line.split('le="', 1)[1].split('"', 1)[0]
+            buckets.append((math.inf if le == "+Inf" else float(le), float(line.rsplit(" ", 1)[1])))
+    buckets.sort()
+    total = buckets[-1][1] if buckets else 0.0
+    if total == 0:
+        return None, 0
+    for bound, count in buckets:
+        if count >= q * total:
+            return bound, int(total)
+    return math.inf, int(total)
+
+
+def _p99(values: list[float]) -> float | None:
+    return percentile(values, 99) if values else None
+
+
+def crowd_run(assets: Assets, api_key: str, robots: int, seconds: float, block_s: float) -> dict:
+    """One crowd run against a fresh service process (see the module docstring) → its figures."""
+    probe_port = free_port()
+    server = ServerProcess.service(
+        assets,
+        api_key,
+        instance_id="crowd",
+        extra={
+            "HAPTICLINK_MAX_SESSIONS": "512",  # the burst's sessions all open: the crowd comes on top of them
+            "HAPTICLINK_PROBE_PORT": str(probe_port),
+        },
+    )
+    ctx = mp.get_context("spawn")
+    half = (robots + 1) // 2
+    shares = [list(range(0, half)), list(range(half, robots))]
+    procs, pipes = [], []
+    stop, polled = ctx.Event(), ctx.Queue()
+    urls = {"service": f"{server.url}/health", "probe": f"http://127.0.0.1:{probe_port}/health"}
+    poller = ctx.Process(target=poll, args=(urls, stop, polled), daemon=True)
+    report: dict = {}
+    try:
+        for g, ks in enumerate(shares):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(
+                target=crowd_robots_process,
+                args=(server.url, assets, ks, seconds, block_s, api_key, g, child),
+                daemon=True,
+            )
+            proc.start()
+            procs.append(proc)
+            pipes.append(parent)
+        for pipe, proc in zip(pipes, procs):
+            receive(pipe, proc, "ready")
+        poller.start()
+        report["session_burst"] = _run(session_burst(server.url, api_key))
+        time.sleep(2.0)  # the burst's sessions stop counting as starting; the crowd comes
+        for pipe in pipes:
+            pipe.send("go")
+        results = [receive(pipe, proc, "result") for pipe, proc in zip(pipes, procs)]
+        stop.set()
+        health = polled.get(timeout=30)
+        metrics = _drained_metrics(server.url)
+    finally:
+        server.stop()
+        for proc in [*procs, poller]:
+            if proc.pid is not None:
+                proc.join(timeout=10)
+                if proc.is_alive():
+                    proc.kill()
+    log = server.proc.stderr.read() if server.proc.stderr else ""
+    per_robot = [r for res in results for r in res["robots"]]
+    admitted = [r for r in per_robot if r["acked"] > 0]
+    per_robot_windows = int(seconds / HOP_S + 1e-9)
+    expected = per_robot_windows * len(admitted)
+    received = sum(r["windows"] for r in admitted)
+    gaps = [robot_gap_s(r["start"], r["received_at"], seconds, 2 * HOP_S) for r in admitted]
+    # the same from each robot's first window on: what a robot let start late went without once it streamed
+    streamed = [r for r in admitted if r["received_at"]]
+    gaps_after = [
+        robot_gap_s(min(r["received_at"]), r["received_at"], seconds - (min(r["received_at"]) - r["start"]), 0.0)
+        for r in streamed
+    ]
+    first_window_s = [min(r["received_at"]) - r["start"] for r in streamed]
+    readmit_p99, readmitted = histogram_quantile(metrics, "hapticlink_readmit_seconds", 0.99)
+    admitted_windows = _metric_sum(metrics, "hapticlink_windows_admitted_total")
+    published = _metric_sum(metrics, "hapticlink_windows_total")
+    for name in ("service", "probe"):
+        failed = sum(x < 0 for x in health[name])
+        health[name] = {"ok": [x for x in health[name] if x >= 0], "failed": failed}
+    report.update(
+        {
+            "robots": len(per_robot),
+            "robots_admitted": len(admitted),
+            "windows_expected": expected,
+            "windows_received": received,
+            "windows_estimated_fraction": round(received / expected, 4) if expected else None,
+            "windows_tactile_only": sum(r["tactile_only"] for r in admitted),
+            "windows_marked_missing_frame": sum(r["marked_frame"] for r in admitted),
+            "max_robot_gap_s": round(max(gaps), 3) if gaps else None,
+            "robots_gap_over_2s": sum(g > CROWD_GAP_S for g in gaps),
+            "robot_gap_s_p50": percentile(gaps, 50) if gaps else None,
+            "robots_without_a_window": sum(not r["received_at"] for r in per_robot),
+            "robots_never_started": len(per_robot) - len(admitted),
+            "max_robot_gap_after_first_window_s": round(max(gaps_after), 3) if gaps_after else None,
+            "first_window_s": {
+                "p50": percentile(first_window_s, 50) if first_window_s else None,
+                "max": round(max(first_window_s), 3) if first_window_s else None,
+            },
+            "readmit_s_p99": readmit_p99,
+            "readmitted": readmitted,
+            "health_p99_ms": {name: _p99(health[name]["ok"]) for name in ("service", "probe")},
+            "health_max_ms": {name: percentile(health[name]["ok"], 100) for name in ("service", "probe")},
+            "health_polls": {name: len(health[name]["ok"]) for name in ("service", "probe")},
+            "health_failed": {name: health[name]["failed"] for name in ("service", "probe")},
+            "windows_lost": int(admitted_windows - published),
+            "windows_admitted_service": int(admitted_windows),
+            "refused": {
+                "frames": int(_metric_sum(metrics, "hapticlink_frames_total", outcome="refused")),
+                "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count")),
+                "blocks_shed": int(_metric_sum(metrics, "hapticlink_blocks_refused_total", reason="capacity")),
+                "sessions_shed": int(_metric_sum(metrics, "hapticlink_sessions_shed_total")),
+                "sessions_capacity": int(_metric_sum(metrics, "hapticlink_sessions_refused_total", reason="capacity")),
+            },
+            "robot_counts": {
+                name: sum(r[name] for r in per_robot)
+                for name in ("sent", "acked", "saturated", "frames_sent", "frames_refused")
+            },
+            "operator_errors": [r["operator_error"] for r in per_robot if r["operator_error"]][:5],
+            # the longest any window waited between its block leaving the robot and its operator receiving it: the
+            # service's share of a robot's gap, whatever the generator's own lag
+            "window_e2e_s_max": round(max((x for r in admitted for x in r["e2e_ms"]), default=0.0) / 1e3, 3),
+            "window_e2e_ms_p99": _p99([x for r in admitted for x in r["e2e_ms"]]),
+            "robots_e2e_over_2s": sum(max(r["e2e_ms"], default=0.0) > CROWD_GAP_S * 1e3 for r in admitted),
+            "generator_send_lag_ms_p99": _p99([x for res in results for x in res["send_lag_ms"]]),
+            "generator_loop_lag_ms_p99": _p99([x for res in results for x in res["loop_lag_ms"]]),
+            # as benchmarks.service judges a row: a generator more than a quarter block late measured itself
+            "valid": (_p99([x for res in results for x in res["send_lag_ms"]]) or 0.0)
+            <= generator_lag_limit_ms(block_s),
+            "error_lines": [line for line in log.splitlines() if " ERROR " in line or line.startswith("ERROR")][:5],
+            "log_lines": len(log.splitlines()),
+        }
+    )
+    return report
+
+
+def _drained_metrics(url: str, within_s: float = 15.0) -> str:
+    """The service's metrics once every window admitted has been published (or `within_s` has passed): windows still
+    being estimated at the end are not lost."""
+    deadline = time.monotonic() + within_s
+    while True:
+        metrics = httpx.get(f"{url}/metrics", headers=SCRAPER, timeout=30).text
+        admitted = _metric_sum(metrics, "hapticlink_windows_admitted_total")
+        if admitted <= _metric_sum(metrics, "hapticlink_windows_total") or time.monotonic() > deadline:
+            return metrics
+        time.sleep(0.5)
+
+
+async def session_burst(url: str, api_key: str) -> dict:
+    """CROWD_BURST session requests in about a second from one client address (X-Forwarded-For, which the service
+    trusts from loopback, as from nginx); the sessions opened are left to idle."""
+    async with httpx.AsyncClient(timeout=30) as client:
+        t0 = time.perf_counter()
+        flood = {**bearer(api_key), "X-Forwarded-For": "198.51.100.9"}
+        codes = await asyncio.gather(
+            *(client.post(f"{url}/sessions", json={}, headers=flood) for _ in range(CROWD_BURST))
+        )
+    return {
+        "requests": CROWD_BURST,
+        "seconds": round(time.perf_counter() - t0, 2),
+        "statuses": {str(s): sum(r.status_code == s for r in codes) for s in {r.status_code for r in codes}},
+    }
+
+
+#: the crowd's figures and whether the worst run must be the largest (True) or the smallest (False) of them
+CROWD_WORST = {
+    "windows_estimated_fraction": False,
+    "max_robot_gap_s": True,
+    "readmit_s_p99": True,
+    "windows_lost": True,
+}
+
+
+def crowd_case(args: argparse.Namespace) -> dict:
+    """`--runs` crowd runs → the `crowd` object: the issue's figures as the worst over the runs, and every run."""
+    api_key = secrets.token_urlsafe(24)
+    assets = prepare_assets(args.assets)["served"]
+    block_s = args.block_s if args.block_s is not None else DEFAULT_BLOCK_S
+    cpu = next(
+        (
+            line.split(":", 1)[1].strip()
+            for line in Path("/proc/cpuinfo").read_text().splitlines()
+            if "model name" in line
+        ),
+        "unknown",
+    )
+    load_before = os.getloadavg()
+    runs = []
+    for i in range(args.runs):
+        print(f"crowd run {i + 1} of {args.runs} …", flush=True)
+        runs.append(crowd_run(assets, api_key, args.burst_robots, args.duration, block_s))
+        print(json.dumps({k: runs[-1][k] for k in (*CROWD_WORST, "health_p99_ms")}), flush=True)
+    crowd: dict = {}
+    for name, largest in CROWD_WORST.items():
+        values = [r[name] for r in runs if r[name] is not None]
+        crowd[name] = (max(values) if largest else min(values)) if values else None
+    crowd["health_p99_ms"] = {
+        port: max((r["health_p99_ms"][port] for r in runs if r["health_p99_ms"][port] is not None), default=None)
+        for port in ("service", "probe")
+    }
+    crowd.update(
+        {
+            "summary": f"worst of {len(runs)} runs",
+            "command": "python -m benchmarks.hostile --case crowd "
+            + f"--burst-robots {args.burst_robots} --duration {args.duration:g} --runs {args.runs}"
+            + (f" --block-s {args.block_s:g}" if args.block_s is not None else ""),
+            "setup": {
+                "session_burst": CROWD_BURST,
+                "robots": args.burst_robots,
+                "duration_s": args.duration,
+                "block_s": block_s,
+                "frame_every_s": 1.0,
+                "config": "served",
+            },
+            "host": {"cpu": cpu, "cpus": os.cpu_count(), "load_average_before": [round(x, 2) for x in load_before]},
+            "runs": runs,
+        }
+    )
+    crowd["host"]["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    return crowd
+
+
+def write_object(path: Path, key: str, value: dict) -> None:
+    """Put `value` under `key` in the JSON report at `path`, keeping its other objects (another case's)."""
+    report = json.loads(path.read_text()) if path.exists() else {}
+    report[key] = value
+    write_report(path, report)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=20, help="well-behaved robots streaming throughout")
@@ -197,10 +524,31 @@ def main(argv: list[str] | None = None) -> int:
         help="the well-behaved robots stream this much longer than the burst, s (the attacks and the burst's "
         "set-up come first)",
     )
-    p.add_argument("--block-s", type=float, default=0.02)
+    p.add_argument(
+        "--block-s",
+        type=float,
+        default=None,
+        help="block length, s (the probe case: 0.02; the crowd: the robot client's default)",
+    )
     p.add_argument("--assets", type=Path, default=DEFAULT_ASSETS, help="the demo's assets (built when missing)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument(
+        "--case",
+        choices=("probe", "crowd"),
+        default="probe",
+        help="probe: the hostile probe's worst cases beside well-behaved robots (the report's top level); crowd: "
+        "robots with cameras after a session burst (its `crowd` object)",
+    )
+    p.add_argument("--runs", type=int, default=2, help="crowd runs (the host is shared: its figures are the worst)")
     args = p.parse_args(argv)
+    if args.case == "crowd":
+        crowd = crowd_case(args)
+        print(json.dumps({k: v for k, v in crowd.items() if k != "runs"}, indent=2))
+        write_object(args.out, "crowd", crowd)
+        print(f"wrote {args.out} (crowd)")
+        return 0
+    if args.block_s is None:
+        args.block_s = 0.02
     api_key = secrets.token_urlsafe(24)
     assets = prepare_assets(args.assets)["served"]
     server = ServerProcess.service(
@@ -309,6 +657,9 @@ def main(argv: list[str] | None = None) -> int:
         "frames_embedded": int(_metric_sum(metrics, "hapticlink_visual_embedding_seconds_count")),
     }
     print(json.dumps(report, indent=2))
+    if args.out.exists():  # the other cases' objects stay
+        previous = json.loads(args.out.read_text())
+        report.update({k: previous[k] for k in ("crowd", "restart") if k in previous})
     write_report(args.out, report)
     print(f"wrote {args.out}")
     return 0

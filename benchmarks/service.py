@@ -241,6 +241,7 @@ class OperatorView:
     first_features_ms: float | None = None
     stages_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     inputs: Counter = field(default_factory=Counter)
+    missing: Counter = field(default_factory=Counter)  # windows per input they lacked (missing_inputs)
     error: str | None = None
 
 
@@ -274,6 +275,7 @@ async def _operate(
                 event = json.loads(message)
                 view.windows += 1
                 view.inputs[event["inputs"]] += 1
+                view.missing.update(event.get("missing_inputs", ()))
                 yielded = source.yielded.get(event["block_seq"])
                 if yielded is not None:
                     view.e2e_ms.append((now - yielded) * 1e3)

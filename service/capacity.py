@@ -61,12 +61,27 @@ would hide the delay of each burst's last windows. From them:
   sessions keep streaming at full quality, and the refused robots back off and resend later from their oldest
   unacknowledged block (nothing accepted is lost). A refused robot is told to come back (`retry_after`) after the
   readmission steps of the refused sessions older than its own.
+
+**Pictures before robots.** Camera frames are degraded before any robot is refused. The frames' wait for the
+embedder (the **visual queue delay**, service/visual_queue.py) is measured apart from the window queue and never sheds
+a session: a slow visual pool degrades frames, not windows. Before a frame is taken, the embedding work queued ahead
+of it is bounded (`shed_visual_queue_s`, halved at `FRAMES_SAMPLED`): a frame beyond it is refused with the
+Retry-After at which it would be taken, frames refused earlier going first. While the process is over its limits and
+the camera path holds CPU (a frame taken within `FRAMES_WITHIN_S`, or embeddings queued), or frames wait past
+`shed_visual_queue_s`, `frame_level` rises a step instead of a session being shed — `FRAMES_SAMPLED` (a session with
+a visual input gets a frame every `FRAME_SAMPLE_S`), then `FRAMES_DROPPED` (none) — at once, then after `SETTLE_S`;
+sessions are shed only once frames are dropped and that has had `SETTLE_S` to show. Meanwhile a late window queue
+does not refuse new sessions either. A session without its frame is served tactile-only, its windows marked
+(service/pipeline.py); the oldest session's frames are never degraded (it is never shed), and a session whose windows
+wait for a first frame (no tactile-only model) always gets one. On the way back the shed sessions come first; frames
+come back a level every `READMIT_EVERY_S` once none is shed.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import math
 import time
@@ -77,6 +92,7 @@ from service.errors import ServiceError
 from service.live_session import Session
 from service.metrics import ServiceMetrics
 from service.settings import Settings
+from service.visual_queue import EmbeddingQueue
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +150,16 @@ STEP_SHARE = 0.25
 READMIT_SHARE = 0.1
 #: at most one WARNING about shedding per this many seconds
 LOG_EVERY_S = 10.0
+#: frame levels, the first thing degraded under load (before any session is shed): every frame taken; each session's
+#: frames sampled at most every FRAME_SAMPLE_S once it has a visual input; no frame taken (dropped)
+FRAMES_ALL, FRAMES_SAMPLED, FRAMES_DROPPED = 0, 1, 2
+#: at FRAMES_SAMPLED, a session that has a visual input gets a frame taken at most this often (s)
+FRAME_SAMPLE_S = 5.0
+#: frames were taken this recently (s), or embeddings are queued: the camera path holds CPU that degrading frames
+#: gives back to the windows, so it is degraded before any session is shed
+FRAMES_WITHIN_S = 2.0
+#: the least Retry-After (s) of a refused frame: sooner, its robot's resent body costs the loop more than it gains
+MIN_FRAME_RETRY_S = 0.5
 
 
 class AtCapacity(ServiceError):
@@ -156,10 +182,12 @@ class CapacityGuard:
         sessions: Callable[[], Iterable[Session]] = lambda: (),
         window_waits: Callable[[float], Mapping[str, float]] = lambda now: {},
         threads_cpu: Callable[[], float] = time.process_time,
+        visual: EmbeddingQueue | None = None,
     ) -> None:
         """window_waits(now): session id → the longest its windows waited since the last call, s
         (WindowBatcher.take_waits). threads_cpu(): CPU seconds the service's threads have used, the loop's and its
-        pools' (ThreadCpu.seconds; the whole process's by default)."""
+        pools' (ThreadCpu.seconds; the whole process's by default). visual: the embedding queue the sessions' frames
+        wait in (service/visual_queue.py; an empty one by default)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
@@ -194,6 +222,20 @@ class CapacityGuard:
         self._last_readmit = -math.inf
         # session id → time.monotonic() its robot was last refused a start (for retry_after)
         self._waiting: dict[str, float] = {}
+        # when the refused robots waiting to start last had room (None while there is none), for the readmission wait
+        self._room_since: float | None = None
+        # session id → time.monotonic() it was let back (readmitted, or room to start), until its first block passes
+        self._let_back: dict[str, float] = {}
+        # ---- frames: degraded before sessions (module docstring) ----
+        self.visual = EmbeddingQueue() if visual is None else visual
+        self.visual_queue_s = 0.0  # the visual queue delay: frames' wait for the embedder, its peak held (QUEUE_HOLD_S)
+        self.frame_level = FRAMES_ALL
+        self._frame_step = -math.inf  # time.monotonic() of the last change of frame_level
+        self._frame_at = -math.inf  # time.monotonic() a frame was last taken
+        self._frame_taken: dict[str, float] = {}  # session id → when its last frame was taken
+        # session id → time.monotonic() its frame was first refused for the embedding queue, until one is taken: the
+        # order frames are taken in once there is room (arrival)
+        self._frames_waiting: dict[str, float] = {}
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._sample(), name="capacity-guard")
@@ -223,13 +265,17 @@ class CapacityGuard:
             self.lag_s += w * (lag - self.lag_s)
             self.cpu_share += w * (share - self.cpu_share)
             self.process_share += w * (process - self.process_share)
-            self._hold_queue_delays(self._window_waits(now), math.exp(-elapsed / QUEUE_HOLD_S), now)
+            decay = math.exp(-elapsed / QUEUE_HOLD_S)
+            self._hold_queue_delays(self._window_waits(now), decay, now)
+            self.visual_queue_s = max(self.visual_queue_s * decay, self.visual.wait_s(now))
+            self.metrics.visual_queue.set(self.visual_queue_s)
             self.metrics.loop_lag.set(self.lag_s)
             self.metrics.window_queue.set(self.queue_s)
             self.metrics.protected_window_queue.set(self.protected_queue_s)
             self.metrics.cpu_share.set(self.cpu_share)
             self.metrics.process_cpu_share.set(self.process_share)
             self.update(now)
+            self.metrics.frame_level.set(self.frame_level)
 
     def _hold_queue_delays(self, waits: Mapping[str, float], decay: float, now: float) -> None:
         """Take the windows' latest waits (session id → s) into the held peaks: that of every session served, and
@@ -257,10 +303,11 @@ class CapacityGuard:
         self._streaming = len(streaming)
         if self._started:
             self._started = {sid: t for sid, t in self._started.items() if now - t < STARTING_WITHIN_S}
-        if self._shed or self._readmitted:
+        if self._shed or self._readmitted or self._let_back:
             ids = {s.id for s in self._sessions()}  # ended sessions leave
             self._shed &= ids
             self._readmitted = {sid: t for sid, t in self._readmitted.items() if sid in ids and now - t < PROTECT_S}
+            self._let_back = {sid: t for sid, t in self._let_back.items() if sid in ids}
         # the sessions just let start stream, but their load is not in the smoothed share yet: counted, they would
         # lower the cost per session and make room for more of them
         measured = [s for s in streaming if s.id not in self._started] or streaming
@@ -271,10 +318,13 @@ class CapacityGuard:
             self._protected_late_since = None
         elif self._protected_late_since is None:
             self._protected_late_since = now
+        self._track_room(now)
         if self._over():
             self._within.clear()  # within its limits again only after SETTLE_S more
             if self._over_since is None:
                 self._over_since = now
+            if self._frames_first(now):
+                return  # frames give back their CPU before any robot is refused
             pressure, (ref_t, ref_p) = self.pressure(), self._reference
             if now - self._last_shed >= SHED_EVERY_S and pressure > ref_p:  # worse
                 self._shed_newest(streaming, now)
@@ -285,9 +335,147 @@ class CapacityGuard:
                 self._reference = (now, pressure)
             return
         self._reference = (now, 0.0)  # the next time over is worse: a step at once
+        if self.visual_queue_s > self.settings.shed_visual_queue_s:
+            self._frames_first(now)  # a slow visual pool degrades frames, never the robots' windows
         self._record_within_limits(streaming, now)
         if self._shed and self._calm() and now - max(self._last_shed, self._last_readmit) >= READMIT_EVERY_S:
             self._readmit_oldest(streaming, now)
+        elif not self._shed:
+            self._restore_frames(now)  # the robots back first, then their frames
+
+    # ---- frames: degraded before sessions ------------------------------------------------------------
+    def _frames_flow(self, now: float) -> bool:
+        """The camera path holds CPU now: a frame was taken within FRAMES_WITHIN_S, or embeddings are queued."""
+        return now - self._frame_at < FRAMES_WITHIN_S or self.visual.jobs > 0
+
+    def _frames_first(self, now: float) -> bool:
+        """Over capacity while the camera path holds CPU, or frames waiting for the embedder past
+        shed_visual_queue_s: frames are degraded one level (the first step at once, the next after SETTLE_S, when the
+        last one's effect shows). True while that stands in for shedding sessions: frames still have a level to give
+        or the last one's effect has not shown yet."""
+        if not self._frames_flow(now) and self.visual_queue_s <= self.settings.shed_visual_queue_s:
+            return False
+        if sum(1 for _ in itertools.islice(self._sessions(), 2)) < 2:
+            return False  # the oldest session's frames are never degraded, as it is never shed: none to degrade
+        if self.frame_level < FRAMES_DROPPED:
+            if now - self._frame_step >= SETTLE_S:
+                self.frame_level += 1
+                self._frame_step = now
+                self._reference = (now, self.pressure())  # sessions, if it comes to them, from this evidence
+                self.metrics.frame_level.set(self.frame_level)
+                if now - self._last_log > LOG_EVERY_S:
+                    self._last_log = now
+                    log.warning(
+                        "at capacity (event loop CPU %.2f of %.2f, lag %.0f ms, windows queued %.0f ms, frames queued "
+                        "%.0f ms for the embedder): camera frames %s; windows without a visual input are estimated "
+                        "tactile-only",
+                        self.cpu_share,
+                        self.settings.cpu_budget,
+                        self.lag_s * 1e3,
+                        self.queue_s * 1e3,
+                        self.visual_queue_s * 1e3,
+                        "sampled less often" if self.frame_level == FRAMES_SAMPLED else "dropped",
+                    )
+            return True
+        return now - self._frame_step < SETTLE_S
+
+    def _restore_frames(self, now: float) -> None:
+        """Calm, no session shed, and frames' own wait under half its limit: frames one level back every
+        READMIT_EVERY_S."""
+        if (
+            self.frame_level > FRAMES_ALL
+            and self._calm()
+            and self.visual_queue_s < 0.5 * self.settings.shed_visual_queue_s
+            and now - self._frame_step >= READMIT_EVERY_S
+        ):
+            self.frame_level -= 1
+            self._frame_step = now
+            self.metrics.frame_level.set(self.frame_level)
+
+    def _frame_budget_s(self, level: int | None = None) -> float:
+        """Embedding work (s) a frame may find queued ahead of it at frame `level` (the current one by default)."""
+        level = self.frame_level if level is None else level
+        if level >= FRAMES_DROPPED:
+            return 0.0
+        return self.settings.shed_visual_queue_s / (2**level)
+
+    def _is_oldest(self, session: Session) -> bool:
+        return next(iter(self._sessions()), None) is session
+
+    def _refuse_frame_for_load(self, session: Session, now: float) -> None:
+        """The frame level, and the embedding queue bounded in time: ServiceError 429 with the Retry-After at which a
+        frame of this session would be taken (frames waiting are taken in the order they were first refused). A
+        session whose windows wait for a first frame (no tactile-only model) always gets one: refusing it would stop
+        its windows, not degrade them."""
+        level, visual = self.frame_level, self.visual
+        if level == FRAMES_ALL and visual.ahead_s() <= self._frame_budget_s() and not self._frames_waiting:
+            self._frame_taken_now(session, now)
+            return
+        if level > FRAMES_ALL and self._is_oldest(session):
+            level = FRAMES_ALL  # the oldest session is never shed, nor are its frames degraded: only bounded
+        waiting_for_frame = getattr(session, "waiting_for_frame", None)
+        if waiting_for_frame is not None and waiting_for_frame():
+            self._frame_taken_now(session, now)
+            return
+        if self._frames_waiting:  # robots that stopped asking are not waited for
+            horizon = now - 2 * MAX_RETRY_AFTER_S
+            self._frames_waiting = {sid: t for sid, t in self._frames_waiting.items() if t > horizon}
+        # frames waiting are in the order they were first refused (insertion order): those before this one go first
+        line = list(self._frames_waiting)
+        ahead = line.index(session.id) if session.id in self._frames_waiting else len(line)
+        why = None
+        retry = 0.0
+        if level >= FRAMES_DROPPED:
+            why = "camera frames are dropped until it catches up"
+            retry = READMIT_EVERY_S * level
+        elif level == FRAMES_SAMPLED and getattr(session, "visual", None) is not None:
+            since = now - self._frame_taken.get(session.id, -math.inf)
+            if since < FRAME_SAMPLE_S:
+                why = f"camera frames are sampled once every {FRAME_SAMPLE_S:g} s per robot"
+                retry = FRAME_SAMPLE_S - since
+        if why is None:
+            budget = self._frame_budget_s(level)
+            if visual.ahead_s() + ahead * visual.embed_s <= budget or visual.jobs == 0:
+                self._frame_taken_now(session, now)
+                return
+            why = f"{visual.ahead_s() * 1e3:.0f} ms of embeddings are queued (limit {budget * 1e3:.0f} ms)" + (
+                f", and the frames of {ahead} robot(s) refused before this one go first" if ahead else ""
+            )
+            retry = visual.drain_s(budget) + (ahead + 1) * visual.embed_s
+        self._frames_waiting.setdefault(session.id, now)
+        retry = min(MAX_RETRY_AFTER_S, max(MIN_FRAME_RETRY_S, math.ceil(retry * 10) / 10))
+        raise AtCapacity(
+            f"this replica is at capacity for camera frames: {why}; windows are estimated without them "
+            "(tactile-only, marked) meanwhile; send the newest frame later",
+            retry,
+        )
+
+    def _frame_taken_now(self, session: Session, now: float) -> None:
+        self._frame_at = now
+        self._frame_taken[session.id] = now
+        self._frames_waiting.pop(session.id, None)
+        if len(self._frame_taken) > 4 * max(1, len(self._started) + self._streaming) + 64:
+            ids = {s.id for s in self._sessions()}  # ended sessions leave
+            self._frame_taken = {sid: t for sid, t in self._frame_taken.items() if sid in ids}
+
+    # ---- readmission: how soon a refused robot is back once there is room ---------------------------
+    def _track_room(self, now: float) -> None:
+        """Robots refused a start wait: since when there has been room for one more (None while there is none)."""
+        if not self._waiting:
+            self._room_since = None
+            return
+        if self._why_no_room(now) is None:
+            if self._room_since is None:
+                self._room_since = now
+        else:
+            self._room_since = None
+
+    def _came_back(self, session: Session, now: float) -> None:
+        """A robot let back (readmitted, or let start after a refusal) streams again: observe how long it took from
+        the moment there was room for it."""
+        back = self._let_back.pop(session.id, None)
+        if back is not None:
+            self.metrics.readmit_seconds.observe(max(0.0, now - back))
 
     def _record_within_limits(self, streaming: list[Session], now: float) -> None:
         """A sample within the limits: the sessions streaming a SETTLE_S ago, the process within its limits since,
@@ -372,6 +560,7 @@ class CapacityGuard:
         back = shed[: self._step(served, READMIT_SHARE)]
         self._shed.difference_update(back)
         self._readmitted.update(dict.fromkeys(back, now))
+        self._let_back.update(dict.fromkeys(back, now))
         self._last_readmit = now
 
     @property
@@ -425,7 +614,7 @@ class CapacityGuard:
             return (
                 f"its event loop runs {self.lag_s * 1e3:.0f} ms late (limit {self.settings.session_lag_s * 1e3:.0f} ms)"
             )
-        if self._busy() and self.queue_s > self.settings.session_queue_s:
+        if self._busy() and self.queue_s > self.settings.session_queue_s and not self._frames_can_give(now):
             return (
                 f"its windows wait {self.queue_s * 1e3:.0f} ms for estimation "
                 f"(limit {self.settings.session_queue_s * 1e3:.0f} ms)"
@@ -450,6 +639,11 @@ class CapacityGuard:
                 )
         return None
 
+    def _frames_can_give(self, now: float) -> bool:
+        """The camera path holds CPU and frames are not dropped yet: a late window is answered by degrading frames
+        first (the robots' windows are what stays), not by refusing robots."""
+        return self._frames_flow(now) and self.frame_level < FRAMES_DROPPED
+
     def admit_block(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed while the process is over
         capacity, or has not streamed yet while one more streaming session would not be served well (robots whose
@@ -457,12 +651,15 @@ class CapacityGuard:
         the block is taken."""
         self._refuse_if_shed(session, "resend from the oldest unacknowledged block later")
         self._refuse_until_started(session, "it starts when there is room: send its first block later", start=True)
+        if self._let_back:
+            self._came_back(session, time.monotonic())
 
     def admit_frame(self, session: Session) -> None:
         """Raise ServiceError 429 (Retry-After) when `session` is among those shed, or waits to start: its frames
         wait with its blocks."""
         self._refuse_if_shed(session, "send the newest frame later")
         self._refuse_until_started(session, "its frames wait with its first block: send the newest frame later")
+        self._refuse_frame_for_load(session, time.monotonic())
 
     def _refuse_until_started(self, session: Session, then: str, start: bool = False) -> None:
         """Refuse a session whose robot has not streamed yet while there is no room for one more streaming session;
@@ -481,7 +678,9 @@ class CapacityGuard:
             )
         if start:
             self._started[session.id] = now
-            self._waiting.pop(session.id, None)
+            refused = self._waiting.pop(session.id, None)
+            if refused is not None:  # there was room for it since max(its refusal, the room's return)
+                self._let_back[session.id] = max(refused, self._room_since if self._room_since is not None else now)
 
     def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:

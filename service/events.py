@@ -25,7 +25,7 @@ StatusKind = Literal[
     "visual_updated",  # the visual embedding now used for the scene's windows changed
     "waiting_for_frame",  # a visual model without a tactile-only model holds windows until the first frame is embedded
     "waiting_for_taps",  # a model with tap features holds windows until the surface under the tool is tapped
-    "input_missing",  # windows lack an input the model reads (missing: "taps"); a fallback estimates them meanwhile
+    "input_missing",  # windows lack an input the model reads (missing: "taps" or "frame"); a fallback estimates them
     "robot_disconnected",  # the robot's ingest socket closed (the message says why)
     "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
@@ -161,10 +161,12 @@ class WindowEvent(BaseModel):
         "first frame has not been embedded yet, estimated by the tactile-only model; or a tactile-only cheap "
         "model's estimate)"
     )
-    missing_inputs: list[Literal["taps"]] = Field(
+    missing_inputs: list[Literal["taps", "frame"]] = Field(
         default_factory=list,
         description="inputs the served model reads that this window lacked, so a fallback model estimated it: "
-        '"taps" (the surface under the tool has not been tapped since the scene changed; send a tap block)',
+        '"taps" (the surface under the tool has not been tapped since the scene changed; send a tap block); "frame" '
+        "(the replica, under load, refused the session's camera frames before any robot's blocks, and no frame of it "
+        "has been embedded since: estimated tactile-only)",
     )
 
 

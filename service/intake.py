@@ -28,7 +28,7 @@ from drivers.blocks import (
 )
 from drivers.scene_change import thumbnail, thumbnail_from_bytes
 from service.bus import EventBus
-from service.capacity import CapacityGuard
+from service.capacity import AtCapacity, CapacityGuard
 from service.errors import ServiceError, not_json, saturated, session_not_found
 from service.events import status_event
 from service.live_session import RETRY_AFTER_S, Session
@@ -172,6 +172,11 @@ class FrameIntake:
                     f"megapixels held; this frame has {pixels / 1e6:.2f}); send the newest frame later",
                     RETRY_AFTER_S,
                 )
+        except AtCapacity:
+            self.metrics.frames.labels(outcome="refused").inc()
+            session.counters.frames_refused += 1
+            await self._frames_shed(session, runtime)
+            raise
         except ServiceError:
             self.metrics.frames.labels(outcome="refused").inc()
             session.counters.frames_refused += 1
@@ -207,6 +212,26 @@ class FrameIntake:
             False,
         )
         return FrameAck(used=used, outcome=outcome, width=width, height=height)
+
+    async def _frames_shed(self, session: Session, runtime: Runtime) -> None:
+        """A frame refused under load (the replica degrades frames before robots): until one of its frames is embedded,
+        the session's windows are estimated without it, marked; its operators are told once."""
+        told, session.frames_shed = session.frames_shed, True
+        if told or session.visual is not None or not runtime.needs_visual:
+            return  # an embedding it has keeps serving its windows
+        await self.bus.publish(
+            session.id,
+            status_event(
+                session.id,
+                "input_missing",
+                f"the replica is at capacity and refuses camera frames before robots' blocks: model "
+                f"{runtime.model_name}'s windows of this session are estimated tactile-only (marked missing_inputs: "
+                "frame) until one of its frames is embedded; the robot sends it again after Retry-After",
+                missing="frame",
+                send="frame",
+            ),
+            False,
+        )
 
     def check_scene(self, session: Session, payload: bytes) -> SceneCheck:
         """A robot's scene check: its newest frame's thumbnail (drivers/scene_change.thumbnail_bytes) in place of a

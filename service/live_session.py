@@ -55,6 +55,7 @@ from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, Sessio
 from service.runtime import Runtime
 from service.schemas import SessionCounters
 from service.settings import Settings
+from service.visual_queue import EmbeddingQueue
 from texture_library.channels import UNIT_SCALE
 from texture_library.recording import Channel
 
@@ -104,6 +105,7 @@ class Session:
         metrics: ServiceMetrics,
         notify: Notify,
         visual_done: Callable[[int], None] = lambda pixels: None,
+        visual_queue: EmbeddingQueue | None = None,
     ) -> None:
         self.id = session_id
         self.name = name
@@ -129,6 +131,11 @@ class Session:
         self._metrics = metrics
         self._notify = notify
         self._visual_done = visual_done
+        # the replica's embedding queue (admission reads its delay and bounds it in time); its own when alone
+        self._visual_queue = EmbeddingQueue() if visual_queue is None else visual_queue
+        # a frame of this session was refused under load (frames degraded) and none embedded since: its windows are
+        # estimated tactile-only and marked missing the frame
+        self.frames_shed = False
         # pixels of the frames the embedding job holds (the one it embeds, the one waiting for it): what the caller
         # charged to the visual queue, given back through visual_done as each is done with
         self._embedding_pixels = 0
@@ -297,7 +304,9 @@ class Session:
         blocks, self._pending = self._pending[:cut], self._pending[cut:]
         self._pending_added = self._pending_added[cut:]
         self._pending_windows -= windows
-        return SessionJob(self.estimator, blocks, self.visual, windows, self.frame_checks)
+        return SessionJob(
+            self.estimator, blocks, self.visual, windows, self.frame_checks, self.frames_shed and self.visual is None
+        )
 
     async def tell_waiting(self) -> None:
         """Tell operators, once, why windows wait."""
@@ -451,9 +460,10 @@ class Session:
             while self._frame is not None:
                 (gray, new_scene), self._frame = self._frame, None
                 started = time.perf_counter()
+                job = self._visual_queue.submit()
                 try:
                     vector, reasons = await loop.run_in_executor(
-                        self._visual_pool, self.runtime.embed_and_inspect, gray
+                        self._visual_pool, job.run, self.runtime.embed_and_inspect, gray
                     )
                 except BackboneStopped:
                     return  # the service is shutting down: nothing failed
@@ -464,11 +474,13 @@ class Session:
                     await self._status("error", f"embedding the frame failed ({type(exc).__name__}: {exc})")
                     continue
                 finally:
+                    self._visual_queue.done(job)
                     self._give_back_pixels(gray.size)
                 seconds = time.perf_counter() - started
                 self._metrics.visual_seconds.observe(seconds)
                 first = self.visual is None
                 self.visual = self._scene.add(vector, new_scene)
+                self.frames_shed = False
                 self.frame_checks = self.runtime.frame_checks(reasons, self.visual)
                 self.counters.frames_embedded += 1
                 flagged = sorted({r for c in self.frame_checks.values() if c is not None for r in c.reasons})

@@ -121,6 +121,24 @@ class ServiceMetrics:
             "HAPTICLINK_SHED_QUEUE_S, their protection lapses.",
             registry=registry,
         )
+        self.visual_queue = Gauge(
+            "hapticlink_visual_queue_seconds",
+            "The longest a camera frame waited for the embedder (its peak, decaying over ~1 s); apart from the window "
+            "queue: over HAPTICLINK_SHED_VISUAL_QUEUE_S, frames are degraded, never sessions.",
+            registry=registry,
+        )
+        self.frame_level = Gauge(
+            "hapticlink_frame_level",
+            "How far camera frames are degraded under load: 0 every frame taken, 1 sampled less often, 2 dropped.",
+            registry=registry,
+        )
+        self.readmit_seconds = Histogram(
+            "hapticlink_readmit_seconds",
+            "From the moment the replica had room again for a refused robot (its shed session readmitted, or room to "
+            "start) to that robot's next block accepted.",
+            buckets=(0.1, 0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 30.0),
+            registry=registry,
+        )
         self.cpu_share = Gauge(
             "hapticlink_loop_cpu_share",
             "Share of one core the event-loop thread used (smoothed; 1 = always busy).",

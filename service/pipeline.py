@@ -77,13 +77,15 @@ class AdmittedBlock:
 class SessionJob:
     """A session's share of a batch: its estimator, its admitted blocks, its visual input (None: tactile-only)
     and how many windows those blocks complete; frame_checks: the visual input's FrameCheck per model name
-    (service.runtime.Runtime.frame_checks; empty without a visual input)."""
+    (service.runtime.Runtime.frame_checks; empty without a visual input); frames_shed: it has no visual input because
+    its frames were refused under load (its windows are marked missing the frame)."""
 
     estimator: SessionEstimator
     blocks: list[AdmittedBlock]
     visual: np.ndarray | None
     windows: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
+    frames_shed: bool = False
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,7 @@ class PreparedWindows:
     completed each window; preprocess_ns: what push + take cost; taps: (m, 3) tap features per window (those
     its completing block carried; zeros where it carried none) for a model with the taps group, else None;
     untapped: (m,) bool, the windows whose block carried no tap features (estimated by runtime.untapped), or None
-    when every window has them."""
+    when every window has them; frames_shed: as SessionJob's."""
 
     estimator: SessionEstimator
     batch: WindowBatch
@@ -103,6 +105,7 @@ class PreparedWindows:
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
     taps: np.ndarray | None = None
     untapped: np.ndarray | None = None
+    frames_shed: bool = False
 
     @property
     def inputs(self) -> Inputs:
@@ -290,6 +293,7 @@ def prepare_windows(job: SessionJob) -> list[PreparedWindows]:
                 job.frame_checks,
                 taps,
                 untapped,
+                job.frames_shed,
             )
         )
     return out
@@ -452,7 +456,7 @@ def lookup(
                 inputs="tactile+visual" if p.visual is not None and models[i].predictor.needs_visual else "tactile",
                 selection=choice,
                 chosen_model_version=rt.render_models.version(choice.id),
-                missing=("taps",) if p.untapped is not None and p.untapped[i] else (),
+                missing=_missing(p, i, models[i]),
             )
         )
         est.next_index += 1
@@ -522,6 +526,17 @@ def _rate(runtime: Runtime, prepared: Sequence[PreparedWindows]) -> list[Rated]:
         (raw.ratings[a:b], raw.models[a:b], raw.checks[a:b], features.ms, raw.ms)
         for a, b in zip(bounds[:-1], bounds[1:])
     ]
+
+
+def _missing(p: PreparedWindows, i: int, model: ServedModel) -> tuple[str, ...]:
+    """Inputs window i of `p` lacked: the surface's taps (the untapped model estimated it), the camera frame (its
+    session's frames were refused under load, and a model that reads images estimated it without one)."""
+    out: tuple[str, ...] = ()
+    if p.untapped is not None and p.untapped[i]:
+        out += ("taps",)
+    if p.frames_shed and not (p.visual is not None and model.predictor.needs_visual):
+        out += ("frame",)
+    return out
 
 
 def _completing(group: Sequence[AdmittedBlock], window: int) -> AdmittedBlock:

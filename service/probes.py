@@ -39,9 +39,9 @@ PROBE_REQUEST_S = 5.0
 PROBE_LISTEN_BACKLOG = 128
 
 
-def health(instance: str) -> HealthOut:
-    """GET /health: the process runs."""
-    return HealthOut(status="ok", instance=instance)
+def health(instance: str, probe_port: int | None = None) -> HealthOut:
+    """GET /health: the process runs; probe_port: the port orchestrators should probe, when one is set."""
+    return HealthOut(status="ok", instance=instance, probe_port=probe_port)
 
 
 def readiness_report(readiness: tuple[bool, str], rt: Runtime | None) -> tuple[ReadyOut, int]:
@@ -70,7 +70,7 @@ PATHS = ("/health", "/ready")
 def answer(path: str, live: Live, ready: Ready) -> tuple[bytes, int]:
     """The JSON body and status of GET `path`, one of PATHS (both servers answer through this)."""
     if path == "/health":
-        body, status = live().model_dump(), 200
+        body, status = live().model_dump(exclude_none=True), 200
     else:
         out, status = ready()
         body = out.model_dump()

@@ -177,9 +177,17 @@ class LibraryOut(BaseModel):
 
 
 class HealthOut(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok", "instance": "replica-a"}]})
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"status": "ok", "instance": "replica-a", "probe_port": 8081}]}
+    )
     status: str
     instance: str
+    probe_port: int | None = Field(
+        None,
+        description="the port orchestrators should probe (HAPTICLINK_PROBE_PORT; absent when none is set): it answers "
+        "/health and /ready from a thread of its own, while this answer on the service's port waits behind the event "
+        "loop, which a crowd of robots keeps busy",
+    )
 
 
 class ReadyOut(BaseModel):

@@ -253,6 +253,15 @@ class Settings(BaseSettings):
         description="window queue delay, s (its peak), above which, while the process is busy, sessions are shed as "
         "for shed_lag_s: the loop keeps up with the blocks but the window pool, sharing its GIL, does not",
     )
+    shed_visual_queue_s: float = Field(
+        1.0,
+        gt=0,
+        description="embedding work, s, a camera frame may find queued ahead of it (the measured seconds per "
+        "embedding × the embeddings queued); beyond it the frame is refused (429 + Retry-After: when it would be "
+        "taken, in the order frames were refused) and the session's windows are estimated tactile-only, marked. Frames "
+        "that wait longer than this for the embedder degrade frames a level (sampled less often, then dropped); "
+        "they never shed a session",
+    )
     probe_port: int | None = Field(
         None,
         ge=0,

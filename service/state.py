@@ -42,6 +42,7 @@ from service.runtime import Runtime, load_runtime
 from service.schemas import HealthOut, ReadyOut
 from service.settings import Settings
 from service.thread_cpu import ThreadCpu, lower_priority
+from service.visual_queue import EmbeddingQueue
 from service.warmup import warm_up
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,8 @@ class ServiceState:
         self.visual_pool = ThreadPoolExecutor(
             1, thread_name_prefix="hapticlink-visual", initializer=self._start_visual_thread
         )
+        # what frames wait for the visual pool, measured apart from the windows' queue (service/visual_queue.py)
+        self.embedding_queue = EmbeddingQueue()
         self.bus = EventBus(self.broker, self.metrics)
         self.directory = SessionDirectory(settings, self.broker, self.bus, self.metrics)
         self.capacity = CapacityGuard(
@@ -82,6 +85,7 @@ class ServiceState:
             lambda: self.directory.sessions.values(),
             lambda now: self.batcher.take_waits(now),
             self.threads.seconds,
+            self.embedding_queue,
         )
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool, self.capacity)
         self.blocks = BlockIntake(self.metrics, self.capacity)
@@ -198,8 +202,8 @@ class ServiceState:
         return True, "ready"
 
     def health_report(self) -> HealthOut:
-        """GET /health: the process runs."""
-        return health(self.settings.instance_id)
+        """GET /health: the process runs (and, on either port, which port orchestrators should probe)."""
+        return health(self.settings.instance_id, self.probes.port if self.probes is not None else None)
 
     def ready_report(self) -> tuple[ReadyOut, int]:
         """GET /ready's answer and status (200 ready, 503 not), whichever port or route asks."""
@@ -235,6 +239,7 @@ class ServiceState:
                 self.metrics,
                 self.batcher.notify,
                 self.frames.visual_done,
+                self.embedding_queue,
             )
 
         return await self.directory.open(name, client, runtime.model_name, build)
