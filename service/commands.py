@@ -23,6 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="visual backbone .onnx, for visual models (HAPTICLINK_BACKBONE_PATH)",
     )
     p.add_argument(
+        "--backbone-fallback",
+        type=Path,
+        metavar="PATH",
+        help="the fp32 backbone the int8 --backbone was made from, served where the int8 one fails its load-time "
+        "check (HAPTICLINK_BACKBONE_FALLBACK_PATH)",
+    )
+    p.add_argument(
         "--tactile-model",
         type=Path,
         metavar="PATH",
@@ -51,6 +58,7 @@ FLAG_TO_FIELD = {
     "model": "model_path",
     "library": "library_dir",
     "backbone": "backbone_path",
+    "backbone_fallback": "backbone_fallback_path",
     "tactile_model": "tactile_model_path",
     "cheap_model": "cheap_model_path",
     "policy": "serving_policy",
@@ -96,6 +104,7 @@ SERVED_PATHS = (
     ("--model", "model", False, True),
     ("--library", "library", True, True),
     ("--backbone", "visual backbone", False, False),
+    ("--backbone-fallback", "fp32 fallback backbone", False, False),
     ("--tactile-model", "tactile fallback model", False, False),
     ("--cheap-model", "cheap model", False, False),
 )

@@ -533,4 +533,5 @@ class Session:
             "windows_ready": self.backlog(),
             "pending_blocks": len(self._pending),
             "counters": asdict(self.counters),
+            "backbone": None if self.runtime.backbone_status is None else self.runtime.backbone_status.to_dict(),
         }

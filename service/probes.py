@@ -25,7 +25,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.log_throttle import LogThrottle
 from service.runtime import Runtime
-from service.schemas import HealthOut, ReadyOut
+from service.schemas import BackboneOut, HealthOut, ReadyOut
 
 log = logging.getLogger(__name__)
 _dropped = LogThrottle(log)
@@ -58,6 +58,7 @@ def readiness_report(readiness: tuple[bool, str], rt: Runtime | None) -> tuple[R
         library=rt.library.name,
         library_entries=len(rt.library.ids),
         backbone=rt.backbone.name if rt.backbone else None,
+        backbone_check=None if rt.backbone_status is None else BackboneOut(**rt.backbone_status.to_dict()),
     )
     return body, 200 if ok else 503
 

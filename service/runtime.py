@@ -22,7 +22,7 @@ from models.tactile.config import TactileConfig
 from models.visual.config import VisualConfig
 from models.visual.embedding import part_columns, visual_features, visual_layout
 from models.visual.image import load_image
-from models.visual.onnx_backbone import OnnxBackbone
+from models.visual.onnx_backbone import OnnxBackbone, ProbeCheck
 from service.adaptive import ServingPolicy
 from service.render_models import RenderCatalog
 from service.settings import Settings
@@ -38,6 +38,44 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class BackboneStatus:
+    """The backbone the service embeds frames with, and why that one.
+
+    configured: the name of the file configured (HAPTICLINK_BACKBONE_PATH); served: the name of the one that
+    runs: the configured one, or the fp32 backbone it was quantized from where its check failed on this CPU;
+    check: the configured backbone's load-time check (None: the file carries no probe, so it is unchecked);
+    fallback_check: the served fallback's own check (None without a fallback or a probe)."""
+
+    configured: str
+    served: str
+    check: ProbeCheck | None
+    fallback_check: ProbeCheck | None = None
+
+    @property
+    def fallback(self) -> bool:
+        return self.served != self.configured
+
+    def to_dict(self) -> dict:
+        """What /ready and a session's status say of it (service.schemas.BackboneOut)."""
+        return {
+            "served": self.served,
+            "configured": self.configured,
+            "fallback": self.fallback,
+            "probe_cosine": None if self.check is None else round(self.check.cosine, 4),
+            "bound": None if self.check is None else self.check.bound,
+            "detail": self.describe(),
+        }
+
+    def describe(self) -> str:
+        """One line for /ready and the log."""
+        if self.check is None:
+            return f"{self.configured}: unchecked (the file carries no probe; export it again)"
+        if not self.fallback:
+            return f"{self.configured}: {self.check.describe()}"
+        return f"{self.configured} failed its check on this CPU ({self.check.describe()}); serving {self.served}"
+
+
+@dataclass(frozen=True)
 class Runtime:
     """The loaded models and library.
 
@@ -49,6 +87,7 @@ class Runtime:
     interval_level: nominal coverage of the published intervals (and of those the adaptive policy reads);
     tactile_config: the model's TactileConfig with the serving hop (everything else as trained);
     backbone / visual_columns: set when the model reads visual features and a backbone is configured;
+    backbone_status: which backbone embeds the frames and how its load-time check went (None: no backbone);
     problem: why the service cannot estimate (None when it can), shown by GET /ready;
     selection: the rule that picks the entry to render; spectra: the library's vibration spectra on a
     speed–force grid, precomputed at load for a rule that reads the window's vibration (else None).
@@ -75,6 +114,7 @@ class Runtime:
     spectra: SpectralTable | None = None
     render_models: RenderCatalog = field(default_factory=lambda: RenderCatalog({}))
     untapped: ServedModel | None = None
+    backbone_status: BackboneStatus | None = None
 
     @property
     def predictor(self) -> Predictor:
@@ -226,10 +266,14 @@ def load_runtime(settings: Settings) -> Runtime:
                 f"models at {spectra.rate_hz:g} Hz; use the perceptual rule or a library at the model's rate"
             )
     visual_config = predictor.visual_config
-    backbone, columns, problem = None, None, None
+    backbone, columns, problem, backbone_status = None, None, None, None
     if predictor.needs_visual:
         backbone, columns, problem = _load_backbone(
             predictor, visual_config, settings.backbone_path, settings.visual_threads
+        )
+    if backbone is not None:
+        backbone, backbone_status, problem = _checked_backbone(
+            backbone, settings.backbone_fallback_path, settings.visual_threads
         )
     return Runtime(
         ServedModel.load(predictor, alpha),
@@ -249,6 +293,7 @@ def load_runtime(settings: Settings) -> Runtime:
         spectra,
         RenderCatalog.from_library(library),
         None if untapped is None else ServedModel.load(untapped, alpha),
+        backbone_status,
     )
 
 
@@ -314,3 +359,50 @@ def _load_backbone(
             f"model {card.model} reads {predictor.n_visual} visual features; {backbone.name} gives {width}"
         )
     return backbone, columns, None
+
+
+def _checked_backbone(
+    backbone: OnnxBackbone, fallback_path: Path | None, threads: int
+) -> tuple[OnnxBackbone | None, BackboneStatus, str | None]:
+    """The backbone to serve after its load-time check → (backbone or None, status, problem or None).
+
+    A backbone whose probe frames drift from fp32 past the bound (an int8 copy on a CPU without VNNI) is not
+    served: the fp32 file it was quantized from is, found at `fallback_path` or else beside it under the name its
+    metadata records; without one, the visual model is not ready and the problem says what to give it."""
+    check = backbone.check
+    if check is None:
+        log.warning("visual backbone %s carries no probe: served unchecked (export it again)", backbone.name)
+        return backbone, BackboneStatus(backbone.name, backbone.name, None), None
+    if check.passed:
+        log.info("visual backbone %s: %s", backbone.name, check.describe())
+        return backbone, BackboneStatus(backbone.name, backbone.name, check), None
+    backbone.stop()
+    failed = f"visual backbone {backbone.name} failed its load-time check on this CPU ({check.describe()})"
+    status = BackboneStatus(backbone.name, backbone.name, check)
+    if backbone.source is None:
+        return None, status, f"{failed}; it names no fp32 source to serve instead"
+    path = fallback_path
+    if path is None and backbone.source_file:
+        path = backbone.path.parent / backbone.source_file
+    if path is None or not path.is_file():
+        return (
+            None,
+            status,
+            f"{failed}; its fp32 source {backbone.source[0]} is not at {path}: set HAPTICLINK_BACKBONE_FALLBACK_PATH "
+            "(or --backbone-fallback) to it",
+        )
+    fp32 = OnnxBackbone(path, intra_op_threads=threads)
+    if (fp32.name, fp32.fingerprint) != backbone.source or fp32.config_hash != backbone.config_hash:
+        fp32.stop()
+        raise ValueError(
+            f"{path} is {fp32.name} (fingerprint {fp32.fingerprint}, visual config {fp32.config_hash}); the fallback "
+            f"of {backbone.name} must be the file it was quantized from: {backbone.source[0]} (fingerprint "
+            f"{backbone.source[1]}, visual config {backbone.config_hash})"
+        )
+    status = BackboneStatus(backbone.name, fp32.name, check, fp32.check)
+    if fp32.check is not None and not fp32.check.passed:
+        fp32.stop()
+        return None, status, f"{failed}, and so did its fp32 source {fp32.name} ({fp32.check.describe()})"
+    # once per load, at WARNING: from here on every frame costs the fp32 backbone's time
+    log.warning("%s: serving its fp32 source %s from %s instead", failed, fp32.name, path)
+    return fp32, status, None

@@ -157,6 +157,7 @@ class SessionStatus(BaseModel):
     windows_ready: int
     pending_blocks: int
     counters: SessionCounters
+    backbone: BackboneOut | None = Field(None, description="the backbone that embeds this session's frames")
 
 
 class LibraryEntryOut(BaseModel):
@@ -190,6 +191,19 @@ class HealthOut(BaseModel):
     )
 
 
+class BackboneOut(BaseModel):
+    """The visual backbone that embeds frames, and how its load-time check went (service.runtime.BackboneStatus)."""
+
+    served: str = Field(description="the backbone that runs")
+    configured: str = Field(description="the backbone file configured (HAPTICLINK_BACKBONE_PATH)")
+    fallback: bool = Field(description="true: the configured one failed its check on this CPU; its fp32 source runs")
+    probe_cosine: float | None = Field(
+        None, description="the configured backbone's worst probe frame cosine to fp32 on this CPU (null: unchecked)"
+    )
+    bound: float | None = Field(None, description="the least probe cosine a backbone must reach to be served")
+    detail: str
+
+
 class ReadyOut(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
@@ -216,6 +230,7 @@ class ReadyOut(BaseModel):
     library: str | None = None
     library_entries: int | None = None
     backbone: str | None = None
+    backbone_check: BackboneOut | None = None
 
 
 class JsonChannel(BaseModel):

@@ -40,6 +40,11 @@ class Settings(BaseSettings):
         None,
         description="visual backbone ONNX (models/offline/featurize.py backbone_onnx); needed only by visual models",
     )
+    backbone_fallback_path: Path | None = Field(
+        None,
+        description="the fp32 backbone a quantized (int8) backbone was made from: served in its place when the "
+        "int8 one fails its load-time check on this CPU (onnxruntime's int8 kernels saturate without VNNI)",
+    )
     tactile_model_path: Path | None = Field(
         None,
         description="optional tactile-only fallback model: trained on the same features, it estimates a visual "

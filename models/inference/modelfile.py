@@ -29,7 +29,9 @@ class ModelCard:
     views: how many image views the model's visual input pools (models.visual.pooling; 1: one photo/frame);
     metrics: LOOCV summary (0–100 scale); fit_info: what the fit chose (e.g. the selected candidate per attribute);
     intervals: {"window" | "ema" | "texture": models.inference.intervals.IntervalCalibration.to_dict()} or None;
-    ood: models.inference.ood.OODDetector.to_dict() or None (both written by `hapticlink train`)."""
+    ood: models.inference.ood.OODDetector.to_dict() or None (both written by `hapticlink train`);
+    probe: the load-time check (`Predictor` runs it): {"tactile", "visual": jsonarrays-encoded (n, F) / (n, D)
+    inputs or None, "ratings": the (n, 4) outputs the exported file gave on the host that exported it} or None."""
 
     model: str
     modality: str
@@ -44,6 +46,7 @@ class ModelCard:
     intervals: dict | None = None
     ood: dict | None = None
     fit_info: dict = field(default_factory=dict)
+    probe: dict | None = None
 
     def to_metadata(self) -> dict[str, str]:
         return {
@@ -64,6 +67,7 @@ class ModelCard:
             **({} if self.intervals is None else {"intervals": json.dumps(self.intervals, sort_keys=True)}),
             **({} if self.ood is None else {"ood": json.dumps(self.ood, sort_keys=True)}),
             "fit_info": json.dumps(self.fit_info),
+            **({} if self.probe is None else {"probe": json.dumps(self.probe, sort_keys=True)}),
         }
 
     @classmethod
@@ -92,6 +96,7 @@ class ModelCard:
                 intervals=json.loads(meta["intervals"]) if "intervals" in meta else None,
                 ood=json.loads(meta["ood"]) if "ood" in meta else None,
                 fit_info=json.loads(meta.get("fit_info", "{}")),
+                probe=json.loads(meta["probe"]) if "probe" in meta else None,
             )
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: incomplete model metadata ({exc})") from None

@@ -8,9 +8,14 @@ from typing import get_args
 import numpy as np
 import onnxruntime as ort
 
+from models.inference import jsonarrays
 from models.inference.modelfile import INPUT_TACTILE, INPUT_VISUAL, ModelCard
 from models.tactile.config import TactileConfig
 from models.visual.config import BackboneChoice, VisualConfig
+
+# The most a model's outputs on its card's probe inputs may differ from the stored ones, bipolar points (−100…100):
+# fp32 kernels differ across CPUs by rounding (≈ 1e-4 here); a broken graph or a lossy kernel by far more.
+PROBE_TOLERANCE = 0.01
 
 
 class Predictor:
@@ -19,9 +24,18 @@ class Predictor:
     expected_tactile_hash: refuse a model trained on other tactile features than the pipeline computes.
     visual_config: the image configuration the model was trained on, its backbone included (from its card; the
     default for a card from before the card carried it), so the service computes the vector the model reads.
+    probe_tolerance: the load-time check: a model whose outputs on its card's probe inputs differ from the stored
+    ones by more (bipolar points) on this CPU is refused (`probe_error`: the difference; None without a probe).
     """
 
-    def __init__(self, path: str | Path, *, threads: int = 1, expected_tactile_hash: str | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        threads: int = 1,
+        expected_tactile_hash: str | None = None,
+        probe_tolerance: float = PROBE_TOLERANCE,
+    ):
         self.path = Path(path)
         if not self.path.is_file():
             raise ValueError(f"model file not found: {self.path}")
@@ -62,6 +76,34 @@ class Predictor:
                 f"{self.path}: tactile input has {self.n_tactile} features, "
                 f"its config says {self.tactile_config.n_features}"
             )
+        self.probe_error: float | None = None
+        if self.card.probe is not None:
+            self.probe_error = self._self_check(self.card.probe, probe_tolerance)
+
+    def _self_check(self, probe: dict, tolerance: float) -> float:
+        """Run the card's probe inputs; ValueError when the outputs differ from the stored ones past `tolerance`."""
+        what = f"{self.path}: card probe"
+        if not isinstance(probe, dict) or "ratings" not in probe:
+            raise ValueError(f"{what} is not a probe (no ratings)")
+        inputs = {
+            name: None if probe.get(name) is None else jsonarrays.decode(probe[name], f"{what} {name}")
+            for name in (INPUT_TACTILE, INPUT_VISUAL)
+        }
+        expected = jsonarrays.decode(probe["ratings"], f"{what} ratings")
+        try:
+            got = self.predict(inputs[INPUT_TACTILE], inputs[INPUT_VISUAL])
+        except ValueError as exc:
+            raise ValueError(f"{what} does not fit the model: {exc}") from None
+        if got.shape != expected.shape:
+            raise ValueError(f"{what}: the model gives {got.shape} outputs, the card stores {expected.shape}")
+        error = float(np.max(np.abs(got.astype(np.float64) - expected), initial=0.0))
+        if not error <= tolerance:  # NaN fails too
+            raise ValueError(
+                f"{self.path}: on this CPU the model's outputs on the probe inputs its card stores differ from the "
+                f"outputs recorded at export by up to {error:.4g} bipolar points (tolerance {tolerance:g}); "
+                "refusing it: its numerics do not hold here (export it again on this host to compare)"
+            )
+        return error
 
     def _width(self, name: str) -> int | None:
         if name not in self.inputs:

@@ -344,6 +344,7 @@ def _train(args: argparse.Namespace) -> int:
     from models.inference.predictor import Predictor
     from models.offline.featurize import backbone_onnx
     from models.offline.train import train_and_export
+    from models.visual.onnx_backbone import OnnxBackbone
 
     path = train_and_export(
         args.dataset,
@@ -361,7 +362,11 @@ def _train(args: argparse.Namespace) -> int:
     print(f"wrote {path}")
     predictor = Predictor(path)
     if predictor.needs_visual:  # the backbone exported for the model's own visual configuration
-        print(f"serve it with --backbone {backbone_onnx(predictor.visual_config)}")
+        backbone = backbone_onnx(predictor.visual_config)
+        print(f"serve it with --backbone {backbone}")
+        source = OnnxBackbone(backbone, min_probe_cosine=None).source_file
+        if source:  # a quantized copy: its fp32 source is served where the copy fails its load-time check
+            print(f"  (keep {backbone.parent / source} beside it: the fp32 fallback where int8 does not hold)")
     return 0
 
 

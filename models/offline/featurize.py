@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -26,6 +27,7 @@ from texture_library.atomic_file import atomic_path
 
 if TYPE_CHECKING:
     from models.visual.embedding import PatchEmbedder
+    from models.visual.onnx_backbone import OnnxBackbone
 
 DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
 #: the int8 EfficientNet-Lite0 (models.offline.backbones.quantize)
@@ -148,6 +150,11 @@ def tactile_table(root: str | Path, config: TactileConfig | None = None, *, work
     return table
 
 
+# Backbone files carry their load-time probe since this tag (onnx_backbone.PROBE_KEY): a cached file from before
+# has another name, so it is exported again rather than served unchecked. The weights are the same.
+FILE_TAG = "-probed"
+
+
 def backbone_onnx(config: VisualConfig) -> Path:
     """The resolved backbone exported to ONNX once (keyed by its weights and the visual config).
 
@@ -158,28 +165,58 @@ def backbone_onnx(config: VisualConfig) -> Path:
     from models.offline.backbones.onnx_export import export_backbone_onnx
 
     if config.backbone == INT8_BACKBONE:
-        return _int8_backbone_onnx(config)
+        return int8_backbone_onnx(config)
     backbone = resolve_backbone(config)
-    path = cache_root() / "backbones" / f"{backbone.name}-{backbone.fingerprint[:12]}-{config.hash()}.onnx"
+    path = cache_root() / "backbones" / f"{backbone.name}-{backbone.fingerprint[:12]}-{config.hash()}{FILE_TAG}.onnx"
     if not path.is_file():
         with atomic_path(path) as tmp:
             export_backbone_onnx(backbone, tmp, config_hash=config.hash())
     return path
 
 
-def _int8_backbone_onnx(config: VisualConfig) -> Path:
+def int8_backbone_onnx(config: VisualConfig, kind: str | None = None, fp32_convs: int | None = None) -> Path:
     """The int8 copy of the EfficientNet-Lite0 file for `config`, quantized once from it (deterministic: same
-    fp32 file and recipe, same bytes); its name holds the int8 fingerprint, so a changed recipe is a new file."""
-    from models.offline.backbones.quantize import int8_fingerprint, quantize_backbone_onnx
+    fp32 file and recipe, same bytes); its name holds the int8 fingerprint, so a changed recipe is a new file.
+    kind: one of quantize.RECIPES, fp32_convs: leading convolutions kept fp32 (defaults: the served recipe,
+    quantize.DEFAULT_RECIPE and quantize.FP32_CONVS)."""
+    from models.offline.backbones.quantize import DEFAULT_RECIPE, FP32_CONVS, int8_fingerprint, quantize_backbone_onnx
     from models.visual.onnx_backbone import OnnxBackbone
 
+    kind = kind or DEFAULT_RECIPE
+    fp32_convs = FP32_CONVS if fp32_convs is None else fp32_convs
     fp32_path = backbone_onnx(config.model_copy(update={"backbone": "efficientnet_lite0"}))
-    fingerprint = int8_fingerprint(OnnxBackbone(fp32_path).fingerprint)
-    path = cache_root() / "backbones" / f"{INT8_BACKBONE}-{fingerprint[:12]}-{config.hash()}.onnx"
+    fingerprint = int8_fingerprint(OnnxBackbone(fp32_path, min_probe_cosine=None).fingerprint, kind, fp32_convs)
+    path = cache_root() / "backbones" / f"{INT8_BACKBONE}-{fingerprint[:12]}-{config.hash()}{FILE_TAG}.onnx"
     if not path.is_file():
         with atomic_path(path) as tmp:
-            quantize_backbone_onnx(fp32_path, tmp)
+            quantize_backbone_onnx(fp32_path, tmp, kind=kind, fp32_convs=fp32_convs)
     return path
+
+
+def checked_backbone(config: VisualConfig, intra_op_threads: int | None = None) -> tuple[OnnxBackbone, str]:
+    """(the backbone to compute with, the name of the one exported for `config`): that one after its load-time
+    check; where an int8 copy fails it on this CPU (onnxruntime's u8s8 kernels saturate without VNNI), its fp32
+    source, as the service serves, with a warning. Features then cache under the fp32 backbone's name and
+    fingerprint (what was computed), while a model card names the configured backbone, which the service then
+    serves, or its fp32 source where it fails there too."""
+    from models.visual.onnx_backbone import OnnxBackbone
+
+    backbone = OnnxBackbone(
+        backbone_onnx(config), intra_op_threads=intra_op_threads, expected_config_hash=config.hash()
+    )
+    if backbone.check is None or backbone.check.passed or backbone.source is None:
+        return backbone, backbone.name
+    fp32 = OnnxBackbone(
+        backbone_onnx(config.model_copy(update={"backbone": backbone.source[0]})),
+        intra_op_threads=intra_op_threads,
+        expected_config_hash=config.hash(),
+    )
+    warnings.warn(
+        f"{backbone.name} fails its load-time check on this CPU ({backbone.check.describe()}): computing "
+        f"{fp32.name} features instead, as the service would serve here",
+        stacklevel=2,
+    )
+    return fp32, backbone.name
 
 
 def visual_table(
@@ -196,20 +233,20 @@ def visual_table(
     patching configurations runs one ONNX file for all of them; the cache keys name both)."""
     from models.visual.cache import FeatureCache
     from models.visual.embedding import batch_visual_features
-    from models.visual.onnx_backbone import OnnxBackbone
 
     ds = Dataset(root)
     cfg = config or VisualConfig()
     textures = ds.texture_ids()
+    configured = None
     if backbone is None:
-        backbone = OnnxBackbone(backbone_onnx(cfg), expected_config_hash=cfg.hash())
+        backbone, configured = checked_backbone(cfg)
     cache = ds.features_dir / (
         f"visual-{backbone.name}-{backbone.fingerprint[:12]}-{cfg.hash()}-v{n_views}-s{seed}-{dataset_fingerprint(ds)}.npz"
     )
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             if list(z["textures"]) == textures:
-                return VisualTable(z["X"], textures, backbone.name, backbone.dim, cfg.hash())
+                return VisualTable(z["X"], textures, configured or backbone.name, backbone.dim, cfg.hash())
     images = []
     for t in textures:
         paths = ds.image_paths(t)
@@ -219,7 +256,7 @@ def visual_table(
     feats = batch_visual_features(
         images, cfg, backbone, n_views=n_views, seed=seed, cache=FeatureCache(cache_root() / "visual"), progress=True
     )
-    table = VisualTable(feats.values, textures, feats.backbone, feats.backbone_dim, cfg.hash())
+    table = VisualTable(feats.values, textures, configured or feats.backbone, feats.backbone_dim, cfg.hash())
     with atomic_path(cache) as tmp:
         np.savez(tmp, X=table.X, textures=np.array(textures))
     return table

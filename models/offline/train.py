@@ -130,7 +130,40 @@ def train_and_export(
         ood=ood,
         fit_info=est.fit_info(),
     )
-    return Path(est.export(out, card.to_metadata()))
+    path = Path(est.export(out, card.to_metadata()))
+    attach_probe(path, data)
+    return path
+
+
+PROBE_TEXTURES = 4
+
+
+def attach_probe(path: Path, data: TextureData) -> None:
+    """Store the load-time check in the card of the model exported at `path`: the first window (and view-0 image
+    features) of PROBE_TEXTURES textures spread over `data`, and the file's outputs on them on this host."""
+    from models.inference import jsonarrays
+    from models.inference.modelfile import read_metadata, write_metadata
+
+    predictor = Predictor(path)
+    picks = np.unique(np.linspace(0, len(data) - 1, min(PROBE_TEXTURES, len(data))).round().astype(int))
+    tactile = np.stack([data.tactile[i][0] for i in picks]) if predictor.needs_tactile else None
+    visual = None
+    if predictor.needs_visual:
+        if data.visual is None or data.visual.shape[2] != predictor.n_visual:
+            raise ValueError(
+                f"{path}: the model reads {predictor.n_visual} visual features, the data holds "
+                f"{None if data.visual is None else data.visual.shape[2]}"
+            )
+        visual = data.visual[picks, 0]
+    ratings = predictor.predict(tactile, visual)
+    probe = {
+        "tactile": None if tactile is None else jsonarrays.encode(tactile),
+        "visual": None if visual is None else jsonarrays.encode(visual),
+        "ratings": jsonarrays.encode(ratings),
+    }
+    meta = read_metadata(path)
+    meta["probe"] = json.dumps(probe, sort_keys=True)
+    write_metadata(path, meta)
 
 
 def predict_dataset(

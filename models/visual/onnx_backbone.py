@@ -10,11 +10,27 @@ RGB replication and normalisation are inside it. metadata_props:
     hapticlink.visual.weights_fingerprint  16 hex digits of the weights
     hapticlink.visual.config_hash          VisualConfig.hash() it was exported for
     hapticlink.visual.input_size           patch side, pixels
+    hapticlink.visual.probe                (optional) the self-check: JSON {"patches": uint8 (n, s, s) patches
+                                           (pixel / 255 is the input), "per_frame": patches per frame,
+                                           "reference": float32 (n / per_frame, dim) frame-mean embeddings of
+                                           the fp32 backbone, "reference_from": what computed them}, arrays as
+                                           base64 .npy (`encode_array`)
+    hapticlink.visual.source_backbone      (optional, a quantized copy) the fp32 backbone it was made from:
+    hapticlink.visual.source_fingerprint   its name and weights fingerprint (the fallback must be that file)
+    hapticlink.visual.source_file          and its file name (the service looks for it beside the copy)
+
+A backbone with a probe checks itself at load (`ProbeCheck`): the frame cosine of its embeddings of the probe
+patches to the stored fp32 ones. onnxruntime's int8 kernels differ per CPU (u8s8 saturates without VNNI), so a
+quantized file faithful on one host can drift on another; the check measures it on the host that serves.
 """
 
 from __future__ import annotations
 
+import base64
+import io
+import json
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +43,87 @@ OUTPUT_NAME = "features"
 META_PREFIX = "hapticlink.visual."
 META_KEYS = ("backbone", "dim", "weights_fingerprint", "config_hash", "input_size")
 DEFAULT_BATCH_SIZE = 16
+PROBE_KEY = META_PREFIX + "probe"
+SOURCE_NAME_KEY = META_PREFIX + "source_backbone"
+SOURCE_FINGERPRINT_KEY = META_PREFIX + "source_fingerprint"
+SOURCE_FILE_KEY = META_PREFIX + "source_file"
+# The least mean probe-frame cosine to the fp32 reference a backbone must reach to be served: the target for the
+# served image features. The int8 copy's probes give 0.993 with VNNI and 0.980 under qemu's Haswell (AVX2, where
+# onnxruntime's u8s8 kernels saturate a little in its int8 blocks); recipe 1, every convolution int8, gave 0.936
+# and 0.812; an fp32 file 1.000 (benchmarks/backbone_int8.py --recipes; docs/models.md).
+MIN_PROBE_COSINE = 0.97
+
+
+def encode_array(array: np.ndarray) -> str:
+    """An array as base64 of its .npy bytes (exact, dtype and shape included)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array), allow_pickle=False)
+    return base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+def decode_array(text: str, what: str) -> np.ndarray:
+    """`encode_array`'s inverse; ValueError naming `what` on anything else."""
+    try:
+        return np.load(io.BytesIO(base64.b64decode(text, validate=True)), allow_pickle=False)
+    except (ValueError, TypeError, OSError) as exc:
+        raise ValueError(f"{what}: not a base64 .npy array ({exc})") from None
+
+
+def probe_metadata(patches: np.ndarray, reference: np.ndarray, per_frame: int, reference_from: str) -> str:
+    """The value of PROBE_KEY: probe patches (n, s, s) float in [0, 1] (stored as uint8: pixel / 255 is what runs)
+    and the fp32 frame-mean embeddings (n / per_frame, dim) of exactly those inputs (`probe_inputs(...)`)."""
+    if patches.ndim != 3 or patches.shape[0] % per_frame or reference.shape[0] != patches.shape[0] // per_frame:
+        raise ValueError(
+            f"probe patches {patches.shape} and reference {reference.shape} do not make frames of {per_frame}"
+        )
+    pixels = (probe_inputs(patches) * 255.0).round().astype(np.uint8)
+    return json.dumps(
+        {
+            "patches": encode_array(pixels),
+            "per_frame": per_frame,
+            "reference": encode_array(np.asarray(reference, np.float32)),
+            "reference_from": reference_from,
+        }
+    )
+
+
+def probe_inputs(patches: np.ndarray) -> np.ndarray:
+    """The float32 patches a probe stores for `patches` (rounded to 1/255): embed these for its reference."""
+    return np.clip(np.rint(np.asarray(patches) * 255.0), 0, 255).astype(np.float32) / 255.0
+
+
+def frame_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cosine between matching rows of a and b, (n, dim) each → (n,)."""
+    return (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-30)
+
+
+@dataclass(frozen=True)
+class ProbeCheck:
+    """A backbone's check at load: the frame cosine of its probe embeddings to the stored fp32 ones.
+
+    cosines: one per probe frame (frame mean of its patches' embeddings, as the served vector pools them);
+    bound: the least mean of them that passes; reference_from: what computed the reference."""
+
+    cosines: tuple[float, ...]
+    bound: float
+    reference_from: str
+
+    @property
+    def cosine(self) -> float:
+        """The mean probe frame cosine (one frame's quantization error is no drift of the kernels; a mean over the
+        frames separates the two, where single frames of either overlap)."""
+        return float(np.mean(self.cosines))
+
+    @property
+    def passed(self) -> bool:
+        return self.cosine >= self.bound
+
+    def describe(self) -> str:
+        verdict = "≥" if self.passed else "<"
+        return (
+            f"mean probe frame cosine to {self.reference_from} {self.cosine:.3f} {verdict} {self.bound:g} "
+            f"(frames: {', '.join(f'{c:.3f}' for c in self.cosines)})"
+        )
 
 
 class BackboneStopped(RuntimeError):
@@ -52,6 +149,8 @@ class OnnxBackbone:
     intra_op_threads      onnxruntime intra-op threads (None: onnxruntime's default, all cores)
     batch_size            patches per run
     expected_config_hash  if given, refuse a file exported for another VisualConfig
+    min_probe_cosine      the bound of the load-time check (`check`: None for a file without a probe); None:
+                          no check (a tool that reads only the file's metadata, or checks it apart)
     """
 
     def __init__(
@@ -61,6 +160,7 @@ class OnnxBackbone:
         intra_op_threads: int | None = None,
         batch_size: int = DEFAULT_BATCH_SIZE,
         expected_config_hash: str | None = None,
+        min_probe_cosine: float | None = MIN_PROBE_COSINE,
     ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
@@ -93,10 +193,47 @@ class OnnxBackbone:
                 f"expected {expected_config_hash}"
             )
 
+        source = (meta.get(SOURCE_NAME_KEY), meta.get(SOURCE_FINGERPRINT_KEY))
+        # the fp32 backbone a quantized copy was made from (name, fingerprint) and its file name, else None
+        self.source: tuple[str, str] | None = (source[0], source[1]) if source[0] and source[1] else None
+        self.source_file: str | None = meta.get(SOURCE_FILE_KEY) or None
+
         # each run's RunOptions while it is in flight, so that stop() can raise their terminate flags
         self._lock = threading.Lock()
         self._runs: set[ort.RunOptions] = set()
         self._stopped = False
+        self.check: ProbeCheck | None = None
+        if PROBE_KEY in meta and min_probe_cosine is not None:
+            self.check = self._self_check(meta[PROBE_KEY], min_probe_cosine)
+
+    def _self_check(self, text: str, bound: float) -> ProbeCheck:
+        """Embed the stored probe patches on this CPU and compare each frame with the stored fp32 embedding."""
+        what = f"{self.path}: probe"
+        try:
+            probe = json.loads(text)
+            pixels = decode_array(probe["patches"], what + " patches")
+            reference = decode_array(probe["reference"], what + " reference")
+            per_frame = int(probe["per_frame"])
+            reference_from = str(probe["reference_from"])
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise ValueError(f"{what} is not a backbone probe ({exc})") from None
+        n = pixels.shape[0] if pixels.ndim == 3 else 0
+        if (
+            pixels.dtype != np.uint8
+            or pixels.shape[1:] != (self.input_size, self.input_size)
+            or per_frame < 1
+            or n == 0
+            or n % per_frame
+            or reference.shape != (n // per_frame, self.dim)
+        ):
+            raise ValueError(
+                f"{what} holds patches {pixels.shape} {pixels.dtype} and reference {reference.shape}; expected uint8 "
+                f"(n, {self.input_size}, {self.input_size}) and (n / {per_frame}, {self.dim})"
+            )
+        frames = self.embed(pixels.astype(np.float32) / 255.0).reshape(n // per_frame, per_frame, self.dim).mean(1)
+        # a NaN embedding is as far as it gets
+        cosines = np.nan_to_num(frame_cosines(frames.astype(np.float64), reference.astype(np.float64)), nan=-1.0)
+        return ProbeCheck(tuple(float(c) for c in cosines), bound, reference_from)
 
     def __repr__(self) -> str:
         return (

@@ -102,14 +102,13 @@ def _tactile_job(job: dict) -> dict[str, np.ndarray]:
 
 def _visual_job(job: dict) -> tuple[np.ndarray, np.ndarray]:
     from models.inference.ood import frame_statistics
-    from models.offline.featurize import backbone_onnx, cache_root
+    from models.offline.featurize import cache_root, checked_backbone
     from models.visual.cache import FeatureCache
     from models.visual.embedding import visual_features
     from models.visual.image import load_image
-    from models.visual.onnx_backbone import OnnxBackbone
 
     cfg = VisualConfig(**job["config"])
-    backbone = OnnxBackbone(backbone_onnx(cfg), intra_op_threads=1, expected_config_hash=cfg.hash())
+    backbone, _ = checked_backbone(cfg, intra_op_threads=1)
     cache = FeatureCache(cache_root() / "visual")
     img = load_image(job["image"], min_size=cfg.patch_size)
     keys = [(CLEAN, None, None), *camera_variants()]

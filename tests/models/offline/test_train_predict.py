@@ -235,3 +235,53 @@ def test_a_bad_test_views_is_refused_before_any_feature_is_computed(dataset, tmp
     status = cli(["evaluate", "--dataset", str(dataset), "--model", model, "--out", str(tmp_path),
                   "--test-views", views])  # fmt: skip
     assert status == 2 and words in capsys.readouterr().err
+
+
+def _with_probe(src, dst, change):
+    """A copy of the model at `src` whose card's probe is `change(probe)`."""
+    import json
+
+    from models.inference.modelfile import read_metadata, write_metadata
+
+    meta = read_metadata(src)
+    meta["probe"] = json.dumps(change(json.loads(meta["probe"])))
+    dst.write_bytes(src.read_bytes())
+    write_metadata(dst, meta)
+    return dst
+
+
+def test_the_card_stores_probe_inputs_and_outputs_and_the_model_checks_them_at_load(ridge_model, dataset, tmp_path):
+    from models.inference import jsonarrays
+
+    card = read_card(ridge_model)
+    assert card.probe is not None and card.probe["visual"] is None
+    tactile = jsonarrays.decode(card.probe["tactile"])
+    ratings = jsonarrays.decode(card.probe["ratings"])
+    assert tactile.shape == (4, TactileConfig().n_features) and ratings.shape == (4, 4)
+    predictor = Predictor(ridge_model)
+    assert predictor.probe_error is not None and predictor.probe_error <= 1e-3
+    np.testing.assert_allclose(predictor.predict(tactile), ratings, atol=1e-3)
+
+    def shifted(probe):  # outputs recorded elsewhere that this CPU no longer reproduces
+        r = jsonarrays.decode(probe["ratings"])
+        r[2, 1] += 0.5
+        return {**probe, "ratings": jsonarrays.encode(r)}
+
+    drifted = _with_probe(ridge_model, tmp_path / "drifted.onnx", shifted)
+    with pytest.raises(ValueError, match=r"differ from the outputs recorded at export by up to 0\.5.* refusing it"):
+        Predictor(drifted)
+    assert Predictor(drifted, probe_tolerance=1.0).probe_error == pytest.approx(0.5, abs=1e-3)
+    wrong = _with_probe(
+        ridge_model, tmp_path / "wrong.onnx", lambda p: {**p, "tactile": jsonarrays.encode(tactile[:, :3])}
+    )
+    with pytest.raises(ValueError, match="card probe does not fit the model"):
+        Predictor(wrong)
+
+
+def test_a_visual_card_probe_holds_both_inputs(dataset, tmp_path, stand_in_images):
+    from models.inference import jsonarrays
+
+    path = train_and_export(dataset, "ridge-both", tmp_path / "both.onnx", seed=1)
+    probe = read_card(path).probe
+    assert probe is not None and jsonarrays.decode(probe["visual"]).shape == (4, 24)
+    assert Predictor(path).probe_error <= 1e-3

@@ -1,3 +1,4 @@
+import json
 import subprocess
 import sys
 import threading
@@ -9,11 +10,18 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
-from models.offline.backbones.onnx_export import export_backbone_onnx
+from models.offline.backbones.onnx_export import PROBE_IMAGES, export_backbone_onnx
 from models.visual.cache import FeatureCache
 from models.visual.config import VisualConfig
 from models.visual.embedding import visual_features
-from models.visual.onnx_backbone import BackboneStopped, OnnxBackbone
+from models.visual.onnx_backbone import (
+    MIN_PROBE_COSINE,
+    PROBE_KEY,
+    BackboneStopped,
+    OnnxBackbone,
+    decode_array,
+    encode_array,
+)
 
 from .conftest import synthetic_texture
 
@@ -155,3 +163,69 @@ def test_last_block_parity(tmp_path):
     assert (runner.name, runner.dim, runner.config_hash) == ("efficientnet_lite0", 640, config.hash())
     patches = _patches(3, seed=4)
     _assert_parity(backbone.embed(patches), runner.embed(patches))
+
+
+def _with_metadata(src: Path, dst: Path, **changes: str | None) -> Path:
+    """A copy of the backbone at `src` with metadata_props changed (None: removed)."""
+    model = onnx.load(str(src))
+    meta = {p.key: p.value for p in model.metadata_props}
+    for key, value in changes.items():
+        meta.pop(key, None) if value is None else meta.__setitem__(key, value)
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        prop = model.metadata_props.add()
+        prop.key, prop.value = key, value
+    onnx.save(model, str(dst))
+    return dst
+
+
+def test_an_exported_backbone_checks_itself_against_torch_at_load(efficientnet_onnx):
+    runner = OnnxBackbone(efficientnet_onnx, intra_op_threads=1)
+    check = runner.check
+    assert check is not None and check.passed and len(check.cosines) == PROBE_IMAGES
+    assert check.bound == MIN_PROBE_COSINE and "torch" in check.reference_from
+    assert check.cosine > 0.9999  # fp32 onnxruntime against fp32 torch: the same numbers up to rounding
+    assert runner.source is None  # not a quantized copy
+
+
+def test_a_probe_that_no_longer_matches_fails_the_check_and_a_bound_can_force_it(tmp_path, efficientnet_onnx):
+    meta = {p.key: p.value for p in onnx.load(str(efficientnet_onnx), load_external_data=False).metadata_props}
+    probe = json.loads(meta[PROBE_KEY])
+    reference = decode_array(probe["reference"], "reference")
+    drifted = {**probe, "reference": encode_array(-reference)}  # a corrupted reference: cosine −1
+    path = _with_metadata(efficientnet_onnx, tmp_path / "drifted.onnx", **{PROBE_KEY: json.dumps(drifted)})
+    check = OnnxBackbone(path, intra_op_threads=1).check
+    assert check is not None and not check.passed and check.cosine < -0.99
+    assert "<" in check.describe() and f"{MIN_PROBE_COSINE:g}" in check.describe()
+    strict = OnnxBackbone(efficientnet_onnx, intra_op_threads=1, min_probe_cosine=1.01).check
+    assert strict is not None and not strict.passed  # nothing reaches a cosine above 1
+
+
+def test_a_backbone_without_a_probe_is_unchecked_and_a_broken_probe_is_refused(tmp_path, efficientnet_onnx):
+    bare = _with_metadata(efficientnet_onnx, tmp_path / "bare.onnx", **{PROBE_KEY: None})
+    assert OnnxBackbone(bare).check is None
+    for text, match in (
+        ("{", "not a backbone probe"),
+        (json.dumps({"patches": "x", "reference": "y", "per_frame": 4, "reference_from": "t"}), "not a base64 .npy"),
+    ):
+        broken = _with_metadata(efficientnet_onnx, tmp_path / "broken.onnx", **{PROBE_KEY: text})
+        with pytest.raises(ValueError, match=match):
+            OnnxBackbone(broken)
+    small = json.dumps(
+        {
+            "patches": encode_array(np.zeros((4, 32, 32), np.uint8)),
+            "per_frame": 4,
+            "reference": encode_array(np.zeros((1, 1280), np.float32)),
+            "reference_from": "t",
+        }
+    )
+    with pytest.raises(ValueError, match=r"expected uint8 \(n, 224, 224\)"):
+        OnnxBackbone(_with_metadata(efficientnet_onnx, tmp_path / "small.onnx", **{PROBE_KEY: small}))
+
+
+def test_probe_arrays_round_trip_exactly():
+    a = np.random.default_rng(0).random((2, 3)).astype(np.float32)
+    b = decode_array(encode_array(a), "a")
+    assert b.dtype == a.dtype and np.array_equal(a, b)
+    with pytest.raises(ValueError, match="not a base64 .npy"):
+        decode_array("!!", "a")
