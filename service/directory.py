@@ -19,7 +19,7 @@ from typing import Any
 
 from drivers.protocol import Close
 from service import memory
-from service.auth import Role, SessionCredentials, authorize, issue_credentials
+from service.auth import Role, SessionCredentials, authorize, issue_credentials, missing_token
 from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord
 from service.bus import EventBus
 from service.errors import ServiceError, session_lost, session_not_found
@@ -209,6 +209,10 @@ class SessionDirectory:
     async def authorized(
         self, session_id: str, token: str | None, roles: frozenset[Role]
     ) -> tuple[Role, Session | None]:
+        """The caller's role and the session if it runs here. The credential first: no token is 401 before the
+        session is looked up (an unknown or lost session is 404 or 410 only for a caller who sent one)."""
+        if token is None:
+            raise missing_token()
         creds, session = await self.credentials(session_id)
         return authorize(creds, token, roles, session_id), session
 
