@@ -171,7 +171,11 @@ async def socket_session(
             # a shed session's robot reconnecting: refused before the upgrade, not after its first block
             state.capacity.admit_block(local)
             return local
-        _, session = await state.directory.authorized(session_id, token, roles)
+        if roles == OPERATOR_ONLY and state.api_keys.check(token):
+            # a fleet key follows any session of the fleet (an operator following a robot across its sessions)
+            _, session = await state.directory.credentials(session_id)
+        else:
+            _, session = await state.directory.authorized(session_id, token, roles)
         if check is not None:
             check()
         return session

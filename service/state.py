@@ -148,10 +148,17 @@ class ServiceState:
             f"; NOT READY: {rt.problem}" if rt.problem else "",
         )
 
-    async def end_sessions(self, flush_s: float = 1.0) -> None:
-        """Shutdown, first step: every local session ends as lost (its state cannot outlive the process) and its
-        operators' feeds get the final event and close (1000), waiting up to `flush_s` for them, before the server
-        closes the connections (uvicorn closes every WebSocket 1012 before the lifespan shutdown)."""
+    async def end_sessions(self, flush_s: float = 1.0, estimate_s: float = 2.0) -> None:
+        """Shutdown, first step: the complete windows of acknowledged blocks are estimated and published (up to
+        `estimate_s`: an acknowledged block's windows are not dropped by a restart), then every local session ends as
+        lost (its state cannot outlive the process) and its operators' feeds get the final event and close (1000),
+        waiting up to `flush_s` for them, before the server closes the connections (uvicorn closes every WebSocket
+        1012 before the lifespan shutdown)."""
+        deadline = time.monotonic() + estimate_s
+        while time.monotonic() < deadline and any(
+            s.backlog() and not s.waiting_for() for s in self.directory.sessions.values()
+        ):
+            await asyncio.sleep(0.01)
         await self.directory.end_all(f"its replica {self.settings.instance_id} shut down")
         deadline = time.monotonic() + flush_s
         while self.bus.subscribers and time.monotonic() < deadline:
@@ -217,9 +224,12 @@ class ServiceState:
         """This replica's sessions by id (the directory's)."""
         return self.directory.sessions
 
-    async def create_session(self, name: str | None, client: str = "local") -> tuple[Session, str, str]:
+    async def create_session(
+        self, name: str | None, client: str = "local", *, robot: str | None = None, first_seq: int = 0
+    ) -> tuple[Session, str, str]:
         """A new session for `client` → (session, robot token, operator token); 503 not ready, 429 when the process
-        is at capacity, 503 past max_sessions."""
+        is at capacity, 503 past max_sessions. robot: the robot's own id (operators follow it); first_seq: the seq
+        of its first block (a robot resuming after its session was lost goes on with its own numbering)."""
         runtime = self.require_runtime()
         self.capacity.admit_session(len(self.directory.sessions))
 
@@ -235,6 +245,8 @@ class ServiceState:
                 self.metrics,
                 self.batcher.notify,
                 self.frames.visual_done,
+                robot=robot,
+                first_seq=first_seq,
             )
 
-        return await self.directory.open(name, client, runtime.model_name, build)
+        return await self.directory.open(name, client, runtime.model_name, build, robot)

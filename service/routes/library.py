@@ -95,9 +95,9 @@ async def library_reader(
     A dependency, and the route's first: the credential is judged before anything else of the request (a path or
     query FastAPI would refuse 422, readiness 503). So `session` carries no constraint FastAPI checks first: an
     overlong one is an unknown session (404), once a credential was sent."""
+    if state.api_keys.check(token):  # a fleet key reads the library, with or without a session (a follower's)
+        return
     if session is None:
-        if state.api_keys.check(token):
-            return
         raise ServiceError(
             401,
             "a credential is required: a session's robot or operator token ('Authorization: Bearer <token>' "
