@@ -58,7 +58,9 @@ Token = Annotated[str | None, Depends(bearer_token)]
 
 
 async def robot_session(session_id: str, state: State, token: Token) -> Session:
-    return await state.directory.local(session_id, token, ROBOT_ONLY)
+    session = await state.directory.local(session_id, token, ROBOT_ONLY)
+    state.require_open()  # a block or frame taken now could not be estimated: the robot keeps it for its next session
+    return session
 
 
 async def operator_session(session_id: str, state: State, token: Token) -> Session:
@@ -167,6 +169,7 @@ async def socket_session(
     try:
         if robot:
             local = await state.directory.local(session_id, token, roles)
+            state.require_open()
             state.require_runtime()
             # a shed session's robot reconnecting: refused before the upgrade, not after its first block
             state.capacity.admit_block(local)
