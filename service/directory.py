@@ -82,6 +82,7 @@ class SessionDirectory:
             await self.broker.register(SessionRecord(session_id, name, self.settings.instance_id, credentials))
             if robot_id is not None:
                 await self.broker.set_robot_session(robot_id, session_id)
+                self.bus.carry(session_id, robot_id)
         except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable
             await self.drop(session_id)
             raise directory_unavailable(exc) from None
@@ -110,6 +111,7 @@ class SessionDirectory:
             else status_event(session_id, "session_ended", why)
         )
         await self.bus.publish(session_id, {**event, "counters": status["counters"]}, True)
+        self.bus.release(session_id)
         return {**status, "state": "ended"}
 
     async def drop(self, session_id: str) -> None:
@@ -194,6 +196,7 @@ class SessionDirectory:
             elif record.lost is not None:  # its operators were told by the replica that marked it; its robot gets 410
                 log.warning("session %s was marked lost while this replica was silent; ending it here", sid)
                 await self.drop(sid)
+                self.bus.release(sid)
 
     # ---- who owns a session, and may this token use it ---------------------------------------------
     async def credentials(self, session_id: str) -> tuple[SessionCredentials, Session | None]:

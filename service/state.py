@@ -149,7 +149,7 @@ class ServiceState:
             f"; NOT READY: {rt.problem}" if rt.problem else "",
         )
 
-    async def end_sessions(self, flush_s: float = 1.0, estimate_s: float = 2.0) -> None:
+    async def end_sessions(self, flush_s: float = 1.0, estimate_s: float = 5.0) -> None:
         """Shutdown, first step: nothing new is taken (`require_open`: 503, ingest sockets closed 1013, so robots keep
         what they have not had acknowledged), the complete windows of acknowledged blocks are estimated and published
         (up to `estimate_s`: an acknowledged block's windows are not dropped by a restart), then every local session

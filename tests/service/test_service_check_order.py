@@ -36,8 +36,9 @@ HTTP_CASES = [
     ("GET", f"/library/{LONG}/model?session={LONG}", None, None),
     ("HEAD", f"/library/{LONG}/model", None, None),
     ("GET", "/metrics?format=" + LONG, None, None),
+    ("GET", f"/robots/{LONG}/session", None, None),
 ]
-SOCKET_PATHS = {"/sessions/{session_id}/ingest", "/sessions/{session_id}/events"}
+SOCKET_PATHS = {"/sessions/{session_id}/ingest", "/sessions/{session_id}/events", "/robots/{robot}/events"}
 
 
 def test_every_stateful_route_has_a_case_here(base_settings):
@@ -52,6 +53,7 @@ def test_every_stateful_route_has_a_case_here(base_settings):
         "/library": "/library",
         "/library/{entry_id}/model": f"/library/{LONG}/model",
         "/metrics": "/metrics",
+        "/robots/{robot}/session": f"/robots/{LONG}/session",
     }
     for path in route_paths(create_app(base_settings)):
         if path in OPEN or path.startswith(OPEN_PREFIXES) or path in SOCKET_PATHS:
@@ -74,6 +76,8 @@ def test_with_a_credential_the_rest_is_judged(kit, client):
     """The same requests with a fleet key: now the id's length and the entry are judged (422, 404)."""
     assert client.get(f"/library/{LONG}/model", headers=kit.FLEET).status_code == 422
     assert client.get("/library/no-such-entry/model", headers=kit.FLEET).status_code == 404
+    assert client.get(f"/robots/{LONG}/session", headers=kit.FLEET).status_code == 422  # a robot id is ≤ 64
+    assert client.get("/robots/no-such-robot/session", headers=kit.FLEET).status_code == 404
     r = client.get(f"/library?session={LONG}", headers={"Authorization": "Bearer a-token"})
     assert r.status_code == 404 and r.json()["detail"].startswith("no session 'xxx")
     session = kit.create_session(client)
@@ -92,6 +96,10 @@ def test_sockets_without_a_credential_are_refused_as_unauthorised(server):
             with pytest.raises(ConnectionClosed) as closed:
                 ws.recv(timeout=10)
         assert closed.value.rcvd is not None and closed.value.rcvd.code == int(Close.POLICY)
+    for robot in ("robot-7", LONG):  # a robot's feed: the fleet key first, then the robot id
+        with pytest.raises(InvalidStatus) as refused:
+            connect(f"{server.ws_url}/robots/{robot}/events", open_timeout=10).close()
+        assert refused.value.response.status_code == 401
 
 
 def test_a_10_mb_upload_reads_its_413(kit, client):

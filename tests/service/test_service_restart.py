@@ -85,6 +85,32 @@ class Lines:
         return any(needle in line for line in list(self.lines))
 
 
+class RobotFeed:
+    """`WS /robots/{id}/events` with the fleet key, reconnected after the restart: the windows it carried."""
+
+    def __init__(self, url: str) -> None:
+        self.feed = f"{url.replace('http', 'ws', 1)}/robots/{ROBOT}/events?token={API_KEY}"
+        self.windows: list[tuple[str, float]] = []
+        self.stopped = threading.Event()
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self) -> None:
+        from websockets.sync.client import connect
+
+        while not self.stopped.is_set():
+            try:
+                with connect(self.feed, open_timeout=5) as ws:
+                    while not self.stopped.is_set():
+                        try:
+                            event = json.loads(ws.recv(timeout=0.5))
+                        except TimeoutError:
+                            continue
+                        if event["type"] == "window":
+                            self.windows.append((event["session_id"], event["t_start_s"]))
+            except Exception:  # noqa: BLE001 - the service restarting: connect again
+                time.sleep(0.1)
+
+
 def _hapticlink(*argv: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "service.cli", *argv],
@@ -113,6 +139,7 @@ def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_
     )
     robot_out, robot_err, operator_err = Lines(robot.stdout), Lines(robot.stderr), Lines(operator.stderr)
     operator_out = Lines(operator.stdout)
+    feed = RobotFeed(url)
     second = None
     try:
         before = _wait(lambda: _robot_session(url, kit), 60, "the robot opened no session")
@@ -139,7 +166,9 @@ def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_
         _wait(lambda: operator_err.has(f"in its session {new}"), 30, "the operator did not follow the new session")
         robot.wait(timeout=90)
         operator.wait(timeout=90)
+        time.sleep(1.0)  # the last windows reach the robot's feed
     finally:
+        feed.stopped.set()
         for proc in (robot, operator):
             if proc.poll() is None:
                 proc.kill()
@@ -157,6 +186,13 @@ def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_
     # the operator followed it with no action, and rendered on
     assert operator.returncode == 0, operator_err.text()[-3000:]
     assert "rendered" in operator_out.text()
+    # the robot's feed carried both sessions' windows, none twice, with no gap at the restart but the last window the
+    # old process could not complete (at most one hop: 0.5 s)
+    starts = [t for _, t in feed.windows]
+    assert {sid for sid, _ in feed.windows} == {old, new}
+    assert len(starts) == len(set(starts)), sorted(starts)
+    ordered = sorted(starts)
+    assert max(b - a for a, b in zip(ordered, ordered[1:])) <= 1.0 + 1e-6, ordered
     # a graceful shutdown each time (uvicorn exits by the signal it handled, once it has shut down)
     assert first_code in (0, -signal.SIGTERM) and second_code in (0, -signal.SIGTERM)
     for log in (first_log, second_log):
