@@ -324,7 +324,7 @@ def reap_due(sessions: Iterable[Session], now: float, settings: Settings) -> lis
     try refused for capacity) for session_idle_s. now: time.monotonic()."""
     due = []
     for s in sessions:
-        if not s.streamed and now - s.last_contact > settings.session_first_block_s:
+        if s.last_seq < 0 and now - s.last_contact > settings.session_first_block_s:
             due.append((s.id, f"no block within {settings.session_first_block_s:g} s of its creation or last try"))
         elif now - s.last_contact > settings.session_idle_s:
             due.append((s.id, f"no traffic for {settings.session_idle_s:g} s"))
