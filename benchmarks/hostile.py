@@ -540,7 +540,10 @@ def main(argv: list[str] | None = None) -> int:
         "robots with cameras after a session burst (its `crowd` object)",
     )
     p.add_argument("--runs", type=int, default=2, help="crowd runs (the host is shared: its figures are the worst)")
+    add_restart_arguments(p)
     args = p.parse_args(argv)
+    if args.only == "restart":
+        return restart_only(args, argv)
     if args.case == "crowd":
         crowd = crowd_case(args)
         print(json.dumps({k: v for k, v in crowd.items() if k != "runs"}, indent=2))
@@ -663,6 +666,60 @@ def main(argv: list[str] | None = None) -> int:
     write_report(args.out, report)
     print(f"wrote {args.out}")
     return 0
+
+
+# ---- the restart case (benchmarks/restart.py) ------------------------------------------------------------------
+def add_restart_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--only",
+        choices=("all", "restart"),
+        default="all",
+        help="restart: only the restart case (the file's other objects are kept as they are)",
+    )
+    p.add_argument("--restart-robots", type=int, default=8, help="restart: robots streaming through the restart")
+    p.add_argument("--restart-stream-s", type=float, default=20.0, help="restart: each robot's stream, s")
+    p.add_argument(
+        "--restart-assets",
+        choices=("synthetic", "demo"),
+        default="synthetic",
+        help="restart: a small synthetic tactile model and library built once under artifacts/bench-restart "
+        "(deploy.local.synthetic_assets, default), or the demo's tactile-only configuration (--assets)",
+    )
+
+
+def restart_only(args: argparse.Namespace, argv: list[str] | None) -> int:
+    """The restart case alone, its object written into the report file beside the others."""
+    import os
+    import platform
+
+    from benchmarks.report_file import command_line, machine
+    from benchmarks.restart import run_restart
+
+    load = os.getloadavg()
+    if args.restart_assets == "demo":
+        assets = prepare_assets(args.assets)["tactile"]
+    else:
+        from deploy.local import synthetic_assets
+
+        root = synthetic_assets(Path("artifacts/bench-restart"))
+        assets = Assets("synthetic", root / "model.onnx", None, None, root / "library", frames=False)
+    restart = run_restart(assets, secrets.token_urlsafe(24), args.restart_robots, args.restart_stream_s)
+    restart["assets"] = args.restart_assets
+    restart["command"] = command_line("benchmarks.hostile", list(argv if argv is not None else sys.argv[1:]))
+    restart["machine"] = {**machine(load), "cpu": _cpu_model() or platform.processor()}
+    report = json.loads(args.out.read_text()) if args.out.exists() else {}
+    report["restart"] = restart
+    print(json.dumps(restart, indent=2))
+    write_report(args.out, report)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cpu_model() -> str | None:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return None
 
 
 if __name__ == "__main__":

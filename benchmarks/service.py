@@ -138,7 +138,12 @@ class ServerProcess(launcher.ServerProcess):
 
     @classmethod
     def service(
-        cls, assets: Assets, api_key: str, instance_id: str = "bench", extra: dict[str, str] | None = None
+        cls,
+        assets: Assets,
+        api_key: str,
+        instance_id: str = "bench",
+        extra: dict[str, str] | None = None,
+        port: int | None = None,
     ) -> ServerProcess:
         argv = [
             sys.executable,
@@ -167,7 +172,7 @@ class ServerProcess(launcher.ServerProcess):
         }
         if assets.tactile is not None:
             env["HAPTICLINK_TACTILE_MODEL_PATH"] = str(assets.tactile)
-        return cls(argv, env)
+        return cls(argv, env, port=port)
 
     @classmethod
     def floor(cls) -> ServerProcess:

@@ -18,7 +18,8 @@ in "taps" instead of "channels":
          "speeds": [k tap speeds, mm/s], "data": [[n samples] × k]}}
 - binary: header {"seq", "t0", "kind": "taps", "taps": {"rate_hz", "units", "speeds", "shape": [k, n]}},
           then k·n float32 samples, tap after tap
-Limits: 1 ≤ k ≤ MAX_TAPS taps, MIN_TAP_SAMPLES ≤ n ≤ MAX_TAP_SAMPLES samples each, speeds finite ≥ 0.
+Limits: 1 ≤ k ≤ MAX_TAPS taps, MIN_TAP_SAMPLES ≤ n ≤ MAX_TAP_SAMPLES samples each, speeds within
+[0, MAX_TAP_SPEED] mm/s; every sample within its kind's MAX_ABS (texture_library.channels: the bounds from physics).
 Tap and sample blocks share one seq sequence.
 What travels around blocks (acknowledgements, close codes, credentials) is `drivers.protocol`.
 """
@@ -33,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from texture_library.channels import UNIT_SCALE, check_channel, check_rate, check_samples
+from texture_library.channels import UNIT_SCALE, check_channel, check_rate, check_samples, check_tap_speeds
 
 MAGIC = b"HLB1"
 BINARY_CONTENT_TYPE = "application/x-hapticlink-block"
@@ -180,9 +181,7 @@ def validate_taps(speeds: object, data: np.ndarray, rate_hz: object, units: obje
     """Check a tap set → (speeds (k,) float64 mm/s, accel (k, n) float32 in its units); ValueError names the problem."""
     if not isinstance(speeds, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in speeds):
         raise ValueError("taps: speeds must be a list of numbers (mm/s), one per tap")
-    v = np.array(speeds, dtype=np.float64)
-    if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
-        raise ValueError("taps: speeds must be finite and ≥ 0 mm/s")
+    v = check_tap_speeds(np.array(speeds, dtype=np.float64))
     arr = np.asarray(data)
     if arr.ndim != 2:
         raise ValueError(f"taps: data must be k taps of n samples, shape (k, n), got {arr.shape}")

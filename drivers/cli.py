@@ -39,6 +39,12 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token", metavar="T", help="the session's robot token")
     p.add_argument("--name", help="name of the session to create")
     p.add_argument(
+        "--robot-id",
+        metavar="ID",
+        help="this robot's own id: operators follow the robot by it across its sessions (`hapticlink operator "
+        "--robot ID`), a restart of the service included (1–64 letters, digits, '_', '-', '.', ':')",
+    )
+    p.add_argument(
         "--api-key", metavar="KEY", help="the fleet API key that opens sessions (default: $HAPTICLINK_API_KEY)"
     )
     p.add_argument(
@@ -235,6 +241,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         frame_change=args.frame_change,
         frame_refresh_s=args.frame_refresh_s,
         on_session=_print_session,
+        robot_id=args.robot_id,
     )
     try:
         stats = asyncio.run(_stream(client, args.duration))

@@ -61,14 +61,19 @@ def role_of(credentials: SessionCredentials, token: str) -> Role | None:
     return None
 
 
+def missing_token() -> ServiceError:
+    """401 for a request that carries no session token."""
+    return ServiceError(
+        401,
+        "missing token: send 'Authorization: Bearer <token>' (WebSockets: ?token=)",
+        {"WWW-Authenticate": "Bearer"},
+    )
+
+
 def authorize(credentials: SessionCredentials, token: str | None, allowed: frozenset[Role], session_id: str) -> Role:
     """The caller's role if it may do this; else 401 (no or unknown token) or 403 (the other role's token)."""
     if token is None:
-        raise ServiceError(
-            401,
-            "missing token: send 'Authorization: Bearer <token>' (WebSockets: ?token=)",
-            {"WWW-Authenticate": "Bearer"},
-        )
+        raise missing_token()
     role = role_of(credentials, token)
     if role is None:
         raise ServiceError(401, f"the token is not valid for session {session_id}", {"WWW-Authenticate": "Bearer"})

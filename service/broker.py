@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 CHANNEL_PREFIX = "hapticlink:events:"
 DIRECTORY_PREFIX = "hapticlink:session:"
 DIRECTORY_TTL_S = 7 * 24 * 3600  # a crashed replica's entries do not outlive a week
+ROBOT_PREFIX = "hapticlink:robot:"  # + robot id → its newest session id
 ALIVE_PREFIX = "hapticlink:alive:"  # + instance id → the running process's incarnation, expiring
 HEARTBEAT_EVERY_S = 2.0
 #: a replica silent this long is gone; generous, so a busy event loop is never taken for a dead one
@@ -172,6 +173,14 @@ class Broker(ABC):
     async def register(self, record: SessionRecord) -> None: ...
 
     @abstractmethod
+    async def set_robot_session(self, robot: str, session_id: str) -> None:
+        """Remember `session_id` as robot `robot`'s newest session (operators follow the robot by it)."""
+
+    @abstractmethod
+    async def robot_session(self, robot: str) -> str | None:
+        """The robot's newest session id, or None."""
+
+    @abstractmethod
     async def lookup(self, session_id: str) -> SessionRecord | None: ...
 
     @abstractmethod
@@ -197,12 +206,19 @@ class InMemoryBroker(Broker):
     def __init__(self, subscriber_queue: int) -> None:
         super().__init__(subscriber_queue)
         self._records: dict[str, SessionRecord] = {}
+        self._robots: dict[str, str] = {}  # robot id → its newest session id
 
     async def publish(self, session_id: str, text: str, final: bool = False) -> None:
         self.deliver_locally(session_id, text, final)
 
     async def register(self, record: SessionRecord) -> None:
         self._records[record.session_id] = record
+
+    async def set_robot_session(self, robot: str, session_id: str) -> None:
+        self._robots[robot] = session_id
+
+    async def robot_session(self, robot: str) -> str | None:
+        return self._robots.get(robot)
 
     async def lookup(self, session_id: str) -> SessionRecord | None:
         return self._records.get(session_id)
@@ -317,6 +333,15 @@ class RedisBroker(Broker):
         }
         await self._redis.hset(key, mapping=fields)
         await self._redis.expire(key, DIRECTORY_TTL_S)
+
+    async def set_robot_session(self, robot: str, session_id: str) -> None:
+        assert self._redis is not None
+        await self._redis.set(ROBOT_PREFIX + robot, session_id, ex=DIRECTORY_TTL_S)
+
+    async def robot_session(self, robot: str) -> str | None:
+        assert self._redis is not None
+        value = await self._redis.get(ROBOT_PREFIX + robot)
+        return None if value is None else str(value)
 
     async def lookup(self, session_id: str) -> SessionRecord | None:
         assert self._redis is not None

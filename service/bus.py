@@ -21,6 +21,8 @@ PUBLISH_ERROR_LOG_EVERY_S = 10.0
 #: event sockets one session may hold open on one replica (a console, a renderer, an operator client, a few
 #: viewers): each holds a queue, so one operator token cannot open them without bound
 MAX_SUBSCRIBERS_PER_SESSION = 16
+#: + a robot id: the room that carries every event of the robot's sessions, one after another (WS /robots/{id}/events)
+ROBOT_ROOM = "robot:"
 
 
 class EventBus:
@@ -32,17 +34,29 @@ class EventBus:
         self._subscribers = 0
         self._per_session: dict[str, int] = {}
         self._last_publish_error = 0.0
+        self._robot_rooms: dict[str, str] = {}  # session id → its robot's room
 
     async def publish(self, session_id: str, event: dict, final: bool) -> None:
         """Serialise once and hand to the broker; `final`: the session's last event (its subscriptions end)."""
         try:
-            await self.broker.publish(session_id, encode(event), final)
+            text = encode(event)
+            await self.broker.publish(session_id, text, final)
+            room = self._robot_rooms.get(session_id)
+            if room is not None:  # its robot's followers: never final there (the robot's next session follows)
+                await self.broker.publish(room, text, False)
         except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: count, log at most every 10 s
             self.metrics.publish_errors.inc()
             now = time.monotonic()
             if now - self._last_publish_error > PUBLISH_ERROR_LOG_EVERY_S:
                 self._last_publish_error = now
                 log.warning("publishing an event of session %s failed: %s", session_id, exc)
+
+    def carry(self, session_id: str, robot: str) -> None:
+        """Publish `session_id`'s events in its robot's room too (until `release`)."""
+        self._robot_rooms[session_id] = ROBOT_ROOM + robot
+
+    def release(self, session_id: str) -> None:
+        self._robot_rooms.pop(session_id, None)
 
     def require_room(self, session_id: str) -> None:
         """ServiceError 429 when `session_id` already has MAX_SUBSCRIBERS_PER_SESSION subscriptions here."""
@@ -84,5 +98,5 @@ class EventBus:
         return self._subscribers
 
     def watched(self) -> list[str]:
-        """Sessions operators on this replica subscribe to (the broker's view)."""
-        return self.broker.subscribed()
+        """Sessions operators on this replica subscribe to (the broker's view; robots' rooms are not sessions)."""
+        return [room for room in self.broker.subscribed() if not room.startswith(ROBOT_ROOM)]

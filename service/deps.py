@@ -58,7 +58,9 @@ Token = Annotated[str | None, Depends(bearer_token)]
 
 
 async def robot_session(session_id: str, state: State, token: Token) -> Session:
-    return await state.directory.local(session_id, token, ROBOT_ONLY)
+    session = await state.directory.local(session_id, token, ROBOT_ONLY)
+    state.require_open()  # a block or frame taken now could not be estimated: the robot keeps it for its next session
+    return session
 
 
 async def operator_session(session_id: str, state: State, token: Token) -> Session:
@@ -167,11 +169,16 @@ async def socket_session(
     try:
         if robot:
             local = await state.directory.local(session_id, token, roles)
+            state.require_open()
             state.require_runtime()
             # a shed session's robot reconnecting: refused before the upgrade, not after its first block
             state.capacity.admit_block(local)
             return local
-        _, session = await state.directory.authorized(session_id, token, roles)
+        if roles == OPERATOR_ONLY and state.api_keys.check(token):
+            # a fleet key follows any session of the fleet (an operator following a robot across its sessions)
+            _, session = await state.directory.credentials(session_id)
+        else:
+            _, session = await state.directory.authorized(session_id, token, roles)
         if check is not None:
             check()
         return session

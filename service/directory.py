@@ -17,9 +17,9 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from drivers.protocol import Close
+from drivers.protocol import SESSION_LOST, Close
 from service import memory
-from service.auth import Role, SessionCredentials, authorize, issue_credentials
+from service.auth import Role, SessionCredentials, authorize, issue_credentials, missing_token
 from service.broker import HEARTBEAT_EVERY_S, REPLICA_TTL_S, Broker, SessionRecord
 from service.bus import EventBus
 from service.errors import ServiceError, session_lost, session_not_found
@@ -40,6 +40,8 @@ CLOSE_WAIT_S = 2.0
 
 #: (session id, name, credentials) → a new Session on this replica
 SessionFactory = Callable[[str, str, SessionCredentials], Session]
+#: hex digits of the process's incarnation a session id carries after the replica's name: "<instance>.<boot><random>"
+BOOT_CHARS = 8
 
 
 class SessionDirectory:
@@ -54,17 +56,23 @@ class SessionDirectory:
         self._ingest: dict[str, list[Any]] = {}  # session id → its open ingest sockets (WebSockets), oldest first
         self._closing: set[asyncio.Task] = set()  # closes under way (see _close_soon)
         self._ended = 0  # sessions ended since memory was last given back
+        self.boot = broker.incarnation[:BOOT_CHARS]
 
     # ---- open and end ----------------------------------------------------------------------------
-    async def open(self, name: str | None, client: str, model: str, build: SessionFactory) -> tuple[Session, str, str]:
+    async def open(
+        self, name: str | None, client: str, model: str, build: SessionFactory, robot_id: str | None = None
+    ) -> tuple[Session, str, str]:
         """A new session for `client` (its address, for the log) → (session, robot token, operator token);
-        503 past max_sessions or when the shared directory is unreachable."""
+        503 past max_sessions or when the shared directory is unreachable. `robot_id`: the robot's own id, under which
+        the directory keeps its newest session (operators follow it: `robot_session`)."""
         if len(self.sessions) >= self.settings.max_sessions:
             raise ServiceError(
                 503, f"this replica already runs {len(self.sessions)} sessions (max_sessions)", {"Retry-After": "5"}
             )
-        # The replica's name prefixes the id so a load balancer can send all of a session's traffic here.
-        session_id = f"{self.settings.instance_id}.{secrets.token_urlsafe(9)}"
+        # The replica's name prefixes the id so a load balancer can send all of a session's traffic here; the process's
+        # incarnation follows, so that after a restart this replica can say a session of its previous process is lost
+        # (410) rather than unknown (404), with nothing kept across the restart.
+        session_id = f"{self.settings.instance_id}.{self.boot}{secrets.token_urlsafe(9)}"
         robot, operator, credentials = issue_credentials()
         name = name or session_id
         session = build(session_id, name, credentials)
@@ -72,6 +80,9 @@ class SessionDirectory:
         self.metrics.sessions_active.set(len(self.sessions))
         try:
             await self.broker.register(SessionRecord(session_id, name, self.settings.instance_id, credentials))
+            if robot_id is not None:
+                await self.broker.set_robot_session(robot_id, session_id)
+                self.bus.carry(session_id, robot_id)
         except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable
             await self.drop(session_id)
             raise directory_unavailable(exc) from None
@@ -100,6 +111,7 @@ class SessionDirectory:
             else status_event(session_id, "session_ended", why)
         )
         await self.bus.publish(session_id, {**event, "counters": status["counters"]}, True)
+        self.bus.release(session_id)
         return {**status, "state": "ended"}
 
     async def drop(self, session_id: str) -> None:
@@ -184,6 +196,7 @@ class SessionDirectory:
             elif record.lost is not None:  # its operators were told by the replica that marked it; its robot gets 410
                 log.warning("session %s was marked lost while this replica was silent; ending it here", sid)
                 await self.drop(sid)
+                self.bus.release(sid)
 
     # ---- who owns a session, and may this token use it ---------------------------------------------
     async def credentials(self, session_id: str) -> tuple[SessionCredentials, Session | None]:
@@ -194,6 +207,8 @@ class SessionDirectory:
             return session.credentials, session
         record = await self._lookup(session_id)
         if record is None:
+            if (why := self.minted_before(session_id)) is not None:
+                raise session_lost(session_id, why)
             raise session_not_found(session_id)
         if record.lost is None:
             try:
@@ -206,9 +221,29 @@ class SessionDirectory:
             raise session_lost(session_id, record.lost)
         return record.credentials, None
 
+    def minted_before(self, session_id: str) -> str | None:
+        """Why a session id this directory does not know is lost, if this replica's previous process opened it: the id
+        names this replica, and another incarnation (a restart between). None for any other id (unknown: 404).
+
+        Anyone can write such an id, and learns nothing from the 410 but that this replica restarted; the caller has
+        already sent a token (the credential first), and no state is read."""
+        instance, dot, rest = session_id.partition(".")
+        boot = rest[:BOOT_CHARS]
+        if not dot or instance != self.settings.instance_id or len(rest) <= BOOT_CHARS or boot == self.boot:
+            return None
+        if any(c not in "0123456789abcdef" for c in boot):
+            return None
+        return (
+            f"its replica {instance} restarted since it was opened (a new process; the session's state did not survive)"
+        )
+
     async def authorized(
         self, session_id: str, token: str | None, roles: frozenset[Role]
     ) -> tuple[Role, Session | None]:
+        """The caller's role and the session if it runs here. The credential first: no token is 401 before the
+        session is looked up (an unknown or lost session is 404 or 410 only for a caller who sent one)."""
+        if token is None:
+            raise missing_token()
         creds, session = await self.credentials(session_id)
         return authorize(creds, token, roles, session_id), session
 
@@ -228,6 +263,26 @@ class SessionDirectory:
                 f"(if {owner} is down, this becomes 410 within {REPLICA_TTL_S:g} s)",
             )
         return session
+
+    async def robot_session(self, robot: str) -> tuple[str, str | None]:
+        """(the robot's newest session id, why it is lost or None); 404 when the robot has opened none that the
+        directory remembers (after a restart of a one-process service: until the robot opens its next one)."""
+        try:
+            session_id = await self.broker.robot_session(robot)
+        except Exception as exc:  # noqa: BLE001 - e.g. Redis unreachable: 503, not 500
+            raise directory_unavailable(exc) from None
+        if session_id is None:
+            raise ServiceError(
+                404,
+                f"robot {robot!r} has no session here (yet): it opens one when it starts, or resumes after a restart",
+            )
+        try:
+            await self.credentials(session_id)
+        except ServiceError as exc:
+            if exc.status in (404, SESSION_LOST):
+                return session_id, exc.detail
+            raise
+        return session_id, None
 
     async def _mark_lost(self, record: SessionRecord) -> None:
         """The owner of `record` is gone: the first replica to notice tells the session's operators, everywhere."""

@@ -62,7 +62,8 @@ def _detail(text: str) -> str:
 class ServerProcess:
     """A server in a child process on a free loopback port, ready when `ready_path` answers 200.
 
-    argv gets `--port N` appended and env is added to this process's environment. capture: stdout and
+    argv gets `--port N` appended (port: this one, e.g. a restart's on its predecessor's; default a free one) and env
+    is added to this process's environment. capture: stdout and
     stderr together in `proc.stdout` (read it after stopping); else stdout is dropped and stderr kept
     for the error message when the server fails to start.
     """
@@ -76,8 +77,9 @@ class ServerProcess:
         timeout_s: float = 180.0,
         cwd: str | Path | None = None,
         capture: bool = False,
+        port: int | None = None,
     ) -> None:
-        self.port = free_port()
+        self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         output = (subprocess.PIPE, subprocess.STDOUT) if capture else (subprocess.DEVNULL, subprocess.PIPE)
         self.proc = subprocess.Popen(

@@ -1,15 +1,21 @@
-"""Request body size limits, enforced before the body is read: a pure ASGI middleware, and a route's tighter limit.
+"""Request body size limits, enforced before the body is kept: a pure ASGI middleware, and a route's tighter limit.
 
-A declared Content-Length over the limit is answered 413 at once; a body without one (chunked)
-is counted as it streams in and the read fails with BodyTooLarge (answered 413) as soon as it
-passes the limit, so no request can make the service hold more than `max_bytes` of it.
+The credential comes first: the app judges a request's credential (its dependencies) before it reads the body, and
+the first read of a body whose declared Content-Length is over the limit fails with BodyTooLarge (413) before a byte
+of it is taken; a body without one (chunked) is counted as it streams in and the read fails as soon as it passes the
+limit, so no request can make the service hold more than `max_bytes` of it.
 A route whose body is small (POST /sessions) lowers its own request's limit with `limit_body` before reading it:
 the same count and the same refusal, with the route's reason.
+
+A refused body is drained (read and dropped, at most DRAIN_MAX_BYTES within DRAIN_S) before the answer goes out,
+and the connection closes after it: a client still sending when the server closes gets a TCP reset, which destroys
+the answer it has not read yet, so without the drain a 10 MB upload never reads its 413.
 """
 
 from __future__ import annotations
 
-import json
+import asyncio
+import time
 from dataclasses import dataclass
 
 from starlette.requests import Request
@@ -19,6 +25,12 @@ from service.errors import ServiceError
 
 #: where BodySizeLimit keeps a request's BodyLimit in its ASGI scope
 SCOPE_KEY = "hapticlink.body_limit"
+#: the most of a refused body read and dropped before its 413 goes out (past it the answer goes out at once and the
+#: client may not read it): a declared length is refused before any of it is read, so this bounds what one refused
+#: request costs, 64 MiB of reading at loopback speed (tens of milliseconds)
+DRAIN_MAX_BYTES = 64 * 1024 * 1024
+#: the longest a refused body is drained for: a client that trickles it gets its answer then
+DRAIN_S = 5.0
 
 
 class BodyTooLarge(ServiceError):
@@ -42,10 +54,15 @@ class BodyLimit:
     detail: str
     declared: int | None
     seen: int = 0
+    complete: bool = False  # the whole body has been received (or the client left)
+
+    @property
+    def over(self) -> bool:
+        return max(self.declared or 0, self.seen) > self.limit
 
     def check(self) -> None:
         """BodyTooLarge when the declared length or the bytes seen so far pass the limit."""
-        if max(self.declared or 0, self.seen) > self.limit:
+        if self.over:
             raise BodyTooLarge(self.detail)
 
     def count(self, n: int) -> None:
@@ -74,20 +91,31 @@ class BodySizeLimit:
             await self.app(scope, receive, send)
             return
         body = BodyLimit(self.max_bytes, too_large_detail(self.max_bytes), _content_length(scope))
-        try:
-            body.check()
-        except BodyTooLarge as exc:
-            await _reject(scope, send, exc)
-            return
         scope[SCOPE_KEY] = body
+        if not body.declared:  # nothing declared (or 0): there may be nothing to read
+            body.complete = body.declared == 0
 
         async def counted() -> Message:
+            body.check()  # a declared length over the limit: refused at the first read, before a byte is taken
             message = await receive()
             if message["type"] == "http.request":
+                body.complete = not message.get("more_body", False)
                 body.count(len(message.get("body", b"")))
+            else:  # http.disconnect
+                body.complete = True
             return message
 
-        await self.app(scope, counted, send)
+        async def answered(message: Message) -> None:
+            if message["type"] == "http.response.start" and body.over:
+                # refused (413, or answered without reading, a 401): read what the client is still sending, then
+                # close after the answer, so that the client reads it instead of a reset
+                if not body.complete:
+                    await _drain(receive, body)
+                headers = [(k, v) for k, v in message.get("headers", []) if k.lower() != b"connection"]
+                message = {**message, "headers": [*headers, (b"connection", b"close")]}
+            await send(message)
+
+        await self.app(scope, counted, answered)
 
 
 def _content_length(scope: Scope) -> int | None:
@@ -99,18 +127,20 @@ def _content_length(scope: Scope) -> int | None:
     return None
 
 
-async def _reject(scope: Scope, send: Send, exc: BodyTooLarge) -> None:
-    """The refusal, answered here (the app never runs); a HEAD gets its headers alone, as HeadAsGet gives them."""
-    body = json.dumps({"detail": exc.detail}).encode()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": exc.status,
-            "headers": [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-                *((k.lower().encode(), v.encode()) for k, v in exc.headers.items()),
-            ],
-        }
-    )
-    await send({"type": "http.response.body", "body": b"" if scope.get("method") == "HEAD" else body})
+async def _drain(receive: Receive, body: BodyLimit) -> None:
+    """Read and drop the rest of a refused body: at most DRAIN_MAX_BYTES, for at most DRAIN_S (a client that sends
+    more, or slower, gets its answer then, and the connection closes on what it has not sent)."""
+    deadline = time.monotonic() + DRAIN_S
+    drained = 0
+    while not body.complete and drained < DRAIN_MAX_BYTES:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        try:
+            message = await asyncio.wait_for(receive(), left)
+        except TimeoutError:
+            return
+        if message["type"] != "http.request":
+            return
+        drained += len(message.get("body", b""))
+        body.complete = not message.get("more_body", False)

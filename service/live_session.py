@@ -106,8 +106,14 @@ class Session:
         notify: Notify,
         visual_done: Callable[[int], None] = lambda pixels: None,
         visual_queue: EmbeddingQueue | None = None,
+        *,
+        robot: str | None = None,
+        first_seq: int = 0,
     ) -> None:
         self.id = session_id
+        self.robot = robot  # the robot's own id: operators follow it across its sessions
+        # a robot resuming after its session was lost goes on with its own numbering: its first block is first_seq
+        self.first_seq = first_seq
         self.name = name
         self.credentials = credentials
         self.runtime = runtime
@@ -173,10 +179,10 @@ class Session:
         self.touch()
         if block.seq >= MAX_SEQ:
             raise ServiceError(422, f"seq must be below 2^63, got {block.seq}")
-        if block.seq <= self.last_seq:
+        if block.seq <= self.last_seq or block.seq < self.first_seq:  # below first_seq: its previous session's
             self.counters.blocks_duplicate += 1
             return {"seq": block.seq, "duplicate": True, "windows_ready": self.backlog()}
-        if block.seq - max(self.last_seq, 0) > self.settings.max_seq_gap:
+        if block.seq - max(self.last_seq, self.first_seq) > self.settings.max_seq_gap:
             raise ServiceError(
                 422,
                 f"seq jumps from {self.last_seq} to {block.seq}, more than max_seq_gap "
@@ -514,13 +520,19 @@ class Session:
             return "waiting_for_frame"
         if self.waiting_for_taps():
             return "waiting_for_taps"
-        return "saturated" if self.saturated() else "streaming" if self.last_seq >= 0 else "open"
+        return "saturated" if self.saturated() else "streaming" if self.streamed else "open"
+
+    @property
+    def streamed(self) -> bool:
+        """Whether a block has been accepted."""
+        return self.last_seq >= 0
 
     def status(self) -> dict:
         """What GET /sessions/{id} answers."""
         return {
             "session_id": self.id,
             "name": self.name,
+            "robot": self.robot,
             "instance": self.settings.instance_id,
             "state": self.state(),
             "created_at": round(self.created_at, 3),

@@ -22,18 +22,47 @@ class ErrorOut(BaseModel):
     detail: str = Field(examples=["accel: sample rate must lie in [10, 100000] Hz, got 1e+06"])
 
 
+#: a robot id: what operators follow across the robot's sessions
+ROBOT_ID_PATTERN = r"^[A-Za-z0-9_.:-]{1,64}$"
+
+
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"name": "robot-7 on fabric"}]})
     name: str | None = Field(None, max_length=200, description="a label shown to operators")
+    robot: str | None = Field(
+        None,
+        pattern=ROBOT_ID_PATTERN,
+        description="the robot's own id (1–64 letters, digits, '_', '-', '.', ':'): operators follow the robot by it "
+        "across its sessions (GET /robots/{robot}/session), a restart of the service included",
+    )
+    first_seq: int = Field(
+        0,
+        ge=0,
+        lt=2**63,
+        description="seq of the session's first block: a robot that resumes in a new session (its old one was lost) "
+        "goes on with its own numbering and resends what was never acknowledged",
+    )
 
 
-#: a session request is a name of at most 200 characters: a body beyond this is refused before it is read
+#: a session request is a name of at most 200 characters, a robot id and a seq: a body beyond this is refused before it
+#: is read
 MAX_SESSION_REQUEST_BYTES = 4096
 SESSION_REQUEST_BODY = {
     "required": False,
     "description": f"optional (an empty body opens a session with no name); at most {MAX_SESSION_REQUEST_BYTES} bytes",
     "content": {"application/json": {"schema": SessionCreate.model_json_schema()}},
 }
+
+
+class RobotSession(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"robot": "robot-7", "session_id": SESSION_ID_EXAMPLE, "lost": None}]}
+    )
+    robot: str
+    session_id: str = Field(description="the robot's newest session: follow its events with the fleet API key")
+    lost: str | None = Field(
+        None, description="why that session is gone (its replica stopped or restarted): its robot opens a new one soon"
+    )
 
 
 class SessionCreated(BaseModel):
@@ -145,6 +174,7 @@ class SessionStatus(BaseModel):
     )
     session_id: str
     name: str
+    robot: str | None = Field(None, description="the robot's own id, if it gave one (operators follow it by it)")
     instance: str
     state: str = Field(description="open | streaming | waiting_for_frame | waiting_for_taps | saturated | ended")
     created_at: float = Field(description="Unix time, s")

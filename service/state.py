@@ -100,6 +100,7 @@ class ServiceState:
         self._tasks: list[asyncio.Task] = []
         self._warming: Runtime | None = None
         self.probes: ProbeServer | None = None
+        self.shutting_down = False  # set as a shutdown begins: nothing new is taken (require_open)
 
     # ---- lifecycle -------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -152,10 +153,19 @@ class ServiceState:
             f"; NOT READY: {rt.problem}" if rt.problem else "",
         )
 
-    async def end_sessions(self, flush_s: float = 1.0) -> None:
-        """Shutdown, first step: every local session ends as lost (its state cannot outlive the process) and its
-        operators' feeds get the final event and close (1000), waiting up to `flush_s` for them, before the server
-        closes the connections (uvicorn closes every WebSocket 1012 before the lifespan shutdown)."""
+    async def end_sessions(self, flush_s: float = 1.0, estimate_s: float = 5.0) -> None:
+        """Shutdown, first step: nothing new is taken (`require_open`: 503, ingest sockets closed 1013, so robots keep
+        what they have not had acknowledged), the complete windows of acknowledged blocks are estimated and published
+        (up to `estimate_s`: an acknowledged block's windows are not dropped by a restart), then every local session
+        ends as lost (its state cannot outlive the process) and its operators' feeds get the final event and close
+        (1000), waiting up to `flush_s` for them, before the server closes the connections (uvicorn closes every
+        WebSocket 1012 before the lifespan shutdown)."""
+        self.shutting_down = True
+        deadline = time.monotonic() + estimate_s
+        while time.monotonic() < deadline and any(
+            s.backlog() and not s.waiting_for() for s in self.directory.sessions.values()
+        ):
+            await asyncio.sleep(0.01)
         await self.directory.end_all(f"its replica {self.settings.instance_id} shut down")
         deadline = time.monotonic() + flush_s
         while self.bus.subscribers and time.monotonic() < deadline:
@@ -209,6 +219,17 @@ class ServiceState:
         """GET /ready's answer and status (200 ready, 503 not), whichever port or route asks."""
         return readiness_report(self.readiness(), self.runtime)
 
+    def require_open(self) -> None:
+        """503 (Retry-After) once a shutdown has begun: no new session, and no block, frame or ingest socket that the
+        process could acknowledge but no longer estimate — the robot keeps it and resends it to its next session."""
+        if self.shutting_down:
+            raise ServiceError(
+                503,
+                f"replica {self.settings.instance_id} is shutting down; resend after Retry-After (sessions open "
+                "again on another replica, or on this one once it is back)",
+                {"Retry-After": "1"},
+            )
+
     def require_runtime(self) -> Runtime:
         ready, why = self.readiness()
         if not ready or self.runtime is None:
@@ -221,9 +242,13 @@ class ServiceState:
         """This replica's sessions by id (the directory's)."""
         return self.directory.sessions
 
-    async def create_session(self, name: str | None, client: str = "local") -> tuple[Session, str, str]:
+    async def create_session(
+        self, name: str | None, client: str = "local", *, robot: str | None = None, first_seq: int = 0
+    ) -> tuple[Session, str, str]:
         """A new session for `client` → (session, robot token, operator token); 503 not ready, 429 when the process
-        is at capacity, 503 past max_sessions."""
+        is at capacity, 503 past max_sessions. robot: the robot's own id (operators follow it); first_seq: the seq
+        of its first block (a robot resuming after its session was lost goes on with its own numbering)."""
+        self.require_open()
         runtime = self.require_runtime()
         self.capacity.admit_session(len(self.directory.sessions))
 
@@ -240,6 +265,8 @@ class ServiceState:
                 self.batcher.notify,
                 self.frames.visual_done,
                 self.embedding_queue,
+                robot=robot,
+                first_seq=first_seq,
             )
 
-        return await self.directory.open(name, client, runtime.model_name, build)
+        return await self.directory.open(name, client, runtime.model_name, build, robot)

@@ -25,10 +25,25 @@ CANONICAL_UNITS = {kind: next(iter(units)) for kind, units in UNIT_SCALE.items()
 CHANNEL_COLUMNS: dict[str, tuple[int, ...]] = {"accel": (3,), "force": (1, 3), "speed": (1,), "position": (1, 2)}
 MIN_RATE_HZ = 10.0
 MAX_RATE_HZ = 100_000.0
-#: the largest magnitude a sample of each kind may have, canonical units: far beyond any tool's sensor (10⁵ m/s² is
-#: ≈ 10,000 g, a shock accelerometer's range; 10⁵ N; 1 km/s; 1 km), far below what overflows the features
-#: (≈ 10¹⁵ m/s²). A sample past it is a sensor fault or a wrong unit, refused with the block, not computed on.
-MAX_ABS: dict[str, float] = {"accel": 1e5, "force": 1e5, "speed": 1e6, "position": 1e6}
+#: Bounds from physics: the largest magnitude a sample of each kind may have, canonical units, one per axis. Each is
+#: beyond what a texture-sensing tool can meet and far inside what breaks the features; a sample past it is a sensor
+#: fault or a wrong unit (m/s read as mm/s), refused with its block, never computed on (docs/drivers.md, "Bounds"):
+#: - acceleration 2000 m/s² (≈ 200 g): the widest MEMS accelerometers (ADXL377, ±200 g); texture sensors are ±3–16 g
+#:   and tap transients on the stiffest surfaces peak near 10 g;
+#: - force 200 N per axis: a hand presses a tool at most ≈ 50 N, a robot's tool scanning a surface no more than this
+#:   without damaging it;
+#: - scanning speed 2000 mm/s: a hand strokes at ≤ 500 mm/s (HaTT: ≤ 300), a fast robot arm's tool at ≤ 2 m/s;
+#: - position 10⁶ mm (1 km): odometry of a mobile robot; the features read only its differences.
+MAX_ABS: dict[str, float] = {"accel": 2000.0, "force": 200.0, "speed": 2000.0, "position": 1e6}
+#: the quantity each kind measures, as refusals name it
+QUANTITY: dict[str, str] = {
+    "accel": "acceleration",
+    "force": "force",
+    "speed": "scanning speed",
+    "position": "position",
+}
+#: a tap's approach speed, mm/s, [0, MAX_TAP_SPEED]: a tool swung at a surface by hand or arm arrives at ≤ 2 m/s
+MAX_TAP_SPEED = 2000.0
 
 
 def check_array(name: str, x: object, shape: tuple[int | None, ...], dtype: type[np.number] = np.float64) -> np.ndarray:
@@ -45,6 +60,18 @@ def check_array(name: str, x: object, shape: tuple[int | None, ...], dtype: type
     return arr.astype(dtype, copy=False)
 
 
+def check_tap_speeds(speeds: np.ndarray) -> np.ndarray:
+    """Tap speeds (k,) mm/s within [0, MAX_TAP_SPEED] (finite); ValueError names the first one outside and the range."""
+    bad = ~(np.isfinite(speeds) & (speeds >= 0) & (speeds <= MAX_TAP_SPEED))
+    if bad.any():
+        value = float(speeds[np.argmax(bad)])
+        raise ValueError(
+            f"taps: tap speed {value:.4g} mm/s is outside its physical range, 0 to {MAX_TAP_SPEED:g} mm/s: a sensor "
+            "fault, or the wrong units"
+        )
+    return speeds
+
+
 def check_rate(rate_hz: object, name: str) -> float:
     """A sample rate in Hz: a real number (not a bool, not a string) within [MIN_RATE_HZ, MAX_RATE_HZ], as float.
 
@@ -56,7 +83,10 @@ def check_rate(rate_hz: object, name: str) -> float:
     ):
         raise ValueError(f"{name}: sample rate must be a finite number, got {rate_hz!r}")
     if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise ValueError(f"{name}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g}")
+        raise ValueError(
+            f"{name}: sample rate must lie in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate_hz:g} (a sample "
+            f"interval of {1e3 / MAX_RATE_HZ:g} to {1e3 / MIN_RATE_HZ:g} ms)"
+        )
     return float(rate_hz)
 
 
@@ -117,8 +147,8 @@ def check_samples(
     peak *= UNIT_SCALE[kind][units or unit]
     if peak > MAX_ABS[kind]:
         raise ValueError(
-            f"{name}: a sample of magnitude {peak:.3g} {unit} is beyond any {kind} sensor's range "
-            f"(at most {MAX_ABS[kind]:g} {unit}): a sensor fault, or the wrong units"
+            f"{name}: {QUANTITY[kind]} {peak:.4g} {unit} is outside its physical range, magnitude at most "
+            f"{MAX_ABS[kind]:g} {unit}: a sensor fault, or the wrong units"
         )
     return arr
 

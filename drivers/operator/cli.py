@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import sys
 
 DEVICE_SPECS = ("simulated[:SECONDS]", "recorded:FILE", "serial:PORT[:BAUD]")
@@ -19,8 +20,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "device (speed and force), render the texture's vibration and write it out. Prints each switch's latency.",
     )
     p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
-    p.add_argument("--session", required=True, metavar="ID", help="the session to follow")
-    p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
+    p.add_argument("--session", metavar="ID", help="the session to follow (or --robot)")
+    p.add_argument(
+        "--robot",
+        metavar="ID",
+        help="follow this robot (its --robot-id) across its sessions, a restart of the service included, with the "
+        "fleet API key as --token (default: $HAPTICLINK_API_KEY)",
+    )
+    p.add_argument("--token", metavar="T", help="the session's operator token, or (--robot) the fleet API key")
     p.add_argument(
         "--device",
         default="simulated",
@@ -91,10 +98,18 @@ def _port_baud(rest: str) -> tuple[str, int]:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.operator.client import OperatorClient, Switch
-    from drivers.protocol import check_service_url
+    from drivers.protocol import API_KEY_ENV, check_service_url
 
     # checked before anything connects: found later (or never), they cost a session's worth of retries
     check_service_url(args.url)
+    if (args.session is None) == (args.robot is None):
+        raise ValueError("give --session (with its operator --token) or --robot (with the fleet API key), not both")
+    token = args.token if args.token is not None else (os.environ.get(API_KEY_ENV) if args.robot else None)
+    if not token:
+        raise ValueError(
+            "--token is required: the session's operator token"
+            + (f", or with --robot the fleet API key (or set {API_KEY_ENV})" if args.robot else "")
+        )
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not 0 < args.block_s <= 0.1:
@@ -132,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     client = OperatorClient(
         args.url,
         args.session,
-        args.token,
+        token,
         device,
         outputs,
         view=args.view,
@@ -141,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         block_s=args.block_s,
         seed=args.seed,
         on_switch=said,
+        robot=args.robot,
     )
     try:
         stats = asyncio.run(client.run(args.duration))

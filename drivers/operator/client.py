@@ -41,6 +41,8 @@ log = logging.getLogger("hapticlink.operator")
 
 #: HTTP statuses of the event socket's handshake after which retrying cannot help
 FATAL_HANDSHAKES = frozenset({401, 403, 404, 410})
+#: how often an operator following a robot asks for the robot's next session while it has none
+FOLLOW_POLL_S = 0.25
 
 
 @dataclass
@@ -71,6 +73,7 @@ class OperatorStats:
     ratings: tuple[int, ...] | None = None
     ended: str | None = None
     refused: bool = False  # the service refused the event feed (token, session): nothing was ever rendered for it
+    sessions_followed: int = 0  # following a robot: its sessions followed (more than one: a restart, a loss)
 
 
 class ModelCache:
@@ -124,7 +127,9 @@ def _detail(r: httpx.Response) -> str:
 class OperatorClient:
     """Renders a session's chosen textures from `device` to `outputs` (see the module docstring).
 
-    url: the service (http://host:port); session_id / token: the session and its operator (or robot) token;
+    url: the service (http://host:port); session_id / token: the session and its operator (or robot) token; or
+    robot / token: the robot to follow across its sessions (a restart of the service included) and the fleet API key
+    (session_id is then found, and may be None);
     view: "render" (the lean feed) or "full" (the console's events); compact: fetch the compact model encoding;
     crossfade_s: switch crossfade; stall_s: a device silent this long is reported; seed: the excitation's seed;
     on_switch: called with each Switch once rendered (the CLI prints it).
@@ -133,7 +138,7 @@ class OperatorClient:
     def __init__(
         self,
         url: str,
-        session_id: str,
+        session_id: str | None,
         token: str,
         device: AsyncIterable[Motion],
         outputs: Sequence[object],
@@ -145,12 +150,15 @@ class OperatorClient:
         block_s: float = 0.01,
         seed: int = 0,
         on_switch: Callable[[Switch], None] | None = None,
+        robot: str | None = None,
     ) -> None:
         check_service_url(url)
         if view not in ("render", "full"):
             raise ValueError(f"view must be 'render' or 'full', got {view!r}")
         if not stall_s > 0:
             raise ValueError(f"stall_s must be > 0, got {stall_s}")
+        if (session_id is None) == (robot is None):
+            raise ValueError("give a session to follow, or a robot (and the fleet API key as the token), not both")
         self.url, self.session_id, self.token = url.rstrip("/"), session_id, token
         self.device, self.outputs = device, list(outputs)
         self.view, self.compact, self.crossfade_s, self.stall_s = view, compact, crossfade_s, stall_s
@@ -162,20 +170,74 @@ class OperatorClient:
         self.current: tuple[str, str | None] | None = None  # (entry, version) rendered or about to be
         self._pending: tuple[VibrationModel, Switch] | None = None
         self._done = asyncio.Event()
+        # following a robot: its current session is over (go on to the next), and the id of the one that was
+        self.robot = robot
+        self._over = False
+        self._gone: str | None = None
 
     # ---- the feed --------------------------------------------------------------------------------
     async def follow(self, http: httpx.AsyncClient) -> None:
-        """Receive the feed until the session is over, reconnecting after drops."""
+        """Receive the feed until the session is over, reconnecting after drops; with `robot`, go on to the robot's
+        next session each time one is over (found with GET /robots/{robot}/session), until stopped."""
+        while not self._done.is_set():
+            if self.robot is not None and not await self._find_session(http):
+                return
+            self._over = False
+            assert self.session_id is not None  # given, or found
+            cache = ModelCache(http, self.session_id, self.token, self.compact)
+            self._cache = cache
+            await self._follow_session(cache)
+            if self.robot is None:
+                return
+
+    async def _find_session(self, http: httpx.AsyncClient) -> bool:
+        """Wait for the robot's newest session that is live and not the one just over; False when refused (the key)
+        or stopped. Polled every FOLLOW_POLL_S: a restarted service knows the robot again once it opens a session."""
+        assert self.robot is not None
+        said = False
+        while not self._done.is_set():
+            try:
+                r = await http.get(f"/robots/{quote(self.robot, safe='')}/session", headers=bearer(self.token))
+            except httpx.HTTPError as exc:
+                why = f"{type(exc).__name__}"
+            else:
+                if r.status_code in (401, 403):
+                    self.stats.refused = True
+                    self._end(f"the service refused to say robot {self.robot!r}'s session: HTTP {r.status_code}")
+                    return False
+                doc = r.json() if r.status_code == 200 else {}
+                sid = doc.get("session_id")
+                if sid and doc.get("lost") is None and sid != self._gone:
+                    self.stats.sessions_followed += 1
+                    log.info("following robot %s in its session %s", self.robot, sid)
+                    self.session_id = sid
+                    return True
+                why = f"HTTP {r.status_code}" if r.status_code != 200 else "its session is over"
+            if not said:
+                log.info("waiting for robot %s's next session (%s)", self.robot, why)
+                said = True
+            await asyncio.sleep(FOLLOW_POLL_S)
+        return False
+
+    def _session_over(self, why: str) -> None:
+        """The followed session is over: the end of the run, or (following a robot) of this session only."""
+        if self.robot is None:
+            self._end(why)
+            return
+        if not self._over:
+            log.info("%s; following robot %s to its next session", why, self.robot)
+        self._over, self._gone = True, self.session_id
+
+    async def _follow_session(self, cache: ModelCache) -> None:
+        """Receive one session's feed until it is over (or the run stops), reconnecting after drops."""
         from websockets.asyncio.client import connect  # noqa: PLC0415 - as drivers/robot/ws.py
         from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus  # noqa: PLC0415
 
-        cache = ModelCache(http, self.session_id, self.token, self.compact)
-        self._cache = cache
         backoff = Backoff(0.1, 5.0)
-        url = ws_url(self.url, self.session_id, "events", self.token)
+        url = ws_url(self.url, cache.session_id, "events", self.token)
         if self.view == "render":
             url += "&view=render"
-        while not self._done.is_set():
+        while not self._done.is_set() and not self._over:
             opened = False
             try:
                 async with connect(url, open_timeout=10, max_size=1 << 20) as ws:
@@ -186,12 +248,19 @@ class OperatorClient:
                     backoff.reset()
                     async for message in ws:
                         await self._on_message(message, time.monotonic(), cache)
+                        if self._over:
+                            return
                     code = ws.close_code
             except InvalidStatus as exc:
                 status = exc.response.status_code
                 if status in FATAL_HANDSHAKES:
-                    self.stats.refused = True
-                    self._end(f"the service refused the event feed: HTTP {status}: {body_detail(exc.response.body)}")
+                    if self.robot is None or status in (401, 403):
+                        self.stats.refused = True
+                        self._end(
+                            f"the service refused the event feed: HTTP {status}: {body_detail(exc.response.body)}"
+                        )
+                        return
+                    self._session_over(f"session {self.session_id} is over (HTTP {status})")
                     return
                 log.warning("event feed refused (HTTP %d); retrying", status)
                 code = None
@@ -201,7 +270,7 @@ class OperatorClient:
                 log.warning("event feed unreachable (%s); retrying", type(exc).__name__)
                 code = None
             if code is not None and code in FATAL_CLOSES:
-                self._end(f"the event feed closed ({code}): the session is over")
+                self._session_over(f"the event feed closed ({code}): the session is over")
                 return
             if not self._done.is_set():
                 if opened:
@@ -219,7 +288,8 @@ class OperatorClient:
         if msg.ratings:
             self.stats.ratings = tuple(int(round(r)) for r in msg.ratings)
         if msg.kind == "status" and msg.event is not None and msg.event.get("event") == "session_ended":
-            self._end(f"session ended: {msg.event.get('message', '')}")
+            self._session_over(f"session ended: {msg.event.get('message', '')}")
+            return
         if msg.kind != "choice" or msg.chosen is None or (msg.chosen, msg.version) == self.current:
             return
         started = time.monotonic()

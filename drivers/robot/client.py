@@ -27,7 +27,7 @@ import numpy as np
 from drivers.blocks import Block, Frame, SampleBlock, TapBlock, encode_binary, encode_json
 from drivers.protocol import check_service_url
 from drivers.robot.backoff import Backoff
-from drivers.robot.errors import ServiceUnavailable
+from drivers.robot.errors import ServiceUnavailable, SessionGone
 from drivers.robot.frames import FRAME_REFRESH_S, FrameGate, frame_thumbnail, send_frames
 from drivers.robot.http import send_http
 from drivers.robot.outbox import Endpoint, Outbox, Refresh, RobotStats
@@ -76,7 +76,7 @@ class RobotClient:
         transport: Literal["ws", "http"] = "ws",
         binary: bool = True,
         max_buffer_s: float = 60.0,
-        backoff: tuple[float, float] = (0.2, 5.0),
+        backoff: tuple[float, float] = (0.2, 2.0),
         session_name: str | None = None,
         start_seq: int = 0,
         window: int = 64,
@@ -88,6 +88,7 @@ class RobotClient:
         frame_change: float = FRAME_CHANGE,
         frame_refresh_s: float = FRAME_REFRESH_S,
         on_session: Callable[[SessionInfo], None] | None = None,
+        robot_id: str | None = None,
     ) -> None:
         check_service_url(url)
         if (session_id is None) != (robot_token is None):
@@ -117,7 +118,8 @@ class RobotClient:
         self.open_timeout_s = open_timeout_s
         self.outbox = Outbox(max_buffer_s, backoff, random.Random(seed), start_seq)
         self.frame_gate = FrameGate(frame_change, frame_refresh_s)
-        self.on_session = on_session  # told the session run() opens (where its operators can watch)
+        self.on_session = on_session  # told each session run() opens (where its operators can watch)
+        self.robot_id = robot_id
         # the newest frame read and its thumbnail: what a refresh sends, and a repeat of its bytes is not decoded again
         self._newest: tuple[Frame, np.ndarray | None] | None = None
         self._refresh: asyncio.TimerHandle | None = None  # sends the newest frame when the gate's refresh is due
@@ -133,10 +135,10 @@ class RobotClient:
         return self.outbox.stats
 
     # ---- session ------------------------------------------------------------------------------
-    async def open_session(self) -> SessionInfo:
+    async def open_session(self, first_seq: int = 0, forever: bool = False) -> SessionInfo:
         """Create a session (POST /sessions with the fleet API key), retrying while the service is unreachable
-        or busy for at most open_timeout_s (then ServiceUnavailable); RobotAuthError for a refused key,
-        ServiceRefused for any other refusal."""
+        or busy for at most open_timeout_s (forever: for ever; then ServiceUnavailable); RobotAuthError for a refused
+        key, ServiceRefused for any other refusal. first_seq: its first block's seq."""
         if self.session_id is not None:
             raise RuntimeError("this client already has a session")
         http = self.outbox.http or httpx.AsyncClient(timeout=self.request_timeout_s)
@@ -148,7 +150,9 @@ class RobotClient:
                 self.api_key,
                 self.session_name,
                 Backoff(backoff.base_s, backoff.cap_s),
-                timeout_s=self.open_timeout_s,
+                timeout_s=None if forever else self.open_timeout_s,
+                robot=self.robot_id,
+                first_seq=first_seq,
             )
         finally:
             if http is not self.outbox.http:
@@ -202,27 +206,28 @@ class RobotClient:
                     info = await self._open_until_stopped()
                     if self.on_session is not None:
                         self.on_session(info)
-                endpoint = Endpoint(
-                    self.url,
-                    str(self.session_id),
-                    str(self.robot_token),
-                    binary=self.binary,
-                    window=self.window,
-                    request_timeout_s=self.request_timeout_s,
-                )
-                send_blocks = send_ws if self.transport == "ws" else send_http
-                sender = asyncio.create_task(send_blocks(endpoint, outbox), name="robot-sender")
-                framer = asyncio.create_task(send_frames(endpoint, outbox), name="robot-frames")
-                tasks = [self._reader, sender, framer]
-                await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-                for task in (sender, framer):
-                    if task.done():
-                        task.result()  # they end early only on a fatal error: raise it
-                await asyncio.wait([self._reader])
-                source_error = None if self._reader.cancelled() else self._reader.exception()
-                await self._drain(sender, framer)  # what was read before a source failed still goes out
-                if source_error is not None:
-                    raise source_error
+                while True:
+                    sender, framer = self._start_senders()
+                    tasks = [self._reader, sender, framer]
+                    try:
+                        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                        for task in (sender, framer):
+                            if task.done():
+                                task.result()  # they end early only on a fatal error: raise it
+                        await asyncio.wait([self._reader])
+                        source_error = None if self._reader.cancelled() else self._reader.exception()
+                        await self._drain(sender, framer)  # what was read before a source failed still goes out
+                    except SessionGone as exc:
+                        if self.api_key is None:  # no key, no new session: the run ends with its error
+                            raise
+                        for task in (sender, framer):
+                            task.cancel()
+                        await asyncio.gather(sender, framer, return_exceptions=True)
+                        await self._resume(exc)
+                        continue
+                    if source_error is not None:
+                        raise source_error
+                    break
         finally:
             if timer is not None:
                 timer.cancel()
@@ -238,10 +243,46 @@ class RobotClient:
                 )
         return self.stats
 
-    async def _open_until_stopped(self) -> SessionInfo:
-        """open_session, which retries an unreachable service for up to open_timeout_s; once stop() is called (a
-        Ctrl-C, the --duration) it gets drain_timeout_s more, as delivering what is buffered would."""
-        opening = asyncio.create_task(self.open_session())
+    def _start_senders(self) -> tuple[asyncio.Task, asyncio.Task]:
+        """The block and frame senders of the current session."""
+        endpoint = Endpoint(
+            self.url,
+            str(self.session_id),
+            str(self.robot_token),
+            binary=self.binary,
+            window=self.window,
+            request_timeout_s=self.request_timeout_s,
+        )
+        send_blocks = send_ws if self.transport == "ws" else send_http
+        sender = asyncio.create_task(send_blocks(endpoint, self.outbox), name="robot-sender")
+        framer = asyncio.create_task(send_frames(endpoint, self.outbox), name="robot-frames")
+        return sender, framer
+
+    async def _resume(self, gone: SessionGone) -> None:
+        """The session is gone (a restarted or stopped replica): open a new one that goes on with this robot's
+        numbering from the oldest unacknowledged block, which is resent with everything after it. Opening retries
+        for ever (a restart takes as long as it takes), until stop()."""
+        outbox = self.outbox
+        first_seq = outbox.buffer.oldest_seq if outbox.buffer.oldest_seq is not None else outbox.next_seq
+        log.warning(
+            "%s; opening a new session and resending %d unacknowledged block(s) from seq %d",
+            gone,
+            len(outbox.buffer),
+            first_seq,
+        )
+        outbox.ingest_open.clear()
+        self.session_id = self.robot_token = None
+        info = await self._open_until_stopped(first_seq, forever=True)
+        self.stats.resumed += 1
+        log.info("resumed in session %s", info.session_id)
+        if self.on_session is not None:
+            self.on_session(info)
+
+    async def _open_until_stopped(self, first_seq: int = 0, *, forever: bool = False) -> SessionInfo:
+        """open_session, which retries an unreachable service for up to open_timeout_s (forever: for ever); once
+        stop() is called (a Ctrl-C, the --duration) it gets drain_timeout_s more, as delivering what is buffered
+        would."""
+        opening = asyncio.create_task(self.open_session(first_seq, forever))
         stopped = asyncio.create_task(self._stop_asked.wait())
         try:
             await asyncio.wait({opening, stopped}, return_when=asyncio.FIRST_COMPLETED)

@@ -18,9 +18,20 @@ class ServiceUnavailable(ServiceRefused):
     """The service stayed unreachable or not ready (HTTP 503) for longer than the client was told to wait."""
 
 
-class SessionLostError(ServiceRefused):
+class SessionGone(ServiceRefused):
+    """The session is gone: lost (410, close 4410) or no longer known to the service (404: a restarted service
+    that keeps nothing). Retrying cannot bring it back; a client with the fleet API key opens a new session and
+    resends what was never acknowledged (RobotClient does)."""
+
+
+class SessionLostError(SessionGone):
     """The service lost the session (HTTP 410: the replica that held its state is gone — stopped, crashed or
     restarted); retrying cannot bring it back, only a new session goes on."""
+
+
+def session_unknown(session_id: str | None, detail: str) -> SessionGone:
+    """The error for a 404 on a session's route: the service does not know the session (any more)."""
+    return SessionGone(f"the service has no session {session_id!r} (HTTP 404: {detail})")
 
 
 def session_lost(session_id: str | None, detail: str) -> SessionLostError:

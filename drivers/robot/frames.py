@@ -14,7 +14,7 @@ import numpy as np
 from drivers.camera import frame_gray
 from drivers.protocol import RETRY_STATUSES, SCENE_CONTENT_TYPE, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
-from drivers.robot.errors import RobotAuthError, session_lost
+from drivers.robot.errors import RobotAuthError, session_lost, session_unknown
 from drivers.robot.outbox import Endpoint, Outbox, Refresh
 from drivers.scene_change import FRAME_CHANGE, scene_changed, thumbnail
 
@@ -134,6 +134,8 @@ async def send_frames(endpoint: Endpoint, outbox: Outbox) -> None:
             raise RobotAuthError(f"the service refused the robot token for a {what} (HTTP {status}: {detail(r)})")
         if status == SESSION_LOST:
             raise session_lost(endpoint.session_id, detail(r))
+        if status == 404:
+            raise session_unknown(endpoint.session_id, detail(r))
         if status == 429 or status >= 500 or status in RETRY_STATUSES:
             outbox.stats.frames_refused += status == 429 and not isinstance(item, Refresh)
             delay = outbox.frame_backoff.next(retry_after(r) if status == 429 else None)

@@ -9,7 +9,7 @@ import httpx
 
 from drivers.protocol import BINARY_CONTENT_TYPE, RETRY_STATUSES, SESSION_LOST, bearer, session_path
 from drivers.robot.backoff import detail, retry_after
-from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
+from drivers.robot.errors import RobotAuthError, session_lost, session_unknown
 from drivers.robot.outbox import Endpoint, Outbox
 
 log = logging.getLogger("drivers.robot")
@@ -75,7 +75,7 @@ async def send_http(endpoint: Endpoint, outbox: Outbox) -> None:
         elif status in (401, 403):
             raise RobotAuthError(f"the service refused the robot token (HTTP {status}: {detail(r)})")
         elif status == 404:
-            raise ServiceRefused(f"the service has no session {endpoint.session_id!r} (HTTP 404: {detail(r)})")
+            raise session_unknown(endpoint.session_id, detail(r))
         elif status == SESSION_LOST:
             raise session_lost(endpoint.session_id, detail(r))
         elif 400 <= status < 500 and status not in RETRY_STATUSES:

@@ -51,6 +51,7 @@ class RobotStats:
     lost_s: float = 0.0  # seconds of data those held
     unsent: int = 0  # blocks still unacknowledged when the run ended
     reconnects: int = 0  # recoveries after a failed connection or outage
+    resumed: int = 0  # new sessions opened after the session was gone (410 / 404: a restarted service)
     saturated: int = 0  # times the service said the session was saturated (429 / close 4429)
     replaced: int = 0  # times a newer ingest socket of the session took this one's place (close 4409)
     frames_read: int = 0

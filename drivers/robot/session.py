@@ -39,15 +39,23 @@ async def open_session(
     backoff: Backoff,
     *,
     timeout_s: float | None = 60.0,
+    robot: str | None = None,
+    first_seq: int = 0,
 ) -> SessionInfo:
     """Create a session at the service `url`, retrying transport errors, 5xx and 429 (after Retry-After) for at
-    most `timeout_s` seconds (None: for ever); then ServiceUnavailable, naming the last answer.
+    most `timeout_s` seconds (None: for ever); then ServiceUnavailable, naming the last answer. robot: the robot's
+    own id (operators follow the robot by it); first_seq: the seq of the session's first block (a robot resuming
+    after its session was lost goes on with its own numbering).
 
     The operator token and console link are in the result, never in the log: logs travel further than
     the people who should read the session. RobotAuthError for a refused or missing API key,
     ServiceRefused for any other 4xx.
     """
-    body = {"name": name} if name else {}
+    body: dict[str, object] = {"name": name} if name else {}
+    if robot is not None:
+        body["robot"] = robot
+    if first_seq:
+        body["first_seq"] = first_seq
     headers = bearer(api_key) if api_key else {}
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
 

@@ -9,7 +9,7 @@ from collections import deque
 
 from drivers.protocol import SESSION_LOST, Close, parse_ack, ws_url
 from drivers.robot.backoff import body_detail, retry_after
-from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost
+from drivers.robot.errors import RobotAuthError, ServiceRefused, session_lost, session_unknown
 from drivers.robot.outbox import Endpoint, Outbox
 
 log = logging.getLogger("drivers.robot")
@@ -57,7 +57,7 @@ async def send_ws(endpoint: Endpoint, outbox: Outbox) -> None:
             if status in (401, 403):
                 raise RobotAuthError(f"the service refused the robot token (HTTP {status})") from None
             if status == 404:
-                raise ServiceRefused(f"the service has no session {endpoint.session_id!r} (HTTP 404)") from None
+                raise session_unknown(endpoint.session_id, body_detail(exc.response.body)) from None
             if status == SESSION_LOST:
                 raise session_lost(endpoint.session_id, body_detail(exc.response.body)) from None
             if status == 429:  # the replica sheds this session: it says when to come back

@@ -8,6 +8,9 @@ window. A window is flagged `out_of_distribution` with its reasons when:
                       (far along the subspace) and Q (far from it); either above its limit
 * speed_out_of_range  one of its speed statistics (min, max, mean over the window) lies outside
 * force_out_of_range  the training windows' range, widened by `margin` of that range
+* taps_out_of_range   one of its tap features (the taps group: from the surface's tap block, a tap speed and
+                      its transient) lies outside the training windows' range, widened the same way: a tap
+                      inside the physical bounds the service admits but unlike any the model learnt from
 * visual_outlier      the frame's visual vector, scored the same way against the training views
 * no_frame            the model reads images but there is no visual vector (tactile-only fallback)
 * frame_*             the frame itself looks wrong (`check_frame`: under/over-exposed, blurred,
@@ -33,9 +36,11 @@ import numpy as np
 
 from models.inference import jsonarrays
 from models.tactile.config import STAT_NAMES
+from models.tactile.taps import TAP_NAMES
 
 FORMAT = "hapticlink-ood-detector"
 VERSION = 1
+TAP_COLUMNS = len(TAP_NAMES)
 STD_FLOOR = 0.1  # × the block's median column std: a column nearly constant in training must not dominate
 
 
@@ -209,13 +214,22 @@ def stat_columns(X: np.ndarray, start: int | None) -> np.ndarray:
     return X[:, start : start + n]
 
 
+def tap_columns(X: np.ndarray, start: int) -> np.ndarray:
+    """(n, F) window features → (n, 3) tap features (models.tactile.taps.TAP_NAMES) from column `start`."""
+    n = TAP_COLUMNS
+    if not 0 <= start <= X.shape[1] - n:
+        raise ValueError(f"the tap features start at column {start}, beyond {X.shape[1]} features")
+    return X[:, start : start + n]
+
+
 @dataclass(frozen=True)
 class OODDetector:
     """See the module docstring. stat_lo, stat_hi: (6,) allowed range of the speed/force statistics
     (models.tactile.config.STAT_NAMES: the 6 tactile columns from `stat_start`, which the feature set's
     columns precede and the extra groups' follow — TactileConfig.group_slices()["base"] ends with them; None:
     the last 6 columns, right for a configuration without extra groups); frame_lo, frame_hi: (5,) allowed
-    range of `frame_statistics` or None."""
+    range of `frame_statistics` or None; taps_start: the first column of the taps group (None: no taps group, or a
+    detector fitted before it was checked) and taps_lo, taps_hi: its columns' allowed range."""
 
     tactile: Subspace
     stat_lo: np.ndarray
@@ -226,6 +240,9 @@ class OODDetector:
     n_textures: int = 0
     settings: dict = field(default_factory=dict)
     stat_start: int | None = None
+    taps_start: int | None = None
+    taps_lo: np.ndarray | None = None
+    taps_hi: np.ndarray | None = None
 
     @property
     def n_tactile(self) -> int:
@@ -250,11 +267,13 @@ class OODDetector:
         folds: int = 5,
         seed: int = 0,
         stat_start: int | None = None,
+        taps_start: int | None = None,
     ) -> OODDetector:
         """tactile: per training texture its windows (n_i, F); visual: (T, V, D) views or None;
         frames: (T, 5) `frame_statistics` of the training photos or None. windows_per_texture:
         a seeded subset per texture keeps fitting fast (windows of one stroke are redundant).
-        stat_start: the first of the 6 speed/force statistic columns (None: the last 6)."""
+        stat_start: the first of the 6 speed/force statistic columns (None: the last 6); taps_start: the first of the
+        taps group's columns (None: no taps group)."""
         if len(tactile) < 3:
             raise ValueError(f"an OOD detector needs ≥ 3 training textures, got {len(tactile)}")
         if not 0 <= margin <= 1:
@@ -283,6 +302,11 @@ class OODDetector:
             sub_v = Subspace.fit(
                 Xv, gv, k=min(k_visual, visual.shape[0] - 2), quantile=quantile, folds=folds, seed=seed
             )
+        tlo = thi = None
+        if taps_start is not None:
+            taps = np.concatenate([tap_columns(np.asarray(w, float), taps_start) for w in tactile])
+            tpad = margin * (taps.max(axis=0) - taps.min(axis=0))
+            tlo, thi = taps.min(axis=0) - tpad, taps.max(axis=0) + tpad
         flo = fhi = None
         if frames is not None:
             frames = np.asarray(frames, float)
@@ -299,7 +323,7 @@ class OODDetector:
             "folds": folds,
             "seed": seed,
         }
-        return cls(sub_t, lo - pad, hi + pad, sub_v, flo, fhi, len(tactile), settings, stat_start)
+        return cls(sub_t, lo - pad, hi + pad, sub_v, flo, fhi, len(tactile), settings, stat_start, taps_start, tlo, thi)
 
     # ---- serving -----------------------------------------------------------------------------------
     def check_visual(self, visual: np.ndarray | None, frame_reasons: list[str] | tuple[str, ...] = ()) -> FrameCheck:
@@ -347,6 +371,10 @@ class OODDetector:
         outside = (stats < self.stat_lo) | (stats > self.stat_hi)
         speed_bad = np.asarray(outside[:, :3].any(axis=1))
         force_bad = np.asarray(outside[:, 3:].any(axis=1))
+        taps_bad = np.zeros(n, dtype=bool)
+        if self.taps_start is not None and self.taps_lo is not None and self.taps_hi is not None:
+            taps = tap_columns(X, self.taps_start)
+            taps_bad = np.asarray(((taps < self.taps_lo) | (taps > self.taps_hi)).any(axis=1))
         reasons = []
         for i in range(n):
             r = common + [
@@ -354,6 +382,7 @@ class OODDetector:
                 for name, bad in (
                     ("force_out_of_range", force_bad[i]),
                     ("speed_out_of_range", speed_bad[i]),
+                    ("taps_out_of_range", taps_bad[i]),
                     ("tactile_outlier", t_score[i] > 1),
                 )
                 if bad
@@ -402,6 +431,9 @@ class OODDetector:
             "frame_stats": list(FRAME_STATS),
             "frame_lo": None if self.frame_lo is None else jsonarrays.encode(self.frame_lo),
             "frame_hi": None if self.frame_hi is None else jsonarrays.encode(self.frame_hi),
+            "taps_start": self.taps_start,
+            "taps_lo": None if self.taps_lo is None else jsonarrays.encode(self.taps_lo),
+            "taps_hi": None if self.taps_hi is None else jsonarrays.encode(self.taps_hi),
         }
 
     @classmethod
@@ -424,6 +456,10 @@ class OODDetector:
                 int(obj["n_textures"]),
                 dict(obj.get("settings", {})),
                 None if obj.get("stat_start") is None else int(obj["stat_start"]),
+                # absent from a detector written before the taps range was kept: no taps check
+                None if obj.get("taps_start") is None else int(obj["taps_start"]),
+                None if obj.get("taps_lo") is None else dec(obj["taps_lo"]).astype(float),
+                None if obj.get("taps_hi") is None else dec(obj["taps_hi"]).astype(float),
             )
         except KeyError as exc:
             raise ValueError(f"OOD detector lacks {exc}") from None

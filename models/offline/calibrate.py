@@ -120,10 +120,13 @@ def calibrate(
 
 def fit_detector(data: TextureData, frames: np.ndarray | None = None, **options) -> OODDetector:
     """An OODDetector on a TextureData's windows, image views and photo statistics (T, 5) or None; the
-    speed/force statistics are found from the data's tactile configuration (before any extra group's columns)."""
+    speed/force statistics are found from the data's tactile configuration (before any extra group's columns), and
+    so are the taps group's columns (their training range flags windows whose taps the model never met)."""
     config = data.meta.get("tactile_config")
     if config is not None and "stat_start" not in options:
         options["stat_start"] = TactileConfig(**config).group_slices()["base"].stop - len(STAT_NAMES)
+    if config is not None and "taps_start" not in options:
+        options["taps_start"] = getattr(TactileConfig(**config).group_slices().get("taps"), "start", None)
     return OODDetector.fit(list(data.tactile), data.visual, frames, **options)
 
 

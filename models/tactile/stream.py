@@ -11,8 +11,9 @@ preprocessor will make of it:
   once position feeds speed, a speed channel is refused; once speed does, position is ignored);
 - no stream may run more than `max_lag_s` seconds of input ahead of another (a channel that is
   never sent would otherwise buffer without bound);
-- a block whose t0 is more than `gap_tolerance_s` off the expected continuation starts a new
-  *segment* (the robot lost data or restarted its clock): windows never straddle the gap. The
+- a block whose t0 is more than `gap_tolerance_s` after the expected continuation, or a whole sample or more
+  before it (time going backwards), starts a new *segment* (the robot lost data or restarted its clock): windows
+  never straddle the gap, and a clock running backwards is never merged into one stream. The
   expectation is per channel: where that channel's samples of the segment end (a 10 Hz channel in
   20 ms blocks, or each channel in its own block, is no gap); a channel the segment has not had yet
   may start anywhere within the segment's time so far;
@@ -44,8 +45,12 @@ from models.tactile.resample import resampled_count
 from texture_library.channels import CHANNEL_COLUMNS
 from texture_library.recording import Channel
 
-#: 2.5 blocks of 20 ms: sender clocks jitter less than this, lost blocks more
+#: 2.5 blocks of 20 ms: sender clocks jitter (or drift per block) ahead of their sample count less than this, lost
+#: blocks more
 GAP_TOLERANCE_S = 0.05
+#: how far back (in samples of its channel) a block may start before where its channel's samples end and still continue
+#: them: less than one sample (a t0 rounded by its sender), never a whole one, which would place two samples at one time
+BACKWARDS = 1.0 - 1e-6
 
 
 @dataclass(frozen=True)
@@ -245,8 +250,9 @@ class StreamContract:
 
     def _continues(self, cursor: StreamCursor, counts: list[tuple[str, int]], t0: float) -> bool:
         """Whether a block at t0 carrying `counts` (channel, samples) continues the cursor's segment: each channel
-        the segment has had within gap_tolerance_s of where its samples end, a channel it has not had within the
-        segment's time so far."""
+        the segment has had from less than one of its samples before where its samples end to gap_tolerance_s after
+        (time going backwards by a sample or more is a new segment, never merged), a channel it has not had within
+        the segment's time so far."""
         if cursor.next_t0 is None or math.isnan(cursor.next_t0):  # the first block, or a broken segment
             return False
         tol = self.gap_tolerance_s
@@ -256,7 +262,7 @@ class StreamContract:
             if end is None:
                 if not cursor.origin_t0 - tol <= t0 <= latest + tol:
                     return False
-            elif n and not abs(t0 - end) <= tol:
+            elif n and not -BACKWARDS * (1.0 / cursor.rates[kind]) < t0 - end <= tol:
                 return False
         return True
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 
 from fastapi import APIRouter, Query, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -14,9 +15,11 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from drivers.protocol import SESSION_LOST, Close
 from drivers.render_feed import RenderView
 from service.auth import OPERATOR_ONLY
-from service.deps import Refused, socket_session
+from service.bus import ROBOT_ROOM
+from service.deps import Refused, refuse, socket_session
 from service.errors import ServiceError
 from service.events import encode, status_event
+from service.schemas import ROBOT_ID_PATTERN
 from service.state import ServiceState
 
 router = APIRouter()
@@ -74,6 +77,60 @@ async def events_socket(
         if ended and websocket.application_state == WebSocketState.CONNECTED:
             with contextlib.suppress(Exception):
                 await websocket.close(int(Close.SESSION_ENDED), "session ended")
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        await state.bus.unsubscribe(subscription)
+
+
+@router.websocket("/robots/{robot}/events")
+async def robot_events_socket(
+    websocket: WebSocket,
+    robot: str,
+    token: str | None = Query(None),
+    view: str = Query("full"),
+) -> None:
+    """Every event of a robot's sessions, one session after another — across restarts of the service, replicas lost
+    and the robot's new sessions — for whoever holds the fleet API key (?token=): operators follow a robot, never a
+    session id that dies with a process. A session's `session_ended` passes through; the feed goes on."""
+    state: ServiceState = websocket.app.state.service
+    room = ROBOT_ROOM + robot
+    try:
+        if token is None or not state.api_keys.check(token):  # the credential first
+            raise ServiceError(401, "a fleet API key is required (?token=)", {"WWW-Authenticate": "Bearer"})
+        if not re.fullmatch(ROBOT_ID_PATTERN, robot):
+            raise ServiceError(422, "a robot id is 1–64 letters, digits, '_', '-', '.' or ':'")
+        if view not in VIEWS:
+            raise ServiceError(422, f"view must be one of {', '.join(VIEWS)}, got {view[:40]!r}")
+        state.bus.require_room(room)
+    except ServiceError as exc:
+        state.refusal_log.warning(
+            ("robot-events", exc.status),
+            "events socket for robot %r refused: %d %s",
+            robot[:64],
+            exc.status,
+            exc.detail,
+        )
+        await refuse(websocket, exc, robot=False)
+        return
+    await websocket.accept()
+    try:
+        subscription = await state.bus.subscribe(room)
+    except ServiceError as exc:
+        await websocket.close(int(Close.SATURATED), exc.detail[:120])
+        return
+    try:
+        await websocket.send_text(
+            encode(status_event("", "subscribed", f"following robot {robot}", instance=state.settings.instance_id))
+        )
+        lean = RenderView() if view == "render" else None
+        forward = asyncio.create_task(_forward(websocket, subscription, state, lean))
+        listen = asyncio.create_task(_until_disconnect(websocket))
+        await asyncio.wait({forward, listen}, return_when=asyncio.FIRST_COMPLETED)
+        for task in (forward, listen):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:

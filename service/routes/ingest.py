@@ -132,6 +132,10 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 why = getattr(websocket.state, "closed_why", why)  # its session ended, or a newer socket replaced it
                 return
             arrived = time.perf_counter_ns()
+            if state.shutting_down:  # not taken: the robot reconnects and resends it to its next session
+                why = "shutting down"
+                await websocket.close(int(Close.NOT_READY), "replica shutting down; reconnect and resend")
+                return
             if state.sessions.get(session_id) is not session:
                 why = await _close_gone(websocket, state, session_id)
                 return

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Path, Query
+from fastapi import APIRouter, Depends, Header, Path, Query
 from fastapi.responses import Response
 
 from service.auth import EITHER
 from service.deps import ReadyRuntime, State, Token
-from service.errors import ServiceError
+from service.errors import ServiceError, session_not_found
 from service.routes.common import errors
 from service.schemas import LibraryEntryOut, LibraryOut
 from texture_library.model_codec import CONTENT_TYPE as COMPACT_CONTENT_TYPE
@@ -29,15 +29,7 @@ CACHE_CONTROL = "private, no-cache"
     summary="The texture library: ids, names, groups, ratings and each entry's model_version (a session's robot or "
     "operator token with ?session=, or a fleet API key)",
 )
-async def library(
-    state: State,
-    runtime: ReadyRuntime,
-    token: Token,
-    session: Annotated[
-        str | None, Query(max_length=200, description="the session whose robot or operator token is sent")
-    ] = None,
-) -> LibraryOut:
-    await _authorize(state, token, session)
+async def library(_: LibraryReader, runtime: ReadyRuntime) -> LibraryOut:
     lib = runtime.library
     return LibraryOut(
         name=lib.name,
@@ -74,17 +66,12 @@ async def library(
     summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key)",
 )
 async def render_model(
-    state: State,
+    _: LibraryReader,
     runtime: ReadyRuntime,
-    token: Token,
     entry_id: Annotated[str, Path(max_length=128)],
-    session: Annotated[
-        str | None, Query(max_length=200, description="the session whose robot or operator token is sent")
-    ] = None,
     accept: Annotated[str | None, Header()] = None,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
-    await _authorize(state, token, session)
     served = runtime.render_models.models.get(entry_id)
     if served is None:
         raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
@@ -98,18 +85,33 @@ async def render_model(
     return Response(served.json_body, media_type="application/json", headers=headers)
 
 
-async def _authorize(state: State, token: str | None, session: str | None) -> None:
-    """A fleet API key, or a session's robot or operator token with ?session=; else 401/403/404/410."""
+async def library_reader(
+    state: State,
+    token: Token,
+    session: Annotated[str | None, Query(description="the session whose robot or operator token is sent")] = None,
+) -> None:
+    """A fleet API key, or a session's robot or operator token with ?session=; else 401/403/404/410.
+
+    A dependency, and the route's first: the credential is judged before anything else of the request (a path or
+    query FastAPI would refuse 422, readiness 503). So `session` carries no constraint FastAPI checks first: an
+    overlong one is an unknown session (404), once a credential was sent."""
+    if state.api_keys.check(token):  # a fleet key reads the library, with or without a session (a follower's)
+        return
     if session is None:
-        if state.api_keys.check(token):
-            return
         raise ServiceError(
             401,
             "a credential is required: a session's robot or operator token ('Authorization: Bearer <token>' "
             "with ?session=<session id>) or a fleet API key",
             {"WWW-Authenticate": "Bearer"},
         )
+    if token is not None and len(session) > MAX_SESSION_PARAM:  # no session has such an id: not looked up
+        raise session_not_found(session[:40] + "…")
     await state.directory.authorized(session, token, EITHER)
+
+
+#: the longest ?session= read (a session id is far shorter)
+MAX_SESSION_PARAM = 200
+LibraryReader = Annotated[None, Depends(library_reader)]
 
 
 def wants_compact(accept: str | None) -> bool:

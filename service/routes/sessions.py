@@ -1,8 +1,10 @@
-"""Sessions: open (fleet API key, rate-limited per client), read the status (operator), end (either token)."""
+"""Sessions: open (fleet API key, rate-limited per client), read the status (operator), end (either token); a
+robot's newest session by its own id (fleet API key)."""
 
 from __future__ import annotations
 
 import json
+import re
 
 from fastapi import APIRouter, Request
 from pydantic import ValidationError
@@ -13,7 +15,9 @@ from service.limits import limit_body
 from service.routes.common import errors, media_type, try_later
 from service.schemas import (
     MAX_SESSION_REQUEST_BYTES,
+    ROBOT_ID_PATTERN,
     SESSION_REQUEST_BODY,
+    RobotSession,
     SessionCreate,
     SessionCreated,
     SessionStatus,
@@ -39,7 +43,12 @@ async def create_session(request: Request, state: State, client: FleetClient) ->
     body = await session_request(request)
     take_session_slot(state, client)
     try:
-        session, robot, operator = await state.create_session(body.name if body else None, client)
+        session, robot, operator = await state.create_session(
+            body.name if body else None,
+            client,
+            robot=body.robot if body else None,
+            first_seq=body.first_seq if body else 0,
+        )
     except ServiceError:  # refused (not ready, full, at capacity): no session opened, so none counts against the rate
         state.session_limiter.refund(client)
         raise
@@ -71,6 +80,21 @@ async def session_request(request: Request) -> SessionCreate | None:
         return SessionCreate.model_validate(obj)
     except ValidationError as exc:
         raise invalid_fields(exc.errors(), under=("body",)) from None
+
+
+@router.get(
+    "/robots/{robot}/session",
+    response_model=RobotSession,
+    responses=errors(401, 404, 422, 503),
+    summary="A robot's newest session, by the robot's own id (fleet API key): operators follow the robot across its "
+    "sessions, a restart of the service included",
+)
+async def robot_session(state: State, _: FleetClient, robot: str) -> RobotSession:
+    # the robot id is checked after the key (the credential first), by hand: FastAPI would check it before
+    if not re.fullmatch(ROBOT_ID_PATTERN, robot):
+        raise ServiceError(422, "path.robot: a robot id is 1–64 letters, digits, '_', '-', '.' or ':'")
+    session_id, lost = await state.directory.robot_session(robot)
+    return RobotSession(robot=robot, session_id=session_id, lost=lost)
 
 
 @router.get(

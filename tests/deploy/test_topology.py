@@ -393,7 +393,7 @@ async def _rate_per_client(topology: Topology) -> None:
 # ---- a replica dies ----------------------------------------------------------------------------------------
 @pytest.mark.slow
 @needs_programs
-def test_killing_a_replica_leaves_the_others_sessions_alone_and_its_robots_start_over(own_topology):
+def test_killing_a_replica_leaves_the_others_sessions_alone_and_its_robots_resume(own_topology):
     """On a topology of its own: it kills one of the replicas."""
     asyncio.run(_kill_a_replica(own_topology))
 
@@ -422,25 +422,36 @@ async def _kill_a_replica(topology: Topology) -> None:
     runs = [asyncio.create_task(r.run()) for r in robots]
     await until(lambda: all(len(op.windows) >= 2 for op in pinned), "two windows for every session")
 
-    topology.kill(topology.replicas[victim].name)  # SIGKILL: no shutdown, no goodbye to Redis
-
     lost = [k for k, o in enumerate(owners) if o == victim]
     kept = [k for k, o in enumerate(owners) if o == survivor]
-    # the victim's robots: a clear, final error from run()
-    done, _ = await asyncio.wait([runs[k] for k in lost], timeout=GUARD_S)
-    assert len(done) == len(lost), "the dead replica's robots are still retrying"
+    old = {k: robots[k].session for k in lost}
+    topology.kill(topology.replicas[victim].name)  # SIGKILL: no shutdown, no goodbye to Redis
+
+    # the victim's robots never give up: once the directory says their sessions are lost (410), each opens a new
+    # one through nginx, which lands on the survivor, and resends what was never acknowledged
+    await until(lambda: all(robots[k].stats.resumed == 1 for k in lost), "the dead replica's robots resumed")
     for k in lost:
-        error = runs[k].exception()
-        assert error is not None, f"robot {k}'s run ended without an error: {runs[k].result()}"
-        assert "open a new session" in str(error) and victim in str(error), repr(error)
-        # its operator on the survivor was told, and nginx answers for the session with the same reason
+        assert not runs[k].done(), runs[k]
+        assert instance_of(robots[k].session.session_id) == survivor
+        # its operator on the survivor was told, and nginx answers for the session with the reason
         await until(lambda k=k: across[k].final is not None, f"session_ended for the operator of robot {k}")
         assert victim in across[k].final["message"]
     async with httpx.AsyncClient(timeout=10) as http:
         for k in lost:
-            info = robots[k].session
+            info = old[k]
             gone = await status_on(http, topology.url, info.session_id, info.operator_token)
             assert gone.status_code == 410 and "open a new session" in gone.json()["detail"], gone.text
+        resumed = [
+            await Operator(
+                topology.url.replace("http", "ws", 1), robots[k].session.session_id, robots[k].session.operator_token
+            ).start()
+            for k in lost
+        ]
+        await until(lambda: all(len(op.windows) >= 2 for op in resumed), "windows of the resumed sessions")
+        for k in lost:
+            robots[k].stop()
+        for st in await asyncio.gather(*(runs[k] for k in lost)):
+            assert st.resumed == 1 and st.lost == st.unsent == st.rejected == 0, st
 
         # the survivor's sessions go on untouched: more windows after the kill, none lost, no reconnect
         marks = {k: len(pinned[k].windows) for k in kept}
@@ -485,11 +496,11 @@ async def _kill_a_replica(topology: Topology) -> None:
                 lambda robot=robot, op=op: all_windows_delivered(http, topology, robot, op), "the new session's windows"
             )
             assert len(op.windows) >= 3
-    for op in pinned + across + watchers:
+    for op in pinned + across + watchers + resumed:
         await op.stop()
     # nginx tried the dead owner, then let the survivor answer for its sessions (@owner_unreachable) ...
     dead, alive = (f"127.0.0.1:{topology.replicas[i].port}" for i in (victim, survivor))
-    lost_sids = {robots[k].session_id for k in lost}
+    lost_sids = {old[k].session_id for k in lost}
     answered = [
         (status, upstream)
         for _, uri, status, upstream in access_log(topology)
@@ -501,5 +512,6 @@ async def _kill_a_replica(topology: Topology) -> None:
     # as the replicas logged their refusals (410 at the handshake) without one
     # (refusals of one kind are logged once per interval: one of the lost sessions' lines is there)
     survivor_log = logs(topology)[f"{topology.replicas[survivor].name}.log"]
-    assert any(f"{robots[k].session_id!r} from" in survivor_log for k in lost), survivor_log[-2000:]
-    assert_no_secret_logged(topology, session_secrets(topology, robots + again))
+    assert any(f"{old[k].session_id!r} from" in survivor_log for k in lost), survivor_log[-2000:]
+    lost_secrets = [t for k in lost for t in (old[k].robot_token, old[k].operator_token)]
+    assert_no_secret_logged(topology, [*session_secrets(topology, robots + again), *lost_secrets])

@@ -225,6 +225,7 @@ LAYOUT = (("accel", 3, "g"), ("force", 1, "N"))
 
 
 def _rows(counters):
+    # the counter in every column: samples within the bounds from physics up to counter 100 (2·100 N)
     return np.array([[c, c + 0.5, -c, 2 * c] for c in counters], float)
 
 
@@ -280,13 +281,13 @@ def _counters(blocks, rate_hz: float = 1000.0) -> list[tuple[int, list[int]]]:
         # a corrupted counter, and the line after it lost: the next counter is nearer the old sequence
         ([*range(0, 12), 4_000_012, *range(14, 20)], [c for c in range(20) if c != 13], 1),
         # a real gap, and the line after it lost: the next counter is nearer the jump's own sequence
-        ([*range(0, 12), 500, *range(502, 510)], [*range(0, 12), 500, *range(502, 510)], 0),
+        ([*range(0, 12), 90, *range(92, 100)], [*range(0, 12), 90, *range(92, 100)], 0),
         # two corrupted counters in a row: each keeps its slot (the second was judged as a jump of 5 million)
         ([*range(0, 12), 4_000_012, 5_000_013, *range(14, 20)], list(range(20)), 2),
         # a real gap, then its first line repeated: the jump stands (the line went into the slot before the gap)
-        ([*range(0, 12), 500, 500, *range(501, 506)], [*range(0, 12), *range(500, 506)], 1),
+        ([*range(0, 12), 90, 90, *range(91, 96)], [*range(0, 12), *range(90, 96)], 1),
         # a real gap, then two lines swapped: the early one is dropped, nothing lands before the gap
-        ([*range(0, 12), 501, 500, *range(502, 506)], [*range(0, 12), 501, *range(502, 506)], 1),
+        ([*range(0, 12), 91, 90, *range(92, 96)], [*range(0, 12), 91, *range(92, 96)], 1),
         # a line repeated and the one after it lost: the repeat is dropped (every later sample was one late)
         ([*range(0, 12), 11, *range(13, 20)], [c for c in range(20) if c != 12], 1),
         # a counter garbled to just behind (9 for 12), and the line after it lost: it keeps its slot

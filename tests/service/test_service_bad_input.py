@@ -100,7 +100,13 @@ def _bad_requests(block: SampleBlock) -> list[tuple[str, bytes, str, int, str]]:
             422,
             "holds no booleans",
         ),
-        ("beyond any sensor", _binary_with(block, accel=huge_accel), BINARY_CONTENT_TYPE, 422, "beyond any accel"),
+        (
+            "beyond any sensor",
+            _binary_with(block, accel=huge_accel),
+            BINARY_CONTENT_TYPE,
+            422,
+            "acceleration 3e+15 m/s^2 is outside its physical range",
+        ),
         (
             "ragged samples",
             _mutated(block, _set(["channels", "accel", "data"], [[1, 2, 3], [1, 2]])),

@@ -19,7 +19,7 @@ from service.app import _service_error
 from service.auth import EITHER, OPERATOR_ONLY, ROBOT_ONLY, Role, authorize, issue_credentials
 from service.broker import InMemoryBroker, LatestQueue
 from service.errors import ServiceError
-from service.limits import BodySizeLimit, limit_body
+from service.limits import BodySizeLimit, BodyTooLarge, limit_body
 from service.live_session import canonical_channels
 from service.metrics import ServiceMetrics
 from service.settings import Settings, env_name, settings_table
@@ -412,36 +412,50 @@ def test_the_metrics_token_is_stripped_as_fleet_keys_are(monkeypatch, raw, kept)
     assert (None if token is None else token.get_secret_value()) == kept
 
 
-def test_the_body_limit_answers_a_head_without_a_body_and_reads_only_digit_lengths():
-    """Driven as plain ASGI (a server in front may not drop a HEAD's body, nor refuse a length Python's int() reads):
-    a HEAD refused for its declared length gets the refusal's headers and no body; a Content-Length that is not
-    digits ("1_000", "+13") is no declared length: the body is judged as it streams in."""
+def test_the_body_limit_lets_the_app_judge_the_credential_first_and_reads_only_digit_lengths():
+    """Driven as plain ASGI (a server in front may not refuse a length Python's int() reads): a declared length over
+    the limit reaches the app, whose first read fails with BodyTooLarge before a byte is taken (the app judged the
+    credential first); an answer given without reading (a 401) comes after the body is drained, with Connection: close;
+    a Content-Length that is not digits ("1_000", "+13") is no declared length: the body is judged as it streams in."""
     import asyncio
 
-    reached = []
+    reached: list[str] = []
 
     async def app(scope, receive, send):
         reached.append(scope["method"])
-        await send({"type": "http.response.start", "status": 200, "headers": []})
+        status = 200
+        if scope["path"] == "/read":
+            try:
+                await receive()
+            except BodyTooLarge as exc:
+                status = exc.status
+        else:
+            status = 401  # answered without reading the body
+        await send({"type": "http.response.start", "status": status, "headers": [(b"connection", b"keep-alive")]})
         await send({"type": "http.response.body", "body": b"ok"})
 
-    def call(method: str, length: bytes) -> list[dict]:
+    def call(path: str, length: bytes, parts: int = 1) -> tuple[list[dict], int]:
         sent: list[dict] = []
+        left = [parts]
 
         async def receive():
-            return {"type": "http.request", "body": b"x" * 10, "more_body": False}
+            left[0] -= 1
+            return {"type": "http.request", "body": b"x" * 10, "more_body": left[0] > 0}
 
         async def send(message):
             sent.append(message)
 
-        scope = {"type": "http", "method": method, "path": "/", "headers": [(b"content-length", length)]}
+        scope = {"type": "http", "method": "POST", "path": path, "headers": [(b"content-length", length)]}
         asyncio.run(BodySizeLimit(app, max_bytes=100)(scope, receive, send))
-        return sent
+        return sent, parts - left[0]
 
-    head = call("HEAD", b"1000")
-    get = call("GET", b"1000")
-    assert head[0] == get[0] and head[0]["status"] == 413 and not reached
-    assert head[1]["body"] == b"" and b"at most 100 bytes" in get[1]["body"]
+    (start, _), taken = call("/read", b"1000", parts=100)
+    assert start["status"] == 413 and (b"connection", b"close") in start["headers"]
+    assert taken == 100  # nothing read for the app, everything the client sent drained before the answer
+    (start, _), taken = call("/other", b"1000", parts=100)
+    assert start["status"] == 401 and start["headers"] == [(b"connection", b"close")] and taken == 100
+    (start, _), taken = call("/other", b"10")  # within the limit: the app's answer as it is, nothing drained
+    assert start["headers"] == [(b"connection", b"keep-alive")] and taken == 0
     for odd in (b"1_000", b"+1000", b"1e3"):
-        assert call("POST", odd)[0]["status"] == 200  # 10 bytes came: under the limit
-    assert reached == ["POST"] * 3
+        assert call("/read", odd)[0][0]["status"] == 200  # 10 bytes came: under the limit
+    assert reached == ["POST"] * 6

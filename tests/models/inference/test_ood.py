@@ -143,3 +143,29 @@ def test_statistics_before_extra_groups_are_found_by_position_and_kept_in_json()
     assert any("speed_out_of_range" in r for r in naive.check(probe).reasons)
     with pytest.raises(ValueError, match="start at column"):
         OODDetector.fit(with_groups, k_tactile=3, stat_start=with_groups[0].shape[1] - 2)
+
+
+def test_taps_outside_their_training_range_are_flagged_and_the_range_kept_in_json():
+    """The taps group's columns (3, from taps_start) get the training range (+ margin): a surface whose tap features
+    lie outside it is flagged taps_out_of_range, one inside is not; the range survives JSON, and a detector written
+    without it (older files) reads as no taps check."""
+    tactile, _, _, _ = world(n_textures=12, seed=3)
+    rng = np.random.default_rng(5)
+    taps = [rng.uniform(1.0, 2.0, size=(1, 3)) * np.ones((len(t), 1)) for t in tactile]  # one value per surface
+    with_taps = [np.hstack([t, g]) for t, g in zip(tactile, taps)]
+    start = tactile[0].shape[1]
+    det = OODDetector.fit(with_taps, k_tactile=3, stat_start=start - 6, taps_start=start)
+    inside = with_taps[0].copy()
+    assert not any("taps_out_of_range" in r for r in det.check(inside).reasons)
+    hard = inside.copy()
+    hard[:, start] = 2.0 + 0.2  # past the training maximum by more than the 10 % margin (of a 1-wide range)
+    result = det.check(hard)
+    assert result.flags.all() and all("taps_out_of_range" in r for r in result.reasons)
+    again = OODDetector.from_json(det.to_json())
+    assert again.taps_start == start and all("taps_out_of_range" in r for r in again.check(hard).reasons)
+    older = det.to_dict()
+    for key in ("taps_start", "taps_lo", "taps_hi"):
+        del older[key]
+    assert not any("taps_out_of_range" in r for r in OODDetector.from_dict(older).check(hard).reasons)
+    with pytest.raises(ValueError, match="tap features start at column"):
+        OODDetector.fit(with_taps, k_tactile=3, taps_start=start + 1)
