@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
 
     from benchmarks.loadgen import robot_streams
-    from models.offline.demo_assets import prepare_assets
+    from demo.assets import prepare_assets
     from service.intake import decode_block
     from service.live_session import Session
     from service.metrics import ServiceMetrics

@@ -9,7 +9,7 @@ terminal feed, logging at WARNING) in a process of its own and sends it one sign
   first frame     SIGINT the moment the robot's session is open: its camera frame is sent first, so the
                   backbone's first embedding is in flight (onnxruntime; Runtime.stop terminates it)
 Reported per case: signal → "demo summary" line and signal → exit (median and max over the runs), the exit
-codes, and whether anything printed an ERROR line or a traceback. The target is 2 s (service.demo.STOP_S).
+codes, and whether anything printed an ERROR line or a traceback. The target is 2 s (demo.run.STOP_S).
 Writes reports/bench/demo_stop.json. The assets are read, never written: build them first with
 `hapticlink demo` (or pass --assets of a finished build). Timings on a shared machine are upper bounds: say what
 else ran.
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from benchmarks.report_file import write_report
-from service.demo import STOP_S, DemoAssets
+from demo.run import STOP_S, DemoAssets
 from service.launcher import free_port
 
 DEFAULT_OUT = Path("reports/bench/demo_stop.json")
@@ -54,7 +54,7 @@ CASES = (
 
 def read_assets(root: Path) -> DemoAssets:
     """The demo's assets under root as `prepare_assets` left them (nothing is built or written here)."""
-    from models.offline.demo_assets import demo_visual
+    from demo.assets import demo_visual
     from models.offline.featurize import backbone_onnx
 
     assets = DemoAssets(
@@ -77,7 +77,7 @@ def demo_program(assets: DemoAssets, port: int, per_texture_s: float) -> str:
     return (
         "import logging\n"
         "from pathlib import Path\n"
-        "from service.demo import DemoAssets, demo\n"
+        "from demo.run import DemoAssets, demo\n"
         "logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')\n"
         f"assets = DemoAssets(*map(Path, {paths!r}))\n"
         f"raise SystemExit(demo(assets, port={port}, per_texture_s={per_texture_s!r}))\n"

@@ -103,7 +103,7 @@ DEFAULT_ASSETS = Path("artifacts/demo")  # `make demo`'s assets: the benchmark s
 def prepare_assets(root: Path) -> dict[str, Assets]:
     """Both configurations from the demo's assets under root (built once, shared with `hapticlink demo`: a
     synthetic world of 96 textures, its library of 24)."""
-    from models.offline.demo_assets import prepare_assets as demo_assets
+    from demo.assets import prepare_assets as demo_assets
 
     demo = demo_assets(root)
     taps = "taps" in read_card(demo.model).tactile_config.get("extra_groups", ())

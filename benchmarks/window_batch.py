@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.sessions < 1 or args.rounds < 1 or min(args.jobs) < 1:
         p.error("--sessions, --rounds and every --jobs size must be ≥ 1")
 
-    from models.offline.demo_assets import prepare_assets
+    from demo.assets import prepare_assets
     from service.runtime import load_runtime
     from service.settings import Settings
     from texture_library.library import Library

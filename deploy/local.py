@@ -61,6 +61,8 @@ NGINX_TEMP_PATHS = (
     "uwsgi_temp_path",
     "scgi_temp_path",
 )
+#: the model kind of the synthetic serving assets: tactile only, so the replicas embed no frame and start light
+SYNTHETIC_MODEL = "ridge-tactile"
 START_TIMEOUT_S = 120.0  # a replica loads and warms its model on a busy 2-core machine
 
 
@@ -600,16 +602,15 @@ def synthetic_assets(root: Path, n_textures: int = 12) -> Path:
     library and the demo's tactile-only model kind (ridge-tactile) trained on a synthetic dataset, built once
     under root/build. Tactile only (no backbone, no frames to embed): small to build and light to serve."""
     from models.offline.datasets.build import build
-    from models.offline.demo_assets import TACTILE_MODEL
     from models.offline.train import train_and_export
     from texture_library.synthetic_library import build_synthetic_library
 
-    library, model = root / "build" / "library", root / "build" / f"{TACTILE_MODEL}.onnx"
+    library, model = root / "build" / "library", root / "build" / f"{SYNTHETIC_MODEL}.onnx"
     if not (library / "library.json").is_file():
         build_synthetic_library(library, n_textures=n_textures, image_size=256)
     if not model.is_file():
         dataset = build("synthetic", root / "build" / "dataset", n_textures=n_textures, duration_s=6, image_size=256)
-        train_and_export(dataset, TACTILE_MODEL, model)
+        train_and_export(dataset, SYNTHETIC_MODEL, model)
     assets = root / "assets"
     assets.mkdir(parents=True, exist_ok=True)
     for link, target in ((assets / "model.onnx", model), (assets / "library", library)):

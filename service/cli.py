@@ -12,7 +12,7 @@ import warnings
 from importlib.metadata import EntryPoint, PackageNotFoundError, entry_points, version
 
 COMMAND_GROUP = "hapticlink.commands"
-HELP_ORDER = ("service", "offline", "library", "drivers")  # parts not named here follow, by name
+HELP_ORDER = ("service", "demo", "offline", "library", "drivers")  # parts not named here follow, by name
 
 
 def _help_rank(part: EntryPoint) -> tuple[int, str]:

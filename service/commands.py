@@ -4,12 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from pydantic import ValidationError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -68,12 +63,6 @@ FLAG_TO_FIELD = {
 }
 
 
-def named_errors(exc: ValidationError, name: Callable[[str], str], whole: str) -> str:
-    """A pydantic ValidationError as 'NAME: message; …', each field named by `name` (the flag or variable that set
-    it) rather than by pydantic's field path; `whole` names an error of the model as a whole."""
-    return "; ".join(f"{name(str(e['loc'][0])) if e['loc'] else whole}: {e['msg']}" for e in exc.errors())
-
-
 def settings_from_args(args: argparse.Namespace):
     """Settings from the environment with the given flags on top; ValueError names a bad value."""
     import re
@@ -82,6 +71,7 @@ def settings_from_args(args: argparse.Namespace):
     from pydantic_settings import SettingsError
 
     from service.settings import Settings, env_name
+    from texture_library.named_errors import named_errors
 
     overrides = {
         field: getattr(args, flag) for flag, field in FLAG_TO_FIELD.items() if getattr(args, flag, None) is not None

@@ -137,6 +137,11 @@ class WindowEvent(BaseModel):
         "recent_window_flagged (this window is clean, earlier flagged ones still weigh in the smoothed ratings: their "
         "reasons follow)"
     )
+    provisional: bool = Field(
+        False,
+        description="the smoothed estimate rests on too few windows for its interval's own calibration (the first "
+        "windows of a session): the interval is the single window's, wider; show the estimate as provisional",
+    )
     steadiness: Steadiness
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
     chosen: str = Field(description="the library entry to render (after hysteresis)")
@@ -219,6 +224,7 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         "interval": _interval(w.assessment),
         "out_of_distribution": w.assessment.out_of_distribution,
         "ood_reasons": list(w.assessment.ood_reasons),
+        "provisional": w.assessment.provisional,
         "steadiness": _ratings(w.steadiness, 3),
         "matches": [{"id": m.id, "distance": round(m.distance, 3)} for m in w.matches],
         "chosen": w.chosen,

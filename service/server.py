@@ -158,14 +158,23 @@ class DeadlineHttpProtocol(HttpToolsProtocol):
 
     def _expired(self) -> None:
         self._deadline = None
-        if not self.transport.is_closing():
+        if self.transport.is_closing():
+            return
+        if self._head == 0:
+            # not a byte of a request: a browser's spare connection, opened ahead in case the page needs it (every
+            # console visit leaves one), is closed without a word; a client that started a request and stalled is
+            # worth a line
+            log.debug(
+                "closing an idle connection from %s: no request within %g s", _peer(self.client), self.read_timeout_s
+            )
+        else:
             _client_warnings.warning(
                 "deadline",
                 "closing a connection from %s: no complete request within %g s",
                 _peer(self.client),
                 self.read_timeout_s,
             )
-            self.transport.close()
+        self.transport.close()
 
 
 class RefusingWebSocketProtocol(WebSocketsSansIOProtocol):

@@ -28,6 +28,19 @@ from models.inference.predictor import Predictor
 
 #: the reason a clean window of a smoothed estimate still carries when earlier flagged windows taint its EMA
 RECENT_FLAGGED = "recent_window_flagged"
+#: the smoothed estimate's interval is its own ("ema") calibration's once the EMA's noise variance is within this
+#: factor of its steady state; before that (the session's first windows) the single window's band serves
+SETTLED_VARIANCE_RATIO = 1.25
+
+
+def ema_variance_ratio(alpha: float, n: int) -> float:
+    """Noise variance of an EMA (s_1 = x_1, s_k = α·x_k + (1 − α)·s_(k−1)) after n ≥ 1 windows of independent noise,
+    over its steady state α / (2 − α): 1/(α/(2 − α)) at n = 1, falling to 1."""
+    if not 0 < alpha <= 1 or n < 1:
+        raise ValueError(f"alpha must lie in (0, 1] and n ≥ 1, got {alpha}, {n}")
+    q = (1.0 - alpha) ** 2
+    variance = q ** (n - 1) + alpha**2 * (1.0 - q ** (n - 1)) / (1.0 - q) if q < 1 else 1.0
+    return variance / (alpha / (2.0 - alpha))
 
 
 @dataclass(frozen=True)
@@ -43,11 +56,13 @@ class Interval:
 @dataclass(frozen=True)
 class Assessment:
     """One window's uncertainty as published: interval (None: the model carries no calibration);
-    out_of_distribution (None: the model carries no detector); ood_reasons: sorted reasons."""
+    out_of_distribution (None: the model carries no detector); ood_reasons: sorted reasons; provisional: the
+    smoothed estimate rests on too few windows for its own calibration (the interval is the single window's)."""
 
     interval: Interval | None
     out_of_distribution: bool | None
     ood_reasons: tuple[str, ...]
+    provisional: bool = False
 
 
 @dataclass(frozen=True)
@@ -138,6 +153,7 @@ class SessionUncertainty:
     level: float
     _ema: EmaUncertainty = field(init=False)
     _reasons: tuple[str, ...] = field(init=False, default=())
+    _windows: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         if not 0 < self.level < 1:
@@ -164,9 +180,14 @@ class SessionUncertainty:
                 self._reasons = tuple(sorted(reasons or ()))
             out = tuple(sorted(reasons or ())) if flagged else ((RECENT_FLAGGED,) + self._reasons if flag_s else ())
             ood_flag = bool(flag_s)
+        self._windows += 1
+        # an EMA of one or two windows is as noisy as a single window: its steady-state band would under-cover it
+        provisional = self.alpha < 1 and ema_variance_ratio(self.alpha, self._windows) > SETTLED_VARIANCE_RATIO
         cal = model.calibration
+        if provisional and model.window_calibration is not None:
+            cal = model.window_calibration
         if cal is None:
-            return Assessment(None, ood_flag, out)
+            return Assessment(None, ood_flag, out, provisional)
         scale = None if cal.scale == "none" else np.array([np.sqrt(dist_s)])
         lo, hi = cal.interval(smoothed[None, :], scale, self.level, ood=np.array([bool(flag_s)]))
-        return Assessment(Interval(lo[0], hi[0], self.level, cal.target), ood_flag, out)
+        return Assessment(Interval(lo[0], hi[0], self.level, cal.target), ood_flag, out, provisional)

@@ -385,13 +385,18 @@ class HysteresisChooser:
         if self._streak >= self.hold or (self.release_lead is not None and self._lead >= self.release_lead):
             self._restart(best)
             return Choice(best, self.rule.name, self.rule.describe(c, k), False, self._switch_margin(ids, c))
-        if gain < self.margin:
-            why = f"kept: {best} is only {gain:.1f} cheaper, under the margin {self.margin:g}"
-        else:
-            why = f"kept: {best} must stay {self.margin:g} cheaper for {self.hold} windows ({self._streak} so far)"
+        return Choice(self.current, self.rule.name, self._keeping(best, gain), True, self._switch_margin(ids, c))
+
+    def _keeping(self, challenger: str, gain: float) -> str:
+        """Why the current entry stays, in plain words and the rule's units — the one sentence the terminal and the
+        console both show: 'keeping a: b is closer by 2.8; it must be closer by 12 (2 windows in a row), or by
+        69.2 more in all, to take over'."""
+        need = f"closer by {self.margin:g}"
+        if self.hold > 1:
+            need += f" ({self.hold} windows in a row" + (f", {self._streak} so far)" if self._streak else ")")
         if self.release_lead is not None:
-            why += f"; its lead {self._lead:.1f} of {self.release_lead:g}"
-        return Choice(self.current, self.rule.name, why, True, self._switch_margin(ids, c))
+            need += f", or by {self.release_lead - self._lead:.1f} more in all,"
+        return f"keeping {self.current}: {challenger} is closer by {gain:.1f}; it must be {need} to take over"
 
     def _restart(self, choice: str) -> None:
         self.current, self._challenger, self._streak, self._lead = choice, None, 0, 0.0

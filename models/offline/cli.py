@@ -1,4 +1,4 @@
-"""Subcommands of the offline wing: dataset, features, evaluate, train, predict, report, tradeoffs, demo, fidelity."""
+"""Subcommands of the offline wing: dataset, features, evaluate, train, predict, report, tradeoffs, fidelity."""
 
 from __future__ import annotations
 
@@ -37,7 +37,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     from models.offline.tradeoffs.cli import register as register_tradeoffs
 
     register_tradeoffs(sub)
-    register_demo(sub)
     from models.offline.fidelity.cli import register as register_fidelity
 
     register_fidelity(sub)
@@ -227,7 +226,7 @@ def _visual_config(args: argparse.Namespace):
     from pydantic import ValidationError
 
     from models.visual.config import VisualConfig
-    from service.commands import named_errors
+    from texture_library.named_errors import named_errors
 
     fields: dict = {"descriptors": tuple(getattr(args, "descriptors", None) or ())}
     if getattr(args, "visual_grid", None) is not None:
@@ -399,46 +398,3 @@ def _report(args: argparse.Namespace) -> int:
     if args.readme:
         print(f"wrote the results table of {args.readme}")
     return 0
-
-
-def register_demo(sub: argparse._SubParsersAction) -> None:
-    d = sub.add_parser(
-        "demo",
-        help="the whole loop on this machine: service + simulated robot + console",
-        description="Builds a synthetic world, trains and exports a model, starts the service and a simulated "
-        "robot stroking unseen textures, and prints the operator console URL. Assets are cached in --assets.",
-    )
-    d.add_argument(
-        "--assets",
-        type=Path,
-        default=Path("artifacts/demo"),
-        help="where demo assets are built and cached (default artifacts/demo)",
-    )
-    d.add_argument("--host", default="127.0.0.1", help="address the demo's service listens on (default 127.0.0.1)")
-    d.add_argument("--port", type=int, default=8000, help="its TCP port (default 8000; 0: any free port)")
-    d.add_argument(
-        "--per-texture",
-        type=float,
-        default=20.0,
-        metavar="S",
-        help="seconds the robot strokes each texture (default 20)",
-    )
-    d.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
-    d.set_defaults(func=_demo)
-
-
-def _demo(args: argparse.Namespace) -> int:
-    import logging
-
-    from drivers.source import check_positive
-    from models.offline.demo_assets import prepared
-    from service.demo import demo
-    from service.server import check_port_free
-
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    for flag, seconds in (("--per-texture", args.per_texture), ("--duration", args.duration)):
-        if seconds is not None:
-            check_positive(flag, seconds)
-    check_port_free(args.host, args.port)  # before minutes of building assets
-    assets = prepared(args.assets)
-    return demo(assets, host=args.host, port=args.port, per_texture_s=args.per_texture, duration_s=args.duration)

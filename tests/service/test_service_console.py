@@ -629,24 +629,22 @@ def test_console_says_when_hysteresis_holds_the_choice(kit, server, client, brow
     session = kit.create_session(client, "console")  # the library, as any state, opens to a session's operator
     browser.get(f"{server.url}/console?session={session['session_id']}&token={session['operator_token']}")
     _wait(browser, lambda d: len(d.find_elements("css selector", "#library-dots circle")) == 6)
-    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
-            "switch_margin": 3.25}  # fmt: skip
+    keeping = "keeping synth_001: synth_003 is closer by 0.8; it must be closer by 12 (2 windows in a row) to take over"
+    held = {"rule": "perceptual", "reason": keeping, "held_by_hysteresis": True, "switch_margin": 3.25}
     _show(browser, _window_event(chosen="synth_001", selection=held))
-    text = _text(browser, "selection")
-    assert text.startswith("held by hysteresis: synth_003 must get 3.25 closer"), text
-    assert "rule perceptual: nearest to the smoothed ratings" in text
+    assert _text(browser, "selection") == f"rule perceptual: {keeping}"  # the terminal's sentence, word for word
     assert browser.find_element("id", "selection").get_attribute("data-held") == "true"
 
     free = held | {"held_by_hysteresis": False, "switch_margin": 1.5, "reason": "the nearest entry"}
     _show(browser, _window_event(window_index=13, selection=free))
     assert (
         _text(browser, "selection")
-        == "rule perceptual: the nearest entry (a challenger must get 1.50 closer to take over)"
+        == "rule perceptual: the nearest entry (another entry must come 1.5 closer to take over)"
     )
     assert browser.find_element("id", "selection").get_attribute("data-held") == "false"
 
     _show(browser, _window_event(window_index=14, chosen="synth_001"))  # no `selection`: an older server
-    assert _text(browser, "selection").startswith("held by hysteresis: synth_003 is nearer")
+    assert _text(browser, "selection").startswith("keeping synth_001: synth_003 is closer, but not yet")
     _show(browser, _window_event(window_index=15, selection=None))
     assert _text(browser, "selection") == "nearest entry to the smoothed ratings"
 
@@ -682,16 +680,24 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
     last = _stream_until(kit, client, server, session, blocks, 4)
     _wait(browser, lambda d: int(_text(d, "window")) >= last["window_index"])
     # the longest explanation the page gives, so the layout is checked at its fullest
-    held = {"rule": "perceptual", "reason": "nearest to the smoothed ratings", "held_by_hysteresis": True,
-            "switch_margin": 3.25}  # fmt: skip
-    later = {"window_index": 99, "t_start_s": last["t_start_s"] + 5, "t_end_s": last["t_end_s"] + 5, "selection": held}
+    keeping = (
+        "keeping synth_001: synth_003 is closer by 2.4; it must be closer by 12 (2 windows in a row), or by 69.6 more "
+        "in all, to take over"
+    )
+    held = {"rule": "perceptual", "reason": keeping, "held_by_hysteresis": True, "switch_margin": 3.25}
+    later = {"window_index": 99, "provisional": True, "t_start_s": last["t_start_s"] + 5, "t_end_s": last["t_end_s"] + 5, "selection": held}
     browser.execute_script("onEvent(JSON.parse(arguments[0]))", json.dumps(last | later))
     _wait(browser, lambda d: _text(d, "window") == "99")
+    browser.execute_script("for (let i = 0; i < 40; i++) log('a status line long enough to wrap: ' + 'x'.repeat(60))")
     width, height = browser.execute_script("return [innerWidth, innerHeight]")
     assert width <= 1366 and height <= 768
     for element_id in ("chosen", "selection", "matches", "latency-panel", "lat-total", "pad", "audio-toggle", "space"):
         box = browser.execute_script(BOX, browser.find_element("id", element_id))
         assert box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height, (element_id, box, width, height)
+    for panel in browser.find_elements("css selector", "main section"):  # every panel, the status log's too
+        box = browser.execute_script(BOX, panel)
+        label = panel.get_attribute("aria-label")
+        assert box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height, (label, box, width, height)
     assert browser.execute_script("return document.scrollingElement.scrollWidth") <= width  # no sideways scrolling
     cut = browser.execute_script(
         "return [...document.querySelectorAll('.pole, .plot-label, .conf, .legend span, header span, h2')]"
@@ -711,9 +717,9 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     demo's session has chosen, fetched from the demo's own service."""
     import asyncio
 
-    from models.offline.demo_assets import prepare_assets
+    from demo.assets import prepare_assets
+    from demo.run import run_demo
     from service.app import create_app
-    from service.demo import run_demo
     from service.settings import Settings
 
     if not _serves_models(create_app(Settings())):

@@ -15,7 +15,7 @@ from models.inference.ood import OODDetector
 from models.inference.predictor import Predictor
 from models.tactile.features import recording_features
 from service.events import WindowEvent
-from service.uncertainty import RECENT_FLAGGED, ServedModel, SessionUncertainty
+from service.uncertainty import RECENT_FLAGGED, ServedModel, SessionUncertainty, ema_variance_ratio
 from texture_library.attributes import ATTRIBUTES
 from texture_library.recording import Channel, Recording
 
@@ -67,7 +67,7 @@ def test_intervals_and_flags_equal_the_card_replayed_offline(
     windows = _windows(kit, server, client, kit.recording_blocks(rec), 8)
 
     predictor = Predictor(tactile_model)
-    cal = calibrations_from_card(predictor.card.intervals)["ema"]
+    cals = calibrations_from_card(predictor.card.intervals)
     detector = OODDetector.from_dict(predictor.card.ood)
     features, _ = recording_features(_f32(rec), predictor.tactile_config)
     check = detector.check(features[:8])
@@ -75,8 +75,10 @@ def test_intervals_and_flags_equal_the_card_replayed_offline(
     for k, w in enumerate(windows):
         flagged, distance = state.update(bool(check.flags[k]), float(check.distance[k]))
         smoothed = np.array([w["ratings"][a] for a in ATTRIBUTES])
-        lo, hi = cal.interval(smoothed, None, 0.9, ood=np.array([flagged]))
-        assert w["interval"]["level"] == 0.9 and w["interval"]["target"] == "ema"
+        target = "window" if k < 2 else "ema"  # the first two (provisional) carry the single window's band
+        lo, hi = cals[target].interval(smoothed, None, 0.9, ood=np.array([flagged]))
+        assert w["interval"]["level"] == 0.9 and w["interval"]["target"] == target
+        assert w["provisional"] is (k < 2)
         got_lo, got_hi = _bounds(w)
         assert np.allclose(got_lo, lo, atol=0.02) and np.allclose(got_hi, hi, atol=0.02)
         assert np.all(got_lo <= smoothed + 0.01) and np.all(smoothed - 0.01 <= got_hi)
@@ -93,7 +95,7 @@ def test_intervals_and_flags_equal_the_card_replayed_offline(
         assert all(w["out_of_distribution"] for w in windows)
         assert all("force_out_of_range" in w["ood_reasons"] for w in windows)
         # flagged: the band includes the population band, so it is at least as wide as that
-        _, prior = cal.quantile(0.9)
+        _, prior = cals["ema"].quantile(0.9)
         for w in windows:
             lo, hi = _bounds(w)
             assert np.all(hi - lo >= np.minimum(2 * prior, 200) - 0.05)
@@ -119,6 +121,36 @@ def test_the_flag_outlives_a_flagged_window_while_it_weighs_in_the_ema():
     assert got[2].ood_reasons == (RECENT_FLAGGED, "tactile_outlier")
     widths = [float(np.max(a.interval.hi - a.interval.lo)) for a in got]  # type: ignore[union-attr]
     assert widths[1] > widths[0] and widths[4] == pytest.approx(widths[0])
+
+
+def test_the_ema_variance_ratio_matches_a_simulated_ema():
+    """Known answer: 3 at the first window (one window's variance over α/(2 − α) = 1/3 at α 0.5), 1.5 at the second,
+    → 1; and what an EMA of white noise gives over 200,000 streams."""
+    assert [ema_variance_ratio(0.5, n) for n in (1, 2, 3)] == pytest.approx([3.0, 1.5, 1.125])
+    assert ema_variance_ratio(1.0, 1) == 1.0 and ema_variance_ratio(0.5, 60) == pytest.approx(1.0)
+    x = np.random.default_rng(0).normal(size=(200_000, 6))
+    s = x[:, 0].copy()
+    for n in range(1, 6):
+        s = 0.3 * x[:, n] + 0.7 * s
+        assert np.var(s) / (0.3 / 1.7) == pytest.approx(ema_variance_ratio(0.3, n + 1), rel=0.02)
+    with pytest.raises(ValueError, match="n ≥ 1"):
+        ema_variance_ratio(0.5, 0)
+
+
+def test_the_first_windows_are_provisional_with_the_single_windows_band():
+    """A session's first estimate is one window's: its steady-state EMA band would under-cover it. The first two
+    windows at α 0.5 carry the wider per-window band and say they are provisional; then the EMA's own band."""
+    ema = _tiny_calibration()
+    window = _tiny_calibration(noise=15.0, target="window")
+    model = ServedModel(predictor=None, calibration=ema, window_calibration=window, detector=None)  # type: ignore[arg-type]
+    state = SessionUncertainty(0.5, 0.9)
+    got = [state.update(model, np.zeros(4), None, None, None) for _ in range(4)]
+    assert [a.provisional for a in got] == [True, True, False, False]
+    assert [a.interval.target for a in got] == ["window", "window", "ema", "ema"]  # type: ignore[union-attr]
+    widths = [float(np.max(a.interval.hi - a.interval.lo)) for a in got]  # type: ignore[union-attr]
+    assert widths[0] == widths[1] > widths[2] == widths[3]
+    unsmoothed = SessionUncertainty(1.0, 0.9).update(model, np.zeros(4), None, None, None)
+    assert not unsmoothed.provisional
 
 
 def test_no_calibration_and_no_detector_give_null_never_a_made_up_interval():
@@ -147,10 +179,11 @@ def test_the_openapi_schema_shows_interval_and_flag(server):
     assert set(ATTRIBUTES) <= set(schemas["Interval"]["properties"])
 
 
-def _tiny_calibration():
+def _tiny_calibration(noise: float = 5.0, target: str = "ema"):
     from models.inference.intervals import IntervalCalibration
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(-60, 60, size=(40, 4))
-    pred = truth + rng.normal(0, 5, size=(40, 4))
-    return IntervalCalibration.fit(pred, truth, prior_ratings=truth, target="ema", ema_alpha=0.5)
+    pred = truth + rng.normal(0, noise, size=(40, 4))
+    alpha = 0.5 if target == "ema" else None
+    return IntervalCalibration.fit(pred, truth, prior_ratings=truth, target=target, ema_alpha=alpha)

@@ -189,9 +189,10 @@ def test_hysteresis_holds_until_a_challenger_wins_by_the_margin_for_hold_windows
     assert first.id == "a" and not first.held_by_hysteresis and first.switch_margin == pytest.approx(7.0)
     small = ch.choose(ids, np.array([4.0, 2.0]))  # b nearer by 2 < 3: held
     assert small.id == "a" and small.held_by_hysteresis and small.switch_margin == pytest.approx(1.0)
-    assert "under the margin" in small.reason
+    assert small.reason == "keeping a: b is closer by 2.0; it must be closer by 3 (2 windows in a row) to take over"
     once = ch.choose(ids, np.array([6.0, 2.0]))  # nearer by 4, first window of the streak
     assert once.id == "a" and once.held_by_hysteresis and once.switch_margin == 0.0
+    assert once.reason.endswith("closer by 3 (2 windows in a row, 1 so far) to take over")
     twice = ch.choose(ids, np.array([6.0, 2.0]))
     assert twice.id == "b" and not twice.held_by_hysteresis
     assert twice.reason.startswith("nearest to the estimated ratings")
@@ -212,7 +213,11 @@ def test_a_cumulative_lead_releases_a_challenger_that_never_beats_the_margin():
     ch = HysteresisChooser(SelectionRule("perceptual"), margin=10.0, hold=4, release_lead=12.0)
     assert ch.choose(ids, np.array([1.0, 5.0])).id == "a"
     first = ch.choose(ids, np.array([5.0, 0.0]))  # b cheaper by 5 < 10: held, lead 5 of 12
-    assert first.id == "a" and first.held_by_hysteresis and "lead 5.0 of 12" in first.reason
+    assert first.id == "a" and first.held_by_hysteresis
+    assert first.reason == (
+        "keeping a: b is closer by 5.0; it must be closer by 10 (4 windows in a row), or by 7.0 more in all, "
+        "to take over"
+    )
     # next window: by the margin b needs 10 − 5 = 5 more; by the lead 12 − 5 − 5 = 2 more
     assert first.switch_margin == pytest.approx(2.0)
     second = ch.choose(ids, np.array([5.0, 0.0]))  # lead 10: one window short

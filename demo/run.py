@@ -32,6 +32,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from demo.terminal import (
+    SHORT,
+    Terminal,
+    cells,
+    robot_line,
+    status_header,
+    status_line,
+    summary_table,
+    wrapped,
+)
 from drivers.blocks import Frame, SampleBlock, TapBlock
 from drivers.stop_signals import on_stop_signals
 from texture_library.attributes import ATTRIBUTES, REPORT_SCALE
@@ -44,11 +54,12 @@ SCENE_GAP_S = 1.0  # the robot lifts the tool between textures: a new stream seg
 REPORT_AFTER_S = 5.0  # seconds into each probe's stroke at which its estimate is compared with its truth
 READY_TIMEOUT_S = 120.0  # the service loads, cross-checks and warms up its models before /ready answers 200
 STOP_S = 2.0  # one Ctrl-C stops robot, feed and service within this
+PROBE_LABEL_W = 60  # a probe report's row labels, right-aligned so its ratings sit under their column heads
 
 
 @dataclasses.dataclass(frozen=True)
 class DemoAssets:
-    """What the demo runs on; built by `models.offline.demo_assets.prepare_assets`."""
+    """What the demo runs on; built by `demo.assets.prepare_assets`."""
 
     dataset: Path
     model: Path
@@ -121,36 +132,6 @@ class ProbeTour:
         self._closing = True
 
 
-def attribute_label(attribute: str) -> str:
-    """'rough_smooth' → 'rough→smooth': the two poles of a bipolar attribute, whole."""
-    low, _, high = attribute.partition("_")
-    return f"{low}→{high}"
-
-
-def _fmt(ratings: dict) -> str:
-    return " ".join(f"{attribute_label(a)} {ratings[a]:+6.1f}" for a in ATTRIBUTES)
-
-
-def _interval(event: dict) -> str:
-    """The event's interval and flag in one line (or why there is none)."""
-    i = event.get("interval")
-    band = (
-        "no interval (the model card has no calibration)"
-        if i is None
-        else f"{round(100 * i['level'])} % interval "
-        + " ".join(f"[{i[a]['lo']:+.0f}, {i[a]['hi']:+.0f}]" for a in ATTRIBUTES)
-    )
-    ood = event.get("out_of_distribution")
-    flag = (
-        ""
-        if ood is None
-        else f"; OUT OF DISTRIBUTION ({', '.join(event['ood_reasons'])})"
-        if ood
-        else "; in distribution"
-    )
-    return band + flag
-
-
 def rating_error(estimate: dict, truth: dict) -> float:
     """Mean absolute error over the four attributes on the 0–100 scale (bipolar difference ÷ 2)."""
     return float(np.mean([abs(estimate[a] - truth[a]) for a in ATTRIBUTES]) * REPORT_SCALE)
@@ -182,22 +163,13 @@ class ProbeReport:
         mean = {a: float(np.mean([r[a] for r in windows])) for a in ATTRIBUTES}
         e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
         self.errors.append((probe, e_now, e_mean))
+        heads = "".join(f"{SHORT[a]:>4}" for a in ATTRIBUTES)
         return [
-            f"── {probe}, {into:.1f} s into its stroke (unseen texture; error = mean |estimate − truth| over the "
-            f"4 attributes, 0–100 scale)",
-            f"{'':10s}console estimate  {_fmt(ratings)}   error {e_now:5.1f}",
-            f"{'':10s}mean of windows   {_fmt(mean)}   error {e_mean:5.1f}",
-            f"{'':10s}truth             {_fmt(truth)}",
+            f"{f'── {probe}, {into:.1f} s into its stroke (an unseen texture)':<{PROBE_LABEL_W}}{heads}  error",
+            f"{'console estimate':>{PROBE_LABEL_W}}{cells(ratings)}  {e_now:5.1f}",
+            f"{'mean of windows':>{PROBE_LABEL_W}}{cells(mean)}  {e_mean:5.1f}",
+            f"{'truth':>{PROBE_LABEL_W}}{cells(truth)}",
         ]
-
-    def summary(self) -> str | None:
-        if not self.errors:
-            return None
-        now, mean = np.mean([e[1] for e in self.errors]), np.mean([e[2] for e in self.errors])
-        return (
-            f"after {self.after_s:g} s of each of {len(self.errors)} probe stroke(s): mean error {now:.1f} "
-            f"(console estimate), {mean:.1f} (mean of windows) points on 0–100"
-        )
 
 
 @dataclasses.dataclass
@@ -230,50 +202,68 @@ async def print_events(
     session: str,
     token: str,
     tour: ProbeTour,
-    every_s: float = 2.0,
+    terminal: Terminal,
     report: ProbeReport | None = None,
     counts: FeedCounts | None = None,
 ) -> None:
-    """Subscribe like the console does and print a line every few seconds, and each probe's report."""
+    """Subscribe like the console does: every window updates the status line; a change of the rendered entry or of
+    hysteresis, of the out-of-distribution flag, and each probe's report get lines of their own."""
     import websockets
 
     ws_url = url.replace("http", "ws", 1) + f"/sessions/{session}/events?token={token}"
-    last = 0.0
+    shown: tuple[str, bool] | None = None  # (rendered entry, held by hysteresis) last said
+    flagged = False
     async with websockets.connect(ws_url) as ws:
         async for message in ws:
             event = json.loads(message)
             if event.get("type") != "window":
                 continue
+            t = event["t_end_s"]
             if counts is not None:
                 counts.add(event)
             if report is not None:
-                lines = report.add(event["t_end_s"], event["ratings"], event["raw_ratings"])
-                if lines:
-                    print("\n".join(lines), flush=True)
-            if time.monotonic() - last < every_s:
-                continue
-            last = time.monotonic()
+                for line in report.add(t, event["ratings"], event["raw_ratings"]):
+                    terminal.say(line)
+            selection = event.get("selection") or {}
+            held = bool(selection.get("held_by_hysteresis"))
+            if (event["chosen"], held) != shown:
+                shown = (event["chosen"], held)
+                terminal.say(wrapped(f"{t:7.1f} s rendering {event['chosen']} — {_why(event)}"))
+            if bool(event.get("out_of_distribution")) != flagged:
+                flagged = not flagged
+                reasons = ", ".join(event.get("ood_reasons") or ()) or "no reason given"
+                terminal.say(
+                    wrapped(
+                        f"{t:7.1f} s " + (f"out of distribution: {reasons}" if flagged else "in distribution again")
+                    )
+                )
             # the probe this window belongs to, from its time (the robot may be ahead, stroking the next)
-            current = tour.probe_at(event["t_end_s"])
-            truth = tour.library.entry(current).ratings
-            print(
-                f"[{event['t_end_s']:6.1f} s] stroking {current}: estimate {_fmt(event['ratings'])}\n"
-                f"{'':10s}truth of {current}: {_fmt(dict(zip(ATTRIBUTES, truth)))}\n"
-                f"{'':10s}{_interval(event)}\n"
-                f"{'':10s}rendering model: {event['chosen']}{_why(event)}\n"
-                f"{'':10s}nearest by ratings: {', '.join(m['id'] for m in event['matches'])}; "
-                f"pipeline {event['latency_ms']['total']:.1f} ms",
-                flush=True,
+            current = tour.probe_at(t)
+            truth = dict(zip(ATTRIBUTES, map(float, tour.library.entry(current).ratings)))
+            terminal.status(
+                status_line(
+                    t,
+                    current,
+                    event["ratings"],
+                    truth,
+                    rating_error(event["ratings"], truth),
+                    event["chosen"],
+                    held=held,
+                    provisional=bool(event.get("provisional")),
+                    flagged=flagged,
+                ),
+                time.monotonic(),
             )
 
 
 def _why(event: dict) -> str:
-    """Why the entry is rendered: ' — <rule> rule: <its reason>', then ' (held by hysteresis)' when the rule's own
-    pick is another entry ('' on older servers). The rule may read more than the ratings (the hybrid weighs the
+    """Why the entry is rendered, as the console says it: 'rule <rule>: <its reason>' (a held choice's reason says
+    what keeps it: 'keeping a: b is closer by …'). The rule may read more than the ratings (the hybrid weighs the
     window's vibration against each entry's), so the chosen entry need not be the nearest by ratings."""
     selection = event.get("selection") or {}
-    why = f" — {selection['rule']} rule: {selection['reason']}" if selection.get("reason") else ""
-    return why + (" (held by hysteresis)" if selection.get("held_by_hysteresis") else "")
+    if not selection.get("reason"):
+        return "nearest to the smoothed ratings"  # an older server: no reason sent
+    return f"rule {selection['rule']}: {selection['reason']}"
 
 
 class DaemonThreads(concurrent.futures.ThreadPoolExecutor):
@@ -377,7 +367,7 @@ async def run_demo(
                 main.cancel()  # a second signal: quit now
             return
         stop_asked.append(time.monotonic())
-        print("\nstopping (again to quit at once) …", flush=True)
+        print("\nstopping (again to quit at once) …", flush=True)  # before the status line stops: a plain print
         stop.set()
 
     with on_stop_signals(on_signal):  # removed after the service has stopped and the summary is printed
@@ -406,23 +396,29 @@ async def run_demo(
         truth = {i: dict(zip(ATTRIBUTES, map(float, tour.library.entry(i).ratings))) for i in tour.library.ids}
         report = ProbeReport(list(tour.library.ids), truth, per_texture_s, min(report_after_s, per_texture_s))
         counts = FeedCounts()
+        terminal = Terminal()
         started = time.monotonic()
         tasks: list[asyncio.Task] = []
         try:
             await wait_ready(url, serving, stop)  # the robot opens its session only once the service can take it
             info = await robot.open_session()
-            print(
-                f"\nservice   {url}  (API docs {url}/docs)\nconsole   {info.console_url}\n"
-                "feel it   open the console URL, press Start sound, then stroke its touch pad with a mouse, pen "
-                "or finger: the chosen texture plays in headphones (or a voice-coil on the audio jack)\n"
-                f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; "
-                "Ctrl-C to stop\n",
-                flush=True,
+            terminal.say(f"\nservice   {url}  (API docs {url}/docs)")
+            terminal.say(f"console   {info.console_url}")  # a URL is never cut: a terminal wraps it
+            terminal.say(
+                wrapped(
+                    "feel it   open the console URL, press Start sound, then stroke its touch pad with a mouse, pen "
+                    "or finger: the chosen texture plays in headphones (or a voice-coil on the audio jack)",
+                    indent=10,
+                )
             )
+            terminal.say(
+                f"robot     strokes {len(tour.library.ids)} unseen textures, {per_texture_s:g} s each; Ctrl-C to stop\n"
+            )
+            terminal.say(status_header())
             if info.operator_token is None:
                 raise RuntimeError("the service opened the demo's session without an operator token")
             printer = asyncio.create_task(
-                print_events(url, info.session_id, info.operator_token, tour, report=report, counts=counts)
+                print_events(url, info.session_id, info.operator_token, tour, terminal, report=report, counts=counts)
             )
             streaming = asyncio.create_task(robot.run(duration_s))
             stopping = asyncio.create_task(stop.wait())
@@ -451,12 +447,13 @@ async def run_demo(
                 await asyncio.gather(serving, return_exceptions=True)
             _stop_runtime(app)  # the lifespan's close did, unless serving had to be cancelled before it
             listening.close()  # uvicorn's shutdown closed it, unless serving was cancelled first
-            if report.summary():
-                print(report.summary(), flush=True)
-            print(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s", flush=True)
+            terminal.close()
+            terminal.say(f"demo summary: {counts.summary()} in {time.monotonic() - started:.1f} s")
+            if report.errors:
+                terminal.table(summary_table(report.errors, report.after_s))
             if stop_asked:
-                print(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal", flush=True)
-        print(f"robot stats: {robot.stats.as_dict()}")
+                terminal.say(f"stopped {time.monotonic() - stop_asked[0]:.2f} s after the signal")
+        terminal.say(robot_line(robot.stats.as_dict()))
 
 
 def _stop_runtime(app: FastAPI) -> None:

@@ -1,6 +1,6 @@
 """The demo's assets, built once and cached: a synthetic world, models trained on it, the library, unseen probes.
 
-Assets from another world version, model or feature set are rebuilt; `service.demo` runs on them.
+Assets from another world version, model or feature set are rebuilt; `demo.run` runs on them.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import json
 import time
 from pathlib import Path
 
-from service.demo import DemoAssets
+from demo.run import DemoAssets
 
 #: reads touch and vision, fits in a second, best exportable model on the synthetic world with these features
 #: (reports/synthetic)
@@ -97,9 +97,9 @@ def prepare_assets(
             f"building a synthetic world of {n_textures} textures",
             lambda: build("synthetic", assets.dataset, n_textures=n_textures, seed=seed),
         ),
-        (
-            True,
-            "computing features (cached after the first run)",
+        (  # only the training reads them: a warm run (both models current) skips the step and its line
+            not (assets.model.is_file() and assets.tactile.is_file()),
+            "computing features",
             lambda: featurize_dataset(assets.dataset, tactile_config=features, visual_config=visual),
         ),
         (
