@@ -7,11 +7,13 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Path, Query
 from fastapi.responses import Response
 
-from service.auth import EITHER
+from service.auth import EITHER, OPERATOR_ONLY
 from service.deps import ReadyRuntime, State, Token
 from service.errors import ServiceError
+from service.render_models import ServedRenderModel
 from service.routes.common import errors
 from service.schemas import LibraryEntryOut, LibraryOut
+from service.surface_models import SESSION_PREFIX
 from texture_library.model_codec import CONTENT_TYPE as COMPACT_CONTENT_TYPE
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel
 
@@ -71,7 +73,8 @@ async def library(
         304: {"description": "If-None-Match names the current ETag: the cached copy is current"},
         **errors(401, 403, 404, 410, 422, 503),
     },
-    summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key)",
+    summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key); "
+    "session:<session id> is that session's learnt surface model (its operator token, or a fleet API key)",
 )
 async def render_model(
     state: State,
@@ -84,10 +87,14 @@ async def render_model(
     accept: Annotated[str | None, Header()] = None,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
-    await _authorize(state, token, session)
-    served = runtime.render_models.models.get(entry_id)
-    if served is None:
-        raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
+    if entry_id.startswith(SESSION_PREFIX):
+        served = await _learnt_model(state, token, session, entry_id.removeprefix(SESSION_PREFIX))
+    else:
+        await _authorize(state, token, session)
+        entry = runtime.render_models.models.get(entry_id)
+        if entry is None:
+            raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
+        served = entry
     compact = wants_compact(accept)
     etag = f'"{served.version}.hlm1"' if compact else f'"{served.version}"'
     headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL, "Vary": "Accept"}
@@ -110,6 +117,32 @@ async def _authorize(state: State, token: str | None, session: str | None) -> No
             {"WWW-Authenticate": "Bearer"},
         )
     await state.directory.authorized(session, token, EITHER)
+
+
+async def _learnt_model(state: State, token: str | None, session: str | None, session_id: str) -> ServedRenderModel:
+    """A session's learnt surface model (service.surface_models): opened by that session's operator token (with
+    ?session=<its id>) or a fleet API key, nobody else; 421 when another replica runs the session, 404 while no
+    version is out."""
+    if session is None:
+        if not state.api_keys.check(token):
+            raise ServiceError(
+                401,
+                "a session's learnt surface model needs its operator token ('Authorization: Bearer <token>' with "
+                f"?session={session_id}) or a fleet API key",
+                {"WWW-Authenticate": "Bearer"},
+            )
+        _, live = await state.directory.credentials(session_id)
+        if live is None:
+            raise ServiceError(421, f"session {session_id} runs on another replica; route its traffic by session id")
+    else:
+        if session != session_id:
+            raise ServiceError(403, f"only session {session_id}'s operator token opens its learnt surface model")
+        live = await state.directory.local(session_id, token, OPERATOR_ONLY)
+    served = None if live.surface is None else live.surface.served
+    if served is None:
+        why = "is not learnt here (surface_model is off)" if live.surface is None else "has no version out yet"
+        raise ServiceError(404, f"session {session_id}'s surface model {why}")
+    return served
 
 
 def wants_compact(accept: str | None) -> bool:
