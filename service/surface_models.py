@@ -43,7 +43,7 @@ MAX_SEGMENTS = 512
 #: a fit runs after at least this much stream (s) has been fed since the last one, and this long (s) after it
 FIT_EVERY_S = 1.0
 #: … and after FIT_COST_RATIO × the last fit's own duration: a session's fits hold at most 1/FIT_COST_RATIO of one pool
-#: thread (a fit costs ≈ 0.7–1 s of a busy 2-core host's thread: 30 grid points × 18 ARMA order pairs)
+#: thread (a fit: ≈ 0.3 s of thread CPU, 0.7–1 s of wall on a busy 2-core host; 30 grid points × 18 ARMA order pairs)
 FIT_COST_RATIO = 4.0
 #: tap blocks waiting for the next job, at most (older ones are dropped)
 MAX_QUEUED_TAPS = 4
