@@ -1,5 +1,6 @@
-"""Subcommands of the drivers part: robot (stream a sensor source to the service) and operator (render the chosen
-textures on the operator's side: drivers/operator/cli.py)."""
+"""Subcommands of the drivers part: robot (stream a sensor source to the service), operator (render the chosen
+textures on the operator's side: drivers/operator/cli.py), and `library add --from-session` (a session's learnt
+surface model into a library: it talks HTTP, which the texture library's own commands never do)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,40 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     _register_robot(sub)
     add_operator(sub)
+    _register_library_add(sub)
+
+
+def _register_library_add(sub: argparse._SubParsersAction) -> None:
+    """`library add` beside the texture library's own actions (registered before this part's)."""
+    library = sub.choices.get("library")
+    if library is None:
+        return
+    actions = next(a for a in library._actions if isinstance(a, argparse._SubParsersAction))
+    p = actions.add_parser(
+        "add",
+        help="save a session's learnt surface model into a library, with its provenance",
+        description="Save the surface model a session has learnt from its robot's stream (the service's "
+        "HAPTICLINK_SURFACE_MODEL) into a library (created when DIR holds none), with where it came from.",
+    )
+    p.add_argument(
+        "--from-session", nargs=2, required=True, metavar=("URL", "SESSION"), help="the service and the session id"
+    )
+    p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
+    p.add_argument("--library", required=True, metavar="DIR")
+    p.add_argument("--id", metavar="ID", help="the entry's id (default: session-<session id>)")
+    p.add_argument("--name", help="the entry's name (default: the session's name, learnt)")
+    p.add_argument("--group", default="learnt", help="the entry's group (default: learnt)")
+    p.set_defaults(func=_library_add)
+
+
+def _library_add(args: argparse.Namespace) -> int:
+    from drivers.session_model import fetch_session_model, save_to_library
+
+    url, session_id = args.from_session
+    fetched = fetch_session_model(url, session_id, args.token)
+    entry = save_to_library(fetched, args.library, url, args.id, args.name, args.group)
+    print(f"added {entry.id!r} to {args.library}: {entry.provenance}")
+    return 0
 
 
 def _register_robot(sub: argparse._SubParsersAction) -> None:

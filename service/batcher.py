@@ -33,10 +33,13 @@ import time
 from concurrent.futures import Executor
 
 from service.live_session import Session
+from service.log_throttle import LogThrottle
 from service.pipeline import SessionJob, SessionResult, estimate_batch
 from service.runtime import Runtime
 
 log = logging.getLogger(__name__)
+
+_surface_failures = LogThrottle(log)
 
 MAX_SESSIONS_PER_JOB = 8
 #: ≈ 20 ms of a pool thread (≈ 1.1–1.2 ms a window in jobs of 8 sessions)
@@ -167,6 +170,25 @@ class WindowBatcher:
             batch.append((session, job))
         return batch
 
+    async def _fit_surface(self, session: Session) -> None:
+        """Fit the session's learnt surface model in the pool, still inside its job (so nothing else touches its
+        fitter), when it is due and no other session's windows wait for the pool (else it waits for a quieter job)."""
+        surface = session.surface
+        if surface is None or session.closed or session.library_pick is None or not surface.due(time.monotonic()):
+            return
+        if any(s is not session and not s.in_job for s, _ in self._ready.values()):
+            return
+        try:
+            prior = session.runtime.library.model(session.library_pick)
+            outcome = await asyncio.get_running_loop().run_in_executor(
+                self.pool, surface.fit, prior, time.monotonic(), session.library_pick
+            )
+        except Exception:  # noqa: BLE001 - the learnt model is an extra: operators keep what they have
+            if _surface_failures.admit(session.id) is not None:
+                log.warning("session %s: fitting its surface model failed", session.id, exc_info=True)
+            return
+        await session.apply_fit(outcome)
+
     async def _estimate(self, batch: list[tuple[Session, SessionJob]]) -> None:
         sessions = [s for s, _ in batch]
         runtime: Runtime = sessions[0].runtime
@@ -183,6 +205,7 @@ class WindowBatcher:
                 # A session leaves the job only once its windows are published (publishing awaits the
                 # broker): released earlier, its next job could publish later windows first.
                 await session.apply_result(result)
+                await self._fit_surface(session)
                 session.in_job = False
                 if session.has_work():
                     self.notify(session)

@@ -29,6 +29,7 @@ StatusKind = Literal[
     "robot_disconnected",  # the robot's ingest socket closed (the message says why)
     "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
+    "surface_model",  # the session's learnt surface model keeps what it serves: `reason` says why (once per surface)
 ]
 
 
@@ -144,7 +145,15 @@ class WindowEvent(BaseModel):
     )
     steadiness: Steadiness
     matches: list[MatchOut] = Field(description="top-k library entries, nearest first")
-    chosen: str = Field(description="the library entry to render (after hysteresis)")
+    chosen: str = Field(
+        description="the entry to render: the library entry (after hysteresis), or the session's learnt surface model "
+        "(session:<session id>) once a version of it is out (served like an entry: GET /library/{id}/model)"
+    )
+    library_pick: str | None = Field(
+        None,
+        description="when `chosen` is the session's learnt surface model: the library entry the selection rule picked "
+        "(the learnt model's prior); null otherwise",
+    )
     selection: SelectionOut | None = Field(None, description="why `chosen` was chosen (absent from older servers)")
     chosen_model_version: str | None = Field(
         None,
@@ -230,6 +239,7 @@ def window_event(session_id: str, w: WindowEstimate, published_ns: int) -> dict:
         "steadiness": _ratings(w.steadiness, 3),
         "matches": [{"id": m.id, "distance": round(m.distance, 3)} for m in w.matches],
         "chosen": w.chosen,
+        "library_pick": w.library_pick,
         "selection": _selection(w),
         "chosen_model_version": w.chosen_model_version,
         "latency_ms": {

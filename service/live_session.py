@@ -55,7 +55,9 @@ from service.pipeline import AdmittedBlock, SessionEstimator, SessionJob, Sessio
 from service.runtime import Runtime
 from service.schemas import SessionCounters
 from service.settings import Settings
+from service.surface_models import FitOutcome, SessionSurface
 from service.visual_queue import EmbeddingQueue
+from texture_library.attributes import ATTRIBUTES
 from texture_library.channels import UNIT_SCALE
 from texture_library.recording import Channel
 
@@ -158,6 +160,10 @@ class Session:
         self._chosen_scene: np.ndarray | None = None  # thumbnail of the scene the rendered entry was chosen on
         self._told_missing_taps = False
         self._embedder: asyncio.Task | None = None
+        # the session's learnt surface model (None: settings.surface_model is off) and the library entry the selection
+        # rule picked last (its prior)
+        self.surface = SessionSurface(session_id) if settings.surface_model else None
+        self.library_pick: str | None = None
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
         self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
         self.closed = False
@@ -230,7 +236,11 @@ class Session:
         return {"seq": block.seq, "duplicate": False, "windows_ready": self.backlog()}
 
     def _ingest_taps(self, block: TapBlock) -> dict:
-        """A tap block: its features for a taps model (422 if they cannot be computed), ignored otherwise."""
+        """A tap block: its features for a taps model (422 if they cannot be computed), ignored otherwise; its
+        transients for the learnt surface model either way."""
+        if self.surface is not None:
+            scale = UNIT_SCALE["accel"][block.accel.units]
+            self.surface.queue_taps(block.speeds, block.accel.data.astype(np.float64) * scale, block.accel.rate_hz)
         if self.runtime.needs_taps:
             accel = block.accel
             scale = UNIT_SCALE["accel"][accel.units]
@@ -311,7 +321,13 @@ class Session:
         self._pending_added = self._pending_added[cut:]
         self._pending_windows -= windows
         return SessionJob(
-            self.estimator, blocks, self.visual, windows, self.frame_checks, self.frames_shed and self.visual is None
+            self.estimator,
+            blocks,
+            self.visual,
+            windows,
+            self.frame_checks,
+            self.frames_shed and self.visual is None,
+            self.surface,
         )
 
     async def tell_waiting(self) -> None:
@@ -368,12 +384,37 @@ class Session:
         for i, w in enumerate(result.estimates):
             if i and i % PUBLISH_YIELD_EVERY == 0:
                 await asyncio.sleep(0)  # many events: let ingest and /health run between them
+            self.library_pick = w.chosen
+            served = None if self.surface is None else self.surface.served
+            if served is not None:  # operators render the surface's own model; the rule's pick is its prior
+                w = replace(w, chosen=served.model.id, chosen_model_version=served.version, library_pick=w.chosen)
             event = window_event(self.id, w, time.perf_counter_ns())
             for missing in w.missing:
                 self._metrics.windows_degraded.labels(missing=missing).inc()
             await self._publish(self.id, event, False)
             self._observe(event["latency_ms"])
         self.counters.windows += len(result.estimates)
+        await self._tell_surface()
+
+    async def apply_fit(self, outcome: FitOutcome) -> None:
+        """A fit of the learnt surface model (service.surface_models): serve its new version, if any (the next window
+        events name it), and tell bad input once."""
+        if self.closed or self.surface is None:
+            return
+        if outcome.served is not None and outcome.generation == self.surface.generation:  # not of a surface left
+            self.surface.served, self.surface.learnt = outcome.served, outcome.learnt
+        await self._tell_surface()
+
+    async def _tell_surface(self) -> None:
+        if self.surface is None:
+            return
+        for reason in self.surface.untold():
+            keeps = "the library pick" if self.surface.served is None else "its last version"
+            await self._status(
+                "surface_model",
+                f"the session's learnt surface model keeps {keeps}: {reason.value}",
+                reason=reason.name,
+            )
 
     def has_work(self) -> bool:
         return not self.closed and self._pending_windows > 0
@@ -446,6 +487,8 @@ class Session:
             return
         if self._chosen_scene is not None:  # the first frame shows the surface the session started on
             self.estimator.selector.release()
+            if self.surface is not None:
+                self.surface.scene_changed()
         self._chosen_scene = thumb
 
     def _watch_surface(self, thumb: np.ndarray) -> None:
@@ -546,4 +589,10 @@ class Session:
             "pending_blocks": len(self._pending),
             "counters": asdict(self.counters),
             "backbone": None if self.runtime.backbone_status is None else self.runtime.backbone_status.to_dict(),
+            "surface_model": None if self.surface is None else {**self.surface.status(), "ratings": self._ratings()},
         }
+
+    def _ratings(self) -> dict[str, float] | None:
+        """The session's smoothed ratings now (None before its first window)."""
+        smoothed = self.estimator.smoother.state
+        return None if smoothed is None else dict(zip(ATTRIBUTES, map(float, np.round(smoothed, 2)), strict=True))

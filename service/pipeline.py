@@ -40,6 +40,7 @@ from models.tactile.stream import StreamContract
 from service.log_throttle import LogThrottle
 from service.runtime import Runtime
 from service.smoothing import ExponentialSmoother, Steadiness
+from service.surface_models import SessionSurface, feed_job
 from service.uncertainty import Assessment, ServedModel, SessionUncertainty
 from texture_library.nearest import Match, decision_margin
 from texture_library.recording import Channel
@@ -47,6 +48,7 @@ from texture_library.selection import Choice, HysteresisChooser
 
 log = logging.getLogger(__name__)
 _batch_failures = LogThrottle(log)
+_surface_failures = LogThrottle(log)
 
 #: what a window's estimate was computed from (the window event's "inputs")
 Inputs = Literal["tactile", "tactile+visual"]
@@ -86,6 +88,7 @@ class SessionJob:
     windows: int
     frame_checks: dict[str, FrameCheck | None] = field(default_factory=dict)
     frames_shed: bool = False
+    surface: SessionSurface | None = None
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,7 @@ class WindowEstimate:
     selection: Choice | None = None
     chosen_model_version: str | None = None
     missing: tuple[str, ...] = ()
+    library_pick: str | None = None
 
 
 @dataclass(frozen=True)
@@ -477,6 +481,12 @@ def estimate_batch(runtime: Runtime, jobs: Sequence[SessionJob]) -> list[Session
         except Exception as exc:  # noqa: BLE001 - one session's failure must not cost the others their windows
             prepared.append([])
             errors.append(exc)
+        if job.surface is not None:
+            try:
+                feed_job(job.surface, job.blocks)
+            except Exception:  # noqa: BLE001 - the learnt model is an extra: its failure never costs a window
+                if _surface_failures.admit("feed") is not None:
+                    log.warning("feeding a session's surface fitter failed", exc_info=True)
     rated: list[list[Rated]] = [[] for _ in jobs]
     owners = [i for i, per_session in enumerate(prepared) for _ in per_session]  # the job of each prepared item
     try:

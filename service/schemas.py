@@ -134,6 +134,21 @@ class SessionCounters:
     tap_blocks_ignored: int = 0  # tap blocks acknowledged and ignored: the model has no taps group
 
 
+class SurfaceModelStatus(BaseModel):
+    """A session's learnt surface model (service/surface_models.py) and what its served version was learnt from."""
+
+    id: str = Field(description="session:<session id>, served at GET /library/{id}/model")
+    model_version: str | None = Field(description="the served version; null while none is out")
+    versions: int = Field(description="versions sent so far")
+    fits: int = Field(description="fits run so far")
+    segments: int = Field(description="128-sample contact segments the fitter holds")
+    contact_s: float | None = Field(None, description="seconds of contact the served version was learnt from")
+    prior: str | None = Field(None, description="the library entry it was blended with where data were thin")
+    noise_source: str | None = Field(None, description="where its noise floor came from")
+    learnt_at: float | None = Field(None, description="when the served version was learnt, Unix s")
+    ratings: dict[str, float] | None = Field(None, description="the session's smoothed ratings now")
+
+
 class SessionStatus(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
@@ -188,6 +203,9 @@ class SessionStatus(BaseModel):
     pending_blocks: int
     counters: SessionCounters
     backbone: BackboneOut | None = Field(None, description="the backbone that embeds this session's frames")
+    surface_model: SurfaceModelStatus | None = Field(
+        None, description="the session's learnt surface model (HAPTICLINK_SURFACE_MODEL); null when it is off"
+    )
 
 
 class LibraryEntryOut(BaseModel):

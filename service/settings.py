@@ -183,6 +183,13 @@ class Settings(BaseSettings):
         DEFAULT_MAX_BODY_BYTES, ge=1024, description="largest request body or WebSocket message (413 / close 1009)"
     )
     max_sessions: int = Field(256, ge=1, description="open sessions per replica; POST /sessions answers 503 beyond it")
+    surface_model: bool = Field(
+        False,
+        description="learn each session's surface model from its stream and serve it (id session:<session id>) as "
+        "the window events' `chosen` once a version is out (service/surface_models.py); off by default: "
+        "each streaming session then costs a fit (≈ 0.3 s of thread CPU) every few seconds and ≈ 0.8 MB, which the "
+        "capacity limits were not measured with",
+    )
     session_idle_s: float = Field(60.0, gt=0, description="a session with no traffic for this long is ended")
     session_first_block_s: float = Field(
         15.0,

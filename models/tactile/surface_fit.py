@@ -91,6 +91,8 @@ MIN_BUMP_PATH_MM = 100.0
 #: little at every period, so significance alone passes micrometre "bumps" on a flat surface
 MIN_BUMP_MM = 0.02
 MU_PRIOR_S = 0.25
+#: the least spectral density a fit holds, (m/s²)²/Hz: ≈ 60 dB below an accelerometer's noise floor
+SPECTRUM_FLOOR = 1e-12
 MAX_TAPS = 16
 #: a block clips when an axis sits at its extreme for at least this many consecutive samples
 CLIP_RUN = 3
@@ -209,15 +211,20 @@ def arma_from_psd(
     for p, q in orders:
         b = np.array([1.0])
         a = np.array([1.0])
+        # Levinson's polynomials are minimum-phase: only the final pair needs its LSFs checked (root finding is
+        # most of a fit's cost)
         for _ in range(ARMA_ITERATIONS if q else 1):
             polys, _, _ = ar_from_psd(s / _poly_power(b, n_fft), rate_hz, 1.0, max_order=p)
-            a = _pull_in(polys[p - 1])
+            a = polys[p - 1]
             if not q:
                 break
             inverse = 1.0 / (s * _poly_power(a, n_fft))
             inverse /= inverse[band].mean()
             polys, _, _ = ar_from_psd(inverse, rate_hz, 1.0, max_order=q)
-            b = _pull_in(polys[q - 1])
+            b = polys[q - 1]
+        a = _pull_in(a)
+        if q:
+            b = _pull_in(b)
         shape = 2.0 * _poly_power(b, n_fft) / (rate_hz * _poly_power(a, n_fft))
         variance = float(np.exp(np.mean(np.log(s[band] / shape[band]))))
         model = variance * shape
@@ -278,15 +285,21 @@ def bump_regressors(x: np.ndarray, v: np.ndarray, dv: np.ndarray, periods_mm: np
 class SurfaceFitter:
     """Accumulates a session's accepted blocks into bounded statistics; `fit(prior)` makes the model.
 
-    Memory: at most MAX_SEGMENTS segments (normal acceleration, velocity and position, 128 float32 each: 3 MB;
-    kept raw so that bumps found later come off every segment before its spectrum is taken), the bump normal
-    equations (240 periods × 5 numbers), MAX_TAPS taps, a few running sums; CPU per block: one FFT per
-    64 samples and 240 × n trigonometric terms. `fit` costs a (30 × 30) solve and 30 Levinson recursions.
+    Memory: at most max_segments (default MAX_SEGMENTS) segments (normal acceleration, velocity and position,
+    128 float32 each: 3 MB at the default; kept raw so that bumps found later come off every segment before its
+    spectrum is taken), the bump normal equations (240 periods × 5 numbers), MAX_TAPS taps, a few running sums;
+    CPU per block: one FFT per 64 samples and 240 × n trigonometric terms. `fit` costs a (30 × 30) solve and 30
+    Levinson recursions.
     """
 
-    def __init__(self, rate_hz: float = RENDER_RATE_HZ, declared_noise_psd: float | None = None) -> None:
+    def __init__(
+        self, rate_hz: float = RENDER_RATE_HZ, declared_noise_psd: float | None = None, max_segments: int = MAX_SEGMENTS
+    ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        if max_segments < MIN_SEGMENTS:
+            raise ValueError(f"max_segments must be ≥ {MIN_SEGMENTS} (a fit's minimum), got {max_segments}")
+        self.max_segments = int(max_segments)
         if declared_noise_psd is not None and not (math.isfinite(declared_noise_psd) and declared_noise_psd >= 0):
             raise ValueError(f"declared_noise_psd must be finite and ≥ 0 (m/s²)²/Hz, got {declared_noise_psd}")
         self.rate_hz = float(rate_hz)
@@ -320,11 +333,12 @@ class SurfaceFitter:
         self._pending = np.zeros((0, 6))  # accel x3, normal force, signed speed, position
         self._gravity = np.zeros(3)
         self._gravity_n = 0
-        self._raw = np.zeros((MAX_SEGMENTS, 3, SEGMENT), np.float32)  # normal accel, signed velocity, position
-        self._idx = np.zeros((MAX_SEGMENTS, 3), np.int64)
-        self._w = np.zeros((MAX_SEGMENTS, 3))
-        self._vrange = np.zeros((MAX_SEGMENTS, 2))
-        self._count = 0  # segments seen (the ring's write position is count % MAX_SEGMENTS)
+        k = self.max_segments
+        self._raw = np.zeros((k, 3, SEGMENT), np.float32)  # normal accel, signed velocity, position
+        self._idx = np.zeros((k, 3), np.int64)
+        self._w = np.zeros((k, 3))
+        self._vrange = np.zeros((k, 2))
+        self._count = 0  # segments seen (the ring's write position is count % max_segments)
         self._slow = 0
         self._free_sum, self._free_n = 0.0, 0
         self._free_pending = np.zeros((0, 3))
@@ -467,7 +481,7 @@ class SurfaceFitter:
             axis = self._normal_axis()
             an = seg[:, :3] @ axis
             self._accumulate_bumps(an, seg[:, 4], seg[:, 5])
-            slot = self._count % MAX_SEGMENTS
+            slot = self._count % self.max_segments
             self._raw[slot] = an, seg[:, 4], seg[:, 5]
             idx, w = barycentric(self._template, np.array([speed.mean()]), np.array([normal.mean()]))
             self._idx[slot], self._w[slot] = idx[0], w[0]
@@ -490,7 +504,7 @@ class SurfaceFitter:
     # ---- estimates -------------------------------------------------------------------------------------
     @property
     def segments(self) -> int:
-        return min(self._count, MAX_SEGMENTS)
+        return min(self._count, self.max_segments)
 
     def noise(self) -> tuple[float, str]:
         """The noise floor on the normal axis, (m/s²)²/Hz, and where it came from."""
@@ -608,16 +622,18 @@ class SurfaceFitter:
         # bin is exponentially distributed about S + N, so E[ln P] = ln(S + N) − γ (Euler's γ).
         prior_psd = arma_psd(prior, self.grid_speeds, self.grid_forces, self.freqs)
         lhs = weights.T @ weights + prior_segments * np.eye(m)
-        log_rows = np.log(np.maximum(rows, 1e-300)) + np.euler_gamma
+        log_rows = np.log(np.maximum(rows, SPECTRUM_FLOOR)) + np.euler_gamma
         log_rows[:, [0, -1]] += np.log(2.0)  # DC and Nyquist are real: χ² with 1 dof, E[ln] = ln S − γ − ln 2
-        rhs = weights.T @ log_rows + prior_segments * np.log(np.maximum(prior_psd + noise_psd, 1e-300))
+        # a prior silent somewhere (zero variance at a grid point) pulls towards the floor, not towards ln 0: a log
+        # spectrum hundreds of nepers deep would drag the blend of a half-confident point into an unfittable one
+        rhs = weights.T @ log_rows + prior_segments * np.log(np.maximum(prior_psd + noise_psd, SPECTRUM_FLOOR))
         spectra = np.exp(np.linalg.solve(lhs, rhs)) - noise_psd
         # below the noise floor the stream only bounds the surface from above: there the prior stands where it
         # lies below what was measured, and the measurement (at least NOISE_CLIP × the floor) where it does not
         hidden = spectra < noise_psd
         measured = np.maximum(spectra, NOISE_CLIP * noise_psd)
         spectra = np.where(hidden, np.minimum(prior_psd, measured), spectra)
-        spectra = np.maximum(spectra, 1e-12)
+        spectra = np.maximum(spectra, SPECTRUM_FLOOR)
         low = self.freqs < BAND_HZ[0]
         first = int(np.argmax(~low))
         spectra[:, low] = spectra[:, [first]]

@@ -7,11 +7,13 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Header, Path, Query
 from fastapi.responses import Response
 
-from service.auth import EITHER
+from service.auth import EITHER, OPERATOR_ONLY
 from service.deps import ReadyRuntime, State, Token
 from service.errors import ServiceError, session_not_found
+from service.render_models import ServedRenderModel
 from service.routes.common import errors
 from service.schemas import LibraryEntryOut, LibraryOut
+from service.surface_models import SESSION_PREFIX
 from texture_library.model_codec import CONTENT_TYPE as COMPACT_CONTENT_TYPE
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel
 
@@ -63,18 +65,27 @@ async def library(_: LibraryReader, runtime: ReadyRuntime) -> LibraryOut:
         304: {"description": "If-None-Match names the current ETag: the cached copy is current"},
         **errors(401, 403, 404, 410, 422, 503),
     },
-    summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key)",
+    summary="An entry's rendering model (a session's robot or operator token with ?session=, or a fleet API key); "
+    "session:<session id> is that session's learnt surface model (its operator token, or a fleet API key)",
 )
 async def render_model(
     _: LibraryReader,
+    state: State,
     runtime: ReadyRuntime,
+    token: Token,
     entry_id: Annotated[str, Path(max_length=128)],
+    # judged by LibraryReader first (the credential before anything else); read here for a learnt model's owner
+    session: Annotated[str | None, Query(include_in_schema=False)] = None,
     accept: Annotated[str | None, Header()] = None,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
-    served = runtime.render_models.models.get(entry_id)
-    if served is None:
-        raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
+    if entry_id.startswith(SESSION_PREFIX):
+        served = await _learnt_model(state, token, session, entry_id.removeprefix(SESSION_PREFIX))
+    else:
+        entry = runtime.render_models.models.get(entry_id)
+        if entry is None:
+            raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
+        served = entry
     compact = wants_compact(accept)
     etag = f'"{served.version}.hlm1"' if compact else f'"{served.version}"'
     headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL, "Vary": "Accept"}
@@ -112,6 +123,26 @@ async def library_reader(
 #: the longest ?session= read (a session id is far shorter)
 MAX_SESSION_PARAM = 200
 LibraryReader = Annotated[None, Depends(library_reader)]
+
+
+async def _learnt_model(state: State, token: str | None, session: str | None, session_id: str) -> ServedRenderModel:
+    """A session's learnt surface model (service.surface_models): opened by that session's operator token (with
+    ?session=<its id>) or a fleet API key, nobody else; 421 when another replica runs the session, 404 while no
+    version is out."""
+    # the credential itself was judged first (LibraryReader): a fleet key, or some session's token
+    if state.api_keys.check(token):
+        _, live = await state.directory.credentials(session_id)
+        if live is None:
+            raise ServiceError(421, f"session {session_id} runs on another replica; route its traffic by session id")
+    else:
+        if session != session_id:
+            raise ServiceError(403, f"only session {session_id}'s operator token opens its learnt surface model")
+        live = await state.directory.local(session_id, token, OPERATOR_ONLY)
+    served = None if live.surface is None else live.surface.served
+    if served is None:
+        why = "is not learnt here (surface_model is off)" if live.surface is None else "has no version out yet"
+        raise ServiceError(404, f"session {session_id}'s surface model {why}")
+    return served
 
 
 def wants_compact(accept: str | None) -> bool:
