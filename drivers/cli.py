@@ -17,6 +17,7 @@ SOURCE_SPECS = (
     "serial:PORT[:BAUD]",
     "usb:VID:PID",
     "camera-dir:DIR",
+    "rosbag:PATH",
 )
 
 
@@ -30,8 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _register_robot(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "robot",
-        help="stream a sensor source (simulated, replay, serial, usb, camera-dir) to the service",
+        help="stream a sensor source (simulated, replay, serial, usb, camera-dir, rosbag) to the service",
         description="Stream a sensor source to a hapticlink service, reconnecting and resending across outages.",
+        epilog=_rosbag_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--source", required=True, metavar="SPEC", help="one of: " + ", ".join(SOURCE_SPECS))
     p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
@@ -75,6 +78,11 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--loop", action="store_true", help="replay: play the recording again and again")
     p.add_argument(
+        "--topics",
+        metavar="YAML",
+        help="rosbag: which topics feed which channels (default: the topic map below; copy it and edit it)",
+    )
+    p.add_argument(
         "--start-seq",
         type=int,
         default=0,
@@ -106,6 +114,15 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)
+
+
+def _rosbag_epilog() -> str:
+    from drivers.rosbag_mapping import default_topics_text
+
+    return (
+        "rosbag:PATH reads a ROS 2 bag (a bag folder, .db3 or .mcap) recorded by your robot, paced at its own "
+        "stamps.\nIts default topic map (--topics YAML to change it):\n\n" + default_topics_text()
+    )
 
 
 def _split_dir_id(kind: str, rest: str, what: str) -> tuple[Path, str]:
@@ -140,6 +157,7 @@ def source_from_spec(
     recording: int = 0,
     loop: bool = False,
     taps: bool = False,
+    topics: str | None = None,
 ):
     """Build the SensorSource a SPEC names (see SOURCE_SPECS); ValueError says what is wrong with it."""
     kind, sep, rest = spec.partition(":")
@@ -182,6 +200,13 @@ def source_from_spec(
         if len(parts) != 2:
             raise ValueError(f"source usb: expected usb:VID:PID in hexadecimal, got {spec!r}")
         return UsbDaqSource(_parse_usb_id("VID", parts[0]), _parse_usb_id("PID", parts[1]), block_s=block_s)
+    if topics is not None and kind != "rosbag":
+        raise ValueError(f"--topics: only the rosbag source reads a topic map, not {kind!r}")
+    if kind == "rosbag":
+        from drivers.rosbag_mapping import load_topic_map
+        from drivers.rosbag_source import RosbagSource
+
+        return RosbagSource(rest, load_topic_map(topics), block_s=block_s, realtime=realtime)
     if kind == "camera-dir":
         from drivers.camera import WatchedDirectorySource
 
@@ -220,6 +245,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         recording=args.recording,
         loop=args.loop,
         taps=args.taps,
+        topics=args.topics,
     )
     client = RobotClient(
         args.url,
