@@ -19,6 +19,7 @@ from benchmarks import (
     hostile_chart,
     refusals,
     renderer,
+    rosbag_read,
     service,
     uncertainty,
     visual,
@@ -56,6 +57,8 @@ def main(argv: list[str]) -> int:
     window_batch.main([])
     print("\n== the event loop: what a block costs before the window pool, against the bare parse ==", flush=True)
     block_intake.main([])
+    print("\n== ROS 2 bags: a 10-minute bag read by RosbagSource against rosbags' bare read ==", flush=True)
+    rosbag_read.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: what a posted frame costs, against a /health GET ==", flush=True)

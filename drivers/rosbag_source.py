@@ -20,6 +20,7 @@ ends early; the service estimates no window that lacks one.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import sqlite3
@@ -30,8 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.blocks import Frame, SampleBlock
-from drivers.camera import encode_image, png_bytes
+from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, SampleBlock, check_frame_pixels, frame_bomb
+from drivers.camera import encode_image, png_bytes, sniff_content_type
+from drivers.rosbag_cdr import LAYOUT, decode_batch
 from drivers.rosbag_mapping import (
     CHANNEL_TYPES,
     COMPRESSED_IMAGE,
@@ -64,6 +66,8 @@ LOOKS_LIKE_G = (0.5, 2.0)
 GRAVITY_TOO_LARGE = 5.0 * STANDARD_GRAVITY
 #: a gravity magnitude below this is "removed by the driver": nothing to judge the units by
 GRAVITY_PRESENT = 0.3
+#: messages of one topic decoded together (drivers.rosbag_cdr): 4096 IMU messages are 1.3 MB
+BATCH = 4096
 
 
 class BagError(ValueError):
@@ -199,6 +203,50 @@ class _Decoder:
         self.stamps: list[int] = []
         self.rows: list[tuple[float, ...]] = []
         self.frames: set[str] = set()
+        self.batches: list[tuple[np.ndarray, np.ndarray]] = []  # (stamps, vectors) decoded a batch at a time
+        self.pending: list[bytes] = []
+        self.first_pending = 0  # message index of pending[0]
+        self._deserialize = _deserializer()
+
+    def add_raw(self, index: int, raw: bytes) -> None:
+        """One raw message (message `index` of the topic): batched for decode_batch where the type allows."""
+        if self.msgtype not in LAYOUT:
+            self._add_one(index, raw)
+            return
+        if not self.pending:
+            self.first_pending = index
+        self.pending.append(raw)
+        if len(self.pending) >= BATCH:
+            self._flush()
+
+    def _flush(self) -> None:
+        raws, first = self.pending, self.first_pending
+        self.pending = []
+        batch = decode_batch(raws, self.msgtype)
+        if batch is None or (self.msgtype == WRENCH and self.map.force_frame not in (None, batch.frame_id)):
+            for k, raw in enumerate(raws):  # rosbags reads it, and names the message at fault
+                self._add_one(first + k, raw)
+            return
+        if self.msgtype == WRENCH:
+            self.frames.add(batch.frame_id)
+        self._keep_rows()
+        self.batches.append((batch.stamps_ns, batch.vectors))
+
+    def _keep_rows(self) -> None:
+        """Rows decoded one by one so far, as a batch (keeps the topic's messages in their order)."""
+        if self.stamps:
+            self.batches.append((np.asarray(self.stamps, dtype=np.int64), np.asarray(self.rows, dtype=np.float64)))
+            self.stamps, self.rows = [], []
+
+    def _add_one(self, index: int, raw: bytes) -> None:
+        from rosbags.serde import SerdeError
+
+        try:
+            msg = self._deserialize(raw, self.msgtype)
+        except (SerdeError, ValueError, IndexError, KeyError, UnicodeDecodeError, AssertionError) as exc:
+            where = f"{self.path}: topic {self.topic} message {index}"
+            raise BagError(f"{where}: not a valid {self.msgtype} ({exc})") from None
+        self.add(index, msg)
 
     def add(self, index: int, msg: Any) -> None:
         self.stamps.append(_stamp_ns(msg))
@@ -230,15 +278,20 @@ class _Decoder:
 
     def finish(self) -> TopicSamples:
         where = f"{self.path}: topic {self.topic} ({self.msgtype})"
-        if not self.stamps:
+        if self.pending:
+            self._flush()
+        if self.channel == "frames":
+            self.rows = [() for _ in self.stamps]
+        self._keep_rows()
+        if not self.batches:
             raise BagError(f"{where}: no messages")
         if len(self.frames) > 1:
             raise BagError(
                 f"{where}: the wrench comes in frames {sorted(self.frames)}; name the one whose normal axis the "
                 "topic map gives (force.frame)"
             )
-        stamps = np.asarray(self.stamps, dtype=np.int64)
-        values = np.asarray(self.rows, dtype=np.float64).reshape(len(self.stamps), -1)
+        stamps = np.concatenate([b[0] for b in self.batches])
+        values = np.concatenate([b[1].reshape(b[0].shape[0], -1) for b in self.batches])
         stamps, values, repeats = _ordered(stamps, values, self.map.reorder_s, where)
         out = TopicSamples(self.channel, self.topic, self.msgtype, stamps, values, dropped_repeats=repeats)
         if self.channel == "frames":
@@ -354,8 +407,6 @@ def _image_array(msg: Any, topic: str) -> np.ndarray:
 
 def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
     """Read and judge the bag's mapped topics (pass 1, see the module's docstring); BagError names what is wrong."""
-    from rosbags.serde import SerdeError
-
     path = Path(path)
     topic_map = topic_map or load_topic_map()
     reader = open_bag(path)
@@ -367,19 +418,12 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
             raise BagError(f"{path}: no {IMU} topic to read acceleration from (accel.topic); the bag holds {listing}")
         decoders = {t: _Decoder(ch, t, topics[t], topic_map, path) for ch, t in chosen.items() if t is not None}
         wanted = [c for c in reader.connections if c.topic in decoders]
-        deserialize = _deserializer()
         counts = dict.fromkeys(decoders, 0)
         try:
             for conn, _, raw in reader.messages(connections=wanted):
                 index = counts[conn.topic]
                 counts[conn.topic] = index + 1
-                try:
-                    msg = deserialize(raw, conn.msgtype)
-                except (SerdeError, ValueError, IndexError, KeyError, UnicodeDecodeError) as exc:
-                    raise BagError(
-                        f"{path}: topic {conn.topic} message {index}: not a valid {conn.msgtype} ({exc})"
-                    ) from None
-                decoders[conn.topic].add(index, msg)
+                decoders[conn.topic].add_raw(index, raw)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - sqlite, mcap, zstd: a truncated bag surfaces in any of them
@@ -465,6 +509,29 @@ def bag_blocks(scan: BagScan, block_s: float | None = None, seq0: int = 0) -> It
             seq = b.seq + 1
 
 
+def _compressed_frame(data: bytes, label: str) -> tuple[bytes, str]:
+    """A CompressedImage's bytes ready to send: PNG or JPEG as they are, judged by their header alone (the robot
+    client decodes each frame for its scene-change check and the service to embed it, so a full decode here would
+    be a third, and costs more than the rest of the bag's reading); other formats re-encoded by encode_image."""
+    from PIL import Image, UnidentifiedImageError
+
+    ctype = sniff_content_type(data)
+    if ctype is None:
+        return encode_image(data, label)
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            check_frame_pixels(*img.size, label)
+    except Image.DecompressionBombError as exc:
+        raise frame_bomb(exc, label) from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise ValueError(f"{label}: not a readable image ({exc})") from None
+    if len(data) > DEFAULT_MAX_BODY_BYTES:
+        raise ValueError(
+            f"{label}: {len(data) / 2**20:.1f} MiB; the service takes {DEFAULT_MAX_BODY_BYTES} bytes at most"
+        )
+    return data, ctype
+
+
 def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
     """The camera topic's images, read again one at a time, as Frames at their header.stamp (s); an image that
     will not encode is skipped with a warning (a glitch in the camera never ends the stream)."""
@@ -479,7 +546,7 @@ def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
             label = f"{scan.path}: topic {conn.topic} message {index}"
             try:
                 if conn.msgtype == COMPRESSED_IMAGE:
-                    data, ctype = encode_image(bytes(msg.data), label)
+                    data, ctype = _compressed_frame(bytes(msg.data), label)
                 else:
                     data, ctype = png_bytes(_image_array(msg, conn.topic)), "image/png"
             except ValueError as exc:

@@ -13,6 +13,8 @@ import pytest
 
 from drivers.blocks import Frame, SampleBlock
 from drivers.camera import png_bytes
+from drivers.rosbag_mapping import IMU as IMU_TYPE
+from drivers.rosbag_mapping import WRENCH as WRENCH_TYPE
 from drivers.rosbag_mapping import TopicMap, load_topic_map, topic_map_from_dict
 from drivers.rosbag_source import BagError, RosbagSource, scan_bag
 from drivers.rosbag_writer import DEFAULT_START_NS, TOPICS, storage_file, stroke_messages, write_bag
@@ -299,3 +301,38 @@ def test_a_folder_of_bags_builds_a_dataset_whole_or_not_at_all(stroke, tmp_path)
     with pytest.raises(BagError, match=r"cork/run1.db3: not an SQLite database"):
         build("rosbag", tmp_path / "ds2", path=src)
     assert not (tmp_path / "ds2").exists() and not (tmp_path / "ds2.partial").exists()
+
+
+# ---- the batch codec agrees with rosbags ---------------------------------------------------------------
+def test_the_batch_codec_reads_and_writes_what_rosbags_does(stroke):
+    from rosbags.typesys import Stores, get_typestore
+
+    from drivers.rosbag_cdr import decode_batch
+    from drivers.rosbag_writer import stroke_raw_messages
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    items, _ = stroke
+    sim = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (_concat(sim, k)[:500].astype(np.float64) for k in ("accel", "force", "speed"))
+    slow = [(t, s, bytes(ts.serialize_cdr(m, m.__msgtype__))) for t, s, m in stroke_messages(accel, force, speed, 1e3)]
+    fast = [(t, s, m.data) for t, s, m in stroke_raw_messages(accel, force, speed, 1e3)]
+    assert fast == slow, "encode_batch writes rosbags' own bytes"
+    for topic, msgtype in ((TOPICS["accel"], IMU_TYPE), (TOPICS["force"], WRENCH_TYPE)):
+        raws = [r for t, _, r in slow if t == topic]
+        batch = decode_batch(raws, msgtype)
+        assert batch is not None
+        for k, raw in enumerate(raws):
+            msg = ts.deserialize_cdr(raw, msgtype)
+            vec = msg.linear_acceleration if msgtype == IMU_TYPE else msg.wrench.force
+            assert batch.vectors[k].tolist() == [vec.x, vec.y, vec.z]
+            assert batch.stamps_ns[k] == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    wrenches = [r for t, _, r in slow if t == TOPICS["force"]]
+    other = ts.serialize_cdr(ts.deserialize_cdr(wrenches[0], WRENCH_TYPE), WRENCH_TYPE)
+    assert decode_batch(wrenches[:3] + [bytes(other)], WRENCH_TYPE) is not None, "same length, same frame: one batch"
+    msg = ts.deserialize_cdr(wrenches[0], WRENCH_TYPE)
+    msg.header.frame_id = "tool0_fx"  # same length, another frame: rosbags reads that batch, message by message
+    assert decode_batch(wrenches[:3] + [bytes(ts.serialize_cdr(msg, WRENCH_TYPE))], WRENCH_TYPE) is None
+    msg.header.frame_id = "ft"
+    assert decode_batch(wrenches[:3] + [bytes(ts.serialize_cdr(msg, WRENCH_TYPE))], WRENCH_TYPE) is None
+    big_endian = b"\x00\x00" + wrenches[0][2:]
+    assert decode_batch([big_endian], WRENCH_TYPE) is None
