@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     _register_robot(sub)
     add_operator(sub)
+    _register_record(sub)
 
 
 def _register_robot(sub: argparse._SubParsersAction) -> None:
@@ -114,6 +115,38 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)
+
+
+def _register_record(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "record",
+        help="record a session's estimates as MCAP, on the robot's clock (open it in Foxglove beside the robot's bag)",
+        description="Follow a session's event feed and write every event into an MCAP file: JSON channels with JSON "
+        "schemas for the ratings and their intervals, the OOD flag, the chosen model and its version, the latency, "
+        "and status events, logged at each window's end on the robot's clock (docs/ros2.md).",
+    )
+    p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", required=True, metavar="ID", help="the session to record")
+    p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
+    p.add_argument("--mcap", required=True, metavar="OUT", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the session's end)")
+    p.set_defaults(func=_run_record)
+
+
+def _run_record(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from drivers.estimates_mcap import SessionRecorder
+
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    recorder = SessionRecorder(args.url, args.session, args.token, args.mcap)
+    try:
+        n = asyncio.run(recorder.run(args.duration))
+    except KeyboardInterrupt:
+        n = recorder.events
+    print(f"recorded {n} event(s) into {args.mcap}")
+    return 0
 
 
 def _rosbag_epilog() -> str:

@@ -94,3 +94,76 @@ def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates
 
 async def _take(source) -> list:
     return [item async for item in source]
+
+
+def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_clock(
+    kit, server, library_dir, tmp_path
+):
+    """A bag streamed into a session while `SessionRecorder` (hapticlink record --mcap) and an operator follow its
+    feed: the MCAP file opens with the mcap reader, its channels carry JSON schemas, it holds every event the
+    operator's feed carried, and each window is logged at its end on the robot's clock (the bag's header stamps)."""
+    from mcap.reader import make_reader
+
+    from drivers.estimates_mcap import CHANNELS, SessionRecorder
+
+    model = Library.load(library_dir).model("synth_003")
+    items = asyncio.run(_take(SimulatedSource(model, seed=7, realtime=False, duration_s=SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "mcap")
+    out = tmp_path / "estimates.mcap"
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "record")
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+
+        async def main() -> int:
+            recorder = SessionRecorder(server.url, session["session_id"], session["operator_token"], out)
+            task = asyncio.ensure_future(recorder.run())
+            await asyncio.wait_for(recorder.subscribed.wait(), 10)
+            robot = RobotClient(
+                server.url,
+                RosbagSource(bag, realtime=False),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+            )
+            await robot.run()
+            await asyncio.sleep(QUIET_S)  # the last windows are estimated and published
+            recorder.stop()
+            return await task
+
+        written = asyncio.run(main())
+        feed = []
+        while True:
+            try:
+                feed.append(json.loads(sub.recv(timeout=1.0)))
+            except TimeoutError:
+                break
+    with out.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {s.id: s for s in summary.schemas.values()}
+        topics = {c.topic: schemas[c.schema_id] for c in summary.channels.values()}
+        assert set(topics) == set(CHANNELS)
+        assert all(s.encoding == "jsonschema" and json.loads(s.data)["type"] == "object" for s in topics.values())
+        recorded: dict[str, list] = {t: [] for t in CHANNELS}
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            recorded[channel.topic].append((message.log_time, json.loads(message.data)))
+    windows = [e for e in feed if e["type"] == "window"]
+    assert len(windows) >= 5
+    assert [e for _, e in recorded["/hapticlink/window"]] == windows, "every window event, whole, in order"
+    statuses = [e for e in feed if e["type"] == "status"]
+    assert [e for _, e in recorded["/hapticlink/status"]][1:] == statuses, "and every status (after its own hello)"
+    assert written == len(windows) + len(statuses) + 1
+    for topic in ("/hapticlink/ratings", "/hapticlink/ood", "/hapticlink/model", "/hapticlink/latency"):
+        assert [m["window_index"] for _, m in recorded[topic]] == [w["window_index"] for w in windows]
+    for (log_ns, ratings), w in zip(recorded["/hapticlink/ratings"], windows):
+        assert log_ns == round(w["t_end_s"] * 1e9) and ratings["interval"] == w["interval"]
+        assert ratings["ratings"] == w["ratings"] and ratings["raw_ratings"] == w["raw_ratings"]
+    assert recorded["/hapticlink/window"][0][0] == pytest.approx(1_700_000_000.5e9, abs=1e3), "the bag's clock"
+    models = [m for _, m in recorded["/hapticlink/model"]]
+    assert all(
+        m["chosen"] == w["chosen"] and m["chosen_model_version"] == w["chosen_model_version"]
+        for m, w in zip(models, windows)
+    )
