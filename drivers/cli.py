@@ -128,24 +128,49 @@ def _register_record(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
     p.add_argument("--session", required=True, metavar="ID", help="the session to record")
     p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
-    p.add_argument("--mcap", required=True, metavar="OUT", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument("--mcap", metavar="OUT", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="also publish the same channels live over the Foxglove WebSocket protocol (off by default; host "
+        "127.0.0.1 unless given): open ws://HOST:PORT in Foxglove",
+    )
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the session's end)")
     p.set_defaults(func=_run_record)
 
 
 def _run_record(args: argparse.Namespace) -> int:
     import asyncio
+    from pathlib import Path
 
-    from drivers.estimates_mcap import SessionRecorder
+    from drivers.estimates_mcap import EstimatesMcap, EventSink, SessionRecorder
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
-    recorder = SessionRecorder(args.url, args.session, args.token, args.mcap)
+    if args.mcap is None and args.foxglove is None:
+        raise ValueError("record: give --mcap OUT, --foxglove [HOST:]PORT, or both")
+    sinks: list[EventSink] = []
+    if args.foxglove is not None:
+        from drivers.estimates_foxglove import FoxgloveLive
+
+        host, _, port = args.foxglove.rpartition(":")
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"--foxglove: expected [HOST:]PORT with a port in 1…65535, got {args.foxglove!r}")
+        live = FoxgloveLive(host or "127.0.0.1", int(port))
+        print(f"foxglove: open {live.url} in Foxglove (Open connection → Foxglove WebSocket)", flush=True)
+        sinks.append(live)
+    mcap_file = None if args.mcap is None else Path(args.mcap).open("wb")
+    if mcap_file is not None:
+        sinks.append(EstimatesMcap(mcap_file))
+    recorder = SessionRecorder(args.url, args.session, args.token, sinks)
     try:
         n = asyncio.run(recorder.run(args.duration))
     except KeyboardInterrupt:
         n = recorder.events
-    print(f"recorded {n} event(s) into {args.mcap}")
+    finally:
+        if mcap_file is not None:
+            mcap_file.close()
+    print(f"recorded {n} event(s)" + (f" into {args.mcap}" if args.mcap else ""))
     return 0
 
 

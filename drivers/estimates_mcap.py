@@ -24,8 +24,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Protocol
 
 from drivers.protocol import FATAL_CLOSES, check_service_url, ws_url
 from drivers.robot.backoff import Backoff, body_detail
@@ -128,8 +127,29 @@ CHANNELS: dict[str, tuple[str, dict[str, Any], tuple[str, ...] | None]] = {
 }
 
 
+def event_messages(event: dict[str, Any], robot_ns: int) -> tuple[list[tuple[str, dict[str, Any], int]], int]:
+    """The messages (topic, payload, log time ns) one feed event makes, and the robot time (ns) after it: a window's
+    end, or `robot_ns` unchanged. A window without a usable t_end_s, or an event of another type, makes none."""
+    kind = event.get("type")
+    if kind == "status":
+        return [("/hapticlink/status", event, robot_ns)], robot_ns
+    if kind != "window":
+        return [], robot_ns
+    t_end = event.get("t_end_s")
+    if not isinstance(t_end, (int, float)) or isinstance(t_end, bool) or not 0 <= t_end < 2**63 / 1e9:
+        log.warning("window event without a usable t_end_s (%r): not recorded", t_end)
+        return [], robot_ns
+    log_ns = int(round(float(t_end) * 1e9))
+    out = [
+        (topic, event if fields is None else {k: event.get(k) for k in fields}, log_ns)
+        for topic, (_, _, fields) in CHANNELS.items()
+        if topic != "/hapticlink/status"
+    ]
+    return out, max(robot_ns, log_ns)
+
+
 class EstimatesMcap:
-    """Writes feed events (parsed JSON objects) into an MCAP stream (see the module's docstring)."""
+    """Writes the channels' messages into an MCAP stream, each channel with its JSON schema."""
 
     def __init__(self, stream: BinaryIO) -> None:
         from mcap.writer import Writer
@@ -141,49 +161,39 @@ class EstimatesMcap:
             sid = self._writer.register_schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode())
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json", schema_id=sid)
         self._sequence = 0
-        self.robot_ns = 0  # the robot time of the last window written, ns
-        self.events = 0
 
-    def _add(self, topic: str, payload: dict[str, Any], log_ns: int) -> None:
+    def log(self, topic: str, payload: dict[str, Any], log_ns: int) -> None:
         self._sequence += 1
         data = json.dumps(payload, separators=(",", ":")).encode()
         self._writer.add_message(self._channels[topic], log_ns, data, log_ns, self._sequence)
 
-    def write(self, event: dict[str, Any]) -> None:
-        """One event of the feed: a window (on every window channel) or a status; others are skipped."""
-        kind = event.get("type")
-        if kind == "window":
-            t_end = event.get("t_end_s")
-            if not isinstance(t_end, (int, float)) or isinstance(t_end, bool) or t_end < 0:
-                log.warning("window event without a usable t_end_s (%r): not recorded", t_end)
-                return
-            self.robot_ns = max(self.robot_ns, int(round(float(t_end) * 1e9)))
-            log_ns = int(round(float(t_end) * 1e9))
-            for topic, (_, _, fields) in CHANNELS.items():
-                if topic == "/hapticlink/status":
-                    continue
-                self._add(topic, event if fields is None else {k: event.get(k) for k in fields}, log_ns)
-        elif kind == "status":
-            self._add("/hapticlink/status", event, self.robot_ns)
-        else:
-            return
-        self.events += 1
-
-    def finish(self) -> None:
+    def close(self) -> None:
         """Write the summary (channel and schema index, statistics); the file is complete after this."""
         self._writer.finish()
 
 
-class SessionRecorder:
-    """Follows a session's event feed and records it with EstimatesMcap into `path` until the session ends or
-    `stop()` is called; reconnects after a drop (the events in between are lost, and the log says so)."""
+class EventSink(Protocol):
+    """Where the recorder's messages go: an MCAP file (EstimatesMcap), a Foxglove server (FoxgloveLive)."""
 
-    def __init__(self, url: str, session_id: str, token: str, path: str | Path) -> None:
+    def log(self, topic: str, payload: dict[str, Any], log_ns: int) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class SessionRecorder:
+    """Follows a session's event feed and hands each event's messages to every sink (an MCAP file, a Foxglove
+    server) until the session ends or `stop()` is called; reconnects after a drop (the events in between are lost,
+    and the log says so). The sinks are closed when it returns."""
+
+    def __init__(self, url: str, session_id: str, token: str, sinks: list[EventSink]) -> None:
         check_service_url(url)
-        self.url, self.session_id, self.token, self.path = url.rstrip("/"), session_id, token, Path(path)
+        if not sinks:
+            raise ValueError("a recorder needs somewhere to write: an MCAP file, a Foxglove server, or both")
+        self.url, self.session_id, self.token, self.sinks = url.rstrip("/"), session_id, token, sinks
         self._done = asyncio.Event()
         self.connects = 0
         self.events = 0
+        self.robot_ns = 0  # the robot time of the last window, ns
         self.subscribed = asyncio.Event()
 
     def stop(self) -> None:
@@ -191,21 +201,27 @@ class SessionRecorder:
 
     async def run(self, duration_s: float | None = None) -> int:
         """Record; → the number of events written."""
-        with self.path.open("wb") as fh:
-            out = EstimatesMcap(fh)
-            try:
-                follow = asyncio.ensure_future(self._follow(out))
-                stop = asyncio.ensure_future(self._done.wait())
-                await asyncio.wait([follow, stop], timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)
-                follow.cancel()
-                stop.cancel()
-                await asyncio.gather(follow, stop, return_exceptions=True)
-            finally:
-                out.finish()
-        self.events = out.events
-        return out.events
+        try:
+            follow = asyncio.ensure_future(self._follow())
+            stop = asyncio.ensure_future(self._done.wait())
+            await asyncio.wait([follow, stop], timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)
+            follow.cancel()
+            stop.cancel()
+            await asyncio.gather(follow, stop, return_exceptions=True)
+        finally:
+            for sink in self.sinks:
+                sink.close()
+        return self.events
 
-    async def _follow(self, out: EstimatesMcap) -> None:
+    def write(self, event: dict[str, Any]) -> None:
+        """One event of the feed, to every sink."""
+        messages, self.robot_ns = event_messages(event, self.robot_ns)
+        for topic, payload, log_ns in messages:
+            for sink in self.sinks:
+                sink.log(topic, payload, log_ns)
+        self.events += bool(messages)
+
+    async def _follow(self) -> None:
         from websockets.asyncio.client import connect  # noqa: PLC0415 - as drivers/robot/ws.py
         from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus  # noqa: PLC0415
 
@@ -227,7 +243,7 @@ class SessionRecorder:
                         if isinstance(event, dict) and event.get("event") == "subscribed":
                             self.subscribed.set()
                         if isinstance(event, dict):
-                            out.write(event)
+                            self.write(event)
                     code = ws.close_code
             except InvalidStatus as exc:
                 status = exc.response.status_code

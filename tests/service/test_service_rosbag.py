@@ -104,7 +104,7 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
     operator's feed carried, and each window is logged at its end on the robot's clock (the bag's header stamps)."""
     from mcap.reader import make_reader
 
-    from drivers.estimates_mcap import CHANNELS, SessionRecorder
+    from drivers.estimates_mcap import CHANNELS, EstimatesMcap, SessionRecorder
 
     model = Library.load(library_dir).model("synth_003")
     items = asyncio.run(_take(SimulatedSource(model, seed=7, realtime=False, duration_s=SECONDS)))
@@ -118,7 +118,10 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
         assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
 
         async def main() -> int:
-            recorder = SessionRecorder(server.url, session["session_id"], session["operator_token"], out)
+            fh = out.open("wb")
+            recorder = SessionRecorder(
+                server.url, session["session_id"], session["operator_token"], [EstimatesMcap(fh)]
+            )
             task = asyncio.ensure_future(recorder.run())
             await asyncio.wait_for(recorder.subscribed.wait(), 10)
             robot = RobotClient(
@@ -130,7 +133,9 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
             await robot.run()
             await asyncio.sleep(QUIET_S)  # the last windows are estimated and published
             recorder.stop()
-            return await task
+            written = await task
+            fh.close()
+            return written
 
         written = asyncio.run(main())
         feed = []
@@ -167,3 +172,89 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
         m["chosen"] == w["chosen"] and m["chosen_model_version"] == w["chosen_model_version"]
         for m, w in zip(models, windows)
     )
+
+
+async def _foxglove_client(url: str, ready: asyncio.Event, received: list, channels: dict) -> None:
+    """A Foxglove WebSocket protocol client: reads serverInfo and the advertised channels, subscribes to every one,
+    and keeps each message data frame (opcode 1: subscription id, log time ns, payload) until cancelled."""
+    import struct
+
+    from websockets.asyncio.client import connect as connect_async
+
+    async with connect_async(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+        assert json.loads(await ws.recv())["op"] == "serverInfo"
+        advertise = json.loads(await ws.recv())
+        assert advertise["op"] == "advertise"
+        channels.update({c["id"]: c for c in advertise["channels"]})
+        subs = [{"id": k, "channelId": cid} for k, cid in enumerate(channels)]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        topic_of = {s["id"]: channels[s["channelId"]]["topic"] for s in subs}
+        await asyncio.sleep(0.2)  # the server takes the subscription before anything is logged
+        ready.set()
+        async for frame in ws:
+            if isinstance(frame, bytes) and frame[0] == 1:
+                sub_id, log_ns = struct.unpack_from("<IQ", frame, 1)
+                received.append((topic_of[sub_id], log_ns, json.loads(frame[13:])))
+
+
+def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, server, library_dir, tmp_path):
+    """`hapticlink record --foxglove`: a Foxglove WebSocket protocol client sees the channels advertised with their
+    JSON schemas and receives every window's messages the operator's feed carried, at the robot's clock."""
+    from drivers.estimates_foxglove import FoxgloveLive
+    from drivers.estimates_mcap import CHANNELS, SessionRecorder
+
+    model = Library.load(library_dir).model("synth_001")
+    items = asyncio.run(_take(SimulatedSource(model, seed=9, realtime=False, duration_s=SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "sqlite3")
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "foxglove")
+    received: list = []
+    channels: dict = {}
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+
+        async def main() -> None:
+            live = FoxgloveLive(port=0)
+            recorder = SessionRecorder(server.url, session["session_id"], session["operator_token"], [live])
+            ready = asyncio.Event()
+            client_task = asyncio.ensure_future(_foxglove_client(live.url, ready, received, channels))
+            await asyncio.wait_for(ready.wait(), 10)
+            task = asyncio.ensure_future(recorder.run())
+            await asyncio.wait_for(recorder.subscribed.wait(), 10)
+            robot = RobotClient(
+                server.url,
+                RosbagSource(bag, realtime=False),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+            )
+            await robot.run()
+            await asyncio.sleep(QUIET_S)
+            client_task.cancel()
+            await asyncio.gather(client_task, return_exceptions=True)
+            recorder.stop()
+            await task
+
+        asyncio.run(main())
+        feed = []
+        while True:
+            try:
+                feed.append(json.loads(sub.recv(timeout=1.0)))
+            except TimeoutError:
+                break
+    assert {c["topic"]: c["schemaName"] for c in channels.values()} == {t: n for t, (n, _, _) in CHANNELS.items()}
+    assert all(c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema" for c in channels.values())
+    assert all(json.loads(c["schema"]) == CHANNELS[c["topic"]][1] for c in channels.values())
+    windows = [e for e in feed if e["type"] == "window"]
+    assert len(windows) >= 5
+    by_topic: dict[str, list] = {}
+    for topic, log_ns, payload in received:
+        by_topic.setdefault(topic, []).append((log_ns, payload))
+    assert [p for _, p in by_topic["/hapticlink/window"]] == windows
+    for (log_ns, ratings), w in zip(by_topic["/hapticlink/ratings"], windows):
+        assert log_ns == round(w["t_end_s"] * 1e9) and ratings["ratings"] == w["ratings"]
+    for topic in ("/hapticlink/ood", "/hapticlink/model", "/hapticlink/latency"):
+        assert [p["window_index"] for _, p in by_topic[topic]] == [w["window_index"] for w in windows]
+    statuses = [e for e in feed if e["type"] == "status"]
+    assert [p for _, p in by_topic["/hapticlink/status"]][1:] == statuses
