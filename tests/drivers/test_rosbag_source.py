@@ -336,3 +336,70 @@ def test_the_batch_codec_reads_and_writes_what_rosbags_does(stroke):
     assert decode_batch(wrenches[:3] + [bytes(ts.serialize_cdr(msg, WRENCH_TYPE))], WRENCH_TYPE) is None
     big_endian = b"\x00\x00" + wrenches[0][2:]
     assert decode_batch([big_endian], WRENCH_TYPE) is None
+
+
+def test_speeds_in_the_wrong_units(stroke, tmp_path):
+    bag = write_bag(tmp_path / "bag", _stamped(stroke))  # twist in m/s, as REP 103 says
+    _refused(
+        bag,
+        r"topic /tool/twist .*median scanning speed 0.\d+ mm/s .*look like m/s",
+        topic_map_from_dict({"speed": {"units": "mm/s"}}),
+    )
+
+
+def test_odometry_for_speed_and_raw_images_for_frames(stroke, tmp_path):
+    """nav_msgs/Odometry's twist.twist.linear feeds speed; a sensor_msgs/Image in bgr8 becomes a PNG frame in RGB."""
+    from PIL import Image as PILImage
+
+    from drivers.rosbag_writer import _typestore
+
+    ts = _typestore()
+    items, _ = stroke
+    sim = [i for i in items if isinstance(i, SampleBlock)]
+    speed = _concat(sim, "speed")[:2000]
+    rgb = np.random.default_rng(0).integers(0, 255, (8, 12, 3), dtype=np.uint8)
+    Odometry, Image = ts.types["nav_msgs/msg/Odometry"], ts.types["sensor_msgs/msg/Image"]
+
+    def messages():
+        for topic, stamp, msg in _stamped(stroke):
+            if topic == TOPICS["speed"]:
+                odom = Odometry(
+                    header=msg.header,
+                    child_frame_id="tool0",
+                    pose=ts.types["geometry_msgs/msg/PoseWithCovariance"](
+                        pose=ts.types["geometry_msgs/msg/Pose"](
+                            position=ts.types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                            orientation=ts.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                        ),
+                        covariance=np.zeros(36),
+                    ),
+                    twist=ts.types["geometry_msgs/msg/TwistWithCovariance"](twist=msg.twist, covariance=np.zeros(36)),
+                )
+                yield "/odom", stamp, odom
+                if (stamp - DEFAULT_START_NS) % 500_000_000 == 0:
+                    bgr = rgb[:, :, ::-1].copy()
+                    yield (
+                        "/camera/raw",
+                        stamp,
+                        Image(
+                            header=msg.header,
+                            height=8,
+                            width=12,
+                            encoding="bgr8",
+                            is_bigendian=0,
+                            step=36,
+                            data=bgr.ravel(),
+                        ),
+                    )
+            else:
+                yield topic, stamp, msg
+
+    bag = write_bag(tmp_path / "bag", messages())
+    got = asyncio.run(_take(RosbagSource(bag, realtime=False)))
+    blocks = [i for i in got if isinstance(i, SampleBlock)]
+    frames = [i for i in got if isinstance(i, Frame)]
+    np.testing.assert_allclose(_concat(blocks, "speed"), speed[::10], rtol=1e-6)
+    assert len(frames) == 4 and all(f.content_type == "image/png" for f in frames)
+    import io
+
+    np.testing.assert_array_equal(np.asarray(PILImage.open(io.BytesIO(frames[0].image))), rgb)
