@@ -5,7 +5,8 @@ Run from the repository root:  python -m benchmarks.foxglove_live [--seconds 60]
 The demo's service (benchmarks.service's `served` configuration: the demo's model, library and backbone) runs in
 a child process. A simulated robot strokes one of the library's textures for --seconds; the stroke is written as
 an MCAP ROS 2 bag (drivers/rosbag_writer.py, with the texture's photo as the camera) and streamed in real time by
-RosbagSource and the robot client, once per session, in rounds of two sessions:
+RosbagSource and the robot client, once per session (after a tap block: the demo's models read taps, and a bag
+carries no tap procedure), in rounds of two sessions:
 
 - alone: an operator's event subscriber follows the session (the floor);
 - followed: the same, and `hapticlink record --mcap OUT --foxglove PORT` (a child process) follows it too, with a
@@ -22,7 +23,6 @@ import argparse
 import asyncio
 import json
 import os
-import signal
 import statistics
 import struct
 import subprocess
@@ -53,11 +53,10 @@ async def _feed(url: str, events: list, ready: asyncio.Event) -> None:
 
 
 async def _foxglove(url: str, received: list, ready: asyncio.Event) -> None:
-    """A Foxglove WebSocket protocol client subscribed to every advertised channel; ready once the recorder's own
-    "subscribed" status arrives (the recorder follows the session)."""
+    """A Foxglove WebSocket protocol client subscribed to every advertised channel (ready once subscribed)."""
     from websockets.asyncio.client import connect
 
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + 240  # until the recorder's server listens
     while True:
         try:
             ws = await connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"])
@@ -75,13 +74,12 @@ async def _foxglove(url: str, received: list, ready: asyncio.Event) -> None:
         subs = [{"id": k, "channelId": cid} for k, cid in enumerate(channels)]
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
         topic_of = {s["id"]: channels[s["channelId"]] for s in subs}
+        await asyncio.sleep(0.5)  # the server takes the subscription
+        ready.set()
         async for frame in ws:
             if isinstance(frame, bytes) and frame[0] == 1:
                 sub_id, log_ns = struct.unpack_from("<IQ", frame, 1)
-                payload = json.loads(frame[13:])
-                received.append((topic_of[sub_id], log_ns, payload))
-                if topic_of[sub_id] == "/hapticlink/status" and payload.get("event") == "subscribed":
-                    ready.set()
+                received.append((topic_of[sub_id], log_ns, json.loads(frame[13:])))
 
 
 def _free_port() -> int:
@@ -90,7 +88,33 @@ def _free_port() -> int:
     return free_port()
 
 
-async def session(server_url: str, bag: Path, followed: bool, service_pid: int, tmp: Path) -> dict:
+class TappedBag:
+    """The demo's models read the tap features, and a bag carries no tap procedure: the robot taps the surface
+    first (the texture model's tap transients, as the simulated robot taps), then the bag streams."""
+
+    name = "tapped-bag"
+
+    def __init__(self, bag: Path, model) -> None:
+        from drivers.rosbag_source import RosbagSource
+
+        self.source = RosbagSource(bag, realtime=True)
+        self.model = model
+
+    async def _items(self):
+        from drivers.simulated import tap_block
+
+        yield tap_block(self.model, t0=self.source.scan.start_ns * 1e-9)
+        async for item in self.source:
+            yield item
+
+    def __aiter__(self):
+        return self._items()
+
+    async def aclose(self) -> None:
+        await self.source.aclose()
+
+
+async def session(server_url: str, bag: Path, model, followed: bool, service_pid: int, tmp: Path) -> dict:
     """One session streamed from the bag in real time; its measurements."""
     from benchmarks.service import process_cpu_seconds
     from drivers.protocol import ws_url
@@ -117,8 +141,17 @@ async def session(server_url: str, bag: Path, followed: bool, service_pid: int, 
         recorder = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         fox_ready = asyncio.Event()
         fox = asyncio.ensure_future(_foxglove(f"ws://127.0.0.1:{port}", received, fox_ready))
-        await asyncio.wait_for(fox_ready.wait(), 60)
-    source = RosbagSource(bag, realtime=True)
+        deadline = time.monotonic() + 300  # the recorder starts a Python process: slow on a busy host
+        while not fox_ready.is_set():
+            if recorder.poll() is not None:
+                said = recorder.communicate()[0].decode(errors="replace")
+                raise RuntimeError(f"hapticlink record exited ({recorder.returncode}): {said}")
+            if time.monotonic() > deadline or fox.done():
+                recorder.kill()
+                raise RuntimeError(f"no Foxglove channels from hapticlink record within 300 s ({fox!r})")
+            await asyncio.sleep(0.2)
+        await asyncio.sleep(5.0)  # the recorder subscribes to the session's feed right after its server listens
+    source = TappedBag(bag, model) if model.taps is not None else RosbagSource(bag, realtime=True)
     cpu0, t0 = process_cpu_seconds(service_pid), time.monotonic()
     robot = RobotClient(server_url, source, session_id=s["session_id"], robot_token=s["robot_token"])
     stats = await robot.run()
@@ -136,10 +169,14 @@ async def session(server_url: str, bag: Path, followed: bool, service_pid: int, 
     if followed:
         assert recorder is not None and fox is not None
         recorder_cpu = process_cpu_seconds(recorder.pid)
-        recorder.send_signal(signal.SIGINT)
-        output = recorder.communicate(timeout=30)[0].decode(errors="replace")
-        fox.cancel()
+        fox.cancel()  # the client leaves first: the server's stop waits for its connections to close
         await asyncio.gather(fox, return_exceptions=True)
+    async with httpx.AsyncClient(base_url=server_url, timeout=30) as client:  # the session ends: its feed closes
+        r = await client.delete(f"/sessions/{s['session_id']}", headers={"Authorization": f"Bearer {s['robot_token']}"})
+        r.raise_for_status()
+    if followed:
+        assert recorder is not None
+        output = (await asyncio.to_thread(recorder.communicate, timeout=120))[0].decode(errors="replace")
         windows = [e for e in events if e["type"] == "window"]
         got = [p for t, _, p in received if t == "/hapticlink/window"]
         row["recorder_cpu_s"] = round(recorder_cpu, 3)
@@ -169,8 +206,9 @@ def _mcap_holds(path: Path, events: list) -> bool:
     return recorded.get("/hapticlink/window", []) == windows and got_statuses == statuses
 
 
-def write_bag_from_library(library: Path, seconds: float, out: Path) -> Path:
-    """--seconds of the simulated robot stroking the library's first entry, as an MCAP bag with its photo."""
+def write_bag_from_library(library: Path, seconds: float, out: Path):
+    """--seconds of the simulated robot stroking the library's first entry, as an MCAP bag with its photo; → (the
+    bag, the entry's vibration model)."""
     from drivers.blocks import SampleBlock
     from drivers.rosbag_writer import stroke_messages, write_bag
     from drivers.simulated import SimulatedSource
@@ -185,7 +223,7 @@ def write_bag_from_library(library: Path, seconds: float, out: Path) -> Path:
 
     blocks = [i for i in asyncio.run(take()) if isinstance(i, SampleBlock)]
     accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    return write_bag(out, stroke_messages(accel, force, speed, 1000.0, image), "mcap")
+    return write_bag(out, stroke_messages(accel, force, speed, 1000.0, image), "mcap"), lib.model(entry.id)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,12 +242,12 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     rows = []
     with tempfile.TemporaryDirectory(prefix="hapticlink-foxglove-bench-") as tmp:
-        bag = write_bag_from_library(assets.library, args.seconds, Path(tmp) / "bag")
+        bag, model = write_bag_from_library(assets.library, args.seconds, Path(tmp) / "bag")
         server = ServerProcess.service(assets, API_KEY, instance_id="foxglove-live")
         try:
             for k in range(args.rounds):
                 for followed in (False, True) if k % 2 == 0 else (True, False):
-                    row = asyncio.run(session(server.url, bag, followed, server.proc.pid, Path(tmp)))
+                    row = asyncio.run(session(server.url, bag, model, followed, server.proc.pid, Path(tmp)))
                     rows.append(row)
                     print(json.dumps(row), flush=True)
         finally:
