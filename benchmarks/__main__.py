@@ -14,11 +14,13 @@ from benchmarks import (
     bandwidth,
     block_intake,
     features,
+    foxglove_live,
     frame_post,
     hostile,
     hostile_chart,
     refusals,
     renderer,
+    rosbag_read,
     service,
     uncertainty,
     visual,
@@ -56,6 +58,10 @@ def main(argv: list[str]) -> int:
     window_batch.main([])
     print("\n== the event loop: what a block costs before the window pool, against the bare parse ==", flush=True)
     block_intake.main([])
+    print("\n== ROS 2 bags: a 10-minute bag read by RosbagSource against rosbags' bare read ==", flush=True)
+    rosbag_read.main([])
+    print("\n== a session followed live in Foxglove: events received, CPU it adds to the service ==", flush=True)
+    foxglove_live.main([])
     print("\n== service: simulated robots on loopback ==", flush=True)
     service.main(["--replicas", "1", "2", "--profile"])
     print("\n== service: what a posted frame costs, against a /health GET ==", flush=True)

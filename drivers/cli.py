@@ -18,6 +18,7 @@ SOURCE_SPECS = (
     "serial:PORT[:BAUD]",
     "usb:VID:PID",
     "camera-dir:DIR",
+    "rosbag:PATH",
 )
 
 
@@ -27,6 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _register_robot(sub)
     add_operator(sub)
     _register_library_add(sub)
+    _register_record(sub)
 
 
 def _register_library_add(sub: argparse._SubParsersAction) -> None:
@@ -65,8 +67,10 @@ def _library_add(args: argparse.Namespace) -> int:
 def _register_robot(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "robot",
-        help="stream a sensor source (simulated, replay, serial, usb, camera-dir) to the service",
+        help="stream a sensor source (simulated, replay, serial, usb, camera-dir, rosbag) to the service",
         description="Stream a sensor source to a hapticlink service, reconnecting and resending across outages.",
+        epilog=_rosbag_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--source", required=True, metavar="SPEC", help="one of: " + ", ".join(SOURCE_SPECS))
     p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
@@ -116,6 +120,11 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--loop", action="store_true", help="replay: play the recording again and again")
     p.add_argument(
+        "--topics",
+        metavar="YAML",
+        help="rosbag: which topics feed which channels (default: the topic map below; copy it and edit it)",
+    )
+    p.add_argument(
         "--start-seq",
         type=int,
         default=0,
@@ -147,6 +156,72 @@ def _register_robot(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     p.set_defaults(func=_run_robot)
+
+
+def _register_record(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "record",
+        help="record a session's estimates as MCAP, on the robot's clock (open it in Foxglove beside the robot's bag)",
+        description="Follow a session's event feed and write every event into an MCAP file: JSON channels with JSON "
+        "schemas for the ratings and their intervals, the OOD flag, the chosen model and its version, the latency, "
+        "and status events, logged at each window's end on the robot's clock (docs/ros2.md).",
+    )
+    p.add_argument("--url", required=True, help="the service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--session", required=True, metavar="ID", help="the session to record")
+    p.add_argument("--token", required=True, metavar="T", help="the session's operator token")
+    p.add_argument("--mcap", metavar="OUT", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="also publish the same channels live over the Foxglove WebSocket protocol (off by default; host "
+        "127.0.0.1 unless given): open ws://HOST:PORT in Foxglove",
+    )
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the session's end)")
+    p.set_defaults(func=_run_record)
+
+
+def _run_record(args: argparse.Namespace) -> int:
+    import asyncio
+    from pathlib import Path
+
+    from drivers.estimates_mcap import EstimatesMcap, EventSink, SessionRecorder
+
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.mcap is None and args.foxglove is None:
+        raise ValueError("record: give --mcap OUT, --foxglove [HOST:]PORT, or both")
+    sinks: list[EventSink] = []
+    if args.foxglove is not None:
+        from drivers.estimates_foxglove import FoxgloveLive
+
+        host, _, port = args.foxglove.rpartition(":")
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"--foxglove: expected [HOST:]PORT with a port in 1…65535, got {args.foxglove!r}")
+        live = FoxgloveLive(host or "127.0.0.1", int(port))
+        print(f"foxglove: open {live.url} in Foxglove (Open connection → Foxglove WebSocket)", flush=True)
+        sinks.append(live)
+    mcap_file = None if args.mcap is None else Path(args.mcap).open("wb")
+    if mcap_file is not None:
+        sinks.append(EstimatesMcap(mcap_file))
+    recorder = SessionRecorder(args.url, args.session, args.token, sinks)
+    try:
+        n = asyncio.run(recorder.run(args.duration))
+    except KeyboardInterrupt:
+        n = recorder.events
+    finally:
+        if mcap_file is not None:
+            mcap_file.close()
+    print(f"recorded {n} event(s)" + (f" into {args.mcap}" if args.mcap else ""))
+    return 0
+
+
+def _rosbag_epilog() -> str:
+    from drivers.rosbag_mapping import default_topics_text
+
+    return (
+        "rosbag:PATH reads a ROS 2 bag (a bag folder, .db3 or .mcap) recorded by your robot, paced at its own "
+        "stamps.\nIts default topic map (--topics YAML to change it):\n\n" + default_topics_text()
+    )
 
 
 def _split_dir_id(kind: str, rest: str, what: str) -> tuple[Path, str]:
@@ -181,6 +256,7 @@ def source_from_spec(
     recording: int = 0,
     loop: bool = False,
     taps: bool = False,
+    topics: str | None = None,
 ):
     """Build the SensorSource a SPEC names (see SOURCE_SPECS); ValueError says what is wrong with it."""
     kind, sep, rest = spec.partition(":")
@@ -223,6 +299,13 @@ def source_from_spec(
         if len(parts) != 2:
             raise ValueError(f"source usb: expected usb:VID:PID in hexadecimal, got {spec!r}")
         return UsbDaqSource(_parse_usb_id("VID", parts[0]), _parse_usb_id("PID", parts[1]), block_s=block_s)
+    if topics is not None and kind != "rosbag":
+        raise ValueError(f"--topics: only the rosbag source reads a topic map, not {kind!r}")
+    if kind == "rosbag":
+        from drivers.rosbag_mapping import load_topic_map
+        from drivers.rosbag_source import RosbagSource
+
+        return RosbagSource(rest, load_topic_map(topics), block_s=block_s, realtime=realtime)
     if kind == "camera-dir":
         from drivers.camera import WatchedDirectorySource
 
@@ -261,6 +344,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         recording=args.recording,
         loop=args.loop,
         taps=args.taps,
+        topics=args.topics,
     )
     client = RobotClient(
         args.url,

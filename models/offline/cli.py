@@ -12,9 +12,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     dsub = ds.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
 
     b = dsub.add_parser("build", help="build a dataset directory from a source")
-    b.add_argument("--source", required=True, choices=["hatt-texnet", "hassan2023", "synthetic", "recordings"])
+    b.add_argument(
+        "--source", required=True, choices=["hatt-texnet", "hassan2023", "synthetic", "recordings", "rosbag"]
+    )
     b.add_argument("--out", required=True, help="dataset directory to write")
-    b.add_argument("--path", help="source folder (hatt-texnet, hassan2023, recordings)")
+    b.add_argument("--path", help="source folder (hatt-texnet, hassan2023, recordings, rosbag)")
+    b.add_argument(
+        "--topics",
+        metavar="YAML",
+        help="rosbag: which topics feed which channels (default: the topic map `hapticlink robot --help` shows)",
+    )
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--duration", type=float, help="seconds per rendered recording (hatt-texnet 60, synthetic 10)")
     b.add_argument("--recordings", type=int, default=1, help="recordings per texture (rendered sources)")
@@ -58,8 +65,12 @@ def _dataset_build(args: argparse.Namespace) -> int:
         options.update(limit=args.limit)
     if args.source == "synthetic":
         options.update(n_textures=args.n_textures, withheld=args.withheld)
-    if args.source == "recordings":
+    if args.source in ("recordings", "rosbag"):
         options["rating_scale"] = args.rating_scale
+    if args.source == "rosbag":
+        options["topics"] = args.topics
+    elif args.topics is not None:
+        raise ValueError(f"--topics: only --source rosbag reads a topic map, not {args.source!r}")
     t0 = time.perf_counter()
     out = build(args.source, args.out, path=args.path, **options)
     print(f"built {args.source} dataset in {out} ({time.perf_counter() - t0:.1f} s)")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -31,4 +33,30 @@ def build(source: str, out: str | Path, path: str | Path | None = None, **option
         if path is None:
             raise ValueError("--source recordings needs --path to the folder of recordings")
         return build_recordings(path, out, **options)
-    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, hassan2023, synthetic or recordings")
+    if source == "rosbag":
+        from models.offline.datasets.recordings import build_recordings
+
+        if path is None:
+            raise ValueError(
+                "--source rosbag needs --path to the folder of textures.csv and recordings/<texture>/ bags"
+            )
+        return _whole_or_nothing(out, lambda tmp: build_recordings(path, tmp, source="rosbag", **options))
+    raise ValueError(f"unknown source {source!r}; expected hatt-texnet, hassan2023, synthetic, recordings or rosbag")
+
+
+def _whole_or_nothing(out: str | Path, build_into: Callable[[Path], Path]) -> Path:
+    """Build into a folder beside `out` and rename it to `out` once whole: a bag refused halfway leaves nothing."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out}: exists and is not empty; name a new folder")
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    try:
+        build_into(partial)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    if out.exists():
+        out.rmdir()
+    partial.rename(out)
+    return out

@@ -8,6 +8,10 @@
     SRC/recordings/<texture>/<rec>/      CSV folder: accel.csv (t,x,y,z), force.csv (t,fz | t,fx,fy,fz),
                                          speed.csv (t,speed) or position.csv (t,x[,y]);
                                          optional channels.json {kind: {units}}
+    SRC/recordings/<texture>/<bag>       source "rosbag": ROS 2 bags (a bag folder, .db3 or .mcap), read through a
+                                         topic map (drivers/rosbag_topics.yaml); each stretch in which accel, force
+                                         and speed all run (≥ 1 s) is one recording; a texture without images in
+                                         SRC/images takes its first bag's first camera image
 Ratings are bipolar (−100…100) unless rating_scale="0-100" (0 = first pole, 100 = second pole).
 """
 
@@ -19,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.blocks import Frame
+from drivers.rosbag_mapping import TopicMap, load_topic_map
+from drivers.rosbag_source import bag_first_image, bag_recordings, scan_bag
 from models.offline.datasets.format import (
     DatasetWriter,
     RatingRow,
@@ -102,6 +109,14 @@ def read_hdf5_recording(path: Path) -> Recording:
     return recording_from_channels(chans, str(path))
 
 
+BAG_SUFFIXES = (".db3", ".mcap")
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 2 bag: a .db3 or .mcap file, or a bag folder (it holds metadata.yaml)."""
+    return path.suffix in BAG_SUFFIXES or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
 def read_any_recording(path: Path) -> Recording:
     if path.is_dir():
         return read_csv_recording(path)
@@ -128,9 +143,28 @@ def _assign_images(image_dir: Path, textures: list[str]) -> dict[str, list[Path]
     return out
 
 
-def build_recordings(src: str | Path, out: str | Path, *, rating_scale: str = "bipolar") -> Path:
-    """Import SRC (layout above) into a dataset at out. ValueError names the file and line at fault."""
+def _read_item(item: Path, topic_map: TopicMap | None) -> tuple[list[Recording], Frame | None]:
+    """The recordings in one item of a texture's folder, and the first camera image of a bag (else None)."""
+    if topic_map is None:
+        return [read_any_recording(item)], None
+    scan = scan_bag(item, topic_map)
+    return bag_recordings(scan), bag_first_image(scan)
+
+
+def build_recordings(
+    src: str | Path,
+    out: str | Path,
+    *,
+    rating_scale: str = "bipolar",
+    topics: str | Path | None = None,
+    source: str = "recordings",
+) -> Path:
+    """Import SRC (layout above) into a dataset at out. source "rosbag": its recordings are ROS 2 bags read through
+    the topic map in `topics` (None: the defaults). ValueError names the file and line at fault."""
     src = Path(src)
+    topic_map = load_topic_map(topics) if source == "rosbag" else None
+    if source not in ("recordings", "rosbag"):
+        raise ValueError(f"source must be 'recordings' or 'rosbag', got {source!r}")
     if rating_scale not in ("bipolar", "0-100"):
         raise ValueError(f"rating_scale must be 'bipolar' or '0-100', got {rating_scale!r}")
     textures = read_csv(src / "textures.csv", ("texture", "name", "group"))
@@ -172,7 +206,7 @@ def build_recordings(src: str | Path, out: str | Path, *, rating_scale: str = "b
     writer = DatasetWriter(
         out,
         name=src.name,
-        source="recordings",
+        source=source,
         licence="user data",
         provenance=f"imported from {src.resolve()}",
         build={"crop_s": 0.0, "rating_scale": rating_scale},
@@ -182,23 +216,35 @@ def build_recordings(src: str | Path, out: str | Path, *, rating_scale: str = "b
         rec_dir = src / "recordings" / tid
         if not rec_dir.is_dir():
             raise ValueError(f"texture {tid!r}: no recordings folder {rec_dir}")
-        items = sorted(p for p in rec_dir.iterdir() if p.is_dir() or p.suffix in (".npz", ".h5", ".hdf5"))
+        if topic_map is None:
+            items = sorted(p for p in rec_dir.iterdir() if p.is_dir() or p.suffix in (".npz", ".h5", ".hdf5"))
+            what = "CSV folders, .npz or .h5"
+        else:
+            items = sorted(p for p in rec_dir.iterdir() if is_bag(p))
+            what = "ROS 2 bags: bag folders, .db3 or .mcap"
         if not items:
-            raise ValueError(f"texture {tid!r}: {rec_dir} holds no recordings (CSV folders, .npz or .h5)")
+            raise ValueError(f"texture {tid!r}: {rec_dir} holds no recordings ({what})")
         tdir = writer.texture_dir(tid)
         names = []
-        for k, item in enumerate(items):
-            name = f"recording_{k:03d}.npz"
-            recording = read_any_recording(item)
-            try:
-                save_recording(tdir / name, recording)
-            except ValueError as exc:  # too long for a dataset to load back: the message names the copy, not item
-                raise ValueError(f"{item}: cannot be imported ({exc}); split it into shorter recordings") from None
-            names.append(name)
+        bag_image: Frame | None = None
+        for item in items:
+            recordings, first_image = _read_item(item, topic_map)
+            bag_image = bag_image or first_image
+            for recording in recordings:
+                name = f"recording_{len(names):03d}.npz"
+                try:
+                    save_recording(tdir / name, recording)
+                except ValueError as exc:  # too long for a dataset to load back: the message names the copy
+                    raise ValueError(f"{item}: cannot be imported ({exc}); split it into shorter recordings") from None
+                names.append(name)
         image_names = []
         for k, img in enumerate(images[tid]):
             name = f"image_{k:03d}{img.suffix.lower()}"
             shutil.copyfile(img, tdir / name)
+            image_names.append(name)
+        if not image_names and bag_image is not None:
+            name = "image_000" + (".png" if bag_image.content_type == "image/png" else ".jpg")
+            (tdir / name).write_bytes(bag_image.image)
             image_names.append(name)
         rated = row.get("rated") or ("yes" if tid in by_texture else "no")
         if rated == "no" and tid in by_texture:

@@ -1,0 +1,260 @@
+"""A ROS 2 bag of a simulated stroke, replayed through a real service (uvicorn on loopback, the robot client over
+WebSocket), gives the estimates the simulated robot gives streaming the same stroke directly."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import httpx
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from drivers.blocks import SampleBlock
+from drivers.robot.client import RobotClient
+from drivers.rosbag_source import RosbagSource
+from drivers.rosbag_writer import stroke_messages, write_bag
+from drivers.simulated import SimulatedSource
+from texture_library.library import Library
+
+SECONDS = 4.0
+#: raw ratings (−100…100) of the bag's windows against the simulated robot's: the same accel; force and speed at
+#: 500 Hz and 100 Hz in the bag, so their statistics move a little (tests/drivers/test_rosbag_source.py bounds the
+#: features)
+RATING_ATOL = 1.0
+QUIET_S = 5.0
+
+
+class _Items:
+    """The simulated robot's items, captured once, sent again as a source."""
+
+    name = "captured"
+
+    def __init__(self, items) -> None:
+        self.items = items
+
+    async def _gen(self):
+        for item in self.items:
+            await asyncio.sleep(0)
+            yield item
+
+    def __aiter__(self):
+        return self._gen()
+
+    async def aclose(self) -> None:
+        pass
+
+
+def _windows(kit, server, source) -> list[dict]:
+    """Stream `source` into a new session with the robot client; the session's window events, until none has come
+    for QUIET_S after the robot has delivered every block."""
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "rosbag")
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+        robot = RobotClient(
+            server.url, source, session_id=session["session_id"], robot_token=session["robot_token"], transport="ws"
+        )
+        stats = asyncio.run(robot.run())
+        assert stats.lost == stats.rejected == stats.unsent == 0
+        windows: list[dict] = []
+        while True:
+            try:
+                event = json.loads(sub.recv(timeout=QUIET_S))
+            except TimeoutError:
+                return windows
+            if event["type"] == "window":
+                windows.append(event)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates(
+    kit, server, library_dir, tmp_path, storage
+):
+    model = Library.load(library_dir).model("synth_002")
+    items = asyncio.run(_take(SimulatedSource(model, seed=5, realtime=False, duration_s=SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), storage)
+    sim = _windows(kit, server, _Items(items))
+    got = _windows(kit, server, RosbagSource(bag, realtime=False))
+    assert len(sim) >= 5
+    # the last window of the stream ends where the bag ends: the service's resampler holds a slow (100 Hz) channel's
+    # last samples back for the block that never comes, so that one window goes unestimated, and only that one
+    assert [w["window_index"] for w in got] == list(range(len(sim) - 1))
+    assert [w["window_index"] for w in sim] == list(range(len(sim)))
+    start = got[0]["t_start_s"]
+    assert start == pytest.approx(1_700_000_000.0), "windows on the robot's clock: the bag's header stamps"
+    assert [w["t_start_s"] - start for w in got] == pytest.approx([w["t_start_s"] for w in sim[:-1]], abs=1e-6)
+    for a, b in zip(got, sim):
+        assert a["raw_ratings"] == pytest.approx(b["raw_ratings"], abs=RATING_ATOL), (a["window_index"], a, b)
+        assert a["chosen"] == b["chosen"]
+
+
+async def _take(source) -> list:
+    return [item async for item in source]
+
+
+def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_clock(
+    kit, server, library_dir, tmp_path
+):
+    """A bag streamed into a session while `SessionRecorder` (hapticlink record --mcap) and an operator follow its
+    feed: the MCAP file opens with the mcap reader, its channels carry JSON schemas, it holds every event the
+    operator's feed carried, and each window is logged at its end on the robot's clock (the bag's header stamps)."""
+    from mcap.reader import make_reader
+
+    from drivers.estimates_mcap import CHANNELS, EstimatesMcap, SessionRecorder
+
+    model = Library.load(library_dir).model("synth_003")
+    items = asyncio.run(_take(SimulatedSource(model, seed=7, realtime=False, duration_s=SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "mcap")
+    out = tmp_path / "estimates.mcap"
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "record")
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+
+        async def main() -> int:
+            fh = out.open("wb")
+            recorder = SessionRecorder(
+                server.url, session["session_id"], session["operator_token"], [EstimatesMcap(fh)]
+            )
+            task = asyncio.ensure_future(recorder.run())
+            await asyncio.wait_for(recorder.subscribed.wait(), 10)
+            robot = RobotClient(
+                server.url,
+                RosbagSource(bag, realtime=False),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+            )
+            await robot.run()
+            await asyncio.sleep(QUIET_S)  # the last windows are estimated and published
+            recorder.stop()
+            written = await task
+            fh.close()
+            return written
+
+        written = asyncio.run(main())
+        feed = []
+        while True:
+            try:
+                feed.append(json.loads(sub.recv(timeout=1.0)))
+            except TimeoutError:
+                break
+    with out.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {s.id: s for s in summary.schemas.values()}
+        topics = {c.topic: schemas[c.schema_id] for c in summary.channels.values()}
+        assert set(topics) == set(CHANNELS)
+        assert all(s.encoding == "jsonschema" and json.loads(s.data)["type"] == "object" for s in topics.values())
+        recorded: dict[str, list] = {t: [] for t in CHANNELS}
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            recorded[channel.topic].append((message.log_time, json.loads(message.data)))
+    windows = [e for e in feed if e["type"] == "window"]
+    assert len(windows) >= 5
+    assert [e for _, e in recorded["/hapticlink/window"]] == windows, "every window event, whole, in order"
+    statuses = [e for e in feed if e["type"] == "status"]
+    assert [e for _, e in recorded["/hapticlink/status"]][1:] == statuses, "and every status (after its own hello)"
+    assert written == len(windows) + len(statuses) + 1
+    for topic in ("/hapticlink/ratings", "/hapticlink/ood", "/hapticlink/model", "/hapticlink/latency"):
+        assert [m["window_index"] for _, m in recorded[topic]] == [w["window_index"] for w in windows]
+    for (log_ns, ratings), w in zip(recorded["/hapticlink/ratings"], windows):
+        assert log_ns == round(w["t_end_s"] * 1e9) and ratings["interval"] == w["interval"]
+        assert ratings["ratings"] == w["ratings"] and ratings["raw_ratings"] == w["raw_ratings"]
+    assert recorded["/hapticlink/window"][0][0] == pytest.approx(1_700_000_000.5e9, abs=1e3), "the bag's clock"
+    models = [m for _, m in recorded["/hapticlink/model"]]
+    assert all(
+        m["chosen"] == w["chosen"] and m["chosen_model_version"] == w["chosen_model_version"]
+        for m, w in zip(models, windows)
+    )
+
+
+async def _foxglove_client(url: str, ready: asyncio.Event, received: list, channels: dict) -> None:
+    """A Foxglove WebSocket protocol client: reads serverInfo and the advertised channels, subscribes to every one,
+    and keeps each message data frame (opcode 1: subscription id, log time ns, payload) until cancelled."""
+    import struct
+
+    from websockets.asyncio.client import connect as connect_async
+
+    async with connect_async(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+        assert json.loads(await ws.recv())["op"] == "serverInfo"
+        advertise = json.loads(await ws.recv())
+        assert advertise["op"] == "advertise"
+        channels.update({c["id"]: c for c in advertise["channels"]})
+        subs = [{"id": k, "channelId": cid} for k, cid in enumerate(channels)]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        topic_of = {s["id"]: channels[s["channelId"]]["topic"] for s in subs}
+        await asyncio.sleep(0.2)  # the server takes the subscription before anything is logged
+        ready.set()
+        async for frame in ws:
+            if isinstance(frame, bytes) and frame[0] == 1:
+                sub_id, log_ns = struct.unpack_from("<IQ", frame, 1)
+                received.append((topic_of[sub_id], log_ns, json.loads(frame[13:])))
+
+
+def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, server, library_dir, tmp_path):
+    """`hapticlink record --foxglove`: a Foxglove WebSocket protocol client sees the channels advertised with their
+    JSON schemas and receives every window's messages the operator's feed carried, at the robot's clock."""
+    from drivers.estimates_foxglove import FoxgloveLive
+    from drivers.estimates_mcap import CHANNELS, SessionRecorder
+
+    model = Library.load(library_dir).model("synth_001")
+    items = asyncio.run(_take(SimulatedSource(model, seed=9, realtime=False, duration_s=SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "sqlite3")
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "foxglove")
+    received: list = []
+    channels: dict = {}
+    with connect(kit.socket_url(server, session, "events")) as sub:
+        assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+
+        async def main() -> None:
+            live = FoxgloveLive(port=0)
+            recorder = SessionRecorder(server.url, session["session_id"], session["operator_token"], [live])
+            ready = asyncio.Event()
+            client_task = asyncio.ensure_future(_foxglove_client(live.url, ready, received, channels))
+            await asyncio.wait_for(ready.wait(), 10)
+            task = asyncio.ensure_future(recorder.run())
+            await asyncio.wait_for(recorder.subscribed.wait(), 10)
+            robot = RobotClient(
+                server.url,
+                RosbagSource(bag, realtime=False),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+            )
+            await robot.run()
+            await asyncio.sleep(QUIET_S)
+            client_task.cancel()
+            await asyncio.gather(client_task, return_exceptions=True)
+            recorder.stop()
+            await task
+
+        asyncio.run(main())
+        feed = []
+        while True:
+            try:
+                feed.append(json.loads(sub.recv(timeout=1.0)))
+            except TimeoutError:
+                break
+    assert {c["topic"]: c["schemaName"] for c in channels.values()} == {t: n for t, (n, _, _) in CHANNELS.items()}
+    assert all(c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema" for c in channels.values())
+    assert all(json.loads(c["schema"]) == CHANNELS[c["topic"]][1] for c in channels.values())
+    windows = [e for e in feed if e["type"] == "window"]
+    assert len(windows) >= 5
+    by_topic: dict[str, list] = {}
+    for topic, log_ns, payload in received:
+        by_topic.setdefault(topic, []).append((log_ns, payload))
+    assert [p for _, p in by_topic["/hapticlink/window"]] == windows
+    for (log_ns, ratings), w in zip(by_topic["/hapticlink/ratings"], windows):
+        assert log_ns == round(w["t_end_s"] * 1e9) and ratings["ratings"] == w["ratings"]
+    for topic in ("/hapticlink/ood", "/hapticlink/model", "/hapticlink/latency"):
+        assert [p["window_index"] for _, p in by_topic[topic]] == [w["window_index"] for w in windows]
+    statuses = [e for e in feed if e["type"] == "status"]
+    assert [p for _, p in by_topic["/hapticlink/status"]][1:] == statuses
