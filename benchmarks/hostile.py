@@ -51,7 +51,7 @@ import numpy as np
 
 from benchmarks.health_poll import poll
 from benchmarks.loadgen import frame_of, receive, robot_streams
-from benchmarks.report_file import write_report
+from benchmarks.report_file import write_report, write_section
 from benchmarks.service import (
     DEFAULT_ASSETS,
     HOP_S,
@@ -505,13 +505,6 @@ def crowd_case(args: argparse.Namespace) -> dict:
     return crowd
 
 
-def write_object(path: Path, key: str, value: dict) -> None:
-    """Put `value` under `key` in the JSON report at `path`, keeping its other objects (another case's)."""
-    report = json.loads(path.read_text()) if path.exists() else {}
-    report[key] = value
-    write_report(path, report)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=20, help="well-behaved robots streaming throughout")
@@ -547,7 +540,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.case == "crowd":
         crowd = crowd_case(args)
         print(json.dumps({k: v for k, v in crowd.items() if k != "runs"}, indent=2))
-        write_object(args.out, "crowd", crowd)
+        write_section(args.out, "crowd", crowd)
         print(f"wrote {args.out} (crowd)")
         return 0
     if args.block_s is None:
@@ -690,7 +683,6 @@ def add_restart_arguments(p: argparse.ArgumentParser) -> None:
 def restart_only(args: argparse.Namespace, argv: list[str] | None) -> int:
     """The restart case alone, its object written into the report file beside the others."""
     import os
-    import platform
 
     from benchmarks.report_file import command_line, machine
     from benchmarks.restart import run_restart
@@ -706,20 +698,11 @@ def restart_only(args: argparse.Namespace, argv: list[str] | None) -> int:
     restart = run_restart(assets, secrets.token_urlsafe(24), args.restart_robots, args.restart_stream_s)
     restart["assets"] = args.restart_assets
     restart["command"] = command_line("benchmarks.hostile", list(argv if argv is not None else sys.argv[1:]))
-    restart["machine"] = {**machine(load), "cpu": _cpu_model() or platform.processor()}
-    report = json.loads(args.out.read_text()) if args.out.exists() else {}
-    report["restart"] = restart
+    restart["machine"] = machine(load)
     print(json.dumps(restart, indent=2))
-    write_report(args.out, report)
+    write_section(args.out, "restart", restart)
     print(f"wrote {args.out}")
     return 0
-
-
-def _cpu_model() -> str | None:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return None
 
 
 if __name__ == "__main__":

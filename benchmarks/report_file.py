@@ -27,6 +27,18 @@ def write_report(path: str | Path, report: dict[str, Any], inputs: Sequence[Inpu
     return out
 
 
+def write_section(path: str | Path, key: str, section: dict[str, Any], inputs: Sequence[Input] = ()) -> Path:
+    """Put `section` under `key` in the JSON report at `path`, keeping its other sections (another case's, run at
+    another time): the section carries its own `host` and `provenance`, since the file's other sections were made
+    elsewhere or at other commits. Returns the path."""
+    out = Path(path)
+    report = json.loads(out.read_text()) if out.exists() else {}
+    report[key] = {**section, "host": host(), "provenance": provenance(inputs, section.get("command"))}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=1) + "\n")
+    return out
+
+
 def write_figure(path: str | Path, fig: Any) -> Path:
     """Save a matplotlib figure as a PNG at `path` (parents created) and release it; returns the path."""
     import matplotlib.pyplot as plt

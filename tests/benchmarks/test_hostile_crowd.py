@@ -8,7 +8,8 @@ import math
 
 import pytest
 
-from benchmarks.hostile import histogram_quantile, robot_gap_s, write_object
+from benchmarks.hostile import histogram_quantile, robot_gap_s
+from benchmarks.report_file import write_section
 
 
 def test_a_robots_longest_gap_counts_from_its_first_windows_due_time_to_its_streams_end():
@@ -38,13 +39,15 @@ def test_the_histograms_quantile_is_the_first_bucket_holding_that_share():
 
 
 def test_writing_the_crowd_object_keeps_the_other_cases_objects(tmp_path):
+    """Each case's section carries its own host and provenance: the file's other sections were run at other times."""
     path = tmp_path / "hostile.json"
     path.write_text(json.dumps({"health_ms": {"p99": 13.0}, "restart": {"robots": 3}}))
-    write_object(path, "crowd", {"max_robot_gap_s": 1.5})
-    assert json.loads(path.read_text()) == {
-        "health_ms": {"p99": 13.0},
-        "restart": {"robots": 3},
-        "crowd": {"max_robot_gap_s": 1.5},
-    }
-    write_object(tmp_path / "new.json", "crowd", {"x": 1})
-    assert json.loads((tmp_path / "new.json").read_text()) == {"crowd": {"x": 1}}
+    write_section(path, "crowd", {"max_robot_gap_s": 1.5, "command": "python -m benchmarks.hostile --case crowd"})
+    report = json.loads(path.read_text())
+    assert report["health_ms"] == {"p99": 13.0} and report["restart"] == {"robots": 3}
+    crowd = report["crowd"]
+    assert crowd["max_robot_gap_s"] == 1.5 and crowd["host"]["model"]
+    assert crowd["provenance"]["command"] == "python -m benchmarks.hostile --case crowd"
+    assert crowd["provenance"]["inputs"] == []
+    write_section(tmp_path / "new.json", "crowd", {"x": 1})
+    assert set(json.loads((tmp_path / "new.json").read_text())) == {"crowd"}
