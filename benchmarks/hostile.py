@@ -157,12 +157,12 @@ def loop_lag(out: list[float], every_s: float = 0.01):
     return asyncio.create_task(tick())
 
 
-def robots_process(
+def _stream_robots(
     url: str, assets: Assets, ks: list[int], seconds: float, block_s: float, api_key: str, seed: int, conn
-) -> None:
-    """A process of robots: renders robots `ks`' streams (`seconds` long) and camera frames, sends ("ready",),
-    waits for "go", streams them in real time (real RobotClients, an operator each) while timing its own event
-    loop, and sends ("result", {...}) — or ("error", text)."""
+) -> tuple[list, list, list, list[float]] | None:
+    """The part a robots' process shares: render robots `ks`' streams and frames, send ("ready",), wait for "go",
+    stream them in real time while timing the process's event loop → (stats, views, sources, loop lag ms); None after
+    sending ("error", text)."""
     streams = robot_streams(assets.library, len(ks), seconds, block_s, taps=assets.taps, indices=ks)
     frames = [frame_of(assets.library, k) for k in ks]
     conn.send(("ready", None))
@@ -180,7 +180,20 @@ def robots_process(
         (stats, views, sources), lag = _run(go())
     except Exception as exc:  # noqa: BLE001 - reported in the row
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return None
+    return stats, views, sources, lag
+
+
+def robots_process(
+    url: str, assets: Assets, ks: list[int], seconds: float, block_s: float, api_key: str, seed: int, conn
+) -> None:
+    """A process of robots: renders robots `ks`' streams (`seconds` long) and camera frames, sends ("ready",),
+    waits for "go", streams them in real time (real RobotClients, an operator each) while timing its own event
+    loop, and sends ("result", {...}) — or ("error", text)."""
+    ran = _stream_robots(url, assets, ks, seconds, block_s, api_key, seed, conn)
+    if ran is None:
         return
+    stats, views, sources, lag = ran
     conn.send(
         (
             "result",
@@ -215,24 +228,10 @@ def crowd_robots_process(
     """A process of crowd robots (real RobotClients with camera frames, an operator each): as robots_process, but
     what comes back is per robot — its start, every window's arrival (perf_counter), what its windows were estimated
     from, its counters — so that gaps and the admitted robots can be told apart."""
-    streams = robot_streams(assets.library, len(ks), seconds, block_s, taps=assets.taps, indices=ks)
-    frames = [frame_of(assets.library, k) for k in ks]
-    conn.send(("ready", None))
-    conn.recv()
-
-    async def go():
-        lag: list[float] = []
-        ticking = loop_lag(lag)
-        try:
-            return await run_load([url], streams, frames, block_s, api_key, seed), lag
-        finally:
-            ticking.cancel()
-
-    try:
-        (stats, views, sources), lag = _run(go())
-    except Exception as exc:  # noqa: BLE001 - reported in the row
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    ran = _stream_robots(url, assets, ks, seconds, block_s, api_key, seed, conn)
+    if ran is None:
         return
+    stats, views, sources, lag = ran
     robots = [
         {
             "start": src.start,

@@ -12,15 +12,14 @@ from types import SimpleNamespace
 import httpx
 import numpy as np
 import pytest
-from scipy.spatial import Delaunay
 from websockets.sync.client import connect
 
+from benchmarks.surface_model import known_texture
 from models.tactile.surface_fit import FitStatus
 from service import cli
 from service.events import StatusEvent, WindowEvent
 from service.surface_models import SessionSurface
 from texture_library.library import Library
-from texture_library.lsf import poles_to_poly, poly_to_lsf
 from texture_library.recording import Recording, recording_from_stroke
 from texture_library.render_model import RenderModel, parse_render_model
 from texture_library.spectrum import spectral_distance_db
@@ -46,7 +45,7 @@ def surface_server(kit, base_settings):
 
 @pytest.fixture(scope="module")
 def unseen() -> VibrationModel:
-    return _known_texture()
+    return known_texture()
 
 
 def _stroke(model, seconds: float, seed: int = 7, hover_s: float = 0.5) -> Recording:
@@ -61,29 +60,6 @@ def _stroke(model, seconds: float, seed: int = 7, hover_s: float = 0.5) -> Recor
         np.concatenate([0.01 * rng.standard_normal((n, 3)), s.force]),
         np.concatenate([np.zeros(n), s.speed]),
         s.rate_hz,
-    )
-
-
-def _known_texture() -> VibrationModel:
-    """A texture the test knows and the served library (the synthetic world's) does not hold: two resonances and a
-    notch, the same shape everywhere, louder with speed."""
-    speeds, forces = np.meshgrid([0.0, 150.0, 320.0], [0.0, 2.0, 4.5], indexing="ij")
-    s, f = speeds.ravel(), forces.ravel()
-    m = s.size
-    ar = poly_to_lsf(poles_to_poly(np.array([90.0, 260.0]), np.array([0.93, 0.9]), 1000.0))
-    ma = poly_to_lsf(poles_to_poly(np.array([170.0]), np.array([0.8]), 1000.0))
-    return VibrationModel(
-        name="known",
-        speeds=s,
-        forces=f,
-        triangles=Delaunay(np.stack([s / 320, f / 4.5], axis=1)).simplices.astype(np.int64),
-        ar_lsf=np.tile(ar, (m, 1)),
-        ma_lsf=np.tile(ma, (m, 1)),
-        variance=0.05 * (0.2 + s / 150.0),
-        gain=np.ones(m),
-        mu=0.4,
-        max_speed=320.0,
-        max_force=4.5,
     )
 
 
