@@ -89,8 +89,10 @@ def test_a_client_cannot_write_a_line_of_its_own_into_the_log(kit, tactile_model
         for route in ("ingest", "events"):
             with socket.create_connection(("127.0.0.1", server.port), timeout=10) as raw:
                 raw.sendall(
-                    f"GET /sessions/{forged}/{route} HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade"
-                    "\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+                    # with a token: the credential is judged first, so only then is the forged id looked up (and logged)
+                    f"GET /sessions/{forged}/{route}?token=not-a-token HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+                    "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                    "Sec-WebSocket-Version: 13\r\n\r\n".encode()
                 )
                 assert raw.recv(4096).startswith(b"HTTP/1.1 404"), route
     finally:

@@ -23,7 +23,8 @@ from texture_library.recording import Recording, load_recording, make_channel, r
     ],
 )
 def test_units_are_converted_to_canonical(kind, units, factor):
-    data = np.arange(12.0).reshape(4, 3) if kind == "accel" else np.arange(4.0)
+    # within every channel's physical bounds once converted (a speed of 3 m/s would be refused: at most 2000 mm/s)
+    data = np.arange(12.0).reshape(4, 3) if kind == "accel" else np.arange(4.0) / 2
     ch = make_channel(kind, data, 500.0, units)
     np.testing.assert_allclose(ch.data, data * factor)
     assert ch.rate_hz == 500.0 and ch.duration_s == pytest.approx(4 / 500)

@@ -120,9 +120,21 @@ def test_the_quick_check_still_sees_missing_files(dataset_copy):
     [
         (np.zeros((2000, 2)), 1000.0, "accel: shape must be (n, 3), got (2000, 2)"),
         (np.zeros(2000), 1000.0, "accel: shape must be (n, 3), got (2000,)"),
-        (np.zeros((2000, 3)), 0, "accel: sample rate must lie in [10, 100000] Hz, got 0"),
-        (np.zeros((2000, 3)), -1000.0, "accel: sample rate must lie in [10, 100000] Hz, got -1000"),
-        (np.zeros((2000, 3)), 1e9, "accel: sample rate must lie in [10, 100000] Hz, got 1e+09"),
+        (
+            np.zeros((2000, 3)),
+            0,
+            "accel: sample rate must lie in [10, 100000] Hz, got 0 (a sample interval of 0.01 to 100 ms)",
+        ),
+        (
+            np.zeros((2000, 3)),
+            -1000.0,
+            "accel: sample rate must lie in [10, 100000] Hz, got -1000 (a sample interval of 0.01 to 100 ms)",
+        ),
+        (
+            np.zeros((2000, 3)),
+            1e9,
+            "accel: sample rate must lie in [10, 100000] Hz, got 1e+09 (a sample interval of 0.01 to 100 ms)",
+        ),
         (np.zeros((2000, 3)), None, "accel: sample rate must be a finite number, got None"),
         (np.where(np.arange(6000).reshape(2000, 3) == 700, np.nan, 0.0), 1000.0, "accel: 1 sample(s) are NaN or Inf"),
         (np.where(np.arange(6000).reshape(2000, 3) < 2, np.inf, 0.0), 1000.0, "accel: 2 sample(s) are NaN or Inf"),
