@@ -410,19 +410,25 @@ def test_a_job_holds_at_most_max_windows_per_job_windows_the_oldest_sessions_fir
     assert asked == [("old", 3), ("mid", 1)] and [j.windows for _, j in batch] == [2, 1]
 
 
-def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float, gap_s: float = 0.0) -> list[tuple[str, float]]:
-    """Two sessions, b ready `gap_s` after a, each with one window, through a batcher whose jobs hold their thread
-    for 0.25 s: (session id, seconds after b was ready its job started), in the order the jobs started."""
+#: how long each job of _run_jobs holds its pool thread (s): long beside what a busy host adds to a timer or a thread
+#: hand-off, so that "before a's job ended" and "after it" stay apart however busy the host is
+HOLD_S = 1.0
+
+
+def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float) -> list[tuple[str, float, float]]:
+    """Two sessions, b ready just after a, each with one window, through a batcher whose jobs hold their thread
+    for HOLD_S: (session id, seconds after b was ready its job started, seconds after a's job started), in the order
+    the jobs started."""
     from service import batcher as batcher_module
     from service.batcher import WindowBatcher
     from service.pipeline import SessionResult
 
-    started: list[tuple[str, float]] = []
+    started: list[tuple[str, float]] = []  # (session id, time.monotonic() its job started)
     ready_b = [0.0]
 
     def estimate(runtime, jobs):
-        started.append((jobs[0].sid, time.monotonic() - ready_b[0]))
-        time.sleep(0.25)
+        started.append((jobs[0].sid, time.monotonic()))
+        time.sleep(HOLD_S)
         return [SessionResult([], job.windows, None) for job in jobs]
 
     monkeypatch.setattr(batcher_module, "estimate_batch", estimate)
@@ -449,25 +455,29 @@ def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float, gap_s: float = 0
         batcher = WindowBatcher(ThreadPoolExecutor(2), max_jobs=max_jobs, spill_after_s=spill_after_s)
         batcher.start()
         batcher.notify(stub("a", 0.0))  # type: ignore[arg-type]
-        await asyncio.sleep(0.02)  # a's job is running
+        while not started:  # a's job is running
+            await asyncio.sleep(0.005)
         ready_b[0] = time.monotonic()
         batcher.notify(stub("b", 1.0))  # type: ignore[arg-type]
-        await asyncio.sleep(0.6)
+        deadline = time.monotonic() + 30  # a hang guard: both jobs start
+        while len(started) < 2 and time.monotonic() < deadline:
+            await asyncio.sleep(0.005)
         await batcher.close()
 
     asyncio.run(scenario())
-    return started
+    a_started = started[0][1]
+    return [(sid, t - ready_b[0], t - a_started) for sid, t in started]
 
 
 def test_a_second_job_starts_only_once_a_session_has_waited_spill_after_s(monkeypatch):
     """Two jobs at once slow each other down through the GIL: b's job waits for a's to end, unless b has waited
     spill_after_s, when the second thread takes it."""
-    (a, _), (b, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.1)
-    assert (a, b) == ("a", "b") and 0.1 <= waited < 0.2  # a's job holds its thread for 0.25 s
-    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.0)
-    assert waited < 0.05  # 0: the free thread takes it at once
-    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=1, spill_after_s=0.0)
-    assert waited >= 0.2  # one thread: after a's job, whatever the spill
+    (a, _, _), (b, waited, into_a) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.1)
+    assert (a, b) == ("a", "b") and waited >= 0.1 and into_a < HOLD_S  # spilled while a's job held its thread
+    (_, _, _), (_, waited, into_a) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.0)
+    assert waited < HOLD_S / 2 and into_a < HOLD_S  # 0: the free thread takes it at once, a's job still running
+    (_, _, _), (_, _, into_a) = _run_jobs(monkeypatch, max_jobs=1, spill_after_s=0.0)
+    assert into_a >= HOLD_S  # one thread: after a's job, whatever the spill
 
 
 def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_apart():
