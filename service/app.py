@@ -29,6 +29,7 @@ from service.schemas import JsonBlock, JsonTapBlock
 from service.server import server_options
 from service.settings import Settings
 from service.state import ServiceState
+from service.thread_cpu import CpuMeter
 
 __all__ = ["create_app", "server_options", "route_paths"]
 
@@ -61,13 +62,14 @@ robot or operator token.
 """
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The service as an ASGI app; state lives in `app.state.service` between lifespan start and end."""
+def create_app(settings: Settings | None = None, cpu_meter: CpuMeter | None = None) -> FastAPI:
+    """The service as an ASGI app; state lives in `app.state.service` between lifespan start and end. `cpu_meter`:
+    what admission measures the service's CPU by (service/thread_cpu.py; its own threads' CPU clocks by default)."""
     settings = settings or Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        state = ServiceState(settings)
+        state = ServiceState(settings, cpu_meter)
         await state.start()
         app.state.service = state
         try:

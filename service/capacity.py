@@ -183,11 +183,13 @@ class CapacityGuard:
         window_waits: Callable[[float], Mapping[str, float]] = lambda now: {},
         threads_cpu: Callable[[], float] = time.process_time,
         visual: EmbeddingQueue | None = None,
+        loop_cpu: Callable[[], float] = time.thread_time,
     ) -> None:
         """window_waits(now): session id → the longest its windows waited since the last call, s
         (WindowBatcher.take_waits). threads_cpu(): CPU seconds the service's threads have used, the loop's and its
         pools' (ThreadCpu.seconds; the whole process's by default). visual: the embedding queue the sessions' frames
-        wait in (service/visual_queue.py; an empty one by default)."""
+        wait in (service/visual_queue.py; an empty one by default). loop_cpu(), called on the event-loop thread: that
+        thread's CPU seconds (ThreadCpu.loop_seconds)."""
         self.settings = settings
         self.metrics = metrics
         self.lag_s = 0.0
@@ -197,6 +199,7 @@ class CapacityGuard:
         self.cpu_share = 0.0
         self.process_share = 0.0  # cores the service's threads used together (the loop and its pools), smoothed
         self._threads_cpu = threads_cpu
+        self._loop_cpu = loop_cpu
         self.cpu_per_session = 0.0  # loop CPU per streaming session (0 until measured)
         self.process_per_session = 0.0  # the whole process's CPU per streaming session (0 until measured)
         self._streaming = 0
@@ -249,11 +252,11 @@ class CapacityGuard:
     # ---- the measures ----------------------------------------------------------------------------
     async def _sample(self) -> None:
         weight = 1 - math.exp(-SAMPLE_EVERY_S / SMOOTHING_S)
-        wall, cpu = time.monotonic(), time.thread_time()  # this runs on the loop thread: its CPU clock
+        wall, cpu = time.monotonic(), self._loop_cpu()  # this runs on the loop thread: its CPU clock
         process_cpu = self._threads_cpu()
         while True:
             await asyncio.sleep(SAMPLE_EVERY_S)
-            now, now_cpu, now_process = time.monotonic(), time.thread_time(), self._threads_cpu()
+            now, now_cpu, now_process = time.monotonic(), self._loop_cpu(), self._threads_cpu()
             elapsed = now - wall
             lag = max(0.0, elapsed - SAMPLE_EVERY_S)
             share = (now_cpu - cpu) / elapsed if elapsed > 0 else 0.0

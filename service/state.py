@@ -41,7 +41,7 @@ from service.probes import ProbeServer, health, readiness_report
 from service.runtime import Runtime, load_runtime
 from service.schemas import HealthOut, ReadyOut
 from service.settings import Settings
-from service.thread_cpu import ThreadCpu, lower_priority
+from service.thread_cpu import CpuMeter, ThreadCpu, lower_priority
 from service.visual_queue import EmbeddingQueue
 from service.warmup import warm_up
 
@@ -49,9 +49,10 @@ log = logging.getLogger(__name__)
 
 
 class ServiceState:
-    """Create with settings, `await start()` inside the event loop, `await close()` at shutdown."""
+    """Create with settings, `await start()` inside the event loop, `await close()` at shutdown. `cpu_meter`: what
+    admission measures the service's threads by (a `ThreadCpu` of its own by default)."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, cpu_meter: CpuMeter | None = None) -> None:
         self.settings = settings
         self.metrics = ServiceMetrics()
         self.broker: Broker = make_broker(
@@ -63,7 +64,7 @@ class ServiceState:
         self.runtime: Runtime | None = None
         self.load_error: str | None = None
         # admission measures the CPU of these pools' threads with the loop's (they share its GIL)
-        self.threads = ThreadCpu()
+        self.threads: CpuMeter = cpu_meter if cpu_meter is not None else ThreadCpu()
         self.window_pool = ThreadPoolExecutor(
             settings.pool_threads, thread_name_prefix="hapticlink-window", initializer=self.threads.register
         )
@@ -86,6 +87,7 @@ class ServiceState:
             lambda now: self.batcher.take_waits(now),
             self.threads.seconds,
             self.embedding_queue,
+            self.threads.loop_seconds,
         )
         self.frames = FrameIntake(settings, self.metrics, self.bus, self.frame_pool, self.capacity)
         self.blocks = BlockIntake(self.metrics, self.capacity)

@@ -3,8 +3,12 @@ the process (a test's client, an embedding application) nor the native threads o
 and the share the OS gives a background pool when the cores are contended (`lower_priority`).
 
 The pools' threads register themselves (`ThreadCpu.register`, a ThreadPoolExecutor initializer); `seconds()`, called
-on the event-loop thread, adds that thread's own CPU clock to theirs. Where a thread's CPU clock cannot be read
-(`time.pthread_getcpuclockid` is missing: not Linux or BSD), `seconds()` is the whole process's CPU time instead.
+on the event-loop thread, adds that thread's own CPU clock to theirs, and `loop_seconds()` is that thread's alone.
+Where a thread's CPU clock cannot be read (`time.pthread_getcpuclockid` is missing: not Linux or BSD), `seconds()` is
+the whole process's CPU time instead.
+
+Admission (service/capacity.py) reads a `CpuMeter`: `ThreadCpu` in a service; another one where what the CPU clocks
+say must not decide (tests whose subject is not capacity run on hosts that are busy with other work).
 """
 
 from __future__ import annotations
@@ -14,6 +18,22 @@ import os
 import sys
 import threading
 import time
+from typing import Protocol
+
+
+class CpuMeter(Protocol):
+    """What admission measures the service's CPU by; every method is called on the thread named."""
+
+    def register(self) -> None:
+        """Count the calling thread (a pool thread, as it starts) from now on."""
+
+    def seconds(self) -> float:
+        """CPU seconds the registered threads and the calling one (the event loop's) have used, s: a running sum."""
+        ...
+
+    def loop_seconds(self) -> float:
+        """CPU seconds the calling thread (the event loop's) has used, s: a running sum."""
+        ...
 
 
 class ThreadCpu:
@@ -44,6 +64,10 @@ class ThreadCpu:
                 with self._lock, contextlib.suppress(KeyError):
                     del self._clocks[ident]
         return total
+
+    def loop_seconds(self) -> float:
+        """CPU seconds the calling thread has used (s)."""
+        return time.thread_time()
 
 
 def lower_priority(niceness: int) -> bool:

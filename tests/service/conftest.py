@@ -28,6 +28,7 @@ from service.app import create_app, server_options
 from service.launcher import free_port
 from service.server import SessionEndingServer
 from service.settings import Settings
+from service.thread_cpu import CpuMeter
 from texture_library.library import Library
 from texture_library.recording import Recording, recording_from_stroke
 from texture_library.stroke import stroke
@@ -41,13 +42,32 @@ SCRAPER = {"Authorization": f"Bearer {METRICS_TOKEN}"}
 
 
 # ---- the real server -----------------------------------------------------------------------------
-class ServerThread:
-    """uvicorn serving create_app(settings) on 127.0.0.1:<free port> in a daemon thread."""
+class QuietCpu:
+    """A CPU meter that reads no CPU used: admission (service/capacity.py) then never finds the replica busy, whatever
+    else runs on the host. Every test server has it unless its test is about capacity, which passes
+    `cpu_meter=ThreadCpu()` (the service's own meter) and sets the load it tests through the settings' budget."""
 
-    def __init__(self, settings: Settings, log_level: str = "warning") -> None:
+    def register(self) -> None:
+        pass
+
+    def seconds(self) -> float:
+        return 0.0
+
+    def loop_seconds(self) -> float:
+        return 0.0
+
+
+QUIET_CPU = QuietCpu()
+
+
+class ServerThread:
+    """uvicorn serving create_app(settings, cpu_meter) on 127.0.0.1:<free port> in a daemon thread; `cpu_meter`:
+    QUIET_CPU unless the test is about capacity (ThreadCpu(): what the service measures)."""
+
+    def __init__(self, settings: Settings, log_level: str = "warning", cpu_meter: CpuMeter = QUIET_CPU) -> None:
         self.settings = settings
         self.log_level = log_level
-        self.app = create_app(settings)
+        self.app = create_app(settings, cpu_meter)
         self.port = 0
         self._server: uvicorn.Server | None = None
         self._thread: threading.Thread | None = None
@@ -104,8 +124,10 @@ class ServerThread:
 
 
 @contextlib.contextmanager
-def running(settings: Settings, wait_ready: bool = True, log_level: str = "warning") -> Iterator[ServerThread]:
-    server = ServerThread(settings, log_level).start(wait_ready=wait_ready)
+def running(
+    settings: Settings, wait_ready: bool = True, log_level: str = "warning", cpu_meter: CpuMeter = QUIET_CPU
+) -> Iterator[ServerThread]:
+    server = ServerThread(settings, log_level, cpu_meter).start(wait_ready=wait_ready)
     try:
         yield server
     finally:
@@ -308,6 +330,7 @@ def kit() -> SimpleNamespace:
         socket_url=socket_url,
         png=png,
         free_port=free_port,
+        QUIET_CPU=QUIET_CPU,
         FIXED_SEED=FIXED_SEED,
         API_KEY=API_KEY,
         FLEET=FLEET,

@@ -104,6 +104,8 @@ def test_a_live_server_embeds_what_its_policy_says(kit, visual_model, library_di
         session_queue_windows=64,
         serving_policy=policy,
         pool_frames=2,
+        session_idle_s=600,  # the reaper is not this test's subject: on a busy host an embedding takes over 15 s
+        session_first_block_s=600,
     )
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
         session = kit.create_session(client)

@@ -36,6 +36,7 @@ from service.capacity import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import Settings
+from service.thread_cpu import ThreadCpu
 
 WORKER_THREADS = 40  # anyio's default thread limiter: the pool FastAPI runs plain-def dependencies and routes in
 
@@ -54,7 +55,7 @@ def over_budget(kit, base_settings):
             "shed_queue_s": 600,
         }
     )
-    with kit.running(settings) as srv:
+    with kit.running(settings, cpu_meter=ThreadCpu()) as srv:
         yield srv
 
 
@@ -72,7 +73,7 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
             r = client.post("/sessions", json={"name": "one more"}, headers=kit.FLEET)
             return r if r.status_code == 429 else None
 
-        r = kit.wait_for(refused_session, timeout_s=20)
+        r = kit.wait_for(refused_session, timeout_s=60)  # a hang guard: on a busy host requests take seconds
         detail = r.json()["detail"]
         assert "at capacity" in detail and ("over its budget" in detail or "refuses the blocks of 1" in detail)
         assert float(r.headers["retry-after"]) > 0
@@ -116,7 +117,7 @@ def test_over_capacity_new_sessions_and_the_newest_sessions_blocks_are_refused_w
 def test_the_first_session_is_always_admitted(kit, base_settings):
     """Nothing to shed for: a replica without sessions admits one even over its budget."""
     settings = base_settings.model_copy(update={"instance_id": "tight-empty", "cpu_budget": 1e-6})
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+    with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         guard = srv.app.state.service.capacity
         kit.wait_for(lambda: guard.cpu_share > settings.cpu_budget, timeout_s=10)
         assert client.post("/sessions", json={"name": "first"}, headers=kit.FLEET).status_code == 201
@@ -409,19 +410,25 @@ def test_a_job_holds_at_most_max_windows_per_job_windows_the_oldest_sessions_fir
     assert asked == [("old", 3), ("mid", 1)] and [j.windows for _, j in batch] == [2, 1]
 
 
-def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float, gap_s: float = 0.0) -> list[tuple[str, float]]:
-    """Two sessions, b ready `gap_s` after a, each with one window, through a batcher whose jobs hold their thread
-    for 0.25 s: (session id, seconds after b was ready its job started), in the order the jobs started."""
+#: how long each job of _run_jobs holds its pool thread (s): long beside what a busy host adds to a timer or a thread
+#: hand-off, so that "before a's job ended" and "after it" stay apart however busy the host is
+HOLD_S = 1.0
+
+
+def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float) -> list[tuple[str, float, float]]:
+    """Two sessions, b ready just after a, each with one window, through a batcher whose jobs hold their thread
+    for HOLD_S: (session id, seconds after b was ready its job started, seconds after a's job started), in the order
+    the jobs started."""
     from service import batcher as batcher_module
     from service.batcher import WindowBatcher
     from service.pipeline import SessionResult
 
-    started: list[tuple[str, float]] = []
+    started: list[tuple[str, float]] = []  # (session id, time.monotonic() its job started)
     ready_b = [0.0]
 
     def estimate(runtime, jobs):
-        started.append((jobs[0].sid, time.monotonic() - ready_b[0]))
-        time.sleep(0.25)
+        started.append((jobs[0].sid, time.monotonic()))
+        time.sleep(HOLD_S)
         return [SessionResult([], job.windows, None) for job in jobs]
 
     monkeypatch.setattr(batcher_module, "estimate_batch", estimate)
@@ -448,25 +455,29 @@ def _run_jobs(monkeypatch, max_jobs: int, spill_after_s: float, gap_s: float = 0
         batcher = WindowBatcher(ThreadPoolExecutor(2), max_jobs=max_jobs, spill_after_s=spill_after_s)
         batcher.start()
         batcher.notify(stub("a", 0.0))  # type: ignore[arg-type]
-        await asyncio.sleep(0.02)  # a's job is running
+        while not started:  # a's job is running
+            await asyncio.sleep(0.005)
         ready_b[0] = time.monotonic()
         batcher.notify(stub("b", 1.0))  # type: ignore[arg-type]
-        await asyncio.sleep(0.6)
+        deadline = time.monotonic() + 30  # a hang guard: both jobs start
+        while len(started) < 2 and time.monotonic() < deadline:
+            await asyncio.sleep(0.005)
         await batcher.close()
 
     asyncio.run(scenario())
-    return started
+    a_started = started[0][1]
+    return [(sid, t - ready_b[0], t - a_started) for sid, t in started]
 
 
 def test_a_second_job_starts_only_once_a_session_has_waited_spill_after_s(monkeypatch):
     """Two jobs at once slow each other down through the GIL: b's job waits for a's to end, unless b has waited
     spill_after_s, when the second thread takes it."""
-    (a, _), (b, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.1)
-    assert (a, b) == ("a", "b") and 0.1 <= waited < 0.2  # a's job holds its thread for 0.25 s
-    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.0)
-    assert waited < 0.05  # 0: the free thread takes it at once
-    (_, _), (_, waited) = _run_jobs(monkeypatch, max_jobs=1, spill_after_s=0.0)
-    assert waited >= 0.2  # one thread: after a's job, whatever the spill
+    (a, _, _), (b, waited, into_a) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.1)
+    assert (a, b) == ("a", "b") and waited >= 0.1 and into_a < HOLD_S  # spilled while a's job held its thread
+    (_, _, _), (_, waited, into_a) = _run_jobs(monkeypatch, max_jobs=2, spill_after_s=0.0)
+    assert waited < HOLD_S / 2 and into_a < HOLD_S  # 0: the free thread takes it at once, a's job still running
+    (_, _, _), (_, _, into_a) = _run_jobs(monkeypatch, max_jobs=1, spill_after_s=0.0)
+    assert into_a >= HOLD_S  # one thread: after a's job, whatever the spill
 
 
 def test_queue_delays_leave_shed_sessions_out_and_hold_the_protected_sessions_apart():
@@ -509,7 +520,7 @@ def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
     caplog.set_level(logging.INFO)
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
     settings = base_settings.model_copy(update={"instance_id": "shedding"})
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+    with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         guard = srv.app.state.service.capacity
         sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
         sent = [0, 0, 0]

@@ -126,9 +126,19 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
             tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
         )
         stall = PoolStall(tight_server)
-        loop = asyncio.get_running_loop()
-        loop.call_later(1.0, stall.release.set)  # the slow spell ends after a second
+
+        async def slow_spell() -> None:
+            """The slow spell lasts until the robot has been refused, and half a second more of its retries (not a
+            fixed second: on a busy host the robot may not fill the session's queue in a second)."""
+            deadline = time.monotonic() + 60  # hang guard
+            while robot.stats.saturated == 0 and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.5)
+            stall.release.set()
+
+        spell = asyncio.create_task(slow_spell())
         stats = await robot.run()
+        await spell
         return robot, stats
 
     robot, stats = asyncio.run(main())

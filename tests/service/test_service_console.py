@@ -50,8 +50,9 @@ FLAGS = (
 )
 
 
-@pytest.fixture
-def browser(tmp_path):
+@pytest.fixture(scope="module")
+def chromium(tmp_path_factory):
+    """One Chromium for the module (starting one took seconds per test); `browser` hands it to each test."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -59,14 +60,26 @@ def browser(tmp_path):
     options.binary_location = CHROMIUM
     for flag in FLAGS:
         options.add_argument(flag)
-    options.add_argument(f"--user-data-dir={tmp_path / 'chromium-profile'}")
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
     driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
     driver.set_page_load_timeout(30)
     driver.set_script_timeout(120)
     try:
-        yield driver
+        yield driver, driver.get_window_size()
     finally:
         driver.quit()
+
+
+@pytest.fixture
+def browser(chromium):
+    """The module's Chromium at its starting window size; the test's page is closed after it (about:blank: its
+    sockets and audio end with it, as when the browser quit). The console keeps nothing in storage."""
+    driver, size = chromium
+    driver.set_window_size(size["width"], size["height"])
+    try:
+        yield driver
+    finally:
+        driver.get("about:blank")
 
 
 def _text(driver, element_id: str) -> str:

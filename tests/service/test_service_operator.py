@@ -242,8 +242,9 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
     session = kit.create_session(client)
     out = tmp_path / "cli.wav"
     cmd = [sys.executable, "-m", "service.cli", "operator", "--url", server.url, "--session", session["session_id"],
-           "--token", session["operator_token"], "--device", "simulated:30", "--out", f"wav:{out}",
-           "--duration", "2"]  # fmt: skip
+           "--token", session["operator_token"], "--device", "simulated:2", "--out", f"wav:{out}",
+           "--duration", "120"]  # fmt: skip
+    # the device's 2 s stroke ends the run: on a busy host a 2 s --duration ended it after 1.8 s of samples
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 0, done.stderr

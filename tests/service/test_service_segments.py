@@ -282,6 +282,8 @@ def test_a_dropout_keeps_the_visual_embedding(kit, visual_model, library_dir, ga
         api_keys=kit.API_KEY,
         session_queue_windows=64,
         session_burst=10_000,
+        session_idle_s=600,  # the reaper is not this test's subject: on a busy host an embedding takes over 15 s
+        session_first_block_s=600,
     )
     blocks = _stream(kit, library_dir, gap_s, entry="synth_003")
     starts = _expected_starts(blocks, visual_model.model)

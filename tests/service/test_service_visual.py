@@ -32,6 +32,8 @@ def test_windows_wait_for_a_frame_then_use_its_embedding(kit, visual_model, libr
         backbone_path=visual_model.backbone,
         instance_id="visual",
         api_keys=kit.API_KEY,
+        session_idle_s=600,  # the reaper is not this test's subject: on a busy host an embedding takes over 15 s
+        session_first_block_s=600,
     )
     image = (library_dir / "images" / "synth_003.png").read_bytes()
     rec = kit.stroke_recording(library_dir, "synth_003", 1.6)
@@ -124,6 +126,10 @@ def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
         api_keys=kit.API_KEY,
         metrics_token=kit.METRICS_TOKEN,
         session_queue_windows=64,
+        # the reaper is not these tests' subject: on a busy host an embedding takes longer than its 15 s default, and
+        # a session that sent only a frame was ended as abandoned while it waited
+        session_idle_s=600,
+        session_first_block_s=600,
         **extra,
     )
 
@@ -305,7 +311,8 @@ def test_a_frame_waiting_for_the_embedder_holds_its_pixels_in_the_visual_queue(k
         assert outcomes == ["embedding", "superseded", "superseded"]
         release.set()
         stall.result(timeout=10)
-        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_embedded"] == 2, timeout_s=60)
+        # hang guards: the embedder's thread runs at visual_nice (+15), last in line on a busy host
+        kit.wait_for(lambda: kit.session_status(client, session)["counters"]["frames_embedded"] == 2, timeout_s=300)
         kit.wait_for(lambda: state.frames.visual_pixels == 0, timeout_s=60)
 
 
