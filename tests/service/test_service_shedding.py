@@ -29,6 +29,7 @@ from service.capacity import (
 )
 from service.metrics import ServiceMetrics
 from service.settings import Settings
+from service.thread_cpu import ThreadCpu
 from service.visual_queue import EmbeddingQueue
 
 
@@ -257,7 +258,8 @@ def test_shed_robots_come_back_in_the_order_they_came_told_when_and_the_wait_is_
     they are let back oldest first, and the time from their readmission to their next block accepted is measured."""
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 1.0))
     settings = base_settings.model_copy(update={"instance_id": "readmit"})
-    with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
+    # about capacity: the service's own CPU meter, the load set through the budget
+    with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         guard = srv.app.state.service.capacity
         sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
         for s in sessions:
