@@ -85,11 +85,13 @@ def _fidelity_online(args: argparse.Namespace) -> int:
     from models.offline.datasets.format import Dataset
     from models.offline.fidelity.online import run_world, write_online
     from models.offline.fidelity.study import load_world
+    from models.offline.provenance import dataset_inputs, file_input, provenance
     from texture_library.vibration import VibrationModel
 
     if args.textures < 2:
         raise ValueError(f"--textures must be ≥ 2, got {args.textures}")
     entries = {}
+    inputs: list = []
     for key, dataset, predictions in (
         ("hatt-texnet", args.dataset, args.predictions),
         ("synthetic", args.synthetic_dataset, args.synthetic_predictions),
@@ -97,11 +99,12 @@ def _fidelity_online(args: argparse.Namespace) -> int:
         if dataset is None:
             continue
         world = load_world(dataset, predictions)
+        inputs += [file_input("predictions", predictions), *dataset_inputs(dataset)]
         ds = Dataset(dataset)
         models = [VibrationModel.load(ds.vibration_model_path(t)) for t in world.textures]
         entries[key] = run_world(world, models, args.textures)
         print(f"{key}: done", flush=True)
     command = "hapticlink " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    out = write_online(Path(args.out), command, entries)
+    out = write_online(Path(args.out), command, entries, provenance(inputs, command))
     print(f"wrote {out}/online.md and results.json's online key")
     return 0

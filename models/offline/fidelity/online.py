@@ -439,12 +439,13 @@ def _taps_line(taps: dict | None) -> str:
     )
 
 
-def write_online(out: Path, command: str, entries: dict[str, dict]) -> Path:
-    """results.json's `online` key (the rest kept) and online.md beside README.md."""
+def write_online(out: Path, command: str, entries: dict[str, dict], made_from: dict | None = None) -> Path:
+    """results.json's `online` key (the rest kept; with `made_from`, models.offline.provenance's record of what it
+    read) and online.md beside README.md."""
     out.mkdir(parents=True, exist_ok=True)
     results = out / "results.json"
     doc = json.loads(results.read_text()) if results.exists() else {}
-    doc["online"] = {"command": command, **entries}
+    doc["online"] = {"command": command, **entries, **({"provenance": made_from} if made_from else {})}
     write_text(results, json.dumps(doc, indent=1) + "\n")
     lines = [
         "# The surface's own model, learnt online: what the operator holds over time",
