@@ -412,8 +412,9 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             ],
         },
         "not_measured": (
-            "taps inside the signal scope (its strokes do not tap; taps are scored on their own); serving the "
-            "model as it grows (the service does not run the fitter yet)"
+            "taps inside the signal scope (its strokes do not tap; taps are scored on their own); the model as the "
+            "service serves it (HAPTICLINK_SURFACE_MODEL: versions at most once a second, only on a perceptible "
+            "change): this study scores the fit at each time, not the version an operator would hold then"
         ),
     }
 
