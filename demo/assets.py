@@ -39,8 +39,9 @@ def demo_visual():
 
 #: models made by an older version of this recipe are retrained — 2: the OOD detector reads the speed/force
 #: statistics where they are (before the extra groups' columns), not the last six columns (the tap features);
-#: 3: the card carries its visual configuration
-MODELS_VERSION = 3
+#: 3: the card carries its visual configuration; 4: the int8 backbone keeps its first six convolutions fp32 (its
+#: features moved), and the card carries probe inputs and outputs it is checked against at load
+MODELS_VERSION = 4
 #: stamp keys that define the world (a change rebuilds dataset, library and probes); the rest retrain the models
 WORLD_KEYS = ("world_version", "n_textures", "library_textures", "n_probes", "seed")
 
