@@ -112,7 +112,7 @@ def prepare_assets(
         ),
         (
             not assets.tactile.is_file(),
-            f"training {TACTILE_MODEL} ({groups}; windows before the first frame) and exporting ONNX",
+            f"training {TACTILE_MODEL} (the same features; windows before the first frame) and exporting ONNX",
             lambda: train_and_export(assets.dataset, TACTILE_MODEL, assets.tactile, seed=seed, tactile_config=features),
         ),
         (

@@ -33,9 +33,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from demo.terminal import (
-    SHORT,
     Terminal,
     cells,
+    heads,
     robot_line,
     status_header,
     status_line,
@@ -163,9 +163,8 @@ class ProbeReport:
         mean = {a: float(np.mean([r[a] for r in windows])) for a in ATTRIBUTES}
         e_now, e_mean = rating_error(ratings, truth), rating_error(mean, truth)
         self.errors.append((probe, e_now, e_mean))
-        heads = "".join(f"{SHORT[a]:>4}" for a in ATTRIBUTES)
         return [
-            f"{f'── {probe}, {into:.1f} s into its stroke (an unseen texture)':<{PROBE_LABEL_W}}{heads}  error",
+            f"{f'── {probe}, {into:.1f} s into its stroke (an unseen texture)':<{PROBE_LABEL_W}}{heads()}  error",
             f"{'console estimate':>{PROBE_LABEL_W}}{cells(ratings)}  {e_now:5.1f}",
             f"{'mean of windows':>{PROBE_LABEL_W}}{cells(mean)}  {e_mean:5.1f}",
             f"{'truth':>{PROBE_LABEL_W}}{cells(truth)}",

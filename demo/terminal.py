@@ -22,18 +22,26 @@ def _cut(text: str, width: int) -> str:
     return text if len(text) <= width else text[: width - 1] + "…"
 
 
+CELL_W = 5  # one rating's column: '-100' and a space before it
+
+
 def cells(ratings: Mapping[str, float]) -> str:
-    """Four bipolar ratings as 4-column cells, in ATTRIBUTES order: ' +12 -30  +5 -40'."""
-    return "".join(f"{ratings[a]:+4.0f}" for a in ATTRIBUTES)
+    """Four bipolar ratings as 5-column cells, in ATTRIBUTES order: '  +12  -30   +5 -100'."""
+    return "".join(f"{ratings[a]:+{CELL_W}.0f}" for a in ATTRIBUTES)
+
+
+def heads() -> str:
+    """The four attributes' short names over their cells: '  r→s  f→b  s→s  h→s'."""
+    return "".join(f"{SHORT[a]:>{CELL_W}}" for a in ATTRIBUTES)
 
 
 def status_header() -> str:
     """The column heads of the status line (printed once)."""
-    heads = "".join(f"{SHORT[a]:>4}" for a in ATTRIBUTES)
+    group = 4 * CELL_W
     return (
-        f"{'time':>{TIME_W}} {'stroking':<{PROBE_W}} est{heads}  truth{heads}  error  rendering"
-        "\n"
-        f"{'':{TIME_W}} ratings bipolar −100…100; error: mean |est − truth| on 0–100"
+        f"{'':{TIME_W + PROBE_W + 2}}{'estimate':>{group}}  {'truth':>{group}}\n"
+        f"{'time':>{TIME_W}} {'stroking':<{PROBE_W}} {heads()}  {heads()}  error  rendering\n"
+        f"{'':{TIME_W + 1}}ratings bipolar −100…100; error: mean |estimate − truth| on 0–100"
     )
 
 
@@ -52,7 +60,7 @@ def status_line(
     """One update: time, the probe stroked, estimate and truth, their error, the rendered entry and its marks."""
     marks = [m for m, on in (("kept", held), ("provisional", provisional), ("OOD", flagged)) if on]
     line = (
-        f"{t_s:{TIME_W - 2}.1f} s {_cut(probe, PROBE_W):<{PROBE_W}} est{cells(estimate)}  truth{cells(truth)}  "
+        f"{t_s:{TIME_W - 2}.1f} s {_cut(probe, PROBE_W):<{PROBE_W}} {cells(estimate)}  {cells(truth)}  "
         f"{error:5.1f}  {_cut(chosen, ID_W)}"
     )
     return _cut(line + (" " + " ".join(marks) if marks else ""), WIDTH)

@@ -28,9 +28,9 @@ def test_each_probe_is_reported_once_when_its_stroke_passes_the_mark():
     assert report.add(1.5, _r(5, 5, 5, 5), _r(4, 4, 4, 4)) == []
     lines = report.add(2.0, _r(4, 4, 4, 4), _r(0, 0, 0, 0))
     assert lines and lines[0].startswith("── a, 2.0 s into its stroke")
-    assert lines[1].endswith("console estimate  +4  +4  +4  +4    2.0")  # 4 bipolar → 2 points
-    assert lines[2].endswith("mean of windows  +4  +4  +4  +4    2.0")  # (8 + 4 + 4 + 0) / 4 = 4 → 2 points
-    assert lines[3].endswith("truth  +0  +0  +0  +0") and all(len(line) <= WIDTH for line in lines)
+    assert lines[1].endswith("console estimate   +4   +4   +4   +4    2.0")  # 4 bipolar → 2 points
+    assert lines[2].endswith("mean of windows   +4   +4   +4   +4    2.0")  # (8 + 4 + 4 + 0) / 4 = 4 → 2 points
+    assert lines[3].endswith("truth   +0   +0   +0   +0") and all(len(line) <= WIDTH for line in lines)
     assert lines[0].index("r→s") + 3 == lines[1].index("+4") + 2  # column heads end where their ratings end
     assert report.add(2.5, _r(0, 0, 0, 0), _r(0, 0, 0, 0)) == []  # reported once
     # probe b starts after the first probe's stroke and the gap; its clock restarts there
@@ -55,7 +55,12 @@ def test_status_lines_fit_100_columns_at_their_widest():
     assert all(len(line) <= WIDTH for line in status_header().splitlines())
     plain = status_line(12.5, "synth_000", _r(12, -30, 5, -40), _r(10, -28, 3, -41), 1.8, "synth_003", held=False,
                         provisional=False, flagged=False)  # fmt: skip
-    assert plain == "   12.5 s synth_000  est +12 -30  +5 -40  truth +10 -28  +3 -41    1.8  synth_003"
+    assert plain == "   12.5 s synth_000    +12  -30   +5  -40    +10  -28   +3  -41    1.8  synth_003"
+    cut = status_line(0.5, "synth_000", _r(72, -100, -43, 29), _r(53, -32, -57, 35), 13.4, "s", held=False,
+                      provisional=False, flagged=False)  # fmt: skip
+    assert " +72 -100  -43" in cut, "a -100 keeps a space before it"
+    header = status_header().splitlines()
+    assert header[1].index("r→s") + 3 == plain.index("+12") + 3  # the heads end where their ratings end
     assert status_line(1.0, "a", extreme, extreme, 0.0, "b", held=True, provisional=True, flagged=False).endswith(
         " b kept provisional"
     )

@@ -33,9 +33,9 @@ def test_demo_builds_its_assets_and_streams_estimates(small_assets, capsys):
     asyncio.run(run_demo(assets, host="127.0.0.1", port=free_port(), per_texture_s=3.0, duration_s=7.0))
     out = capsys.readouterr().out
     assert "/console?session=" in out and "token=" in out
-    assert re.search(r"^\s+\d+\.\d s synth_000\s+est [-+ \d]+ truth", out, re.M), out  # the status line, plain
+    assert re.search(r"^\s+\d+\.\d s synth_000(\s+[-+]\d+){8}\s+\d+\.\d\s+synth_", out, re.M), out  # status, plain
     assert re.search(r"^\s+\d+\.\d s rendering synth_\d+ — (rule \w+: |nearest)", out, re.M), out  # and why
-    assert "r→s f→b s→s h→s" in out and "mean |est − truth| on 0–100" in out, "the column heads say what is what"
+    assert "r→s  f→b  s→s  h→s" in out and "mean |estimate − truth| on 0–100" in out, "the heads say what is what"
     assert "demo summary: " in out and "flagged out of distribution" in out
     assert re.search(r"^robot: \d+ blocks read, \d+ acknowledged", out, re.M) and "lost" not in out, out
     assert "{" not in out, "no raw dict"
