@@ -13,10 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "fidelity",
         help="what the operator feels: selection rules scored leave-one-texture-out → README, charts, results.json",
     )
-    f.add_argument("--dataset", required=True, help="HaTT–TexNet dataset directory (hapticlink dataset build)")
-    f.add_argument("--predictions", required=True, help="results.json of the served model's leave-one-texture-out run")
-    f.add_argument("--synthetic-dataset", help="synthetic-world dataset directory (strokes with surface bumps)")
-    f.add_argument("--synthetic-predictions", help="results.json of a leave-one-texture-out run on it")
+    add_worlds(f)
     f.add_argument("--windows", type=int, default=24, help="windows per stroked texture for per-window rules")
     f.add_argument("--default-rule", default="hybrid", help="the rule the service serves (marked in the report)")
     f.add_argument("--out", default="reports/fidelity")
@@ -67,15 +64,20 @@ def _fidelity(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_worlds(f: argparse.ArgumentParser) -> None:
+    """The two worlds both studies read: HaTT–TexNet (required) and the synthetic world, each with its predictions."""
+    f.add_argument("--dataset", required=True, help="HaTT–TexNet dataset directory (hapticlink dataset build)")
+    f.add_argument("--predictions", required=True, help="results.json of the served model's leave-one-texture-out run")
+    f.add_argument("--synthetic-dataset", help="synthetic-world dataset directory (strokes with surface bumps)")
+    f.add_argument("--synthetic-predictions", help="results.json of a leave-one-texture-out run on it")
+
+
 def register_online(sub: argparse._SubParsersAction) -> None:
     f = sub.add_parser(
         "fidelity-online",
         help="what the operator holds over time: the surface's own model learnt online, leave-one-texture-out",
     )
-    f.add_argument("--dataset", required=True, help="HaTT–TexNet dataset directory")
-    f.add_argument("--predictions", required=True, help="results.json of the served model's leave-one-texture-out run")
-    f.add_argument("--synthetic-dataset", help="synthetic-world dataset directory")
-    f.add_argument("--synthetic-predictions", help="results.json of a leave-one-texture-out run on it")
+    add_worlds(f)
     f.add_argument("--textures", type=int, default=8, help="stroked textures per world (an evenly spaced subsample)")
     f.add_argument("--out", default="reports/fidelity")
     f.set_defaults(func=_fidelity_online)
