@@ -862,10 +862,39 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     assert not demo.is_alive()
 
 
+# the pad's own points, as its handlers take them: [event time, handling time, x, y] (ms, ms, CSS px, CSS px)
+_RECORD_POINTER_EVENTS = """
+window.receivedPointer = [];
+const pad = document.getElementById("pad");
+const keep = (c, now) => window.receivedPointer.push([c.timeStamp, now, c.clientX, c.clientY]);
+pad.addEventListener("pointerdown", e => keep(e, performance.now()), true);
+pad.addEventListener("pointermove", e => {
+  const now = performance.now();
+  for (const c of (e.getCoalescedEvents ? e.getCoalescedEvents() : []).concat([e])) keep(c, now);
+}, true);
+"""
+
+
+def _top_speed_bound_mm_s(received: list[list[float]], window_ms: float = 50.0, floor_ms: float = 8.0) -> float:
+    """The most the pad's speed estimate (path length over the last `window_ms`, its span at least `floor_ms`)
+    can read for these points, at any instant it samples: whole windows, and the stroke's first partial one."""
+    points: list[tuple[float, float, float]] = []
+    for stamp, handled, x, y in received:
+        t = stamp if abs(stamp - handled) < 1000 else handled  # the page's own rule for a stamp off its clock
+        if not points or t > points[-1][0]:
+            points.append((t, x, y))
+    times = np.array([p[0] for p in points])
+    steps = np.hypot(np.diff([p[1] for p in points]), np.diff([p[2] for p in points]))
+    # a full window ending at `now` counts the steps into every point stamped in [now - window, now]
+    full = max(steps[(times[1:] >= t) & (times[1:] <= t + window_ms)].sum() / window_ms for t in times)
+    first = max(steps[:k].sum() / max(times[k] - times[0], floor_ms) for k in range(1, len(times)))
+    return 25.4 / 96 * 1000 * max(full, first)
+
+
 @pytest.mark.parametrize(("kind", "pressure", "force"), [("pen", 0.5, 2.0), ("pen", 0.8, 3.2), ("touch", 0.5, 1.0)])
 def test_pad_reads_speed_and_a_pens_pressure(server, browser, kind, pressure, force):
     """A pen's pressure sets the force (× 4 N); a finger presses with the default 1 N; the speed follows the
-    stroke (12 px every 20 ms at most = 600 px/s ≈ 159 mm/s at 0.2646 mm per CSS px) and falls to 0 after it."""
+    stroke as the page received it (path length over 50 ms at 0.2646 mm per CSS px) and falls to 0 after it."""
     from selenium.webdriver.common.actions import interaction
     from selenium.webdriver.common.actions.action_builder import ActionBuilder
     from selenium.webdriver.common.actions.pointer_input import PointerInput
@@ -878,11 +907,13 @@ def test_pad_reads_speed_and_a_pens_pressure(server, browser, kind, pressure, fo
     for _ in range(25):
         builder.pointer_action.move_by(12, 0, pressure=pressure)
     builder.pointer_action.pointer_up()
+    browser.execute_script(_RECORD_POINTER_EVENTS)
     builder.perform()
     stroke = browser.execute_script("return hapticlink.state().stroke")
     assert stroke["force"] == pytest.approx(force)
     assert stroke["how"] == (f"pen, pressure {pressure:.2f}" if kind == "pen" else "touch: default force")
-    # the moves come at most as fast as asked (slower on a busy machine): at most ≈ 159 mm/s, and clearly moving
-    assert 20 < stroke["topSpeed"] < 200, stroke
+    # a busy host delivers the 20 ms moves late and bunched, so the bound is read from the events as delivered
+    received = browser.execute_script("return window.receivedPointer")
+    assert 20 < stroke["topSpeed"] <= 1.01 * _top_speed_bound_mm_s(received), (stroke, received)
     assert f"force up to {force:.1f} N" in _text(browser, "stroke-summary")
     _wait(browser, lambda d: _text(d, "pad-speed") == "0")  # the stroke has ended or stopped: speed decays to 0
