@@ -862,13 +862,19 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     assert not demo.is_alive()
 
 
-# the pad's own points, as its handlers take them: [event time, handling time, x, y] (ms, ms, CSS px, CSS px)
+# the pad's own points, as its handlers take them: [event time, handling time, x, y] (ms, ms, CSS px, CSS px), the
+# position relative to the pad where it is at that moment (its panel's text can move it mid-stroke)
 _RECORD_POINTER_EVENTS = """
 window.receivedPointer = [];
 const pad = document.getElementById("pad");
-const keep = (c, now) => window.receivedPointer.push([c.timeStamp, now, c.clientX, c.clientY]);
-pad.addEventListener("pointerdown", e => keep(e, performance.now()), true);
+const keep = (c, now) => {
+  const r = pad.getBoundingClientRect();
+  window.receivedPointer.push([c.timeStamp, now, c.clientX - r.left, c.clientY - r.top]);
+};
+let down = false;  // a pen's moves before it touches (hovering) are no part of the stroke
+pad.addEventListener("pointerdown", e => { down = true; keep(e, performance.now()); }, true);
 pad.addEventListener("pointermove", e => {
+  if (!down) return;
   const now = performance.now();
   for (const c of (e.getCoalescedEvents ? e.getCoalescedEvents() : []).concat([e])) keep(c, now);
 }, true);
