@@ -50,10 +50,19 @@ def decode_batch(raws: list[bytes], msgtype: str) -> DecodedBatch | None:
     if not raws or msgtype not in LAYOUT:
         return None
     size = len(raws[0])
-    if size < 16 or any(len(r) != size for r in raws):
+    if any(len(r) != size for r in raws):
         return None
-    buf = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size)
-    if not np.array_equal(buf[:, :4], np.broadcast_to(CDR_LE, (len(raws), 4))):
+    return decode_rows(np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size), msgtype)
+
+
+def decode_rows(buf: np.ndarray, msgtype: str) -> DecodedBatch | None:
+    """decode_batch of messages of one length already stacked: buf (n, L) uint8, one raw CDR message per row."""
+    if msgtype not in LAYOUT or buf.ndim != 2 or buf.shape[0] == 0:
+        return None
+    n, size = buf.shape
+    if size < 16:
+        return None
+    if not np.array_equal(buf[:, :4], np.broadcast_to(CDR_LE, (n, 4))):
         return None
     lengths = np.ascontiguousarray(buf[:, 12:16]).view("<u4")[:, 0]
     frame_len = int(lengths[0])

@@ -1,6 +1,9 @@
 """A ROS 2 bag (sqlite3 `.db3` or MCAP, a bag folder or its storage file) as a sensor source.
 
-Two passes over the bag, each streamed message by message (rosbags' reader; the bag is never loaded whole):
+Two passes over the bag, each streamed (the bag is never loaded whole): a .db3 (or a bag split over several files)
+message by message with rosbags' reader; an MCAP file a chunk at a time through its message index
+(drivers.rosbag_mcap), each topic's messages cut out of the chunk together, and in the second pass only the
+camera's messages read:
 
 1. `scan_bag` decodes the mapped numeric topics (Imu → accel, WrenchStamped → force, TwistStamped or Odometry →
    speed) into float arrays in canonical units stamped by header.stamp, and the camera topic's stamps, and judges
@@ -33,7 +36,7 @@ import numpy as np
 
 from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, SampleBlock, check_frame_pixels, frame_bomb
 from drivers.camera import encode_image, png_bytes, sniff_content_type
-from drivers.rosbag_cdr import LAYOUT, decode_batch
+from drivers.rosbag_cdr import LAYOUT, decode_rows
 from drivers.rosbag_mapping import (
     CHANNEL_TYPES,
     COMPRESSED_IMAGE,
@@ -45,6 +48,7 @@ from drivers.rosbag_mapping import (
     TopicMap,
     load_topic_map,
 )
+from drivers.rosbag_mcap import IndexedMcap, open_indexed
 from drivers.source import Item, blocks_from_arrays, check_positive, default_block_s, paced
 from texture_library.channels import CANONICAL_UNITS, UNIT_SCALE, check_rate
 from texture_library.recording import Channel, Recording
@@ -206,10 +210,13 @@ class _Decoder:
         self.batches: list[tuple[np.ndarray, np.ndarray]] = []  # (stamps, vectors) decoded a batch at a time
         self.pending: list[bytes] = []
         self.first_pending = 0  # message index of pending[0]
+        self.count = 0  # the topic's messages read so far
         self._deserialize = _deserializer()
 
-    def add_raw(self, index: int, raw: bytes) -> None:
-        """One raw message (message `index` of the topic): batched for decode_batch where the type allows."""
+    def add_raw(self, raw: bytes) -> None:
+        """The topic's next raw message: batched for decode_rows where the type allows."""
+        index = self.count
+        self.count += 1
         if self.msgtype not in LAYOUT:
             self._add_one(index, raw)
             return
@@ -219,13 +226,36 @@ class _Decoder:
         if len(self.pending) >= BATCH:
             self._flush()
 
+    def add_rows(self, rows: np.ndarray | list[bytes]) -> None:
+        """The topic's next messages, as drivers.rosbag_mcap cuts them out of a chunk: (m, L) uint8, one message of
+        one length per row, or a list of bytes."""
+        if isinstance(rows, list) or self.msgtype not in LAYOUT:
+            for raw in rows if isinstance(rows, list) else (row.tobytes() for row in rows):
+                self.add_raw(raw)
+            return
+        if self.pending:
+            self._flush()
+        first = self.count
+        self.count += rows.shape[0]
+        self._decode(first, rows)
+
     def _flush(self) -> None:
         raws, first = self.pending, self.first_pending
         self.pending = []
-        batch = decode_batch(raws, self.msgtype)
-        if batch is None or (self.msgtype == WRENCH and self.map.force_frame not in (None, batch.frame_id)):
-            for k, raw in enumerate(raws):  # rosbags reads it, and names the message at fault
+        size = len(raws[0])
+        if any(len(r) != size for r in raws):
+            for k, raw in enumerate(raws):  # rosbags reads them, and names the message at fault
                 self._add_one(first + k, raw)
+            return
+        self._decode(first, np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size))
+
+    def _decode(self, first: int, rows: np.ndarray) -> None:
+        """Messages first, first + 1, … of the topic, one per row of rows (n, L) uint8: decoded together, or by
+        rosbags one at a time where they are not uniform or their wrench frame is not the one wanted."""
+        batch = decode_rows(rows, self.msgtype)
+        if batch is None or (self.msgtype == WRENCH and self.map.force_frame not in (None, batch.frame_id)):
+            for k in range(rows.shape[0]):  # rosbags reads it, and names the message at fault
+                self._add_one(first + k, rows[k].tobytes())
             return
         if self.msgtype == WRENCH:
             self.frames.add(batch.frame_id)
@@ -405,6 +435,15 @@ def _image_array(msg: Any, topic: str) -> np.ndarray:
     return arr[:, :, 0] if channels == 1 else arr[:, :, :3]
 
 
+def indexed_mcap(path: Path, reader: Any) -> IndexedMcap | None:
+    """The bag's MCAP file read through its index (drivers.rosbag_mcap), or None where rosbags reads the bag: a .db3,
+    a bag split over several files, messages compressed one by one, an MCAP without message indexes."""
+    files = _storage_files(path)
+    if len(files) != 1 or files[0].suffix != ".mcap" or reader.compression_mode == "message":
+        return None
+    return open_indexed(files[0])
+
+
 def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
     """Read and judge the bag's mapped topics (pass 1, see the module's docstring); BagError names what is wrong."""
     path = Path(path)
@@ -417,17 +456,19 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
             listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
             raise BagError(f"{path}: no {IMU} topic to read acceleration from (accel.topic); the bag holds {listing}")
         decoders = {t: _Decoder(ch, t, topics[t], topic_map, path) for ch, t in chosen.items() if t is not None}
-        wanted = [c for c in reader.connections if c.topic in decoders]
-        counts = dict.fromkeys(decoders, 0)
         try:
-            for conn, _, raw in reader.messages(connections=wanted):
-                index = counts[conn.topic]
-                counts[conn.topic] = index + 1
-                decoders[conn.topic].add_raw(index, raw)
+            indexed = indexed_mcap(path, reader)
+            if indexed is not None:
+                for piece in indexed.read(decoders):
+                    decoders[piece.topic].add_rows(piece.rows)
+            else:
+                wanted = [c for c in reader.connections if c.topic in decoders]
+                for conn, _, raw in reader.messages(connections=wanted):
+                    decoders[conn.topic].add_raw(raw)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - sqlite, mcap, zstd: a truncated bag surfaces in any of them
-            where = ", ".join(f"{t} after {n} message(s)" for t, n in counts.items())
+            where = ", ".join(f"{t} after {d.count} message(s)" for t, d in decoders.items())
             raise BagError(
                 f"{path}: the bag is truncated or damaged ({type(exc).__name__}: {exc}); read {where}"
             ) from None
@@ -538,21 +579,29 @@ def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
     if scan.frames is None:
         return
     deserialize = _deserializer()
+    topic, msgtype = scan.frames.topic, scan.frames.msgtype
     reader = open_bag(scan.path)
     try:
-        wanted = [c for c in reader.connections if c.topic == scan.frames.topic]
-        for index, (conn, _, raw) in enumerate(reader.messages(connections=wanted)):
-            msg = deserialize(raw, conn.msgtype)
-            label = f"{scan.path}: topic {conn.topic} message {index}"
+        indexed = indexed_mcap(scan.path, reader)
+        raws: Iterator[Any]
+        if indexed is not None:  # the camera's messages alone, not the whole bag again
+            raws = (raw for piece in indexed.read([topic], whole_chunks=False) for raw in piece.messages())
+        else:
+            raws = (
+                raw for _, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topic])
+            )
+        for index, raw in enumerate(raws):
+            msg = deserialize(raw, msgtype)
+            label = f"{scan.path}: topic {topic} message {index}"
             try:
-                if conn.msgtype == COMPRESSED_IMAGE:
+                if msgtype == COMPRESSED_IMAGE:
                     data, ctype = _compressed_frame(bytes(msg.data), label)
                 else:
-                    data, ctype = png_bytes(_image_array(msg, conn.topic)), "image/png"
+                    data, ctype = png_bytes(_image_array(msg, topic)), "image/png"
             except ValueError as exc:
                 log.warning("%s: image skipped: %s", label, exc)
                 continue
-            yield Frame(_stamp_ns(msg) * 1e-9, data, ctype, {"topic": conn.topic})
+            yield Frame(_stamp_ns(msg) * 1e-9, data, ctype, {"topic": topic})
     finally:
         reader.close()
 
