@@ -169,7 +169,7 @@ async def session(server_url: str, bag: Path, model, followed: bool, service_pid
     if followed:
         assert recorder is not None and fox is not None
         recorder_cpu = process_cpu_seconds(recorder.pid)
-        fox.cancel()  # the client leaves first: the server's stop waits for its connections to close
+        fox.cancel()  # the client leaves, then the session ends: the recorder ends with it
         await asyncio.gather(fox, return_exceptions=True)
     async with httpx.AsyncClient(base_url=server_url, timeout=30) as client:  # the session ends: its feed closes
         r = await client.delete(f"/sessions/{s['session_id']}", headers={"Authorization": f"Bearer {s['robot_token']}"})
