@@ -144,6 +144,7 @@ class BagScan:
     channels: dict[str, TopicSamples]
     frames: TopicSamples | None
     topics: dict[str, str] = field(default_factory=dict)  # every topic of the bag → its message type
+    per_message_compression: bool = False  # rosbag2's compression mode "message": each message compressed alone
 
     @property
     def start_ns(self) -> int:
@@ -451,6 +452,7 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
     reader = open_bag(path)
     try:
         topics = _bag_topics(reader)
+        per_message = reader.compression_mode == "message"
         chosen = {ch: _pick_topic(ch, topic_map.topic(ch), topics, path) for ch in CHANNEL_TYPES}
         if chosen["accel"] is None:
             listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
@@ -476,7 +478,7 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
         reader.close()
     decoded = {d.channel: d.finish() for d in decoders.values()}
     frames = decoded.pop("frames", None)
-    return BagScan(path, topic_map, decoded, frames, topics)
+    return BagScan(path, topic_map, decoded, frames, topics, per_message)
 
 
 # ---- resampling onto the stream contract ----------------------------------------------------------
@@ -580,16 +582,8 @@ def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
         return
     deserialize = _deserializer()
     topic, msgtype = scan.frames.topic, scan.frames.msgtype
-    reader = open_bag(scan.path)
+    raws = _topic_messages(scan, topic)
     try:
-        indexed = indexed_mcap(scan.path, reader)
-        raws: Iterator[Any]
-        if indexed is not None:  # the camera's messages alone, not the whole bag again
-            raws = (raw for piece in indexed.read([topic], whole_chunks=False) for raw in piece.messages())
-        else:
-            raws = (
-                raw for _, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topic])
-            )
         for index, raw in enumerate(raws):
             msg = deserialize(raw, msgtype)
             label = f"{scan.path}: topic {topic} message {index}"
@@ -602,6 +596,36 @@ def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
                 log.warning("%s: image skipped: %s", label, exc)
                 continue
             yield Frame(_stamp_ns(msg) * 1e-9, data, ctype, {"topic": topic})
+    finally:
+        raws.close()
+
+
+def _topic_messages(scan: BagScan, topic: str) -> Generator[bytes, None, None]:
+    """One topic's raw messages, in the bag's order, read again for the stream: an MCAP's through its index, a
+    single .db3's by one query (rosbags' reader would first count every topic's messages again), any other bag's
+    with rosbags' reader."""
+    files = _storage_files(scan.path)
+    if len(files) == 1 and files[0].suffix == ".db3" and not scan.per_message_compression:
+        db = sqlite3.connect(files[0].resolve().as_uri() + "?mode=ro", uri=True)
+        try:
+            query = (
+                "SELECT messages.data FROM messages JOIN topics ON messages.topic_id = topics.id "
+                "WHERE topics.name = ? ORDER BY messages.timestamp"
+            )
+            for (raw,) in db.execute(query, (topic,)):
+                yield raw
+        finally:
+            db.close()
+        return
+    reader = open_bag(scan.path)
+    try:
+        indexed = indexed_mcap(scan.path, reader)
+        if indexed is not None:  # the topic's messages alone, not the whole bag again
+            for piece in indexed.read([topic], whole_chunks=False):
+                yield from piece.messages()
+        else:
+            for _, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topic]):
+                yield raw
     finally:
         reader.close()
 
