@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.rosbag_mapping import IMU, TWIST, WRENCH
+from drivers.rosbag_mapping import IMU, POSE, TWIST, WRENCH
 
 CDR_LE = np.frombuffer(b"\x00\x01\x00\x00", dtype=np.uint8)
 #: per type: (byte offset of the vector the channel reads, from the first float64 field; bytes of float64 fields)
@@ -27,6 +27,7 @@ LAYOUT: dict[str, tuple[int, int]] = {
     IMU: (200, 296),  # orientation 4, its covariance 9, angular_velocity 3, its covariance 9 → linear_acceleration
     WRENCH: (0, 48),  # wrench.force, then wrench.torque
     TWIST: (0, 48),  # twist.linear, then twist.angular
+    POSE: (0, 56),  # pose.position, then pose.orientation
 }
 
 

@@ -43,6 +43,7 @@ from drivers.rosbag_mapping import (
     IMAGE,
     IMU,
     ODOMETRY,
+    POSE,
     TWIST,
     WRENCH,
     TopicMap,
@@ -297,6 +298,8 @@ class _Decoder:
         elif t in (TWIST, ODOMETRY):
             lin = msg.twist.linear if t == TWIST else msg.twist.twist.linear
             self.rows.append(_vector(lin))
+        elif t == POSE:
+            self.rows.append(_vector(msg.pose.position))
         elif t == COMPRESSED_IMAGE:
             fmt = str(msg.format).lower()
             if "jpeg" not in fmt and "jpg" not in fmt and "png" not in fmt:
@@ -329,6 +332,8 @@ class _Decoder:
             return out
         if stamps.shape[0] < 2:
             raise BagError(f"{where}: {stamps.shape[0]} message(s); a channel needs at least 2 to have a rate")
+        if self.msgtype == POSE:
+            values = _velocity(stamps, values, self.map.max_gap_s)
         out.values = self._canonical(values, where)
         out.rate_hz = _grid_rate(stamps, where)
         return out
@@ -368,6 +373,19 @@ def _ordered(stamps: np.ndarray, values: np.ndarray, reorder_s: float, where: st
     if repeats:
         log.warning("%s: %d message(s) repeat the stamp of the one before; dropped", where, repeats)
     return stamps[keep], values[keep], repeats
+
+
+def _velocity(stamps_ns: np.ndarray, positions: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """The velocity of a tool's positions (n, 3) at stamps_ns (n,) increasing: (n, 3), position units per second;
+    central differences inside each run of stamps without a hole longer than max_gap_s, one-sided at its ends (a
+    hole's displacement is no velocity), zero in a run of one position."""
+    t = (stamps_ns - stamps_ns[0]).astype(np.float64) * 1e-9
+    out = np.zeros_like(positions)
+    edges = [0, *(np.flatnonzero(np.diff(stamps_ns) > max_gap_s * 1e9) + 1).tolist(), stamps_ns.shape[0]]
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b - a >= 2:
+            out[a:b] = np.gradient(positions[a:b], t[a:b], axis=0, edge_order=1)
+    return out
 
 
 def _grid_rate(stamps: np.ndarray, where: str) -> float:

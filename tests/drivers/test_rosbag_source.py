@@ -539,3 +539,46 @@ def test_a_bag_compressed_message_by_message_streams_as_the_plain_one(bag, tmp_p
             assert a.t0 == b.t0 and a.channels.keys() == b.channels.keys()
             for k in a.channels:
                 np.testing.assert_array_equal(a.channels[k].data, b.channels[k].data)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_tool_poses_differentiated_give_the_scanning_speed(stroke, tmp_path, storage):
+    """geometry_msgs/PoseStamped at 100 Hz, the tool moving along x as x(t) = v0 t + A sin(2π f t) m, silent for
+    0.3 s at 0.8 s: the speed channel is |v0 + 2π f A cos(2π f t)| in mm/s (central differences, exact to
+    (2π f / 100 Hz)² / 6 ≈ 1e-4 relative), and the hole's displacement is no speed."""
+    from drivers.rosbag_writer import _typestore
+
+    ts = _typestore()
+    PoseStamped, Pose = ts.types["geometry_msgs/msg/PoseStamped"], ts.types["geometry_msgs/msg/Pose"]
+    Point, Quaternion = ts.types["geometry_msgs/msg/Point"], ts.types["geometry_msgs/msg/Quaternion"]
+    v0, amp, freq = 0.08, 0.01, 0.5  # m/s, m, Hz: 80 mm/s ± 31 mm/s
+
+    def messages():
+        for topic, stamp, msg in _stamped(stroke):
+            if topic != TOPICS["speed"]:
+                yield topic, stamp, msg
+                continue
+            t = (stamp - DEFAULT_START_NS) * 1e-9
+            if 0.8 <= t < 1.1:
+                continue
+            x = v0 * t + amp * np.sin(2 * np.pi * freq * t)
+            pose = Pose(position=Point(x=x, y=0.25, z=0.1), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+            yield "/tool/pose", stamp, PoseStamped(header=msg.header, pose=pose)
+
+    scan = scan_bag(write_bag(tmp_path / "bag", messages(), storage))
+    speed = scan.channels["speed"]
+    assert speed.msgtype == "geometry_msgs/msg/PoseStamped" and speed.rate_hz == 100.0
+    t = (speed.stamps_ns - DEFAULT_START_NS) * 1e-9
+    want = np.abs(v0 + 2 * np.pi * freq * amp * np.cos(2 * np.pi * freq * t)) * 1000.0
+    inner = np.ones(t.shape[0], dtype=bool)
+    inner[[0, -1]] = False
+    inner[np.flatnonzero(np.diff(t) > 0.05)] = False  # the samples on each side of the hole: one-sided differences
+    inner[np.flatnonzero(np.diff(t) > 0.05) + 1] = False
+    np.testing.assert_allclose(speed.values[inner, 0], want[inner], rtol=2e-4)
+    np.testing.assert_allclose(speed.values[~inner, 0], want[~inner], rtol=0.01)
+    blocks = [
+        i
+        for i in asyncio.run(_take(RosbagSource(write_bag(tmp_path / "b2", messages(), storage), realtime=False)))
+        if isinstance(i, SampleBlock)
+    ]
+    assert _concat(blocks, "speed").max() < (v0 + 2 * np.pi * freq * amp) * 1000.0 * 1.01
