@@ -176,7 +176,12 @@ def _register_record(sub: argparse._SubParsersAction) -> None:
         help="also publish the same channels live over the Foxglove WebSocket protocol (off by default; host "
         "127.0.0.1 unless given): open ws://HOST:PORT in Foxglove",
     )
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the session's end)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="stop after S seconds (default: the session's end, or Ctrl-C; the MCAP file is finished either way)",
+    )
     p.set_defaults(func=_run_record)
 
 
