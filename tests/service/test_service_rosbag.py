@@ -272,8 +272,9 @@ CTRL_C_EXIT_S = 20.0
 #: the stroke streamed while one Foxglove client stalls, s: ~40 windows, more than the stalled connection's buffers
 #: hold
 STALL_SECONDS = 20.0
-#: 4 kB messages sent to a stalled client in the server-level test: 6 MB, more than its connection's buffers hold
-STALLED_MESSAGES = 1500
+#: 4 kB messages sent to a stalled client in the server-level test: 32 MB, more than its connection's buffers hold (up
+#: to 16 MB of kernel send buffer) and the server's backlog of 1024 messages
+STALLED_MESSAGES = 8000
 REPO = Path(__file__).resolve().parents[2]
 #: a Foxglove WebSocket protocol client in its own process (argv: the port): subscribes to every advertised channel,
 #: prints "subscribed", then the topic of each message it receives, then "closed" when the server ends the
@@ -447,7 +448,7 @@ def test_a_stalled_foxglove_client_does_not_hold_up_the_recorders_end(caplog):
         _Lines(client).wait_for("subscribed", 120)
         client.send_signal(signal.SIGSTOP)
         payload = {"type": "status", "event": "padding", "message": "x" * 4000}
-        for k in range(STALLED_MESSAGES):  # more than the kernel's socket buffers hold (4 MB send, 4 kB receive)
+        for k in range(STALLED_MESSAGES):  # more than the socket buffers and the backlog hold
             live.log("/hapticlink/status", payload, k)
         time.sleep(1.0)  # the server's writer fills the socket
         t0 = time.monotonic()
