@@ -78,11 +78,14 @@ def _windows(kit, server, source) -> list[dict]:
 def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates(
     kit, server, library_dir, tmp_path, storage
 ):
-    model = Library.load(library_dir).model("synth_002")
+    library = Library.load(library_dir)
+    model, photo = library.model("synth_002"), library.image("synth_002")
+    assert photo is not None
     items = asyncio.run(_take(SimulatedSource(model, seed=5, realtime=False, duration_s=SECONDS)))
     blocks = [i for i in items if isinstance(i, SampleBlock)]
     accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), storage)
+    # IMU 1 kHz, wrench 500 Hz, twist 100 Hz and the texture's photo as a CompressedImage at 5 Hz
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0, photo), storage)
     sim = _windows(kit, server, _Items(items))
     got = _windows(kit, server, RosbagSource(bag, realtime=False))
     assert len(sim) >= 5
