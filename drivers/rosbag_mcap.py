@@ -11,9 +11,10 @@ comes out as one (m, L) uint8 array per chunk, ready for drivers.rosbag_cdr.deco
 
 Messages come out in rosbags' own order: chunks by start time, each chunk's messages of a topic by log time (ties in
 record order). That is rosbags' order only when chunks do not overlap in time, so `open_indexed` takes a file only
-then, and only when every chunk carries its message index; any other file is left to rosbags (None). The index is
-checked against the chunk (each offset must hold a message record of the topic's channel, inside the chunk), and
-the messages it lists against the summary's statistics; a mismatch is an McapIndexError naming the chunk.
+then; any other file (or one without a summary) is left to rosbags (None). A chunk without a message index is
+walked record by record instead. The index is checked against the chunk (each offset must hold a message record of
+the topic's channel, inside the chunk), and the messages it lists against the summary's statistics; a mismatch is
+an McapIndexError naming the chunk.
 """
 
 from __future__ import annotations
