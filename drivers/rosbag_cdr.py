@@ -1,12 +1,12 @@
 """The fixed-layout messages a tool streams at kHz rates (sensor_msgs/Imu, geometry_msgs/WrenchStamped,
-geometry_msgs/TwistStamped), decoded and encoded thousands at a time with numpy.
+geometry_msgs/TwistStamped, geometry_msgs/PoseStamped), decoded and encoded thousands at a time with numpy.
 
 rosbags decodes one message per Python call (tens of µs each): at 1.6 k messages per bag-second that alone holds a
 bag read near 20× real time. These messages are a header (stamp, frame_id) and float64 fields at offsets fixed once
 the frame_id's length is known, so a batch of messages of one length and one frame_id is one (n, L) byte array,
 and its stamps and vectors are column views of it. Anything else — other lengths or frames within a batch, another
-byte order — is left to rosbags (`decode_batch` returns None), so the result is always rosbags' own reading
-(tests/drivers/test_rosbag_source.py holds both to the same answer).
+byte order — is left to rosbags (`decode_batch` and `decode_rows` return None), so the result is always rosbags'
+own reading (tests/drivers/test_rosbag_source.py holds both to the same answer).
 
 Layout (XCDR1, little endian): 4 bytes of encapsulation (00 01 00 00), then the body, aligned from its own start:
 stamp.sec int32 @0, stamp.nanosec uint32 @4, frame_id length (with its NUL) uint32 @8, its bytes @12, then the

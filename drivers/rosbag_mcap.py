@@ -73,17 +73,17 @@ class _Chunk:
 class IndexedMcap:
     """An MCAP file whose chunks carry message indexes and follow one another in time (`open_indexed`).
 
-    topics: topic → message type (the schema's name); channels: channel id → topic."""
+    channels: channel id → topic; chunks in time order; counts: channel id → its messages, as the summary's
+    statistics say (None: no statistics)."""
 
     def __init__(
         self,
         path: Path,
-        topics: dict[str, str],
         channels: dict[int, str],
         chunks: list[_Chunk],
         counts: dict[int, int] | None,
     ) -> None:
-        self.path, self.topics, self.channels, self.chunks, self.counts = path, topics, channels, chunks, counts
+        self.path, self.channels, self.chunks, self.counts = path, channels, chunks, counts
 
     def read(self, topics: Collection[str], whole_chunks: bool = True) -> Iterator[TopicRows]:
         """The messages of `topics`, chunk by chunk. whole_chunks=False reads an uncompressed chunk's messages of
@@ -146,12 +146,10 @@ def open_indexed(path: Path) -> IndexedMcap | None:
         # they do not overlap (a shared boundary stamp is in order when the later chunk lies later in the file)
         if b.start_ns < a.end_ns or (b.start_ns == a.end_ns and b.offset < a.offset):
             return None
-    schemas = {sid: s.name for sid, s in summary.schemas.items()}
     channels = {cid: c.topic for cid, c in summary.channels.items()}
-    topics = {c.topic: schemas.get(c.schema_id, "") for c in summary.channels.values()}
     stats = summary.statistics
     counts = dict(stats.channel_message_counts) if stats is not None and stats.channel_message_counts else None
-    return IndexedMcap(path, topics, channels, chunks, counts)
+    return IndexedMcap(path, channels, chunks, counts)
 
 
 def _read(fh: BinaryIO, offset: int, size: int, what: str) -> bytes:
