@@ -36,6 +36,7 @@ import numpy as np
 
 from benchmarks.report_file import command_line, machine, write_report
 from benchmarks.rosbag_read import host
+from models.offline.provenance import file_input
 
 DEFAULT_OUT = Path("reports/bench/foxglove_live.json")
 API_KEY = "foxglove-live-benchmark-key-0123456789"
@@ -169,7 +170,7 @@ async def session(server_url: str, bag: Path, model, followed: bool, service_pid
     if followed:
         assert recorder is not None and fox is not None
         recorder_cpu = process_cpu_seconds(recorder.pid)
-        fox.cancel()  # the client leaves first: the server's stop waits for its connections to close
+        fox.cancel()  # the client leaves, then the session ends: the recorder ends with it
         await asyncio.gather(fox, return_exceptions=True)
     async with httpx.AsyncClient(base_url=server_url, timeout=30) as client:  # the session ends: its feed closes
         r = await client.delete(f"/sessions/{s['session_id']}", headers={"Authorization": f"Bearer {s['robot_token']}"})
@@ -274,7 +275,13 @@ def main(argv: list[str] | None = None) -> int:
         "host": {k: v for k, v in host().items() if k != "flags"},
         "machine": machine(load_before),
     }
-    print(f"wrote {write_report(args.out, report)}")
+    read = [file_input("model", assets.model), file_input("library", assets.library)]
+    read += [
+        file_input(role, path)
+        for role, path in (("tactile model", assets.tactile), ("backbone", assets.backbone))
+        if path is not None
+    ]
+    print(f"wrote {write_report(args.out, report, read)}")
     return 0
 
 

@@ -176,7 +176,12 @@ def _register_record(sub: argparse._SubParsersAction) -> None:
         help="also publish the same channels live over the Foxglove WebSocket protocol (off by default; host "
         "127.0.0.1 unless given): open ws://HOST:PORT in Foxglove",
     )
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: the session's end)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="stop after S seconds (default: the session's end, or Ctrl-C; the MCAP file is finished either way)",
+    )
     p.set_defaults(func=_run_record)
 
 
@@ -205,14 +210,36 @@ def _run_record(args: argparse.Namespace) -> int:
         sinks.append(EstimatesMcap(mcap_file))
     recorder = SessionRecorder(args.url, args.session, args.token, sinks)
     try:
-        n = asyncio.run(recorder.run(args.duration))
-    except KeyboardInterrupt:
+        n = asyncio.run(_record(recorder, args.duration))
+    except KeyboardInterrupt:  # a Ctrl-C before the loop took the signals over
         n = recorder.events
     finally:
         if mcap_file is not None:
             mcap_file.close()
     print(f"recorded {n} event(s)" + (f" into {args.mcap}" if args.mcap else ""))
     return 0
+
+
+async def _record(recorder, duration_s: float | None) -> int:
+    """Record until the session ends, duration_s passes, or Ctrl-C (or SIGTERM): the first stops the recorder as the
+    session's end does (the MCAP file finished, the Foxglove server stopped); a second quits at once."""
+    import os
+
+    from drivers.stop_signals import on_stop_signals
+
+    interrupted = False
+
+    def on_signal() -> None:
+        nonlocal interrupted
+        if interrupted:
+            print("hapticlink record: quitting now", file=sys.stderr, flush=True)
+            os._exit(130)
+        interrupted = True
+        print("stopping: finishing the recording (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
+        recorder.stop()
+
+    with on_stop_signals(on_signal):
+        return await recorder.run(duration_s)
 
 
 def _rosbag_epilog() -> str:

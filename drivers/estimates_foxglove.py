@@ -8,9 +8,15 @@ service, not inside it: the service pays for one more event subscriber, nothing 
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from drivers.estimates_mcap import CHANNELS
+
+log = logging.getLogger("hapticlink.record")
+
+#: the longest the recorder waits for the Foxglove server to stop, s
+STOP_WAIT_S = 3.0
 
 
 class FoxgloveLive:
@@ -41,7 +47,15 @@ class FoxgloveLive:
         self._channels[topic].log(payload, log_time=log_ns)
 
     def close(self) -> None:
-        self._server.stop()
+        """Stop the server, waiting at most STOP_WAIT_S for it: the recorder must end even if a client holds it up
+        (the server's threads end with the process)."""
+        import threading
+
+        stopper = threading.Thread(target=self._server.stop, name="foxglove-stop", daemon=True)
+        stopper.start()
+        stopper.join(STOP_WAIT_S)
+        if stopper.is_alive():
+            log.warning("the Foxglove server did not stop within %g s; leaving it to the process's exit", STOP_WAIT_S)
 
 
 def _json(obj: object) -> bytes:

@@ -31,6 +31,9 @@ from drivers.robot.backoff import Backoff, body_detail
 
 log = logging.getLogger("hapticlink.record")
 
+#: how long the recorder waits for the service to answer the feed's close, s (as the robot client does)
+FEED_CLOSE_S = 2.0
+
 ATTRIBUTE_NAMES = ("rough_smooth", "flat_bumpy", "sticky_slippery", "hard_soft")
 _RATINGS = {
     "type": "object",
@@ -201,17 +204,26 @@ class SessionRecorder:
 
     async def run(self, duration_s: float | None = None) -> int:
         """Record; → the number of events written."""
+        follow = asyncio.ensure_future(self._follow())
+        stop = asyncio.ensure_future(self._done.wait())
         try:
-            follow = asyncio.ensure_future(self._follow())
-            stop = asyncio.ensure_future(self._done.wait())
             await asyncio.wait([follow, stop], timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)
+        finally:
             follow.cancel()
             stop.cancel()
-            await asyncio.gather(follow, stop, return_exceptions=True)
-        finally:
-            for sink in self.sinks:
-                sink.close()
+            # the feed's close handshake is bounded (FEED_CLOSE_S); so is the wait for it
+            await asyncio.wait([follow, stop], timeout=FEED_CLOSE_S + 1.0)
+            self._close_sinks()
         return self.events
+
+    def _close_sinks(self) -> None:
+        """Each sink closed, files first (a file is complete whatever a live server does), each whatever the others
+        raised."""
+        for sink in sorted(self.sinks, key=lambda s: not isinstance(s, EstimatesMcap)):
+            try:
+                sink.close()
+            except Exception:  # noqa: BLE001 - one sink's failure must not leave the others open
+                log.exception("closing %s failed", type(sink).__name__)
 
     def write(self, event: dict[str, Any]) -> None:
         """One event of the feed, to every sink."""
@@ -229,7 +241,7 @@ class SessionRecorder:
         url = ws_url(self.url, self.session_id, "events", self.token)
         while True:
             try:
-                async with connect(url, open_timeout=10, max_size=1 << 20) as ws:
+                async with connect(url, open_timeout=10, close_timeout=FEED_CLOSE_S, max_size=1 << 20) as ws:
                     self.connects += 1
                     if self.connects > 1:
                         log.warning("event feed reconnected: events sent while it was down are not recorded")

@@ -1,12 +1,12 @@
 """The fixed-layout messages a tool streams at kHz rates (sensor_msgs/Imu, geometry_msgs/WrenchStamped,
-geometry_msgs/TwistStamped), decoded and encoded thousands at a time with numpy.
+geometry_msgs/TwistStamped, geometry_msgs/PoseStamped), decoded and encoded thousands at a time with numpy.
 
 rosbags decodes one message per Python call (tens of µs each): at 1.6 k messages per bag-second that alone holds a
 bag read near 20× real time. These messages are a header (stamp, frame_id) and float64 fields at offsets fixed once
 the frame_id's length is known, so a batch of messages of one length and one frame_id is one (n, L) byte array,
 and its stamps and vectors are column views of it. Anything else — other lengths or frames within a batch, another
-byte order — is left to rosbags (`decode_batch` returns None), so the result is always rosbags' own reading
-(tests/drivers/test_rosbag_source.py holds both to the same answer).
+byte order — is left to rosbags (`decode_batch` and `decode_rows` return None), so the result is always rosbags'
+own reading (tests/drivers/test_rosbag_source.py holds both to the same answer).
 
 Layout (XCDR1, little endian): 4 bytes of encapsulation (00 01 00 00), then the body, aligned from its own start:
 stamp.sec int32 @0, stamp.nanosec uint32 @4, frame_id length (with its NUL) uint32 @8, its bytes @12, then the
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.rosbag_mapping import IMU, TWIST, WRENCH
+from drivers.rosbag_mapping import IMU, POSE, TWIST, WRENCH
 
 CDR_LE = np.frombuffer(b"\x00\x01\x00\x00", dtype=np.uint8)
 #: per type: (byte offset of the vector the channel reads, from the first float64 field; bytes of float64 fields)
@@ -27,6 +27,7 @@ LAYOUT: dict[str, tuple[int, int]] = {
     IMU: (200, 296),  # orientation 4, its covariance 9, angular_velocity 3, its covariance 9 → linear_acceleration
     WRENCH: (0, 48),  # wrench.force, then wrench.torque
     TWIST: (0, 48),  # twist.linear, then twist.angular
+    POSE: (0, 56),  # pose.position, then pose.orientation
 }
 
 
@@ -50,10 +51,19 @@ def decode_batch(raws: list[bytes], msgtype: str) -> DecodedBatch | None:
     if not raws or msgtype not in LAYOUT:
         return None
     size = len(raws[0])
-    if size < 16 or any(len(r) != size for r in raws):
+    if any(len(r) != size for r in raws):
         return None
-    buf = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size)
-    if not np.array_equal(buf[:, :4], np.broadcast_to(CDR_LE, (len(raws), 4))):
+    return decode_rows(np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size), msgtype)
+
+
+def decode_rows(buf: np.ndarray, msgtype: str) -> DecodedBatch | None:
+    """decode_batch of messages of one length already stacked: buf (n, L) uint8, one raw CDR message per row."""
+    if msgtype not in LAYOUT or buf.ndim != 2 or buf.shape[0] == 0:
+        return None
+    n, size = buf.shape
+    if size < 16:
+        return None
+    if not np.array_equal(buf[:, :4], np.broadcast_to(CDR_LE, (n, 4))):
         return None
     lengths = np.ascontiguousarray(buf[:, 12:16]).view("<u4")[:, 0]
     frame_len = int(lengths[0])

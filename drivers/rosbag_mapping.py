@@ -16,12 +16,13 @@ IMU = "sensor_msgs/msg/Imu"
 WRENCH = "geometry_msgs/msg/WrenchStamped"
 TWIST = "geometry_msgs/msg/TwistStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
+POSE = "geometry_msgs/msg/PoseStamped"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
 CHANNEL_TYPES: dict[str, tuple[str, ...]] = {
     "accel": (IMU,),
     "force": (WRENCH,),
-    "speed": (TWIST, ODOMETRY),
+    "speed": (TWIST, ODOMETRY, POSE),
     "frames": (COMPRESSED_IMAGE, IMAGE),
 }
 AXES = ("x", "y", "z")

@@ -1,6 +1,9 @@
 """A ROS 2 bag (sqlite3 `.db3` or MCAP, a bag folder or its storage file) as a sensor source.
 
-Two passes over the bag, each streamed message by message (rosbags' reader; the bag is never loaded whole):
+Two passes over the bag, each streamed (the bag is never loaded whole): a .db3 (or a bag split over several files)
+message by message with rosbags' reader; an MCAP file a chunk at a time through its message index
+(drivers.rosbag_mcap), each topic's messages cut out of the chunk together, and in the second pass only the
+camera's messages read:
 
 1. `scan_bag` decodes the mapped numeric topics (Imu → accel, WrenchStamped → force, TwistStamped or Odometry →
    speed) into float arrays in canonical units stamped by header.stamp, and the camera topic's stamps, and judges
@@ -33,18 +36,20 @@ import numpy as np
 
 from drivers.blocks import DEFAULT_MAX_BODY_BYTES, Frame, SampleBlock, check_frame_pixels, frame_bomb
 from drivers.camera import encode_image, png_bytes, sniff_content_type
-from drivers.rosbag_cdr import LAYOUT, decode_batch
+from drivers.rosbag_cdr import LAYOUT, decode_rows
 from drivers.rosbag_mapping import (
     CHANNEL_TYPES,
     COMPRESSED_IMAGE,
     IMAGE,
     IMU,
     ODOMETRY,
+    POSE,
     TWIST,
     WRENCH,
     TopicMap,
     load_topic_map,
 )
+from drivers.rosbag_mcap import IndexedMcap, open_indexed
 from drivers.source import Item, blocks_from_arrays, check_positive, default_block_s, paced
 from texture_library.channels import CANONICAL_UNITS, UNIT_SCALE, check_rate
 from texture_library.recording import Channel, Recording
@@ -140,6 +145,7 @@ class BagScan:
     channels: dict[str, TopicSamples]
     frames: TopicSamples | None
     topics: dict[str, str] = field(default_factory=dict)  # every topic of the bag → its message type
+    per_message_compression: bool = False  # rosbag2's compression mode "message": each message compressed alone
 
     @property
     def start_ns(self) -> int:
@@ -206,10 +212,13 @@ class _Decoder:
         self.batches: list[tuple[np.ndarray, np.ndarray]] = []  # (stamps, vectors) decoded a batch at a time
         self.pending: list[bytes] = []
         self.first_pending = 0  # message index of pending[0]
+        self.count = 0  # the topic's messages read so far
         self._deserialize = _deserializer()
 
-    def add_raw(self, index: int, raw: bytes) -> None:
-        """One raw message (message `index` of the topic): batched for decode_batch where the type allows."""
+    def add_raw(self, raw: bytes) -> None:
+        """The topic's next raw message: batched for decode_rows where the type allows."""
+        index = self.count
+        self.count += 1
         if self.msgtype not in LAYOUT:
             self._add_one(index, raw)
             return
@@ -219,13 +228,36 @@ class _Decoder:
         if len(self.pending) >= BATCH:
             self._flush()
 
+    def add_rows(self, rows: np.ndarray | list[bytes]) -> None:
+        """The topic's next messages, as drivers.rosbag_mcap cuts them out of a chunk: (m, L) uint8, one message of
+        one length per row, or a list of bytes."""
+        if isinstance(rows, list) or self.msgtype not in LAYOUT:
+            for raw in rows if isinstance(rows, list) else (row.tobytes() for row in rows):
+                self.add_raw(raw)
+            return
+        if self.pending:
+            self._flush()
+        first = self.count
+        self.count += rows.shape[0]
+        self._decode(first, rows)
+
     def _flush(self) -> None:
         raws, first = self.pending, self.first_pending
         self.pending = []
-        batch = decode_batch(raws, self.msgtype)
-        if batch is None or (self.msgtype == WRENCH and self.map.force_frame not in (None, batch.frame_id)):
-            for k, raw in enumerate(raws):  # rosbags reads it, and names the message at fault
+        size = len(raws[0])
+        if any(len(r) != size for r in raws):
+            for k, raw in enumerate(raws):  # rosbags reads them, and names the message at fault
                 self._add_one(first + k, raw)
+            return
+        self._decode(first, np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), size))
+
+    def _decode(self, first: int, rows: np.ndarray) -> None:
+        """Messages first, first + 1, … of the topic, one per row of rows (n, L) uint8: decoded together, or by
+        rosbags one at a time where they are not uniform or their wrench frame is not the one wanted."""
+        batch = decode_rows(rows, self.msgtype)
+        if batch is None or (self.msgtype == WRENCH and self.map.force_frame not in (None, batch.frame_id)):
+            for k in range(rows.shape[0]):  # rosbags reads it, and names the message at fault
+                self._add_one(first + k, rows[k].tobytes())
             return
         if self.msgtype == WRENCH:
             self.frames.add(batch.frame_id)
@@ -266,6 +298,8 @@ class _Decoder:
         elif t in (TWIST, ODOMETRY):
             lin = msg.twist.linear if t == TWIST else msg.twist.twist.linear
             self.rows.append(_vector(lin))
+        elif t == POSE:
+            self.rows.append(_vector(msg.pose.position))
         elif t == COMPRESSED_IMAGE:
             fmt = str(msg.format).lower()
             if "jpeg" not in fmt and "jpg" not in fmt and "png" not in fmt:
@@ -298,6 +332,8 @@ class _Decoder:
             return out
         if stamps.shape[0] < 2:
             raise BagError(f"{where}: {stamps.shape[0]} message(s); a channel needs at least 2 to have a rate")
+        if self.msgtype == POSE:
+            values = _velocity(stamps, values, self.map.max_gap_s)
         out.values = self._canonical(values, where)
         out.rate_hz = _grid_rate(stamps, where)
         return out
@@ -337,6 +373,19 @@ def _ordered(stamps: np.ndarray, values: np.ndarray, reorder_s: float, where: st
     if repeats:
         log.warning("%s: %d message(s) repeat the stamp of the one before; dropped", where, repeats)
     return stamps[keep], values[keep], repeats
+
+
+def _velocity(stamps_ns: np.ndarray, positions: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """The velocity of a tool's positions (n, 3) at stamps_ns (n,) increasing: (n, 3), position units per second;
+    central differences inside each run of stamps without a hole longer than max_gap_s, one-sided at its ends (a
+    hole's displacement is no velocity), zero in a run of one position."""
+    t = (stamps_ns - stamps_ns[0]).astype(np.float64) * 1e-9
+    out = np.zeros_like(positions)
+    edges = [0, *(np.flatnonzero(np.diff(stamps_ns) > max_gap_s * 1e9) + 1).tolist(), stamps_ns.shape[0]]
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b - a >= 2:
+            out[a:b] = np.gradient(positions[a:b], t[a:b], axis=0, edge_order=1)
+    return out
 
 
 def _grid_rate(stamps: np.ndarray, where: str) -> float:
@@ -405,6 +454,15 @@ def _image_array(msg: Any, topic: str) -> np.ndarray:
     return arr[:, :, 0] if channels == 1 else arr[:, :, :3]
 
 
+def indexed_mcap(path: Path, reader: Any) -> IndexedMcap | None:
+    """The bag's MCAP file read through its index (drivers.rosbag_mcap), or None where rosbags reads the bag: a .db3,
+    a bag split over several files, messages compressed one by one, an MCAP without message indexes."""
+    files = _storage_files(path)
+    if len(files) != 1 or files[0].suffix != ".mcap" or reader.compression_mode == "message":
+        return None
+    return open_indexed(files[0])
+
+
 def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
     """Read and judge the bag's mapped topics (pass 1, see the module's docstring); BagError names what is wrong."""
     path = Path(path)
@@ -412,22 +470,25 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
     reader = open_bag(path)
     try:
         topics = _bag_topics(reader)
+        per_message = reader.compression_mode == "message"
         chosen = {ch: _pick_topic(ch, topic_map.topic(ch), topics, path) for ch in CHANNEL_TYPES}
         if chosen["accel"] is None:
             listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
             raise BagError(f"{path}: no {IMU} topic to read acceleration from (accel.topic); the bag holds {listing}")
         decoders = {t: _Decoder(ch, t, topics[t], topic_map, path) for ch, t in chosen.items() if t is not None}
-        wanted = [c for c in reader.connections if c.topic in decoders]
-        counts = dict.fromkeys(decoders, 0)
         try:
-            for conn, _, raw in reader.messages(connections=wanted):
-                index = counts[conn.topic]
-                counts[conn.topic] = index + 1
-                decoders[conn.topic].add_raw(index, raw)
+            indexed = indexed_mcap(path, reader)
+            if indexed is not None:
+                for piece in indexed.read(decoders):
+                    decoders[piece.topic].add_rows(piece.rows)
+            else:
+                wanted = [c for c in reader.connections if c.topic in decoders]
+                for conn, _, raw in reader.messages(connections=wanted):
+                    decoders[conn.topic].add_raw(raw)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - sqlite, mcap, zstd: a truncated bag surfaces in any of them
-            where = ", ".join(f"{t} after {n} message(s)" for t, n in counts.items())
+            where = ", ".join(f"{t} after {d.count} message(s)" for t, d in decoders.items())
             raise BagError(
                 f"{path}: the bag is truncated or damaged ({type(exc).__name__}: {exc}); read {where}"
             ) from None
@@ -435,7 +496,7 @@ def scan_bag(path: str | Path, topic_map: TopicMap | None = None) -> BagScan:
         reader.close()
     decoded = {d.channel: d.finish() for d in decoders.values()}
     frames = decoded.pop("frames", None)
-    return BagScan(path, topic_map, decoded, frames, topics)
+    return BagScan(path, topic_map, decoded, frames, topics, per_message)
 
 
 # ---- resampling onto the stream contract ----------------------------------------------------------
@@ -538,21 +599,51 @@ def bag_frames(scan: BagScan) -> Generator[Frame, None, None]:
     if scan.frames is None:
         return
     deserialize = _deserializer()
-    reader = open_bag(scan.path)
+    topic, msgtype = scan.frames.topic, scan.frames.msgtype
+    raws = _topic_messages(scan, topic)
     try:
-        wanted = [c for c in reader.connections if c.topic == scan.frames.topic]
-        for index, (conn, _, raw) in enumerate(reader.messages(connections=wanted)):
-            msg = deserialize(raw, conn.msgtype)
-            label = f"{scan.path}: topic {conn.topic} message {index}"
+        for index, raw in enumerate(raws):
+            msg = deserialize(raw, msgtype)
+            label = f"{scan.path}: topic {topic} message {index}"
             try:
-                if conn.msgtype == COMPRESSED_IMAGE:
+                if msgtype == COMPRESSED_IMAGE:
                     data, ctype = _compressed_frame(bytes(msg.data), label)
                 else:
-                    data, ctype = png_bytes(_image_array(msg, conn.topic)), "image/png"
+                    data, ctype = png_bytes(_image_array(msg, topic)), "image/png"
             except ValueError as exc:
                 log.warning("%s: image skipped: %s", label, exc)
                 continue
-            yield Frame(_stamp_ns(msg) * 1e-9, data, ctype, {"topic": conn.topic})
+            yield Frame(_stamp_ns(msg) * 1e-9, data, ctype, {"topic": topic})
+    finally:
+        raws.close()
+
+
+def _topic_messages(scan: BagScan, topic: str) -> Generator[bytes, None, None]:
+    """One topic's raw messages, in the bag's order, read again for the stream: an MCAP's through its index, a
+    single .db3's by one query (rosbags' reader would first count every topic's messages again), any other bag's
+    with rosbags' reader."""
+    files = _storage_files(scan.path)
+    if len(files) == 1 and files[0].suffix == ".db3" and not scan.per_message_compression:
+        db = sqlite3.connect(files[0].resolve().as_uri() + "?mode=ro", uri=True)
+        try:
+            query = (
+                "SELECT messages.data FROM messages JOIN topics ON messages.topic_id = topics.id "
+                "WHERE topics.name = ? ORDER BY messages.timestamp"
+            )
+            for (raw,) in db.execute(query, (topic,)):
+                yield raw
+        finally:
+            db.close()
+        return
+    reader = open_bag(scan.path)
+    try:
+        indexed = indexed_mcap(scan.path, reader)
+        if indexed is not None:  # the topic's messages alone, not the whole bag again
+            for piece in indexed.read([topic], whole_chunks=False):
+                yield from piece.messages()
+        else:
+            for _, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topic]):
+                yield raw
     finally:
         reader.close()
 

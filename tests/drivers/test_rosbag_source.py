@@ -26,6 +26,8 @@ from texture_library.procedural import make_world
 from texture_library.recording import make_channel
 
 SECONDS = 3.0
+#: both storages: sqlite3 is read by rosbags, MCAP through its index (drivers.rosbag_mcap)
+STORAGES = ("sqlite3", "mcap")
 START_S = DEFAULT_START_NS * 1e-9
 #: the bag's samples are float64 in CDR, the wire's float32: what survives is float32 rounding (relative 6e-8) and
 #: the interpolation weight of a nanosecond-rounded stamp
@@ -202,8 +204,9 @@ def test_a_truncated_bag(stroke, tmp_path):
         _refused(bag, "truncated or damaged|cannot open the bag")
 
 
-def test_a_bag_without_the_mapped_topics(stroke, tmp_path):
-    bag = write_bag(tmp_path / "bag", ((t, s, m) for t, s, m in _stamped(stroke) if t != TOPICS["accel"]))
+@pytest.mark.parametrize("storage", STORAGES)
+def test_a_bag_without_the_mapped_topics(stroke, tmp_path, storage):
+    bag = write_bag(tmp_path / "bag", ((t, s, m) for t, s, m in _stamped(stroke) if t != TOPICS["accel"]), storage)
     _refused(bag, r"no sensor_msgs/msg/Imu topic to read acceleration from .*/wrist/wrench")
     _refused(
         bag,
@@ -212,7 +215,8 @@ def test_a_bag_without_the_mapped_topics(stroke, tmp_path):
     )
 
 
-def test_an_unknown_message_type(stroke, tmp_path):
+@pytest.mark.parametrize("storage", STORAGES)
+def test_an_unknown_message_type(stroke, tmp_path, storage):
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
@@ -224,7 +228,7 @@ def test_an_unknown_message_type(stroke, tmp_path):
                 yield "/tool/accel", stamp, Temperature(header=msg.header, temperature=21.0, variance=0.0)
             yield topic, stamp, msg
 
-    bag = write_bag(tmp_path / "bag", messages())
+    bag = write_bag(tmp_path / "bag", messages(), storage)
     _refused(
         bag,
         r"topic /tool/accel carries sensor_msgs/msg/Temperature, a message type accel cannot read",
@@ -232,8 +236,9 @@ def test_an_unknown_message_type(stroke, tmp_path):
     )
 
 
-def test_a_wrench_in_another_frame(stroke, tmp_path):
-    bag = write_bag(tmp_path / "bag", _stamped(stroke))
+@pytest.mark.parametrize("storage", STORAGES)
+def test_a_wrench_in_another_frame(stroke, tmp_path, storage):
+    bag = write_bag(tmp_path / "bag", _stamped(stroke), storage)
     _refused(
         bag,
         r"topic /wrist/wrench message 0: the wrench is in frame 'tool0_ft', the topic map says 'base_link'",
@@ -241,25 +246,27 @@ def test_a_wrench_in_another_frame(stroke, tmp_path):
     )
 
 
-def test_accelerations_in_the_wrong_units(stroke, tmp_path):
+@pytest.mark.parametrize("storage", STORAGES)
+def test_accelerations_in_the_wrong_units(stroke, tmp_path, storage):
     items, _ = stroke
     sim = [i for i in items if isinstance(i, SampleBlock)]
     accel, force, speed = (_concat(sim, k)[:2000] for k in ("accel", "force", "speed"))
-    in_g = write_bag(tmp_path / "g", stroke_messages(accel / 9.80665, force, speed, 1000.0))
+    in_g = write_bag(tmp_path / "g", stroke_messages(accel / 9.80665, force, speed, 1000.0), storage)
     _refused(in_g, r"topic /tool/imu .*gravity reads 1.00 m/s² with units 'm/s\^2'; these accelerations look like g")
     _refused(
-        write_bag(tmp_path / "ms2", stroke_messages(accel, force, speed, 1000.0)),
+        write_bag(tmp_path / "ms2", stroke_messages(accel, force, speed, 1000.0), storage),
         r"gravity reads 96.\d m/s² with units 'g'; these accelerations look like m/s²",
         topic_map_from_dict({"accel": {"units": "g"}}),
     )
 
 
-def test_timestamps_going_backwards(stroke, tmp_path):
+@pytest.mark.parametrize("storage", STORAGES)
+def test_timestamps_going_backwards(stroke, tmp_path, storage):
     def shift(topic, stamp):  # the wrench sensor's clock steps back 0.5 s at 1 s
         back = topic == TOPICS["force"] and stamp >= DEFAULT_START_NS + 1_000_000_000
         return stamp - 500_000_000 if back else stamp
 
-    bag = write_bag(tmp_path / "bag", _stamped(stroke, shift=shift))
+    bag = write_bag(tmp_path / "bag", _stamped(stroke, shift=shift), storage)
     _refused(bag, r"topic /wrist/wrench .*header.stamp goes back 0.498 s at message 500")
 
 
@@ -338,8 +345,9 @@ def test_the_batch_codec_reads_and_writes_what_rosbags_does(stroke):
     assert decode_batch([big_endian], WRENCH_TYPE) is None
 
 
-def test_speeds_in_the_wrong_units(stroke, tmp_path):
-    bag = write_bag(tmp_path / "bag", _stamped(stroke))  # twist in m/s, as REP 103 says
+@pytest.mark.parametrize("storage", STORAGES)
+def test_speeds_in_the_wrong_units(stroke, tmp_path, storage):
+    bag = write_bag(tmp_path / "bag", _stamped(stroke), storage)  # twist in m/s, as REP 103 says
     _refused(
         bag,
         r"topic /tool/twist .*median scanning speed 0.\d+ mm/s .*look like m/s",
@@ -347,7 +355,8 @@ def test_speeds_in_the_wrong_units(stroke, tmp_path):
     )
 
 
-def test_odometry_for_speed_and_raw_images_for_frames(stroke, tmp_path):
+@pytest.mark.parametrize("storage", STORAGES)
+def test_odometry_for_speed_and_raw_images_for_frames(stroke, tmp_path, storage):
     """nav_msgs/Odometry's twist.twist.linear feeds speed; a sensor_msgs/Image in bgr8 becomes a PNG frame in RGB."""
     from PIL import Image as PILImage
 
@@ -394,7 +403,7 @@ def test_odometry_for_speed_and_raw_images_for_frames(stroke, tmp_path):
             else:
                 yield topic, stamp, msg
 
-    bag = write_bag(tmp_path / "bag", messages())
+    bag = write_bag(tmp_path / "bag", messages(), storage)
     got = asyncio.run(_take(RosbagSource(bag, realtime=False)))
     blocks = [i for i in got if isinstance(i, SampleBlock)]
     frames = [i for i in got if isinstance(i, Frame)]
@@ -403,3 +412,173 @@ def test_odometry_for_speed_and_raw_images_for_frames(stroke, tmp_path):
     import io
 
     np.testing.assert_array_equal(np.asarray(PILImage.open(io.BytesIO(frames[0].image))), rgb)
+
+
+# ---- MCAP through its index ------------------------------------------------------------------------------
+def _rewritten(src: Path, dst: Path, **writer_options) -> Path:
+    """The MCAP bag `src` written again by the mcap package's Writer (its options: compression, chunk size,
+    indexes) into the file `dst` (a bag given as its .mcap file alone)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with storage_file(src).open("rb") as fh, dst.open("wb") as sink:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        writer = Writer(sink, **writer_options)
+        writer.start(profile="ros2", library="test")
+        schema_ids = {
+            sid: writer.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+            for sid, s in summary.schemas.items()
+        }
+        channel_ids = {
+            cid: writer.register_channel(
+                topic=c.topic,
+                message_encoding=c.message_encoding,
+                schema_id=schema_ids[c.schema_id],
+                metadata=c.metadata,
+            )
+            for cid, c in summary.channels.items()
+        }
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            writer.add_message(
+                channel_ids[channel.id], message.log_time, message.data, message.publish_time, message.sequence
+            )
+        writer.finish()
+    return dst
+
+
+def _rosbags_messages(bag: Path) -> dict[str, list[bytes]]:
+    from rosbags.rosbag2 import Reader
+
+    out: dict[str, list[bytes]] = {}
+    with Reader(bag) as reader:
+        for conn, _, raw in reader.messages():
+            out.setdefault(conn.topic, []).append(bytes(raw))
+    return out
+
+
+@pytest.mark.parametrize("variant", ["rosbags", "zstd", "lz4", "no message index"])
+def test_an_mcap_bag_read_through_its_index_gives_what_rosbags_reads(stroke, tmp_path, variant):
+    """Every topic's messages, byte for byte and in rosbags' order, come out of an MCAP's index: as rosbags writes it
+    (1 MiB chunks, uncompressed) and as the mcap package does (64 kB chunks, zstd or lz4, with CRCs); a chunk without
+    message indexes is walked (rosbags itself reads nothing of it). The scan is the .db3's of the same messages,
+    to the bit."""
+    from mcap.writer import CompressionType, IndexType
+
+    from drivers.rosbag_mcap import open_indexed
+
+    items, image = stroke
+    sim = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (_concat(sim, k) for k in ("accel", "force", "speed"))
+    messages = list(stroke_messages(accel, force, speed, 1000.0, image))
+    db3 = write_bag(tmp_path / "db3", iter(messages), "sqlite3")
+    bag = original = write_bag(tmp_path / "mcap", iter(messages), "mcap")
+    if variant != "rosbags":
+        options = {
+            "zstd": {"compression": CompressionType.ZSTD},
+            "lz4": {"compression": CompressionType.LZ4},
+            "no message index": {"index_types": IndexType.CHUNK},
+        }[variant]
+        bag = _rewritten(bag, tmp_path / f"{variant.replace(' ', '-')}.mcap", chunk_size=64 * 1024, **options)
+    indexed = open_indexed(storage_file(bag) if bag.is_dir() else bag)
+    assert indexed is not None and len(indexed.chunks) > 2
+    got: dict[str, list[bytes]] = {}
+    for piece in indexed.read(set(TOPICS.values())):
+        got.setdefault(piece.topic, []).extend(piece.messages())
+    assert got == _rosbags_messages(original)
+    camera = [r for p in indexed.read([TOPICS["frames"]], whole_chunks=False) for r in p.messages()]
+    assert camera == got[TOPICS["frames"]]
+    want, scan = scan_bag(db3), scan_bag(bag)
+    for ch, samples in want.channels.items():
+        np.testing.assert_array_equal(scan.channels[ch].stamps_ns, samples.stamps_ns)
+        np.testing.assert_array_equal(scan.channels[ch].values, samples.values)
+    assert want.frames is not None and scan.frames is not None
+    np.testing.assert_array_equal(scan.frames.stamps_ns, want.frames.stamps_ns)
+    frames = [i for i in asyncio.run(_take(RosbagSource(bag, realtime=False))) if isinstance(i, Frame)]
+    assert len(frames) == int(SECONDS * 5) and all(f.image == image for f in frames)
+
+
+def test_an_mcap_whose_chunk_disagrees_with_its_index(stroke, tmp_path):
+    """The index points at a byte that holds no message of the topic (the file was damaged after it was written):
+    refused, naming the topic, before a block is sent."""
+    bag = write_bag(tmp_path / "bag", _stamped(stroke), "mcap")
+    f = storage_file(bag)
+    data = bytearray(f.read_bytes())
+    first_imu = _rosbags_messages(bag)[TOPICS["accel"]][0]
+    at = data.find(first_imu) - 31  # its Message record's opcode
+    assert data[at] == 0x05
+    data[at] = 0x09
+    f.write_bytes(bytes(data))
+    _refused(bag, r"truncated or damaged .*topic /tool/imu\): an indexed offset holds no message of the channel")
+
+
+def test_a_bag_compressed_message_by_message_streams_as_the_plain_one(bag, tmp_path):
+    """rosbag2's per-message compression (each message zstd'd alone): read by rosbags in both passes, the same
+    blocks and frames as the plain bag's."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+
+    plugin = {".db3": StoragePlugin.SQLITE3, ".mcap": StoragePlugin.MCAP}[storage_file(bag).suffix]
+    packed_writer = Writer(tmp_path / "packed", version=9, storage_plugin=plugin)
+    packed_writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with Reader(bag) as reader, packed_writer as writer:
+        conns = {
+            c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+            for c in reader.connections
+        }
+        for conn, stamp, raw in reader.messages():
+            writer.write(conns[conn.id], stamp, raw)
+    plain = asyncio.run(_take(RosbagSource(bag, realtime=False)))
+    got = asyncio.run(_take(RosbagSource(tmp_path / "packed", realtime=False)))
+    assert len(got) == len(plain)
+    for a, b in zip(got, plain):
+        assert type(a) is type(b)
+        if isinstance(a, Frame):
+            assert (a.t, a.image) == (b.t, b.image)
+        else:
+            assert a.t0 == b.t0 and a.channels.keys() == b.channels.keys()
+            for k in a.channels:
+                np.testing.assert_array_equal(a.channels[k].data, b.channels[k].data)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_tool_poses_differentiated_give_the_scanning_speed(stroke, tmp_path, storage):
+    """geometry_msgs/PoseStamped at 100 Hz, the tool moving along x as x(t) = v0 t + A sin(2π f t) m, silent for
+    0.3 s at 0.8 s: the speed channel is |v0 + 2π f A cos(2π f t)| in mm/s (central differences, exact to
+    (2π f / 100 Hz)² / 6 ≈ 1e-4 relative), and the hole's displacement is no speed."""
+    from drivers.rosbag_writer import _typestore
+
+    ts = _typestore()
+    PoseStamped, Pose = ts.types["geometry_msgs/msg/PoseStamped"], ts.types["geometry_msgs/msg/Pose"]
+    Point, Quaternion = ts.types["geometry_msgs/msg/Point"], ts.types["geometry_msgs/msg/Quaternion"]
+    v0, amp, freq = 0.08, 0.01, 0.5  # m/s, m, Hz: 80 mm/s ± 31 mm/s
+
+    def messages():
+        for topic, stamp, msg in _stamped(stroke):
+            if topic != TOPICS["speed"]:
+                yield topic, stamp, msg
+                continue
+            t = (stamp - DEFAULT_START_NS) * 1e-9
+            if 0.8 <= t < 1.1:
+                continue
+            x = v0 * t + amp * np.sin(2 * np.pi * freq * t)
+            pose = Pose(position=Point(x=x, y=0.25, z=0.1), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+            yield "/tool/pose", stamp, PoseStamped(header=msg.header, pose=pose)
+
+    scan = scan_bag(write_bag(tmp_path / "bag", messages(), storage))
+    speed = scan.channels["speed"]
+    assert speed.msgtype == "geometry_msgs/msg/PoseStamped" and speed.rate_hz == 100.0
+    t = (speed.stamps_ns - DEFAULT_START_NS) * 1e-9
+    want = np.abs(v0 + 2 * np.pi * freq * amp * np.cos(2 * np.pi * freq * t)) * 1000.0
+    inner = np.ones(t.shape[0], dtype=bool)
+    inner[[0, -1]] = False
+    inner[np.flatnonzero(np.diff(t) > 0.05)] = False  # the samples on each side of the hole: one-sided differences
+    inner[np.flatnonzero(np.diff(t) > 0.05) + 1] = False
+    np.testing.assert_allclose(speed.values[inner, 0], want[inner], rtol=2e-4)
+    np.testing.assert_allclose(speed.values[~inner, 0], want[~inner], rtol=0.01)
+    blocks = [
+        i
+        for i in asyncio.run(_take(RosbagSource(write_bag(tmp_path / "b2", messages(), storage), realtime=False)))
+        if isinstance(i, SampleBlock)
+    ]
+    assert _concat(blocks, "speed").max() < (v0 + 2 * np.pi * freq * amp) * 1000.0 * 1.01

@@ -5,6 +5,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -72,11 +78,14 @@ def _windows(kit, server, source) -> list[dict]:
 def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates(
     kit, server, library_dir, tmp_path, storage
 ):
-    model = Library.load(library_dir).model("synth_002")
+    library = Library.load(library_dir)
+    model, photo = library.model("synth_002"), library.image("synth_002")
+    assert photo is not None
     items = asyncio.run(_take(SimulatedSource(model, seed=5, realtime=False, duration_s=SECONDS)))
     blocks = [i for i in items if isinstance(i, SampleBlock)]
     accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), storage)
+    # IMU 1 kHz, wrench 500 Hz, twist 100 Hz and the texture's photo as a CompressedImage at 5 Hz
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0, photo), storage)
     sim = _windows(kit, server, _Items(items))
     got = _windows(kit, server, RosbagSource(bag, realtime=False))
     assert len(sim) >= 5
@@ -258,3 +267,202 @@ def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, serve
         assert [p["window_index"] for _, p in by_topic[topic]] == [w["window_index"] for w in windows]
     statuses = [e for e in feed if e["type"] == "status"]
     assert [p for _, p in by_topic["/hapticlink/status"]][1:] == statuses
+
+
+#: how soon `hapticlink record` must exit after Ctrl-C, s: its own bounds are 2 s for the feed's close and 3 s for the
+#: Foxglove server's stop; the rest is slack for a busy host
+CTRL_C_EXIT_S = 20.0
+#: the stroke streamed while one Foxglove client stalls, s: ~40 windows, more than the stalled connection's buffers
+#: hold
+STALL_SECONDS = 20.0
+#: 4 kB messages sent to a stalled client in the server-level test: 32 MB, more than its connection's buffers hold (up
+#: to 16 MB of kernel send buffer) and the server's backlog of 1024 messages
+STALLED_MESSAGES = 8000
+REPO = Path(__file__).resolve().parents[2]
+#: a Foxglove WebSocket protocol client in its own process (argv: the port): subscribes to every advertised channel,
+#: prints "subscribed", then the topic of each message it receives, then "closed" when the server ends the
+#: connection. Its receive buffer is small, so that once it stalls (SIGSTOP) what the server sends it piles up.
+FOXGLOVE_CLIENT = """
+import json, socket, struct, sys, time
+from websockets.sync.client import connect
+port = int(sys.argv[1])
+deadline = time.monotonic() + 180
+while True:
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    try:
+        sock.connect(("127.0.0.1", port))
+        break
+    except OSError:
+        sock.close()
+        if time.monotonic() > deadline:
+            raise
+        time.sleep(0.2)
+with connect(f"ws://127.0.0.1:{port}", sock=sock, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+             max_queue=1) as ws:
+    channels = {}
+    while not channels:
+        m = json.loads(ws.recv())
+        if m["op"] == "advertise":
+            channels = {c["id"]: c["topic"] for c in m["channels"]}
+    subs = [{"id": k, "channelId": c} for k, c in enumerate(channels)]
+    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+    topic_of = {s["id"]: channels[s["channelId"]] for s in subs}
+    print("subscribed", flush=True)
+    try:
+        for frame in ws:
+            if isinstance(frame, bytes) and frame[0] == 1:
+                print(topic_of[struct.unpack_from("<I", frame, 1)[0]], flush=True)
+    except Exception as exc:
+        print(type(exc).__name__, flush=True)
+print("closed", flush=True)
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class _Lines:
+    """A child process's output lines, read in a thread as they come."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        import queue
+        import threading
+
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read, args=(proc,), daemon=True).start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.lines.put(line.decode(errors="replace").strip())
+
+    def wait_for(self, text: str, timeout_s: float) -> None:
+        import queue
+
+        deadline = time.monotonic() + timeout_s
+        while text not in self.seen:
+            try:
+                self.seen.append(self.lines.get(timeout=max(0.01, deadline - time.monotonic())))
+            except queue.Empty:
+                raise TimeoutError(f"{text!r} not seen in {timeout_s:g} s; seen {self.seen[-5:]}") from None
+
+
+def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, library_dir, tmp_path):
+    """A real `hapticlink record --mcap OUT --foxglove PORT` process follows a live session with two Foxglove
+    protocol clients (each its own process) subscribed: one keeps reading, one stalls (a viewer's laptop asleep:
+    SIGSTOP), so what the server sends it piles up. Ctrl-C (SIGINT) while the session is
+    still open ends the recorder promptly with status 0 or 130, the MCAP file finished (it opens with the mcap reader
+    and holds every window the feed carried), the reading client told that the connection ended. (The Foxglove
+    server's stop waits for ever on the stalled client's unsent messages: the recorder bounds that wait.)"""
+    from mcap.reader import make_reader
+
+    from drivers.estimates_mcap import CHANNELS
+
+    model = Library.load(library_dir).model("synth_004")
+    items = asyncio.run(_take(SimulatedSource(model, seed=11, realtime=False, duration_s=STALL_SECONDS)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "mcap")
+    with httpx.Client(base_url=server.url, timeout=10) as client:
+        session = kit.create_session(client, "ctrl-c")
+    port, out = _free_port(), tmp_path / "estimates.mcap"
+    argv = [sys.executable, "-m", "service.cli", "record", "--url", server.url, "--session", session["session_id"]]
+    argv += ["--token", session["operator_token"], "--mcap", str(out), "--foxglove", f"127.0.0.1:{port}"]
+    procs = [subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)]
+    recorder = procs[0]
+    try:
+        clients = []
+        for _ in range(2):
+            procs.append(
+                subprocess.Popen(
+                    [sys.executable, "-c", FOXGLOVE_CLIENT, str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+                )
+            )
+            clients.append(_Lines(procs[-1]))
+        reading = clients[0]
+        for c in clients:
+            c.wait_for("subscribed", 240)  # the recorder's process starts slowly on a busy host
+        procs[2].send_signal(signal.SIGSTOP)  # the stalled viewer
+        with connect(kit.socket_url(server, session, "events")) as sub:
+            assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
+            time.sleep(5.0)  # the recorder subscribes to the feed right after its server listens
+
+            robot = RobotClient(
+                server.url,
+                RosbagSource(bag, realtime=False),
+                session_id=session["session_id"],
+                robot_token=session["robot_token"],
+            )
+            asyncio.run(robot.run())
+            time.sleep(QUIET_S)  # the last windows are published; the session stays open
+            feed = []
+            while True:
+                try:
+                    feed.append(json.loads(sub.recv(timeout=1.0)))
+                except TimeoutError:
+                    break
+        reading.wait_for("/hapticlink/window", 10)
+        assert recorder.poll() is None, "only Ctrl-C ends the recorder here"
+        t0 = time.monotonic()
+        recorder.send_signal(signal.SIGINT)
+        try:
+            said = recorder.communicate(timeout=CTRL_C_EXIT_S)[0].decode(errors="replace")
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"hapticlink record still running {CTRL_C_EXIT_S:g} s after Ctrl-C")
+        took = time.monotonic() - t0
+        reading.wait_for("closed", 10)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert recorder.returncode in (0, 130), said
+    assert "Traceback" not in said and "recorded" in said, said
+    assert took < CTRL_C_EXIT_S
+    windows = [e for e in feed if e["type"] == "window"]
+    assert len(windows) >= 5
+    with out.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None, "the file was finished: its summary written"
+        assert {c.topic for c in summary.channels.values()} == set(CHANNELS)
+        recorded = [json.loads(m.data) for _, c, m in reader.iter_messages() if c.topic == "/hapticlink/window"]
+    assert recorded == windows
+
+
+def test_a_stalled_foxglove_client_does_not_hold_up_the_recorders_end(caplog):
+    """A Foxglove client that stops reading (SIGSTOP) with megabytes sent to it unread: foxglove-sdk's server.stop()
+    waits for ever to flush them; FoxgloveLive.close() returns after STOP_WAIT_S, says so, and the server's stop
+    completes once the client is gone."""
+    import threading
+
+    from drivers.estimates_foxglove import STOP_WAIT_S, FoxgloveLive
+
+    live = FoxgloveLive(port=0)
+    client = subprocess.Popen(
+        [sys.executable, "-c", FOXGLOVE_CLIENT, str(live.port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    try:
+        _Lines(client).wait_for("subscribed", 120)
+        client.send_signal(signal.SIGSTOP)
+        payload = {"type": "status", "event": "padding", "message": "x" * 4000}
+        for k in range(STALLED_MESSAGES):  # more than the socket buffers and the backlog hold
+            live.log("/hapticlink/status", payload, k)
+        time.sleep(1.0)  # the server's writer fills the socket
+        t0 = time.monotonic()
+        with caplog.at_level("WARNING", logger="hapticlink.record"):
+            live.close()
+        took = time.monotonic() - t0
+        assert STOP_WAIT_S - 0.1 <= took < STOP_WAIT_S + 5.0, "it waited its bound, then went on"
+        assert "did not stop within" in caplog.text
+        stopper = next(t for t in threading.enumerate() if t.name == "foxglove-stop")
+    finally:
+        client.kill()
+        client.wait()
+    stopper.join(30)
+    assert not stopper.is_alive(), "the server's stop completes once the stalled client is gone"
