@@ -17,19 +17,26 @@ This encoding keeps what rendering needs and quantises it:
 - μ and the grid's range as float32; triangles as uint8 (uint16 beyond 255 grid points);
 - the whole body deflated (zlib).
 
-Taps are left out (the vibration renderer does not read them; the JSON document carries them); the surface
-profile stays. The payload names the JSON document's `model_version` it was made from, so a client caches
+Taps (recorded transients, played at a touchdown) travel as f32 speeds and f16 samples (0.05 % relative error);
+the surface profile stays. The payload names the JSON document's `model_version` it was made from, so a client caches
 what it decodes under the version window events name. Decoding gives a RenderModel whose own
 `model_version` is that of the quantised content. What quantisation adds to the spectra is measured by
 `python -m benchmarks.bandwidth` (log-spectral distance, texture_library.spectrum).
 
-Layout (little-endian): b"HLM2", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
-(1: surface present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source version,
-f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
+Layout (little-endian): b"HLM2", then a deflated body (zlib): u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
+(1: surface present, 2: taps present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source
+version, f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
 f32 speeds (m), f32 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
-AR codes (m × p, u16 gap codes), MA codes (m × q, same). A delta (`encode_delta`): b"HLD2", 8 bytes naming the
-base payload (SHA-256), then the same body deflated with the base's body as the preset dictionary. b"HLM1" (the
-uniform coding before) is refused by name.
+AR codes (m × p, u16 gap codes), MA codes (m × q, same), [u8 k, u16 n, f32 tap speeds (k), f16 tap samples (k × n)].
+b"HLM1" (the uniform coding before) is refused by name.
+
+A delta (`encode_delta`), for a receiver that holds an earlier payload of the same surface: b"HLD3", the first
+8 bytes of the SHA-256 of that base payload's body (inflated), then, deflated (zlib), the new body minus the
+base's body byte by byte (mod 256; the base read as zeros past its end). A refit moves a few LSF codes by a
+few steps and leaves the grid, the names and the other rows alone: their bytes difference to zeros, which deflate
+to almost nothing. Both steps are what a browser has at hand (DecompressionStream("deflate") and a byte loop;
+service/static/model-codec.js decodes the same format), unlike a preset deflate dictionary, which the browser's
+stream cannot take.
 """
 
 from __future__ import annotations
@@ -44,7 +51,9 @@ from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel, co
 
 MAGIC = b"HLM2"
 #: a model sent as a delta against an earlier payload (`encode_delta`)
-DELTA_MAGIC = b"HLD2"
+DELTA_MAGIC = b"HLD3"
+#: bytes of a delta before its deflated difference: magic + the base payload's digest
+DELTA_HEAD = 4 + 8
 #: the previous layout (uniform LSF codes): refused by name
 OLD_MAGIC = b"HLM1"
 CONTENT_TYPE = "application/x-hapticlink-model"
@@ -103,34 +112,56 @@ def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
 
 
 def encode_delta(model: RenderModel, base: bytes, bits: int = LSF_BITS) -> bytes:
-    """`model` as a delta against `base`, a compact payload the receiver holds (an earlier version of the same
-    surface): the body deflated with the base's body as the preset dictionary, so what did not change — the grid,
-    the rows of the regions no new data reached — costs a few bytes. b"HLD2", the first 8 bytes of the SHA-256 of
-    `base`, then the deflated body. ValueError if `base` is not a compact payload."""
-    zdict = _inflate(base)[-32768:]  # deflate's window
-    co = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY, zdict=zdict)
-    return DELTA_MAGIC + _digest(base) + co.compress(_body(model, bits)) + co.flush()
+    """`model` as a delta against `base`, the body (`body`) of a payload the receiver holds (an earlier version of
+    the same surface; see the module's layout): what did not change — the grid, the rows no new data reached —
+    costs a few bytes."""
+    return DELTA_MAGIC + body_digest(base) + zlib.compress(_difference(_body(model, bits), base), 9)
 
 
-def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel]:
-    """A delta payload and the base it was made against → as `decode`. ValueError naming the problem, also when
-    the base is not the one the delta was made against."""
-    if payload[:4] != DELTA_MAGIC:
+def body(payload: bytes) -> bytes:
+    """The inflated body of a compact payload: what a receiver keeps as the base of the next delta. ValueError
+    naming the problem."""
+    return _inflate(payload)
+
+
+def body_digest(base: bytes) -> bytes:
+    """The 8 bytes a delta names its base by: the first 8 of the SHA-256 of the base's body."""
+    return hashlib.sha256(base).digest()[:8]
+
+
+def delta_base(payload: bytes) -> bytes:
+    """The base digest a delta names (ValueError if `payload` is not a delta)."""
+    if payload[:4] != DELTA_MAGIC or len(payload) < DELTA_HEAD:
         raise ValueError(f"not a compact rendering model delta (starts {payload[:4]!r}, expected {DELTA_MAGIC!r})")
-    if payload[4:12] != _digest(base):
+    return payload[4:DELTA_HEAD]
+
+
+def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel, bytes]:
+    """A delta payload and the body of the base it was made against → (source version, the decoded RenderModel,
+    its body: the base of the next delta). ValueError naming the problem, also when the base is not the one the
+    delta was made against."""
+    if delta_base(payload) != body_digest(base):
         raise ValueError(
-            f"the delta was made against base {payload[4:12].hex()}, not the one held ({_digest(base).hex()})"
+            f"the delta was made against base {payload[4:DELTA_HEAD].hex()}, "
+            f"not the one held ({body_digest(base).hex()})"
         )
-    zdict = _inflate(base)[-32768:]
     try:
-        body = zlib.decompressobj(zdict=zdict).decompress(payload[12:], MAX_RENDER_MODEL_BYTES)
+        diff = zlib.decompressobj().decompress(payload[DELTA_HEAD:], MAX_RENDER_MODEL_BYTES)
     except zlib.error as exc:
         raise ValueError(f"compact rendering model delta: the body does not inflate ({exc})") from None
-    return _parse_checked(body)
+    new = _difference(diff, base, add=True)
+    source, doc = _parse_checked(new)
+    return source, doc, new
 
 
-def _digest(payload: bytes) -> bytes:
-    return hashlib.sha256(payload).digest()[:8]
+def _difference(body: bytes, base: bytes, add: bool = False) -> bytes:
+    """body − base (or body + base with `add`) byte by byte, mod 256, over len(body); base read as zeros past its
+    end."""
+    a = np.frombuffer(body, np.uint8)
+    b = np.zeros(a.size, np.uint8)
+    n = min(a.size, len(base))
+    b[:n] = np.frombuffer(base, np.uint8, n)
+    return (a + b if add else a - b).tobytes()
 
 
 def _body(model: RenderModel, bits: int) -> bytes:
@@ -140,7 +171,7 @@ def _body(model: RenderModel, bits: int) -> bytes:
     tri = np.asarray(model.triangles, np.int64)
     ident, name = model.id.encode()[:255], model.name.encode()[:255]
     parts = [
-        struct.pack("<BHHHHB", bits, m, p, q, tri.shape[0], 1 if model.surface else 0),
+        struct.pack("<BHHHHB", bits, m, p, q, tri.shape[0], (1 if model.surface else 0) | (2 if model.taps else 0)),
         bytes([len(ident)]) + ident,
         bytes([len(name)]) + name,
         bytes.fromhex(model.model_version),
@@ -153,6 +184,12 @@ def _body(model: RenderModel, bits: int) -> bytes:
     parts.append(tri.astype("<u1" if m <= 255 else "<u2").tobytes())
     for codes in (ar, ma):
         parts.append(codes.astype("<u2").tobytes())
+    if model.taps is not None:
+        accel = np.asarray(model.taps.accel, float)
+        if accel.shape[0] > 255 or accel.shape[1] > 65535:
+            raise ValueError(f"compact rendering model: at most 255 taps of 65535 samples, got {accel.shape}")
+        parts.append(struct.pack("<BH", *accel.shape))
+        parts.append(np.asarray(model.taps.speeds_mm_s, "<f4").tobytes() + accel.astype("<f2").tobytes())
     return b"".join(parts)
 
 
@@ -211,6 +248,12 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
         raise ValueError(f"compact rendering model: LSF bits {bits} outside [4, 15]")
     ar = np.frombuffer(take(2 * m * p), "<u2").astype(np.int64).reshape(m, p)
     ma = np.frombuffer(take(2 * m * q), "<u2").astype(np.int64).reshape(m, q)
+    taps = None
+    if flags & 2:
+        k, n = struct.unpack("<BH", take(3))
+        tap_speeds = np.frombuffer(take(4 * k), "<f4").astype(float)
+        tap_accel = np.frombuffer(take(2 * k * n), "<f2").astype(float).reshape(k, n)
+        taps = {"speeds_mm_s": tap_speeds.tolist(), "accel": tap_accel.tolist()}
     if pos != len(body):
         raise ValueError(f"compact rendering model: {len(body) - pos} unexpected bytes at the end")
     content = {
@@ -227,7 +270,7 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
         "max_speed_mm_s": float(max_speed),
         "max_force_n": float(max_force),
         "surface": surface,
-        "taps": None,
+        "taps": taps,
     }
     doc = {"schema": "hapticlink.render-model", "schema_version": 1, "id": ident}
     return source, RenderModel.model_validate({**doc, "model_version": content_version(content), **content})
