@@ -82,7 +82,8 @@ def test_window_events_name_the_chosen_models_version_and_the_render_view_is_lea
     session = kit.create_session(client)
     with (
         connect(kit.socket_url(server, session, "events")) as full,
-        connect(kit.socket_url(server, session, "events") + "&view=render") as lean,
+        # models fetched, not pushed (tests/service/test_service_model_push.py): the choices and ratings alone
+        connect(kit.socket_url(server, session, "events") + "&view=render&models=fetch") as lean,
     ):
         assert json.loads(full.recv(timeout=5))["event"] == "subscribed"
         assert json.loads(lean.recv(timeout=5))["event"] == "subscribed"
