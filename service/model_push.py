@@ -51,6 +51,7 @@ class ModelPush:
         self.resolve, self.catalog, self.own_session = resolve, catalog, own_session
         self.held: dict[str, Held] = {}
         self.current: tuple[str, str | None] | None = None  # the last choice forwarded
+        self.last_library: str | None = None  # the last library entry chosen: a learnt model's likely prior
         self.refusals = 0
         self.sent = {"models": 0, "deltas": 0, "bytes": 0}
 
@@ -69,18 +70,19 @@ class ModelPush:
         """The message that brings a choice's model (to send before the choice), or None: held, or not servable
         here (the operator fetches it: GET /library/{id}/model)."""
         self.current = (chosen, version)
+        if not chosen.startswith(SESSION_PREFIX):
+            self.last_library = chosen
         held = self.held.get(chosen)
         if version is not None and held is not None and held.version == version:
             return None
         served = self.resolve(chosen, version)
         if served is None:
             return None
-        base = None if held is None else (held.base or self._body(chosen, held.version))
         message = render_feed.model_message(served.compact_body, delta=False)
-        if base is not None:
-            delta = model_codec.encode_delta(served.model, base)
-            if len(delta) < len(served.compact_body):
-                message = render_feed.model_message(delta, delta=True)
+        for base in self._bases(chosen):  # the smallest of the whole model and the deltas against what it holds
+            delta = render_feed.model_message(model_codec.delta_between(served.body, base), delta=True)
+            if len(delta) < len(message):
+                message = delta
         self._remember(chosen, Held(served.version, served.body if chosen.startswith(SESSION_PREFIX) else None))
         self.sent["deltas" if message[:1] == render_feed.DELTA_TAG else "models"] += 1
         self.sent["bytes"] += len(message)
@@ -125,6 +127,18 @@ class ModelPush:
                 "can make a delta against; the whole model is sent when chosen"
             )
         return out, None
+
+    def _bases(self, chosen: str) -> list[bytes]:
+        """Bodies the connection holds that a delta for `chosen` may be made against: its earlier version, and (a
+        learnt model) the library entry chosen last, its prior, whose grid spectra and taps it starts from."""
+        out = []
+        for ident in (chosen, self.last_library if chosen.startswith(SESSION_PREFIX) else None):
+            held = None if ident is None else self.held.get(ident)
+            if held is not None and ident is not None:
+                base = held.base or self._body(ident, held.version)
+                if base is not None:
+                    out.append(base)
+        return out
 
     @property
     def exhausted(self) -> bool:

@@ -46,6 +46,8 @@ from texture_library.vibration import VibrationModel
 
 log = logging.getLogger("hapticlink.operator")
 
+#: compact bodies a client keeps as the bases of deltas (a library's entries and a learnt model's versions)
+MAX_BASES = 512
 #: HTTP statuses of the event socket's handshake after which retrying cannot help
 FATAL_HANDSHAKES = frozenset({401, 403, 404, 410})
 #: how often an operator following a robot asks for the robot's next session while it has none
@@ -101,16 +103,20 @@ class ModelCache:
     def __init__(self, http: httpx.AsyncClient, session_id: str, token: str, compact: bool = True) -> None:
         self.http, self.session_id, self.token, self.compact = http, session_id, token, compact
         self.models: dict[str, VibrationModel] = {}
-        self.bodies: dict[str, tuple[str, bytes]] = {}  # id → (version, compact body): the base of the next delta
+        # compact bodies held, by their digest (model_codec.body_digest): the bases deltas name (the newest MAX_BASES)
+        self.bases: dict[bytes, bytes] = {}
+        self._held_docs: dict[str, RenderModel] = {}  # the library held in advance, its bodies made when first named
         self.pushed: tuple[str, bytes] | None = None  # ("model" or "delta", payload) waiting for its choice
         self.received_bytes = 0
         self.counts = {"pushed_models": 0, "pushed_deltas": 0, "fetched": 0, "held": 0}
         self._held: set[str] = set()
 
-    def hold(self, models: dict[str, VibrationModel]) -> None:
-        """Models held in advance, by version."""
+    def hold(self, models: dict[str, VibrationModel], docs: dict[str, RenderModel] | None = None) -> None:
+        """Models held in advance, by version (docs: their served documents, whose compact bodies a delta may
+        name as its base)."""
         self.models.update(models)
         self._held = set(models)
+        self._held_docs = dict(docs or {})
 
     def push(self, kind: str, payload: bytes) -> None:
         """A model the feed pushed ("model" or "delta"): decoded when the choice that names it arrives."""
@@ -127,11 +133,11 @@ class ModelCache:
             kind, payload = pushed
             try:
                 if kind == "delta":
-                    held = self.bodies.get(entry)
-                    if held is None:
-                        raise DeltaUnusable(f"model {entry!r}: a delta arrived, but no earlier version of it is held")
+                    base = self._base(model_codec.delta_base(payload))
+                    if base is None:
+                        raise DeltaUnusable(f"model {entry!r}: a delta against a base this client does not hold")
                     try:
-                        source, doc, body = model_codec.decode_delta(payload, held[1])
+                        source, doc, body = model_codec.decode_delta(payload, base)
                     except ValueError as exc:
                         raise DeltaUnusable(f"model {entry!r}: the delta does not apply ({exc})") from None
                 else:
@@ -177,8 +183,21 @@ class ModelCache:
         model = doc.to_vibration_model()
         self.models[source] = model
         if body is not None:
-            self.bodies[entry] = (source, body)
+            self._remember(body)
         return model
+
+    def _remember(self, body: bytes) -> None:
+        self.bases[model_codec.body_digest(body)] = body
+        while len(self.bases) > MAX_BASES:
+            del self.bases[next(iter(self.bases))]
+
+    def _base(self, digest: bytes) -> bytes | None:
+        """The body a delta names: one received, or (made once, when first needed) one of the library held."""
+        if digest not in self.bases and self._held_docs:
+            docs, self._held_docs = self._held_docs, {}
+            for doc in docs.values():
+                self._remember(model_codec.body(model_codec.encode(doc)))
+        return self.bases.get(digest)
 
 
 class DeltaUnusable(ValueError):
@@ -251,14 +270,14 @@ class OperatorClient:
         self.push = push
         # the library held in advance: its models by served version, and the digest that names them all
         self.held: dict[str, VibrationModel] = {}
+        self.held_docs: dict[str, RenderModel] = {}
         self.library_digest: str | None = None
         if library is not None:
-            versions = {}
             for entry_id in library.ids:
                 model = library.model(entry_id)
-                version = RenderModel.from_vibration_model(entry_id, model).model_version
-                versions[entry_id], self.held[version] = version, model
-            self.library_digest = library_digest(versions)
+                doc = RenderModel.from_vibration_model(entry_id, model)
+                self.held[doc.model_version], self.held_docs[entry_id] = model, doc
+            self.library_digest = library_digest({i: d.model_version for i, d in self.held_docs.items()})
         # a choice waiting for its whole model (asked for after a delta that did not apply): (entry, version, at)
         self._awaiting: tuple[str, str | None, float] | None = None
 
@@ -272,7 +291,7 @@ class OperatorClient:
             self._over = False
             assert self.session_id is not None  # given, or found
             cache = ModelCache(http, self.session_id, self.token, self.compact)
-            cache.hold(self.held)
+            cache.hold(self.held, self.held_docs)
             self._cache = cache
             await self._follow_session(cache)
             if self.robot is None:

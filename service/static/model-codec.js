@@ -1,8 +1,9 @@
-// The compact rendering model codec of texture_library/model_codec.py, in the browser: a whole payload (b"HLM2") or
+// The compact rendering model codec of texture_library/model_codec.py, in the browser: a whole payload (b"HLM3") or
 // a delta (b"HLD3") against the body of a payload held → the served model's JSON document (the schema the render
 // worklet reads), its source version and its body (the base of the next delta).
 //
-// Same layout, same arithmetic: LSFs are the running sums of GAP_FLOOR_RAD · exp(code · ln(1 + 2^(3 − bits))) in
+// Same layout (a 15-byte head giving every section's length; arrays in byte planes; a delta differenced section by
+// section), same arithmetic: LSFs are the running sums of GAP_FLOOR_RAD · exp(code · ln(1 + 2^(3 − bits))) in
 // the encoder's order (Math.exp and numpy's exp may differ in the last bit: the parity test allows 1e-12
 // relative); √variance and gain are float16, squared as doubles; speeds, forces, μ and the ranges float32.
 // Inflating uses the browser's DecompressionStream("deflate") (zlib), read in chunks and cut off at MAX_BODY_BYTES;
@@ -11,7 +12,9 @@
 "use strict";
 
 const hapticlinkCodec = (() => {
-  const MAGIC = "HLM2", OLD_MAGIC = "HLM1", DELTA_MAGIC = "HLD3";
+  const MAGIC = "HLM3", DELTA_MAGIC = "HLD3";
+  const OLD_MAGICS = {HLM1: "uniform LSF codes", HLM2: "no section head, no taps"};
+  const HEAD = 15;  // u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags, u8 id length, u8 name length, u8 k, u16 n
   const GAP_FLOOR_RAD = 1e-6;
   const MAX_BODY_BYTES = 512 * 1024;  // texture_library.render_model.MAX_RENDER_MODEL_BYTES
   const DELTA_HEAD = 12;
@@ -44,7 +47,7 @@ const hapticlinkCodec = (() => {
   /** The inflated body of a whole payload (Uint8Array). */
   async function body(payload) {
     const tag = tagOf(payload);
-    if (tag === OLD_MAGIC) throw new Error(`compact rendering model of the old layout ${OLD_MAGIC} (uniform LSF codes); this client reads ${MAGIC}`);
+    if (tag in OLD_MAGICS) throw new Error(`compact rendering model of the old layout ${tag} (${OLD_MAGICS[tag]}); this client reads ${MAGIC}`);
     if (tag !== MAGIC) throw new Error(`not a compact rendering model (starts ${JSON.stringify(tag)}, expected ${MAGIC})`);
     return inflate(payload.subarray(4), "compact rendering model");
   }
@@ -69,52 +72,77 @@ const hapticlinkCodec = (() => {
     return s * (1 + f / 1024) * 2 ** (e - 15);
   }
 
+  function head(b) {
+    if (b.length < HEAD) throw new Error(`compact rendering model: a body is at least ${HEAD} bytes`);
+    const v = new DataView(b.buffer, b.byteOffset, HEAD);
+    return {bits: v.getUint8(0), m: v.getUint16(1, true), p: v.getUint16(3, true), q: v.getUint16(5, true),
+            t: v.getUint16(7, true), flags: v.getUint8(9), idLen: v.getUint8(10), nameLen: v.getUint8(11),
+            k: v.getUint8(12), n: v.getUint16(13, true)};
+  }
+
+  /** The lengths of a body's sections after its head (model_codec._sections). */
+  function sections(h) {
+    const width = h.m > 255 ? 2 : 1;
+    return [h.idLen, h.nameLen, 8, 20, h.flags & 1 ? 16 : 0, 4 * h.m, 4 * h.m, 2 * h.m, 2 * h.m, 3 * h.t * width,
+            4 * h.k, 2 * h.k * h.n, 2 * h.m * h.p, 2 * h.m * h.q];
+  }
+
+  /** count little-endian elements of `width` bytes from byte planes → a DataView over them, interleaved. */
+  function unplane(raw, width, count) {
+    const out = new Uint8Array(width * count);
+    for (let j = 0; j < width; j++) for (let i = 0; i < count; i++) out[i * width + j] = raw[j * count + i];
+    return new DataView(out.buffer);
+  }
+
   /** A body → {source, model}: model is the served JSON document (model_version: the source version). */
   function parse(b) {
-    const view = new DataView(b.buffer, b.byteOffset, b.byteLength);
-    let pos = 0;
-    const need = (n) => {
+    const h = head(b);
+    if (!(h.bits >= 4 && h.bits <= 15)) throw new Error(`compact rendering model: LSF bits ${h.bits} outside [4, 15]`);
+    let pos = HEAD;
+    const take = (n) => {
       if (pos + n > b.length) throw new Error(`compact rendering model: truncated at byte ${pos} (needs ${n} more)`);
-      const at = pos; pos += n; return at;
+      pos += n; return b.subarray(pos - n, pos);
     };
-    const u8 = () => view.getUint8(need(1));
-    const u16 = () => view.getUint16(need(2), true);
-    const text = () => { const n = u8(), at = need(n); return new TextDecoder("utf-8", {fatal: true}).decode(b.subarray(at, at + n)); };
-    const f32s = (n) => { const at = need(4 * n); return Array.from({length: n}, (_, i) => view.getFloat32(at + 4 * i, true)); };
-    const f16s = (n) => { const at = need(2 * n); return Array.from({length: n}, (_, i) => half(view.getUint16(at + 2 * i, true))); };
-    const bits = u8(), m = u16(), p = u16(), q = u16(), t = u16(), flags = u8();
-    const id = text(), name = text();
-    const source = hex(b.subarray(need(8), pos));
-    const rate = view.getFloat64(need(8), true);
-    const [mu, maxSpeed, maxForce] = f32s(3);
+    const text = (n) => new TextDecoder("utf-8", {fatal: true}).decode(take(n));
+    const array = (width, count, read) => {
+      const v = unplane(take(width * count), width, count);
+      return Array.from({length: count}, (_, i) => read(v, i * width));
+    };
+    const f32 = (v, at) => v.getFloat32(at, true), f16 = (v, at) => half(v.getUint16(at, true));
+    const u16 = (v, at) => v.getUint16(at, true), u8 = (v, at) => v.getUint8(at);
+    const {m, p, q, t, k, n} = h;
+    const id = text(h.idLen), name = text(h.nameLen);
+    const source = hex(take(8));
+    const scalars = new DataView(b.buffer, b.byteOffset + pos, 20); take(20);
+    const rate = scalars.getFloat64(0, true), mu = scalars.getFloat32(8, true);
+    const maxSpeed = scalars.getFloat32(12, true), maxForce = scalars.getFloat32(16, true);
     let surface = null;
-    if (flags & 1) surface = {bump_height_mm: view.getFloat64(need(8), true), bump_period_mm: view.getFloat64(need(8), true)};
-    const speeds = f32s(m), forces = f32s(m), std = f16s(m), gain = f16s(m);
-    const wide = m > 255, triAt = need(3 * t * (wide ? 2 : 1));
-    const triangles = Array.from({length: t}, (_, k) => [0, 1, 2].map((j) =>
-      wide ? view.getUint16(triAt + 2 * (3 * k + j), true) : view.getUint8(triAt + 3 * k + j)));
-    if (!(bits >= 4 && bits <= 15)) throw new Error(`compact rendering model: LSF bits ${bits} outside [4, 15]`);
-    const step = Math.log1p(2 ** (3 - bits));
+    if (h.flags & 1) {
+      const v = new DataView(b.buffer, b.byteOffset + pos, 16); take(16);
+      surface = {bump_height_mm: v.getFloat64(0, true), bump_period_mm: v.getFloat64(8, true)};
+    }
+    const speeds = array(4, m, f32), forces = array(4, m, f32), std = array(2, m, f16), gain = array(2, m, f16);
+    const tri = m > 255 ? array(2, 3 * t, u16) : array(1, 3 * t, u8);
+    const triangles = Array.from({length: t}, (_, i) => tri.slice(3 * i, 3 * i + 3));
+    const tapSpeeds = array(4, k, f32), samples = array(2, k * n, f16);
+    const step = Math.log1p(2 ** (3 - h.bits));
     const lsf = (order) => {
-      const at = need(2 * m * order);
+      const codes = array(2, m * order, u16);
       return Array.from({length: m}, (_, r) => {
         const row = new Array(order);
         let decoded = 0;  // the encoder's order of additions
         for (let j = 0; j < order; j++) {
-          decoded = decoded + GAP_FLOOR_RAD * Math.exp(view.getUint16(at + 2 * (r * order + j), true) * step);
+          decoded = decoded + GAP_FLOOR_RAD * Math.exp(codes[r * order + j] * step);
           row[j] = decoded;
         }
         return row;
       });
     };
     const ar = lsf(p), ma = lsf(q);
-    let taps = null;
-    if (flags & 2) {
-      const k = u8(), n = u16();
-      const tapSpeeds = f32s(k), samples = f16s(k * n);
-      taps = {speeds_mm_s: tapSpeeds, accel: Array.from({length: k}, (_, i) => samples.slice(i * n, (i + 1) * n))};
-    }
     if (pos !== b.length) throw new Error(`compact rendering model: ${b.length - pos} unexpected bytes at the end`);
+    const taps = h.flags & 2
+      ? {speeds_mm_s: tapSpeeds, accel: Array.from({length: k}, (_, i) => samples.slice(i * n, (i + 1) * n))}
+      : null;
     const model = {
       schema: "hapticlink.render-model", schema_version: 1, id, model_version: source, name, rate_hz: rate,
       speeds_mm_s: speeds, forces_n: forces, triangles, ar_lsf: ar, ma_lsf: ma,
@@ -134,8 +162,21 @@ const hapticlinkCodec = (() => {
     const named = deltaBase(payload), held = await digest(base);
     if (named !== held) throw new Error(`the delta was made against base ${named}, not the one held (${held})`);
     const diff = await inflate(payload.subarray(DELTA_HEAD), "compact rendering model delta");
+    // section by section (model_codec._difference): the head first, then each section against the base's same one
     const b = new Uint8Array(diff.length);
-    for (let i = 0; i < diff.length; i++) b[i] = (diff[i] + (i < base.length ? base[i] : 0)) & 0xff;
+    const add = (at, size, baseAt, baseSize) => {
+      for (let i = 0; i < size; i++) b[at + i] = (diff[at + i] + (i < baseSize ? base[baseAt + i] : 0)) & 0xff;
+    };
+    if (diff.length < HEAD) throw new Error("compact rendering model delta: shorter than a head");
+    add(0, HEAD, 0, Math.min(HEAD, base.length));
+    const mine = sections(head(b)), theirs = sections(head(base));
+    let at = HEAD, baseAt = HEAD;
+    for (let s = 0; s < mine.length; s++) {
+      if (at + mine[s] > diff.length) throw new Error(`compact rendering model delta: malformed (ends at ${diff.length}, needs ${at + mine[s]})`);
+      add(at, mine[s], baseAt, Math.max(0, Math.min(theirs[s], base.length - baseAt)));
+      at += mine[s]; baseAt += theirs[s];
+    }
+    if (at !== diff.length) throw new Error(`compact rendering model delta: malformed (${diff.length - at} bytes after the last section)`);
     return {...parse(b), body: b};
   }
 

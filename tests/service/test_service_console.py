@@ -957,7 +957,17 @@ def test_page_decodes_models_and_deltas_as_python_does(pad_page, library_dir):
     payload = model_codec.encode(doc)
     base = model_codec.body(payload)
     delta = model_codec.encode_delta(new, base)
-    cases = [(payload, None, model_codec.decode(payload), base), (delta, base, model_codec.decode_delta(delta, base))]
+    # …and a delta against another entry's body (a learnt model against its library prior: other lengths of id,
+    # name, grid and taps, each section differenced against its own)
+    prior = model_codec.body(
+        model_codec.encode(RenderModel.from_vibration_model("synth_001", Library.load(library_dir).model("synth_001")))
+    )
+    across = model_codec.encode_delta(new, prior)
+    cases = [
+        (payload, None, model_codec.decode(payload), base),
+        (delta, base, model_codec.decode_delta(delta, base)),
+        (across, prior, model_codec.decode_delta(across, prior)),
+    ]
     for sent, held, python, *_ in cases:
         page = _decode_in_page(pad_page, sent, held)
         assert "failed" not in page, page["failed"]
@@ -980,7 +990,7 @@ def test_page_decodes_models_and_deltas_as_python_does(pad_page, library_dir):
     assert "made against base" in _decode_in_page(pad_page, delta, other)["failed"]
     assert "does not inflate" in _decode_in_page(pad_page, payload[:4] + b"\x00garbage")["failed"]
     assert "old layout" in _decode_in_page(pad_page, b"HLM1" + payload[4:])["failed"]
-    assert "unexpected bytes" in _decode_in_page(pad_page, b"HLM2" + zlib.compress(base + b"xx"))["failed"]
+    assert "unexpected bytes" in _decode_in_page(pad_page, b"HLM3" + zlib.compress(base + b"xx"))["failed"]
 
 
 def test_console_plays_a_model_pushed_on_its_socket(kit, server, client, library_dir, browser):
