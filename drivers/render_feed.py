@@ -10,7 +10,8 @@ renderer needs the entry to render, its model version and the ratings, so this v
 - the status events a renderer acts on (`RENDER_STATUSES`), unchanged (JSON text);
 - with models pushed (`models=push`, this view's default), the chosen model itself, just before the choice that
   names a version the connection does not hold: `b"M"` + a compact payload (texture_library/model_codec.py), or
-  `b"D"` + a delta against the version of the same id the connection holds (a learnt model's previous version).
+  `b"D"` + a delta against a body the connection holds (a learnt model's previous version, or its library prior),
+  named by that body's digest.
 
 What the connection holds, the service learns from the operator: `?library=<library_digest>` on connect (it holds
 every entry of that library, shared in advance; texture_library.render_model.library_digest), and the **hold**

@@ -1,11 +1,12 @@
 """Models pushed on an operator's event socket: only what that connection does not hold.
 
 A connection with models pushed (`?models=push`; the render view's default, drivers/render_feed.py) gets, just
-before a choice that names a version it does not hold, that version itself: a delta against the version of the
-same id it holds (a learnt `session:<id>` model's earlier version: what a refit did not move costs nothing), or the
-whole compact payload (texture_library.model_codec). A library entry the operator holds — the whole library,
-shared in advance and named by its digest on connect (`?library=`), or entries named in a hold message — is named,
-never sent.
+before a choice that names a version it does not hold, that version itself, as the smallest of: the whole compact
+payload (texture_library.model_codec), a delta against the version of the same id it holds (a learnt
+`session:<id>` model's earlier version: what a refit did not move costs nothing), and, for a learnt model, a delta
+against the library entry chosen before it (its prior: the first version of a surface keeps the prior's taps).
+A library entry the operator holds — the whole library, shared in advance and named by its digest on connect
+(`?library=`), or entries named in a hold message — is named, never sent.
 
 What the connection holds is this object's belief: what it was sent, and what the operator says it holds (a hold
 message, drivers/render_feed.parse_hold). A delta the operator cannot apply is answered by its hold saying null
