@@ -63,6 +63,8 @@ class RenderView:
 
     def __init__(self) -> None:
         self._sent: tuple[str, str | None] | None = None  # (chosen, version) the subscriber renders now
+        #: the newest window's `library_pick`: the library entry beneath a learnt model (its prior), else None
+        self.library_pick: str | None = None
 
     def render(self, text: str) -> str | bytes | None:
         event = json.loads(text)
@@ -72,6 +74,7 @@ class RenderView:
         if kind != "window":
             return None
         ratings = [event["ratings"][k] for k in event["ratings"]]
+        self.library_pick = event.get("library_pick")
         now = (event["chosen"], event.get("chosen_model_version"))
         if now == self._sent:
             return ratings_bytes(ratings)

@@ -52,7 +52,7 @@ class ModelPush:
         self.resolve, self.catalog, self.own_session = resolve, catalog, own_session
         self.held: dict[str, Held] = {}
         self.current: tuple[str, str | None] | None = None  # the last choice forwarded
-        self.last_library: str | None = None  # the last library entry chosen: a learnt model's likely prior
+        self.last_library: str | None = None  # a learnt model's prior: the window's library_pick, else the last chosen
         self.refusals = 0
         self.sent = {"models": 0, "deltas": 0, "bytes": 0}
 
@@ -67,12 +67,15 @@ class ModelPush:
             self.held[entry_id] = Held(served.version)
         return None
 
-    def bring(self, chosen: str, version: str | None) -> bytes | None:
+    def bring(self, chosen: str, version: str | None, prior: str | None = None) -> bytes | None:
         """The message that brings a choice's model (to send before the choice), or None: held, or not servable
-        here (the operator fetches it: GET /library/{id}/model)."""
+        here (the operator fetches it: GET /library/{id}/model). prior: the library entry a learnt model was
+        learnt from (the window event's `library_pick`), when known."""
         self.current = (chosen, version)
         if not chosen.startswith(SESSION_PREFIX):
             self.last_library = chosen
+        elif prior is not None and prior in self.catalog.models:
+            self.last_library = prior
         held = self.held.get(chosen)
         if version is not None and held is not None and held.version == version:
             return None
@@ -131,7 +134,8 @@ class ModelPush:
 
     def _bases(self, chosen: str) -> list[bytes]:
         """Bodies the connection holds that a delta for `chosen` may be made against: its earlier version, and (a
-        learnt model) the library entry chosen last, its prior, whose grid spectra and taps it starts from."""
+        learnt model) its prior (the window's library_pick, else the library entry chosen last), whose taps it
+        keeps."""
         out = []
         for ident in (chosen, self.last_library if chosen.startswith(SESSION_PREFIX) else None):
             held = None if ident is None else self.held.get(ident)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import re
 
 from fastapi import APIRouter, Query, WebSocket
@@ -214,7 +215,8 @@ async def _forward(
         if message is None:
             continue
         if push is not None and (choice := _choice(message)) is not None:
-            model = push.bring(*choice)
+            prior = lean.library_pick if lean is not None else json.loads(text).get("library_pick")
+            model = push.bring(*choice, prior=prior)
             if model is not None:
                 await websocket.send_bytes(model)
         if isinstance(message, bytes):

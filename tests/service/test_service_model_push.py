@@ -257,3 +257,17 @@ def test_a_learnt_model_reaches_the_operator_as_deltas(kit, base_settings, libra
     assert counts.get("pushed_deltas", 0) >= 1, (versions, counts)
     assert "fetched" not in counts
     assert stats.samples > 0 and stats.silent_samples < stats.samples
+
+
+def test_a_learnt_model_goes_as_a_delta_against_its_prior_the_window_names(catalog, learnt):
+    """The window's library_pick (the learnt model's prior, held with the library) is a base: the first version of a
+    surface costs what it changed from its prior, not a whole model."""
+    push = _push(catalog, learnt)
+    push.hold_library(catalog.digest)
+    assert push.bring("synth_000", catalog.version("synth_000")) is None  # the library pick: named only
+    message = push.bring(SESSION, learnt[0].version, prior="synth_003")
+    assert message is not None and message[:1] == render_feed.DELTA_TAG
+    assert model_codec.delta_base(message[1:]) == model_codec.body_digest(catalog.models["synth_003"].body)
+    source, doc, _ = model_codec.decode_delta(message[1:], catalog.models["synth_003"].body)
+    assert source == learnt[0].version and doc == model_codec.decode(learnt[0].compact_body)[1]
+    assert len(message) < len(learnt[0].compact_body) / 4  # it is synth_003's model under another id
