@@ -227,8 +227,9 @@ async def session_run(
             windows = sum(op.stats.feed_messages for op in operators.values())
             if windows != seen:
                 seen, quiet_since = windows, time.monotonic()
-        status = (await http.get(f"/sessions/{session['session_id']}", headers=bearer(API_KEY))).json()
-        await http.delete(f"/sessions/{session['session_id']}", headers=bearer(session["operator_token"]))
+        operator = bearer(session["operator_token"])
+        status = (await http.get(f"/sessions/{session['session_id']}", headers=operator)).json()
+        await http.delete(f"/sessions/{session['session_id']}", headers=operator)
         await asyncio.wait(running, timeout=15)
         for op in operators.values():
             op.stop()
