@@ -271,6 +271,11 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
                                 text=True, timeout=60, env=env)  # fmt: skip
     assert unwritable.returncode == 2 and "no/such/dir/x.wav" in unwritable.stderr
     assert "Traceback" not in unwritable.stderr
+    # a library to hold in advance that is not one: named, exit 2
+    no_library = subprocess.run([*cmd, "--library", str(tmp_path / "nowhere")], capture_output=True, text=True,
+                                timeout=60, env=env)  # fmt: skip
+    assert no_library.returncode == 2 and f"--library {tmp_path / 'nowhere'}" in no_library.stderr
+    assert "Traceback" not in no_library.stderr
     # the service refusing the feed (a wrong token): the reason, and a failed exit
     token = cmd.index("--token") + 1
     refused = subprocess.run([*cmd[:token], "not-the-token", *cmd[token + 1 :]], capture_output=True, text=True,
