@@ -30,6 +30,7 @@ StatusKind = Literal[
     "robot_refused",  # an ingest connection to this session was refused (a wrong or the operator's token)
     "error",  # something failed inside the pipeline; the message says what
     "surface_model",  # the session's learnt surface model keeps what it serves: `reason` says why (once per surface)
+    "refused",  # an operator's message on its event socket was refused (a hold naming what the service lacks)
 ]
 
 

@@ -402,7 +402,7 @@ class Session:
         if self.closed or self.surface is None:
             return
         if outcome.served is not None and outcome.generation == self.surface.generation:  # not of a surface left
-            self.surface.served, self.surface.learnt = outcome.served, outcome.learnt
+            self.surface.serve(outcome.served, outcome.learnt)
         await self._tell_surface()
 
     async def _tell_surface(self) -> None:

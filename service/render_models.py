@@ -9,10 +9,11 @@ which entry) and nothing larger is ever served.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from texture_library import model_codec
 from texture_library.library import Library
-from texture_library.render_model import RenderModel
+from texture_library.render_model import RenderModel, library_digest
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,11 @@ class ServedRenderModel:
     @property
     def version(self) -> str:
         return self.model.model_version
+
+    @cached_property
+    def body(self) -> bytes:
+        """The compact payload's inflated body: what a delta is made against (model_codec.encode_delta)."""
+        return model_codec.body(self.compact_body)
 
 
 @dataclass(frozen=True)
@@ -45,6 +51,12 @@ class RenderCatalog:
                 raise ValueError(f"library {library.name!r}, entry {entry_id!r}: {exc}") from None
             out[entry_id] = ServedRenderModel(doc, doc.to_json_bytes(), model_codec.encode(doc))
         return cls(out)
+
+    @cached_property
+    def digest(self) -> str:
+        """The library's digest (texture_library.render_model.library_digest): an operator that names it holds
+        every entry."""
+        return library_digest({i: m.version for i, m in self.models.items()})
 
     def version(self, entry_id: str) -> str | None:
         served = self.models.get(entry_id)

@@ -49,6 +49,8 @@ FIT_COST_RATIO = 4.0
 MAX_QUEUED_TAPS = 4
 #: samples one channel may run ahead of the others in the fitter's alignment buffer (s of stream)
 MAX_AHEAD_S = 2.0
+#: versions a session keeps servable besides its newest (a window event may name one just replaced)
+RECENT_VERSIONS = 4
 #: the channels a fit needs (position is used when the robot sends it)
 NEEDED = ("accel", "force", "speed")
 #: reasons that are bad input (told once per surface); no_contact and ok are not
@@ -83,6 +85,7 @@ class SessionSurface:
         self.max_segments = max_segments
         self.publisher = SurfacePublisher(self.entry_id)
         self.served: ServedRenderModel | None = None
+        self.recent: dict[str, ServedRenderModel] = {}  # the last RECENT_VERSIONS served, by version
         self.fits = 0
         # what the served version was learnt from: contact seconds, segments, the library pick it blended with, when
         self.learnt: dict | None = None
@@ -113,6 +116,13 @@ class SessionSurface:
         self.served = None
         self.learnt = None
         self._taps = []
+
+    def serve(self, served: ServedRenderModel, learnt: dict | None) -> None:
+        """A new version goes out (window events name it from now on); the last RECENT_VERSIONS stay servable."""
+        self.served, self.learnt = served, learnt
+        self.recent[served.version] = served
+        while len(self.recent) > RECENT_VERSIONS:
+            del self.recent[next(iter(self.recent))]
 
     def untold(self) -> list[FitStatus]:
         """Bad-input reasons not yet told for this surface (each once; a scene change tells anew)."""

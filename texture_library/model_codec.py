@@ -17,19 +17,30 @@ This encoding keeps what rendering needs and quantises it:
 - μ and the grid's range as float32; triangles as uint8 (uint16 beyond 255 grid points);
 - the whole body deflated (zlib).
 
-Taps are left out (the vibration renderer does not read them; the JSON document carries them); the surface
-profile stays. The payload names the JSON document's `model_version` it was made from, so a client caches
+Taps (recorded transients, played at a touchdown) travel as f32 speeds and f16 samples (0.05 % relative error);
+the surface profile stays. The payload names the JSON document's `model_version` it was made from, so a client caches
 what it decodes under the version window events name. Decoding gives a RenderModel whose own
 `model_version` is that of the quantised content. What quantisation adds to the spectra is measured by
 `python -m benchmarks.bandwidth` (log-spectral distance, texture_library.spectrum).
 
-Layout (little-endian): b"HLM2", then a deflated body: u8 bits, u16 m, u16 p, u16 q, u16 t, u8 flags
-(1: surface present), u8 len + id, u8 len + name (UTF-8, cut to 255 bytes), 8 bytes source version,
-f64 rate_hz, f32 mu, f32 max_speed, f32 max_force, [f64 bump height, f64 bump period],
-f32 speeds (m), f32 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8 or u16),
-AR codes (m × p, u16 gap codes), MA codes (m × q, same). A delta (`encode_delta`): b"HLD2", 8 bytes naming the
-base payload (SHA-256), then the same body deflated with the base's body as the preset dictionary. b"HLM1" (the
-uniform coding before) is refused by name.
+Layout (little-endian): b"HLM3", then a deflated body (zlib): a 15-byte head — u8 bits, u16 m, u16 p, u16 q,
+u16 t, u8 flags (1: surface present, 2: taps present), u8 id length, u8 name length (UTF-8, each cut to 255 bytes),
+u8 k taps, u16 n samples per tap — then the sections, each of a length the head gives: id, name, 8 bytes source
+version, f64 rate_hz + f32 mu + f32 max_speed + f32 max_force, [f64 bump height, f64 bump period], f32 speeds (m),
+f32 forces (m), f16 √variance (m), f16 gain (m), triangles (t × 3, u8, or u16 beyond 255 grid points), f32 tap
+speeds (k), f16 tap samples (k × n), AR codes (m × p, u16 gap codes), MA codes (m × q, same). Every array of
+multi-byte numbers is stored in byte planes (all first bytes, then all second bytes, …): a refit's small changes
+leave the high planes unchanged. b"HLM1" (uniform LSF codes) and b"HLM2" (the layout before: sections not
+addressable from a head, taps left out) are refused by name.
+
+A delta (`encode_delta`), for a receiver that holds an earlier payload (a learnt model's previous version, or the
+library entry it was learnt from): b"HLD3", the first 8 bytes of the SHA-256 of that base's body (inflated), then,
+deflated (zlib), the new body minus the base's section by section, byte by byte (mod 256): the head against the
+base's head, each section against the base's same section (read as zeros past its end). So a new ARMA order
+shifts nothing else, and what did not change — the grid, the taps a learnt model keeps from its library prior, the
+high byte planes — differences to zeros that deflate to almost nothing. Both steps are what a browser has at hand
+(DecompressionStream("deflate") and a byte loop; service/static/model-codec.js decodes the same format), unlike a
+preset deflate dictionary, which the browser's stream cannot take.
 """
 
 from __future__ import annotations
@@ -42,11 +53,15 @@ import numpy as np
 
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel, content_version
 
-MAGIC = b"HLM2"
+MAGIC = b"HLM3"
 #: a model sent as a delta against an earlier payload (`encode_delta`)
-DELTA_MAGIC = b"HLD2"
-#: the previous layout (uniform LSF codes): refused by name
-OLD_MAGIC = b"HLM1"
+DELTA_MAGIC = b"HLD3"
+#: bytes of a delta before its deflated difference: magic + the base payload's digest
+DELTA_HEAD = 4 + 8
+#: earlier layouts, refused by name: uniform LSF codes; sections not addressable from a head
+OLD_MAGICS = {b"HLM1": "uniform LSF codes", b"HLM2": "no section head, no taps"}
+#: bytes of a body's head (see the module's layout)
+HEAD = struct.Struct("<BHHHHBBBBH")
 CONTENT_TYPE = "application/x-hapticlink-model"
 #: default LSF resolution: gaps coded to a relative step of 2^(3 − 11) = 1/256
 LSF_BITS = 11
@@ -103,34 +118,98 @@ def encode(model: RenderModel, bits: int = LSF_BITS) -> bytes:
 
 
 def encode_delta(model: RenderModel, base: bytes, bits: int = LSF_BITS) -> bytes:
-    """`model` as a delta against `base`, a compact payload the receiver holds (an earlier version of the same
-    surface): the body deflated with the base's body as the preset dictionary, so what did not change — the grid,
-    the rows of the regions no new data reached — costs a few bytes. b"HLD2", the first 8 bytes of the SHA-256 of
-    `base`, then the deflated body. ValueError if `base` is not a compact payload."""
-    zdict = _inflate(base)[-32768:]  # deflate's window
-    co = zlib.compressobj(9, zlib.DEFLATED, 15, 9, zlib.Z_DEFAULT_STRATEGY, zdict=zdict)
-    return DELTA_MAGIC + _digest(base) + co.compress(_body(model, bits)) + co.flush()
+    """`model` as a delta against `base`, the body (`body`) of a payload the receiver holds (see the module's
+    layout): what did not change costs a few bytes."""
+    return delta_between(_body(model, bits), base)
 
 
-def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel]:
-    """A delta payload and the base it was made against → as `decode`. ValueError naming the problem, also when
-    the base is not the one the delta was made against."""
-    if payload[:4] != DELTA_MAGIC:
+def delta_between(new: bytes, base: bytes) -> bytes:
+    """A delta that turns the body `base` into the body `new` (both well-formed bodies)."""
+    return DELTA_MAGIC + body_digest(base) + zlib.compress(_difference(new, base), 9)
+
+
+def body(payload: bytes) -> bytes:
+    """The inflated body of a compact payload: what a receiver keeps as the base of the next delta. ValueError
+    naming the problem."""
+    return _inflate(payload)
+
+
+def body_digest(base: bytes) -> bytes:
+    """The 8 bytes a delta names its base by: the first 8 of the SHA-256 of the base's body."""
+    return hashlib.sha256(base).digest()[:8]
+
+
+def delta_base(payload: bytes) -> bytes:
+    """The base digest a delta names (ValueError if `payload` is not a delta)."""
+    if payload[:4] != DELTA_MAGIC or len(payload) < DELTA_HEAD:
         raise ValueError(f"not a compact rendering model delta (starts {payload[:4]!r}, expected {DELTA_MAGIC!r})")
-    if payload[4:12] != _digest(base):
+    return payload[4:DELTA_HEAD]
+
+
+def decode_delta(payload: bytes, base: bytes) -> tuple[str, RenderModel, bytes]:
+    """A delta payload and the body of the base it was made against → (source version, the decoded RenderModel,
+    its body: the base of the next delta). ValueError naming the problem, also when the base is not the one the
+    delta was made against."""
+    if delta_base(payload) != body_digest(base):
         raise ValueError(
-            f"the delta was made against base {payload[4:12].hex()}, not the one held ({_digest(base).hex()})"
+            f"the delta was made against base {payload[4:DELTA_HEAD].hex()}, "
+            f"not the one held ({body_digest(base).hex()})"
         )
-    zdict = _inflate(base)[-32768:]
     try:
-        body = zlib.decompressobj(zdict=zdict).decompress(payload[12:], MAX_RENDER_MODEL_BYTES)
+        diff = zlib.decompressobj().decompress(payload[DELTA_HEAD:], MAX_RENDER_MODEL_BYTES)
     except zlib.error as exc:
         raise ValueError(f"compact rendering model delta: the body does not inflate ({exc})") from None
-    return _parse_checked(body)
+    try:
+        new = _difference(diff, base, add=True)
+    except (struct.error, ValueError) as exc:
+        raise ValueError(f"compact rendering model delta: malformed ({exc})") from None
+    source, doc = _parse_checked(new)
+    return source, doc, new
 
 
-def _digest(payload: bytes) -> bytes:
-    return hashlib.sha256(payload).digest()[:8]
+def _sections(head: bytes) -> list[int]:
+    """The lengths of a body's sections after its head (see the module's layout), from the head alone."""
+    bits, m, p, q, t, flags, id_len, name_len, k, n = HEAD.unpack(head[: HEAD.size])
+    width = 1 if m <= 255 else 2
+    return [id_len, name_len, 8, 20, 16 if flags & 1 else 0, 4 * m, 4 * m, 2 * m, 2 * m, 3 * t * width, 4 * k,
+            2 * k * n, 2 * m * p, 2 * m * q]  # fmt: skip
+
+
+def _difference(data: bytes, base: bytes, add: bool = False) -> bytes:
+    """Section by section (the head first), data − base (or data + base with `add`: data is then a difference and
+    the new body's head is read from the sum), byte by byte mod 256; a base section read as zeros past its end."""
+    if len(base) < HEAD.size or len(data) < HEAD.size:
+        raise ValueError(f"a body is at least {HEAD.size} bytes")
+
+    def combine(a: bytes, b: bytes) -> bytes:
+        x = np.frombuffer(a, np.uint8)
+        y = np.zeros(x.size, np.uint8)
+        y[: min(x.size, len(b))] = np.frombuffer(b, np.uint8, min(x.size, len(b)))
+        return (x + y if add else x - y).tobytes()
+
+    head = combine(data[: HEAD.size], base[: HEAD.size])
+    new_head = head if add else data[: HEAD.size]
+    out = [head]
+    at, base_at = HEAD.size, HEAD.size
+    for size, base_size in zip(_sections(new_head), _sections(base), strict=True):
+        if at + size > len(data):
+            raise ValueError(f"the difference ends at byte {len(data)}, its sections need {at + size}")
+        out.append(combine(data[at : at + size], base[base_at : base_at + base_size]))
+        at, base_at = at + size, base_at + base_size
+    if at != len(data):
+        raise ValueError(f"{len(data) - at} bytes after the last section")
+    return b"".join(out)
+
+
+def _planes(values: np.ndarray | list[float], dtype: str) -> bytes:
+    """An array as byte planes of its little-endian elements (see the module's layout)."""
+    a = np.ascontiguousarray(values, dtype=dtype)
+    return a.view(np.uint8).reshape(-1, a.itemsize).T.tobytes()
+
+
+def _unplanes(raw: bytes, dtype: str, count: int) -> np.ndarray:
+    width = np.dtype(dtype).itemsize
+    return np.frombuffer(raw, np.uint8).reshape(width, count).T.copy().view(dtype).ravel()
 
 
 def _body(model: RenderModel, bits: int) -> bytes:
@@ -139,20 +218,28 @@ def _body(model: RenderModel, bits: int) -> bytes:
     ma = quantise_lsf(np.asarray(model.ma_lsf, float).reshape(m, q), bits)
     tri = np.asarray(model.triangles, np.int64)
     ident, name = model.id.encode()[:255], model.name.encode()[:255]
+    tap_speeds = np.zeros(0)
+    tap_accel = np.zeros((0, 0))
+    if model.taps is not None:
+        tap_speeds, tap_accel = np.asarray(model.taps.speeds_mm_s, float), np.asarray(model.taps.accel, float)
+        if tap_accel.shape[0] > 255 or tap_accel.shape[1] > 65535:
+            raise ValueError(f"compact rendering model: at most 255 taps of 65535 samples, got {tap_accel.shape}")
+    flags = (1 if model.surface else 0) | (2 if model.taps else 0)
+    k, n = tap_accel.shape
     parts = [
-        struct.pack("<BHHHHB", bits, m, p, q, tri.shape[0], 1 if model.surface else 0),
-        bytes([len(ident)]) + ident,
-        bytes([len(name)]) + name,
+        HEAD.pack(bits, m, p, q, tri.shape[0], flags, len(ident), len(name), k, n),
+        ident,
+        name,
         bytes.fromhex(model.model_version),
         struct.pack("<dfff", model.rate_hz, model.mu, model.max_speed_mm_s, model.max_force_n),
     ]
     if model.surface is not None:
         parts.append(struct.pack("<dd", model.surface.bump_height_mm, model.surface.bump_period_mm))
-    parts += [np.asarray(v, "<f4").tobytes() for v in (model.speeds_mm_s, model.forces_n)]
-    parts += [np.asarray(v, "<f2").tobytes() for v in (np.sqrt(model.variance), model.gain)]
-    parts.append(tri.astype("<u1" if m <= 255 else "<u2").tobytes())
-    for codes in (ar, ma):
-        parts.append(codes.astype("<u2").tobytes())
+    parts += [_planes(v, "<f4") for v in (model.speeds_mm_s, model.forces_n)]
+    parts += [_planes(v, "<f2") for v in (np.sqrt(model.variance), model.gain)]
+    parts.append(_planes(tri.ravel(), "<u1" if m <= 255 else "<u2"))
+    parts += [_planes(tap_speeds, "<f4"), _planes(tap_accel.ravel(), "<f2")]
+    parts += [_planes(codes.ravel(), "<u2") for codes in (ar, ma)]
     return b"".join(parts)
 
 
@@ -165,9 +252,10 @@ def decode(payload: bytes) -> tuple[str, RenderModel]:
 
 def _inflate(payload: bytes) -> bytes:
     """The body of a compact payload; ValueError naming the problem."""
-    if payload[:4] == OLD_MAGIC:
+    if payload[:4] in OLD_MAGICS:
         raise ValueError(
-            f"compact rendering model of the old layout {OLD_MAGIC!r} (uniform LSF codes); this client reads {MAGIC!r}"
+            f"compact rendering model of the old layout {payload[:4]!r} ({OLD_MAGICS[payload[:4]]}); this client "
+            f"reads {MAGIC!r}"
         )
     if payload[:4] != MAGIC:
         raise ValueError(f"not a compact rendering model (starts {payload[:4]!r}, expected {MAGIC!r})")
@@ -194,25 +282,28 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
         pos += n
         return body[pos - n : pos]
 
-    bits, m, p, q, t, flags = struct.unpack("<BHHHHB", take(10))
-    ident = take(take(1)[0]).decode()
-    name = take(take(1)[0]).decode()
+    bits, m, p, q, t, flags, id_len, name_len, k, n = HEAD.unpack(take(HEAD.size))
+    if not 4 <= bits <= 15:
+        raise ValueError(f"compact rendering model: LSF bits {bits} outside [4, 15]")
+    ident = take(id_len).decode()
+    name = take(name_len).decode()
     source = take(8).hex()
     rate, mu, max_speed, max_force = struct.unpack("<dfff", take(20))
     surface = None
     if flags & 1:
         h, period = struct.unpack("<dd", take(16))
         surface = {"bump_height_mm": float(h), "bump_period_mm": float(period)}
-    speeds, forces = (np.frombuffer(take(4 * m), "<f4").astype(float) for _ in range(2))
-    std, gain = (np.frombuffer(take(2 * m), "<f2").astype(float) for _ in range(2))
-    width = 1 if m <= 255 else 2
-    tri = np.frombuffer(take(3 * t * width), "<u1" if width == 1 else "<u2").astype(np.int64).reshape(t, 3)
-    if not 4 <= bits <= 15:
-        raise ValueError(f"compact rendering model: LSF bits {bits} outside [4, 15]")
-    ar = np.frombuffer(take(2 * m * p), "<u2").astype(np.int64).reshape(m, p)
-    ma = np.frombuffer(take(2 * m * q), "<u2").astype(np.int64).reshape(m, q)
+    speeds, forces = (_unplanes(take(4 * m), "<f4", m).astype(float) for _ in range(2))
+    std, gain = (_unplanes(take(2 * m), "<f2", m).astype(float) for _ in range(2))
+    width = "<u1" if m <= 255 else "<u2"
+    tri = _unplanes(take(3 * t * int(width[-1])), width, 3 * t).astype(np.int64).reshape(t, 3)
+    tap_speeds = _unplanes(take(4 * k), "<f4", k).astype(float)
+    tap_accel = _unplanes(take(2 * k * n), "<f2", k * n).astype(float).reshape(k, n)
+    ar = _unplanes(take(2 * m * p), "<u2", m * p).astype(np.int64).reshape(m, p)
+    ma = _unplanes(take(2 * m * q), "<u2", m * q).astype(np.int64).reshape(m, q)
     if pos != len(body):
         raise ValueError(f"compact rendering model: {len(body) - pos} unexpected bytes at the end")
+    taps = {"speeds_mm_s": tap_speeds.tolist(), "accel": tap_accel.tolist()} if flags & 2 else None
     content = {
         "name": name,
         "rate_hz": float(rate),
@@ -227,7 +318,7 @@ def _parse(body: bytes) -> tuple[str, RenderModel]:
         "max_speed_mm_s": float(max_speed),
         "max_force_n": float(max_force),
         "surface": surface,
-        "taps": None,
+        "taps": taps,
     }
     doc = {"schema": "hapticlink.render-model", "schema_version": 1, "id": ident}
     return source, RenderModel.model_validate({**doc, "model_version": content_version(content), **content})

@@ -156,6 +156,13 @@ def content_version(content: dict) -> str:
     return hashlib.sha256(canonical_json(content)).hexdigest()[:16]
 
 
+def library_digest(versions: dict[str, str]) -> str:
+    """What names a whole library's rendering models at once: the first 16 hex of the SHA-256 of its
+    "<id> <model_version>" lines, sorted. An operator that holds a library (shared in advance) says so with it."""
+    lines = "".join(f"{i} {v}\n" for i, v in sorted(versions.items()))
+    return hashlib.sha256(lines.encode()).hexdigest()[:16]
+
+
 def parse_render_model(payload: bytes | str) -> RenderModel:
     """A served document → RenderModel; ValueError naming the problem (not JSON, too large, not the schema)."""
     size = len(payload)

@@ -48,6 +48,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--view", choices=("render", "full"), default="render", help="the lean render feed (default) or every event"
     )
     p.add_argument("--json-models", action="store_true", help="fetch models as JSON instead of the compact encoding")
+    p.add_argument(
+        "--library",
+        metavar="DIR",
+        help="a copy of the service's library held in advance (shared beforehand): its entries are named on the "
+        "feed, never sent",
+    )
+    p.add_argument(
+        "--fetch-models",
+        action="store_true",
+        help="fetch each model over HTTP instead of taking them pushed on the feed (only what is lacking; deltas)",
+    )
     p.add_argument("--loop", action="store_true", help="recorded: play the recording again and again")
     p.add_argument("--seed", type=int, default=0, help="excitation and simulated-stroke seed")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
@@ -138,8 +149,20 @@ def run(args: argparse.Namespace) -> int:
     if failed:  # a headless machine asked for sound beside a WAV file: render into what did open
         print(f"hapticlink operator: rendering to {', '.join(o.name for o in outputs)} only", file=sys.stderr)
 
+    library = None
+    if args.library:
+        from texture_library.library import Library  # noqa: PLC0415 - only with --library
+
+        try:
+            library = Library.load(args.library)
+        except (OSError, ValueError) as exc:
+            print(f"hapticlink operator: --library {args.library}: {exc}", file=sys.stderr)
+            for out in outputs:
+                out.close()
+            return 2
+
     def said(s: Switch) -> None:
-        fetched = f", model fetched in {s.fetch_ms:.1f} ms" if s.fetch_ms else ", model cached"
+        fetched = f", model fetched in {s.fetch_ms:.1f} ms" if s.fetch_ms else ", model at hand (held or pushed)"
         print(
             f"now rendering {s.entry} ({s.version}): {s.latency_ms:.1f} ms after its window event{fetched}", flush=True
         )
@@ -157,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         on_switch=said,
         robot=args.robot,
+        push=not args.fetch_models,
+        library=library,
     )
     try:
         stats = asyncio.run(client.run(args.duration))

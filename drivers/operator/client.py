@@ -2,8 +2,13 @@
 
 Two tasks share one renderer:
 - the feed: `WS /sessions/{id}/events?view=render` (drivers/render_feed.py). A choice names an entry and its
-  model version; the model is fetched once per version (`GET /library/{id}/model`, compact encoding by
-  default) and handed to the render loop. The socket is reopened after a drop (backoff), and given up only
+  model version. With models pushed (the default) the service sends, just before the choice, what this client
+  lacks: a compact model, or a delta against the version of the same id it holds (a learnt model's new version);
+  a library held in advance (`library`) is named on connect by its digest and never sent. A delta whose base is
+  not held is answered with a hold message (null for that id) and the service sends the whole model. A model
+  that was not pushed (a replica that cannot serve it, or push off) is fetched once per version
+  (`GET /library/{id}/model`, compact encoding by default). Then it is handed to the render loop. The socket is
+  reopened after a drop (backoff), and given up only
   when the session is over (closed 1000, lost 4410, refused 401/403/404/410).
 - the render loop: each block of the operator's device (speed, force) is rendered by
   `texture_library.renderer.StreamRenderer` with the latest good model (a switch is crossfaded) and written to
@@ -23,6 +28,7 @@ import logging
 import time
 from collections.abc import AsyncIterable, AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 from urllib.parse import quote
 
 import httpx
@@ -33,12 +39,15 @@ from drivers.operator.devices import RATE_HZ, Motion
 from drivers.protocol import FATAL_CLOSES, bearer, check_service_url, ws_url
 from drivers.robot.backoff import Backoff, body_detail
 from texture_library import model_codec
-from texture_library.render_model import parse_render_model
+from texture_library.library import Library
+from texture_library.render_model import RenderModel, library_digest, parse_render_model
 from texture_library.renderer import CROSSFADE_S, StreamRenderer
 from texture_library.vibration import VibrationModel
 
 log = logging.getLogger("hapticlink.operator")
 
+#: compact bodies a client keeps as the bases of deltas (a library's entries and a learnt model's versions)
+MAX_BASES = 512
 #: HTTP statuses of the event socket's handshake after which retrying cannot help
 FATAL_HANDSHAKES = frozenset({401, 403, 404, 410})
 #: how often an operator following a robot asks for the robot's next session while it has none
@@ -70,24 +79,77 @@ class OperatorStats:
     feed_messages: int = 0
     feed_bytes: int = 0
     model_bytes: int = 0
+    #: how the models switched to came: pushed_models, pushed_deltas (on the feed), fetched (GET …/model), held (in
+    #: advance); only kinds that occurred
+    model_counts: dict[str, int] = field(default_factory=dict)
+    deltas_unusable: int = 0  # deltas whose base was not held: the whole model was asked for
     ratings: tuple[int, ...] | None = None
     ended: str | None = None
     refused: bool = False  # the service refused the event feed (token, session): nothing was ever rendered for it
     sessions_followed: int = 0  # following a robot: its sessions followed (more than one: a restart, a loss)
 
 
+class WebSocketLike(Protocol):
+    """What the client sends on its feed socket (websockets' connection)."""
+
+    async def send(self, message: str) -> None: ...
+
+
 class ModelCache:
-    """Rendering models fetched once per version. `get` → VibrationModel; ValueError naming the problem."""
+    """Rendering models by version: pushed on the feed (a whole compact payload, or a delta against the body held
+    of the same id), held in advance (`hold`: a library shared beforehand), or fetched (GET /library/{id}/model).
+    `get` → VibrationModel; ValueError naming the problem (DeltaUnusable: a delta whose base is not held)."""
 
     def __init__(self, http: httpx.AsyncClient, session_id: str, token: str, compact: bool = True) -> None:
         self.http, self.session_id, self.token, self.compact = http, session_id, token, compact
         self.models: dict[str, VibrationModel] = {}
+        # compact bodies held, by their digest (model_codec.body_digest): the bases deltas name (the newest MAX_BASES)
+        self.bases: dict[bytes, bytes] = {}
+        self._held_docs: dict[str, RenderModel] = {}  # the library held in advance, its bodies made when first named
+        self.pushed: tuple[str, bytes] | None = None  # ("model" or "delta", payload) waiting for its choice
         self.received_bytes = 0
+        self.counts = {"pushed_models": 0, "pushed_deltas": 0, "fetched": 0, "held": 0}
+        self._held: set[str] = set()
 
-    async def get(self, entry: str, version: str | None) -> tuple[VibrationModel, bool]:
-        """(the model, True if it was fetched now)."""
+    def hold(self, models: dict[str, VibrationModel], docs: dict[str, RenderModel] | None = None) -> None:
+        """Models held in advance, by version (docs: their served documents, whose compact bodies a delta may
+        name as its base)."""
+        self.models.update(models)
+        self._held = set(models)
+        self._held_docs = dict(docs or {})
+
+    def push(self, kind: str, payload: bytes) -> None:
+        """A model the feed pushed ("model" or "delta"): decoded when the choice that names it arrives."""
+        self.pushed = (kind, payload)
+        self.received_bytes += len(payload) + 1
+
+    async def get(self, entry: str, version: str | None) -> tuple[VibrationModel, str]:
+        """(the model, how it came: "cached", "pushed" or "fetched")."""
+        pushed, self.pushed = self.pushed, None
         if version is not None and version in self.models:
-            return self.models[version], False
+            self.counts["held"] += version in self._held
+            return self.models[version], "cached"
+        if pushed is not None:
+            kind, payload = pushed
+            try:
+                if kind == "delta":
+                    base = self._base(model_codec.delta_base(payload))
+                    if base is None:
+                        raise DeltaUnusable(f"model {entry!r}: a delta against a base this client does not hold")
+                    try:
+                        source, doc, body = model_codec.decode_delta(payload, base)
+                    except ValueError as exc:
+                        raise DeltaUnusable(f"model {entry!r}: the delta does not apply ({exc})") from None
+                else:
+                    source, doc = model_codec.decode(payload)
+                    body = model_codec.body(payload)
+            except DeltaUnusable:
+                raise
+            except ValueError as exc:
+                raise ValueError(f"model {entry!r} ({version}) is unusable: {exc}") from None
+            model = self._keep(entry, version, source, doc, body)
+            self.counts["pushed_deltas" if kind == "delta" else "pushed_models"] += 1
+            return model, "pushed"
         headers = bearer(self.token)
         if self.compact:
             headers["Accept"] = model_codec.CONTENT_TYPE
@@ -100,21 +162,47 @@ class ModelCache:
         self.received_bytes += len(r.content) + sum(len(k) + len(v) + 4 for k, v in r.headers.items())
         if r.status_code != 200:
             raise ValueError(f"model {entry!r}: the service answered {r.status_code} ({_detail(r)})")
+        whole: bytes | None = None
         try:
             if r.headers.get("content-type", "").startswith(model_codec.CONTENT_TYPE):
                 source, doc = model_codec.decode(r.content)
+                whole = model_codec.body(r.content)
             else:
                 doc = parse_render_model(r.content)
                 source = doc.model_version
         except ValueError as exc:
             raise ValueError(f"model {entry!r} ({version}) is unusable: {exc}") from None
+        self.counts["fetched"] += 1
+        return self._keep(entry, version, source, doc, whole), "fetched"
+
+    def _keep(self, entry: str, version: str | None, source: str, doc, body: bytes | None) -> VibrationModel:
         if version is not None and source != version:
             raise ValueError(f"model {entry!r}: the service sent version {source}, the window event named {version}")
         if doc.id != entry:
             raise ValueError(f"model {entry!r}: the service sent the model of {doc.id!r}")
         model = doc.to_vibration_model()
         self.models[source] = model
-        return model, True
+        if body is not None:
+            self._remember(body)
+        return model
+
+    def _remember(self, body: bytes) -> None:
+        self.bases[model_codec.body_digest(body)] = body
+        while len(self.bases) > MAX_BASES:
+            del self.bases[next(iter(self.bases))]
+
+    def _base(self, digest: bytes) -> bytes | None:
+        """The body a delta names: one received, or (made once, when first needed) one of the library held."""
+        if digest not in self.bases and self._held_docs:
+            docs, self._held_docs = self._held_docs, {}
+            for doc in docs.values():
+                self._remember(model_codec.body(model_codec.encode(doc)))
+        return self.bases.get(digest)
+
+
+class DeltaUnusable(ValueError):
+    """A pushed delta whose base this client does not hold (or holds another version of): the whole model is asked
+    for (a hold message saying null for the id)."""
 
 
 def _detail(r: httpx.Response) -> str:
@@ -131,6 +219,9 @@ class OperatorClient:
     robot / token: the robot to follow across its sessions (a restart of the service included) and the fleet API key
     (session_id is then found, and may be None);
     view: "render" (the lean feed) or "full" (the console's events); compact: fetch the compact model encoding;
+    push: models come on the feed (only what this client lacks; deltas for a learnt model's new versions), else
+    each is fetched; library: a library this client holds in advance (its entries are named on the feed, never
+    sent);
     crossfade_s: switch crossfade; stall_s: a device silent this long is reported; seed: the excitation's seed;
     on_switch: called with each Switch once rendered (the CLI prints it).
     """
@@ -151,6 +242,8 @@ class OperatorClient:
         seed: int = 0,
         on_switch: Callable[[Switch], None] | None = None,
         robot: str | None = None,
+        push: bool = True,
+        library: Library | None = None,
     ) -> None:
         check_service_url(url)
         if view not in ("render", "full"):
@@ -174,6 +267,19 @@ class OperatorClient:
         self.robot = robot
         self._over = False
         self._gone: str | None = None
+        self.push = push
+        # the library held in advance: its models by served version, and the digest that names them all
+        self.held: dict[str, VibrationModel] = {}
+        self.held_docs: dict[str, RenderModel] = {}
+        self.library_digest: str | None = None
+        if library is not None:
+            for entry_id in library.ids:
+                model = library.model(entry_id)
+                doc = RenderModel.from_vibration_model(entry_id, model)
+                self.held[doc.model_version], self.held_docs[entry_id] = model, doc
+            self.library_digest = library_digest({i: d.model_version for i, d in self.held_docs.items()})
+        # a choice waiting for its whole model (asked for after a delta that did not apply): (entry, version, at)
+        self._awaiting: tuple[str, str | None, float] | None = None
 
     # ---- the feed --------------------------------------------------------------------------------
     async def follow(self, http: httpx.AsyncClient) -> None:
@@ -185,6 +291,7 @@ class OperatorClient:
             self._over = False
             assert self.session_id is not None  # given, or found
             cache = ModelCache(http, self.session_id, self.token, self.compact)
+            cache.hold(self.held, self.held_docs)
             self._cache = cache
             await self._follow_session(cache)
             if self.robot is None:
@@ -237,6 +344,9 @@ class OperatorClient:
         url = ws_url(self.url, cache.session_id, "events", self.token)
         if self.view == "render":
             url += "&view=render"
+        url += "&models=" + ("push" if self.push else "fetch")
+        if self.push and self.library_digest is not None:
+            url += "&library=" + self.library_digest
         while not self._done.is_set() and not self._over:
             opened = False
             try:
@@ -247,7 +357,7 @@ class OperatorClient:
                         log.warning("event feed reconnected (connection %d)", self.stats.connects)
                     backoff.reset()
                     async for message in ws:
-                        await self._on_message(message, time.monotonic(), cache)
+                        await self._on_message(message, time.monotonic(), cache, ws)
                         if self._over:
                             return
                     code = ws.close_code
@@ -277,7 +387,9 @@ class OperatorClient:
                     log.warning("event feed dropped (close code %s); reconnecting", code)
                 await asyncio.sleep(backoff.next())
 
-    async def _on_message(self, message: str | bytes, received: float, cache: ModelCache) -> None:
+    async def _on_message(
+        self, message: str | bytes, received: float, cache: ModelCache, ws: WebSocketLike | None = None
+    ) -> None:
         self.stats.feed_messages += 1
         self.stats.feed_bytes += len(message) if isinstance(message, bytes) else len(message.encode())
         try:
@@ -287,23 +399,50 @@ class OperatorClient:
             return
         if msg.ratings:
             self.stats.ratings = tuple(int(round(r)) for r in msg.ratings)
+        if msg.kind in ("model", "delta") and msg.payload is not None:
+            cache.push(msg.kind, msg.payload)
+            if self._awaiting is not None:  # the whole model asked for
+                await self._choose(*self._awaiting, cache, ws)
+            return
+        if msg.kind == "status" and msg.event is not None and msg.event.get("event") == "refused":
+            log.warning("the service refused a message of this client: %s", msg.event.get("message", ""))
+            if self._awaiting is not None:  # it cannot send the whole model on the feed: fetch it
+                await self._choose(*self._awaiting, cache, None)
+            return
         if msg.kind == "status" and msg.event is not None and msg.event.get("event") == "session_ended":
             self._session_over(f"session ended: {msg.event.get('message', '')}")
             return
         if msg.kind != "choice" or msg.chosen is None or (msg.chosen, msg.version) == self.current:
             return
+        await self._choose(msg.chosen, msg.version, received, cache, ws)
+
+    async def _choose(
+        self, chosen: str, version: str | None, received: float, cache: ModelCache, ws: WebSocketLike | None
+    ) -> None:
+        """Get a choice's model (held, pushed or fetched) and hand it to the render loop."""
+        self._awaiting = None
         started = time.monotonic()
         try:
-            model, fetched = await cache.get(msg.chosen, msg.version)
+            model, how = await cache.get(chosen, version)
+        except DeltaUnusable as exc:
+            self.stats.deltas_unusable += 1
+            if ws is not None:  # say so: the service sends the whole model (or refuses, and it is fetched)
+                log.warning("%s; asking the service for the whole model", exc)
+                self._awaiting = (chosen, version, received)
+                await ws.send(render_feed.hold_message({chosen: None}))
+                return
+            await self._choose(chosen, version, received, cache, None)  # nothing pushed now: fetched
+            return
         except ValueError as exc:
             self.stats.model_errors.append(str(exc))
             now = self.current[0] if self.current else "silence"
             log.error("%s; rendering goes on with %s", exc, now)
             return
         self.stats.model_bytes = cache.received_bytes
-        self.current = (msg.chosen, msg.version)
-        fetch_ms = (time.monotonic() - started) * 1e3 if fetched else 0.0
-        self._pending = (model, Switch(msg.chosen, msg.version, received, fetch_ms))
+        self.stats.model_counts = {k: v for k, v in cache.counts.items() if v}
+        self.current = (chosen, version)
+        fetch_ms = (time.monotonic() - started) * 1e3 if how == "fetched" else 0.0
+        self._pending = (model, Switch(chosen, version, received, fetch_ms))
 
     def stop(self) -> None:
         """End `run` at the next block (from the same event loop)."""

@@ -15,6 +15,7 @@ from service.routes.common import errors
 from service.schemas import LibraryEntryOut, LibraryOut
 from service.surface_models import SESSION_PREFIX
 from texture_library.model_codec import CONTENT_TYPE as COMPACT_CONTENT_TYPE
+from texture_library.model_codec import MAGIC as COMPACT_MAGIC
 from texture_library.render_model import MAX_RENDER_MODEL_BYTES, RenderModel
 
 router = APIRouter(tags=["library"])
@@ -87,7 +88,8 @@ async def render_model(
             raise ServiceError(404, f"no entry {entry_id!r} in library {runtime.library.name!r}")
         served = entry
     compact = wants_compact(accept)
-    etag = f'"{served.version}.hlm1"' if compact else f'"{served.version}"'
+    # the compact layout's magic in the tag: a copy cached in an older layout is not revalidated as current
+    etag = f'"{served.version}.{COMPACT_MAGIC.decode().lower()}"' if compact else f'"{served.version}"'
     headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL, "Vary": "Accept"}
     if if_none_match is not None and _matches(if_none_match, etag):
         return Response(status_code=304, headers=headers)

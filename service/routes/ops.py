@@ -76,3 +76,13 @@ async def console_page() -> HTMLResponse:
 )
 async def console_render_worklet() -> Response:
     return Response(console.render_worklet(), media_type="text/javascript", headers={"Cache-Control": "no-cache"})
+
+
+@router.get(
+    "/console/model-codec.js",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/javascript": {}}}},
+    summary="The console's decoder of compact models and deltas (no credential: it holds no data)",
+)
+async def console_model_codec() -> Response:
+    return Response(console.model_codec(), media_type="text/javascript", headers={"Cache-Control": "no-cache"})

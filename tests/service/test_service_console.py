@@ -923,3 +923,96 @@ def test_pad_reads_speed_and_a_pens_pressure(server, browser, kind, pressure, fo
     assert 20 < stroke["topSpeed"] <= 1.01 * _top_speed_bound_mm_s(received), (stroke, received)
     assert f"force up to {force:.1f} N" in _text(browser, "stroke-summary")
     _wait(browser, lambda d: _text(d, "pad-speed") == "0")  # the stroke has ended or stopped: speed decays to 0
+
+
+def _decode_in_page(driver, payload: bytes, base: bytes | None = None) -> dict:
+    """The page's own codec (service/static/model-codec.js) on a whole payload, or on a delta with its base body."""
+    result = driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "const b64 = (s) => Uint8Array.from(atob(s), (c) => c.charCodeAt(0));"
+        "const enc = (b) => btoa(String.fromCharCode(...b));"
+        "(arguments[1] === null ? hapticlinkCodec.decode(b64(arguments[0]))"
+        " : hapticlinkCodec.decodeDelta(b64(arguments[0]), b64(arguments[1])))"
+        ".then((r) => done({source: r.source, model: r.model, body: enc(r.body)}), (e) => done({failed: e.message}));",
+        base64.b64encode(payload).decode(),
+        None if base is None else base64.b64encode(base).decode(),
+    )
+    return result
+
+
+def test_page_decodes_models_and_deltas_as_python_does(pad_page, library_dir):
+    """Python ↔ browser parity of the compact codec: a whole payload and a delta (a refit row, taps and bumps
+    included) decode in the page to the documents Python decodes — grid, variance, gain, μ, taps exactly, LSFs to
+    1e-12 relative (exp's last bit) — and the page's body is Python's, byte for byte (the base of the next delta)."""
+    import dataclasses
+    import zlib
+
+    from texture_library import model_codec
+    from texture_library.render_model import RenderModel, content_version
+    from texture_library.surface import SurfaceProfile
+    from texture_library.taps import TapSet
+
+    taps = TapSet(np.array([15.0, 60.0]), np.cos(np.arange(160.0) / 5).reshape(2, 80) * 12.0)
+    model = dataclasses.replace(Library.load(library_dir).model("synth_004"), taps=taps, surface=SurfaceProfile(0.2, 6))
+    doc = RenderModel.from_vibration_model("session:s-1", model)
+    content = doc.content()
+    content["ar_lsf"][5] = (np.asarray(content["ar_lsf"][5]) * 0.995).tolist()
+    content["variance"][5] *= 1.1
+    envelope = {"schema": doc.schema_, "schema_version": 1, "id": doc.id}
+    new = RenderModel.model_validate({**envelope, "model_version": content_version(content), **content})
+    payload = model_codec.encode(doc)
+    base = model_codec.body(payload)
+    delta = model_codec.encode_delta(new, base)
+    # …and a delta against another entry's body (a learnt model against its library prior: other lengths of id,
+    # name, grid and taps, each section differenced against its own)
+    prior = model_codec.body(
+        model_codec.encode(RenderModel.from_vibration_model("synth_001", Library.load(library_dir).model("synth_001")))
+    )
+    across = model_codec.encode_delta(new, prior)
+    cases = [
+        (payload, None, model_codec.decode(payload), base),
+        (delta, base, model_codec.decode_delta(delta, base)),
+        (across, prior, model_codec.decode_delta(across, prior)),
+    ]
+    for sent, held, python, *_ in cases:
+        page = _decode_in_page(pad_page, sent, held)
+        assert "failed" not in page, page["failed"]
+        source, want = python[0], json.loads(python[1].to_json_bytes())
+        assert page["source"] == source and page["model"]["model_version"] == source
+        for key in ("id", "name", "rate_hz", "speeds_mm_s", "forces_n", "triangles", "variance", "gain", "mu"):
+            assert page["model"][key] == want[key], key
+        for key in ("max_speed_mm_s", "max_force_n", "surface", "taps"):
+            assert page["model"][key] == want[key], key
+        for key in ("ar_lsf", "ma_lsf"):
+            np.testing.assert_allclose(page["model"][key], want[key], rtol=1e-12, atol=0)
+        assert base64.b64decode(page["body"]) == (base if held is None else python[2])
+    assert len(delta) < len(model_codec.encode(new)) / 4
+    # the page renders what it decoded (the worklet takes the document as it takes a served JSON one)
+    _, report = _render_offline(pad_page, models=[{"model": _decode_in_page(pad_page, delta, base)["model"]}],
+                                seconds=0.3, speed_mm_s=80.0, force_n=1.0)  # fmt: skip
+    assert report["errors"] == [] and [s["id"] for s in report["switched"]] == ["session:s-1"]
+    # a delta against another base, and a bad payload, are refused by name: nothing half-decoded
+    other = model_codec.body(model_codec.encode(new))
+    assert "made against base" in _decode_in_page(pad_page, delta, other)["failed"]
+    assert "does not inflate" in _decode_in_page(pad_page, payload[:4] + b"\x00garbage")["failed"]
+    assert "old layout" in _decode_in_page(pad_page, b"HLM1" + payload[4:])["failed"]
+    assert "unexpected bytes" in _decode_in_page(pad_page, b"HLM3" + zlib.compress(base + b"xx"))["failed"]
+
+
+def test_console_plays_a_model_pushed_on_its_socket(kit, server, client, library_dir, browser):
+    """?models=push: the chosen entry's model comes on the event socket (decoded by the page) and the pad plays it;
+    the page fetches no model."""
+    session = kit.create_session(client, "console push")
+    sid, operator = session["session_id"], session["operator_token"]
+    browser.get(f"{server.url}/console?session={sid}&token={operator}&models=push")
+    _wait(browser, lambda d: _text(d, "conn") == "live")
+    blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_005", 3.0))
+    last = _stream_until(kit, client, server, session, blocks, 5)
+    _wait(browser, lambda d: _text(d, "window") == "5")
+    chosen = _text(browser, "chosen")
+    assert chosen == last["chosen"]
+    browser.find_element("id", "audio-toggle").click()
+    _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == chosen)
+    version = server.app.state.service.runtime.render_models.version(chosen)
+    assert _text(browser, "playing") == f"{chosen} (model {version})"
+    assert _model_fetches(browser) == []

@@ -129,7 +129,9 @@ def test_the_operator_renders_the_robots_textures_to_a_wav(kit, server, client, 
     assert all(s.version == versions[s.entry] for s in stats.switches)
     assert all(0 < s.latency_ms < 1000 for s in stats.switches), [s.latency_ms for s in stats.switches]
     assert stats.model_errors == [] and stats.stalls == 0 and stats.connects == 1
-    assert stats.feed_bytes < 40 * stats.feed_messages  # the lean feed: a few bytes per window
+    # the lean feed: a few bytes per window, besides the models pushed on it (each entry once: none was held)
+    assert stats.feed_bytes - stats.model_bytes < 40 * stats.feed_messages
+    assert stats.model_counts.get("pushed_models") == len(set(entries)) and "fetched" not in stats.model_counts
     with wave.open(str(tmp_path / "operator.wav")) as w:
         assert w.getframerate() == 1000 and w.getnchannels() == 1
         pcm = np.frombuffer(w.readframes(w.getnframes()), "<i2")
@@ -269,6 +271,11 @@ def test_the_command_line_renders_to_a_wav_and_says_what_it_did(kit, server, cli
                                 text=True, timeout=60, env=env)  # fmt: skip
     assert unwritable.returncode == 2 and "no/such/dir/x.wav" in unwritable.stderr
     assert "Traceback" not in unwritable.stderr
+    # a library to hold in advance that is not one: named, exit 2
+    no_library = subprocess.run([*cmd, "--library", str(tmp_path / "nowhere")], capture_output=True, text=True,
+                                timeout=60, env=env)  # fmt: skip
+    assert no_library.returncode == 2 and f"--library {tmp_path / 'nowhere'}" in no_library.stderr
+    assert "Traceback" not in no_library.stderr
     # the service refusing the feed (a wrong token): the reason, and a failed exit
     token = cmd.index("--token") + 1
     refused = subprocess.run([*cmd[:token], "not-the-token", *cmd[token + 1 :]], capture_output=True, text=True,

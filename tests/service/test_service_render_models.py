@@ -52,7 +52,7 @@ def test_the_compact_encoding_is_served_on_request(kit, client):
     assert r.status_code == 200 and r.headers["content-type"] == model_codec.CONTENT_TYPE
     source, decoded = model_codec.decode(r.content)
     assert source == full.model_version and decoded.id == "synth_002"
-    assert r.headers["etag"] == f'"{full.model_version}.hlm1"' and len(r.content) < len(full.to_json_bytes()) / 10
+    assert r.headers["etag"] == f'"{full.model_version}.hlm3"' and len(r.content) < len(full.to_json_bytes()) / 10
     assert client.get(url, headers={**headers, "If-None-Match": r.headers["etag"]}).status_code == 304
 
 
@@ -82,7 +82,8 @@ def test_window_events_name_the_chosen_models_version_and_the_render_view_is_lea
     session = kit.create_session(client)
     with (
         connect(kit.socket_url(server, session, "events")) as full,
-        connect(kit.socket_url(server, session, "events") + "&view=render") as lean,
+        # models fetched, not pushed (tests/service/test_service_model_push.py): the choices and ratings alone
+        connect(kit.socket_url(server, session, "events") + "&view=render&models=fetch") as lean,
     ):
         assert json.loads(full.recv(timeout=5))["event"] == "subscribed"
         assert json.loads(lean.recv(timeout=5))["event"] == "subscribed"

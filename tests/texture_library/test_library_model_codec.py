@@ -133,16 +133,33 @@ def _with_row_moved(doc: RenderModel, row: int) -> RenderModel:
 
 def test_a_delta_round_trips_and_costs_what_changed(model):
     doc = RenderModel.from_vibration_model("e", model)
-    base = model_codec.encode(doc)
+    base = model_codec.body(model_codec.encode(doc))
     new = _with_row_moved(doc, 4)
     delta = model_codec.encode_delta(new, base)
-    source, back = model_codec.decode_delta(delta, base)
+    source, back, body = model_codec.decode_delta(delta, base)
     _, whole = model_codec.decode(model_codec.encode(new))
     assert source == new.model_version and back == whole  # the same model as the whole payload decodes to
+    assert body == model_codec.body(model_codec.encode(new))  # the base of the next delta
     assert len(delta) < len(model_codec.encode(new)) / 2
     # a delta made against another base is refused by name, not decoded into a wrong model
-    other = model_codec.encode(_with_row_moved(doc, 2))
+    other = model_codec.body(model_codec.encode(_with_row_moved(doc, 2)))
     with pytest.raises(ValueError, match="made against base"):
         model_codec.decode_delta(delta, other)
     with pytest.raises(ValueError, match="not a compact rendering model delta"):
-        model_codec.decode_delta(base, base)
+        model_codec.decode_delta(model_codec.encode(doc), base)
+    with pytest.raises(ValueError, match="does not inflate"):
+        model_codec.decode_delta(delta[:12] + b"garbage", base)
+    # a base of another layout (a longer or shorter body) still decodes exactly: the difference covers every byte
+    far = model_codec.body(model_codec.encode(RenderModel.from_vibration_model("a-longer-id", model)))
+    assert model_codec.decode_delta(model_codec.encode_delta(new, far), far)[1] == whole
+
+
+def test_taps_travel_in_half_precision(model):
+    from texture_library.taps import TapSet
+
+    taps = TapSet(np.array([12.0, 80.0]), np.sin(np.arange(240.0) / 7).reshape(2, 120) * 30.0)
+    doc = RenderModel.from_vibration_model("t", dataclasses.replace(model, taps=taps))
+    _, back = model_codec.decode(model_codec.encode(doc))
+    assert back.taps is not None and back.taps.speeds_mm_s == [12.0, 80.0]
+    np.testing.assert_allclose(back.taps.accel, taps.accel, rtol=1e-3, atol=30.0 * 2**-11)
+    assert back.to_vibration_model().taps is not None
