@@ -23,11 +23,14 @@ demo: $(STAMP)
 	$(BIN)/hapticlink demo
 
 # The house's checks first (seconds), then the suite; the import contracts run inside it (tests/test_architecture.py).
+# Two pytest-xdist workers, each taking whole files (a module's server, browser or topology is started once): many
+# tests wait on real time (streams, restarts, a browser), and the other worker computes meanwhile. The files are
+# handed out in collection order, the files with a `slow` test first (tests/conftest.py), so both end together.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pytest
 
-from demo.assets import prepare_assets
 from demo.run import STOP_S, run_demo
 from service.launcher import free_port
 
@@ -22,10 +21,12 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def small_assets(tmp_path_factory):
-    return prepare_assets(tmp_path_factory.mktemp("demo") / "assets", n_textures=5, n_probes=2)
+def small_assets(demo_small_assets):
+    """Built from nothing by prepare_assets, once per run (tests/conftest.py; the console's demo test shares them)."""
+    return demo_small_assets
 
 
+@pytest.mark.slow
 def test_demo_builds_its_assets_and_streams_estimates(small_assets, capsys):
     assets = small_assets
     for path in (assets.model, assets.backbone, assets.library / "library.json", assets.probes / "library.json"):
@@ -149,6 +150,7 @@ def _assert_clean_stop(before: str, rest: str, took: float, code: int) -> None:
         assert never not in out, f"{never!r} printed:\n{out}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_one_signal_stops_robot_feed_and_service_within_two_seconds_with_the_summary(small_assets, sig):
     # streaming: the first probe's report is out
@@ -157,6 +159,7 @@ def test_one_signal_stops_robot_feed_and_service_within_two_seconds_with_the_sum
     assert "error after 2 s of each probe's stroke" in rest.split("demo summary: ")[1], "the probes' table"
 
 
+@pytest.mark.slow
 def test_a_signal_during_an_embedding_stops_it(small_assets):
     before, rest, took, code = _run_demo_and_signal(
         small_assets, free_port(), signal.SIGINT, "EMBEDDING the first frame", ENDLESS_EMBEDDING

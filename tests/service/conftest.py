@@ -210,42 +210,53 @@ def session_status(client: httpx.Client, session: dict) -> dict:
 
 # ---- fixtures ------------------------------------------------------------------------------------
 @pytest.fixture(scope="session")
-def library_dir(tmp_path_factory) -> Path:
+def library_dir(built_once) -> Path:
     from texture_library.synthetic_library import build_synthetic_library
 
-    root = tmp_path_factory.mktemp("library")
-    build_synthetic_library(root, n_textures=6, image_size=256)
-    return root
+    return built_once.folder("library", lambda root: build_synthetic_library(root, n_textures=6, image_size=256))
 
 
 @pytest.fixture(scope="session")
-def tactile_model(tmp_path_factory) -> Path:
-    """ridge-tactile trained on a small synthetic dataset (needs no visual features: fast)."""
+def tactile_dataset(built_once) -> Path:
+    """A small synthetic world (8 textures, 4 s of stroking each, with tap transients), shared by the tactile
+    models below: each trains on its own features of it."""
     from models.offline.datasets.build import build
-    from models.offline.train import train_and_export
 
-    root = tmp_path_factory.mktemp("tactile-model")
-    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
-    return train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
-
-
-@pytest.fixture(scope="session")
-def taps_model(tmp_path_factory) -> Path:
-    """ridge-tactile on MFCC + taps, trained on a small synthetic world (its textures carry tap transients). Its
-    features without the taps group are `tactile_model`'s: that model is its untapped fallback."""
-    from models.offline.datasets.build import build
-    from models.offline.train import train_and_export
-    from models.tactile.config import TactileConfig
-
-    root = tmp_path_factory.mktemp("taps-model")
-    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=4)
-    return train_and_export(
-        dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx", tactile_config=TactileConfig(extra_groups=("taps",))
+    return (
+        built_once.folder(
+            "tactile-dataset", lambda root: build("synthetic", root / "dataset", n_textures=8, duration_s=4)
+        )
+        / "dataset"
     )
 
 
 @pytest.fixture(scope="session")
-def visual_model(tmp_path_factory) -> SimpleNamespace:
+def tactile_model(built_once, tactile_dataset) -> Path:
+    """ridge-tactile trained on `tactile_dataset` (needs no visual features: fast)."""
+    from models.offline.train import train_and_export
+
+    def fill(root: Path) -> None:
+        train_and_export(tactile_dataset, "ridge-tactile", root / "ridge-tactile.onnx")
+
+    return built_once.folder("tactile-model", fill) / "ridge-tactile.onnx"
+
+
+@pytest.fixture(scope="session")
+def taps_model(built_once, tactile_dataset) -> Path:
+    """ridge-tactile on MFCC + taps, trained on `tactile_dataset` (its textures carry tap transients). Its
+    features without the taps group are `tactile_model`'s: that model is its untapped fallback."""
+    from models.offline.train import train_and_export
+    from models.tactile.config import TactileConfig
+
+    def fill(root: Path) -> None:
+        config = TactileConfig(extra_groups=("taps",))
+        train_and_export(tactile_dataset, "ridge-tactile", root / "ridge-tactile-taps.onnx", tactile_config=config)
+
+    return built_once.folder("taps-model", fill) / "ridge-tactile-taps.onnx"
+
+
+@pytest.fixture(scope="session")
+def visual_model(built_once) -> SimpleNamespace:
     """ridge-both on 3 synthetic textures and the EfficientNet backbone ONNX it was trained with.
 
     Exporting the backbone and embedding 3 × 8 image views takes ~30 s the first time; both are
@@ -256,15 +267,22 @@ def visual_model(tmp_path_factory) -> SimpleNamespace:
     from models.offline.train import train_and_export
     from models.visual.config import VisualConfig
 
-    root = tmp_path_factory.mktemp("visual-model")
-    dataset = build("synthetic", root / "dataset", n_textures=3, duration_s=3, image_size=256)
-    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
-    tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")  # same features: the fallback
-    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(VisualConfig()), dataset=dataset)
+    def fill(root: Path) -> None:
+        dataset = build("synthetic", root / "dataset", n_textures=3, duration_s=3, image_size=256)
+        train_and_export(dataset, "ridge-both", root / "ridge-both.onnx")
+        train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")  # same features: the fallback
+
+    root = built_once.folder("visual-model", fill)
+    return SimpleNamespace(
+        model=root / "ridge-both.onnx",
+        tactile=root / "ridge-tactile.onnx",
+        backbone=backbone_onnx(VisualConfig()),
+        dataset=root / "dataset",
+    )
 
 
 @pytest.fixture(scope="session")
-def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
+def calibrated_visual_model(built_once) -> SimpleNamespace:
     """ridge-both on 8 synthetic textures (enough for `hapticlink train` to calibrate intervals and fit the OOD
     detector, frame ranges included), its ridge-tactile fallback, the backbone, and the dataset (8 s of stroking
     per texture: tests stream a texture's own recording as the in-distribution case). It reads the served visual
@@ -273,11 +291,18 @@ def calibrated_visual_model(tmp_path_factory) -> SimpleNamespace:
     from models.offline.featurize import SERVED_VISUAL, backbone_onnx
     from models.offline.train import train_and_export
 
-    root = tmp_path_factory.mktemp("calibrated-visual-model")
-    dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=8, image_size=256)
-    model = train_and_export(dataset, "ridge-both", root / "ridge-both.onnx", visual_config=SERVED_VISUAL)
-    tactile = train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
-    return SimpleNamespace(model=model, tactile=tactile, backbone=backbone_onnx(SERVED_VISUAL), dataset=dataset)
+    def fill(root: Path) -> None:
+        dataset = build("synthetic", root / "dataset", n_textures=8, duration_s=8, image_size=256)
+        train_and_export(dataset, "ridge-both", root / "ridge-both.onnx", visual_config=SERVED_VISUAL)
+        train_and_export(dataset, "ridge-tactile", root / "ridge-tactile.onnx")
+
+    root = built_once.folder("calibrated-visual-model", fill)
+    return SimpleNamespace(
+        model=root / "ridge-both.onnx",
+        tactile=root / "ridge-tactile.onnx",
+        backbone=backbone_onnx(SERVED_VISUAL),
+        dataset=root / "dataset",
+    )
 
 
 @pytest.fixture(scope="session")

@@ -817,19 +817,18 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
 
 
 @pytest.mark.slow
-def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys):
+def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys, demo_small_assets):
     """`hapticlink demo` at a small size: the console URL it prints opens a page whose pad plays the entry the
     demo's session has chosen, fetched from the demo's own service."""
     import asyncio
 
-    from demo.assets import prepare_assets
     from demo.run import run_demo
     from service.app import create_app
     from service.settings import Settings
 
     if not _serves_models(create_app(Settings())):
         pytest.skip("this branch's service does not serve rendering models (GET /library/{id}/model)")
-    assets = prepare_assets(tmp_path / "demo", n_textures=5, n_probes=2)
+    assets = demo_small_assets  # as test_demo_run.py builds them (prepare_assets), once per run
     capsys.readouterr()
     demo = threading.Thread(
         target=lambda: asyncio.run(

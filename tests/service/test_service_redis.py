@@ -135,6 +135,7 @@ def _robot_error(url: str, session: dict, transport: str, library_dir) -> Except
     return err.value
 
 
+@pytest.mark.slow
 def test_when_a_replicas_heartbeat_lapses_its_sessions_are_lost_for_operators_and_robots(
     kit, base_settings, redis_url, library_dir
 ):

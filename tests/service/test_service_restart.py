@@ -122,6 +122,7 @@ def _hapticlink(*argv: str) -> subprocess.Popen:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["ws", "http"])
 def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_operator(
     kit, tactile_model, library_dir, tmp_path, transport

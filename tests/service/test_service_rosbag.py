@@ -74,6 +74,7 @@ def _windows(kit, server, source) -> list[dict]:
                 windows.append(event)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
 def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates(
     kit, server, library_dir, tmp_path, storage

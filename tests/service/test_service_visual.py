@@ -130,6 +130,10 @@ def _visual_settings(kit, visual_model, library_dir, **extra) -> Settings:
         # a session that sent only a frame was ended as abandoned while it waited
         session_idle_s=600,
         session_first_block_s=600,
+        # nor is the shedding of frames for load (test_service_shedding.py's): on a busy host the embedder takes more
+        # than the 1 s default behind a stalled decoder, frames were degraded a level, and the queue test's last
+        # frame was refused 429 for load where it tests the queue's pixels
+        shed_visual_queue_s=600,
         **extra,
     )
 

@@ -20,6 +20,7 @@ def dataset(tmp_path_factory):
     return build("synthetic", tmp_path_factory.mktemp("ds") / "synthetic", n_textures=8, duration_s=3, image_size=64)
 
 
+@pytest.mark.slow
 def test_exported_ridge_on_groups_equals_the_estimator(dataset, tmp_path):
     path = train_and_export(dataset, "ridge-tactile", tmp_path / "ridge.onnx", seed=0, tactile_config=GROUPS)
     card = read_card(path)
