@@ -20,7 +20,7 @@ hl tradeoffs frontier --dataset $H --model selected --grids 3 2 1 --resizes nati
   --out reports/tradeoffs/frontier-selected.json
 # The served configuration: the rule on `selected` itself over the 2×2 grid, no GLCM, on the fp32 and the int8
 # backbone, picked on inner 5-fold CV over every rated texture (as `selected` picks its model) and run inside every
-# outer fold for its MAE (≈ 40 min on 2 busy cores; `--glcm both` doubles the candidates and the time)
+# outer fold for its MAE (34 min on 2 busy cores, load 4–8; `--glcm both` doubles the candidates and the time)
 hl tradeoffs frontier --dataset $H --model selected --grids 2 --resizes native \
   --backbones efficientnet_lite0 efficientnet_lite0_int8 --glcm off --nested-folds 5 --workers 2 --threads 1 \
   --repeats 7 --out reports/tradeoffs/frontier-quant.json
