@@ -30,7 +30,8 @@ hl dataset check $H
 [ -f $P/dataset.json ] || hl dataset build --source hatt-texnet --path ../shared/data/hatt-texnet --out $P
 
 # ---- HaTT–TexNet: the selected model (nested CV: the rule in docs/models.md) and its candidates ----
-# the served visual configuration: the frontier's pick (2×2 patches, no GLCM, the int8 backbone; docs/models.md)
+# the served visual configuration: the frontier's pick inside the folds (2×2 patches, no GLCM, the int8 backbone;
+# reports/tradeoffs/frontier-quant.json, docs/models.md)
 SERVED=(--visual-grid 2 --no-glcm --backbone efficientnet_lite0_int8)
 hl evaluate --dataset $H --model selected "${SERVED[@]}" --out reports/hatt-texnet/selected --seeds 0 1 2
 # the same rule with the kernel ridges' exact leave-one-out criterion: a sensitivity row (docs/models.md)

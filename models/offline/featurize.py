@@ -34,7 +34,7 @@ DEFAULT_VIEWS = 8  # augmented views per image (view 0 is the original)
 INT8_BACKBONE = "efficientnet_lite0_int8"
 #: the image configuration the served models read: the one the speed–accuracy frontier's fixed rule picks
 #: (2×2 patches at native size, no GLCM: reports/tradeoffs; the int8 backbone: reports/tradeoffs/frontier-quant.json,
-#: half the fp32 backbone's cost at the same error), so a frame costs the int8 backbone on 4 patches
+#: picked on inner CV with `selected`, inside the folds), so a frame costs the int8 backbone on 4 patches
 SERVED_VISUAL = VisualConfig(grid=2, glcm=False, backbone=INT8_BACKBONE)
 
 

@@ -376,8 +376,9 @@ def _headline(headline: dict, best: dict) -> list[str]:
         "model: every outer fold picked its own model from its training textures."
         + (
             " The image features it reads (the served 2×2 patches, no GLCM, int8 backbone) were picked by the "
-            "frontier's fixed rule applied to leave-one-texture-out numbers of this model on these textures "
-            "(`reports/tradeoffs`, `--nested-folds 0`), which flatters the number a little (docs/models.md)."
+            "frontier's fixed rule on inner cross-validation over these textures with this model, as it picks its "
+            "own candidates; the rule run inside every outer fold is the number to quote for both choices together "
+            "(`reports/tradeoffs/frontier-quant.json`, docs/models.md)."
             if _reads_served_images(headline)
             else ""
         ),

@@ -12,11 +12,12 @@ and runs the model. Every configuration gets
 Backbones: EfficientNet-Lite0 with its ImageNet weights (accuracy and timing); ResNet-50 with
 random weights (timing only: no ImageNet weights on this machine; same FLOPs).
 
-The deployed default follows a rule fixed in advance: among 1-thread EfficientNet rows, the one
-with the lowest frame cost whose MAE is within +0.3 of the best. That rule looks at LOOCV
-results, so its pick is optimistic; `nested_folds` re-runs the rule inside every outer fold
-(configuration chosen by inner K-fold CV on the training textures only) and reports the MAE of
-the procedure itself.
+The served configuration follows a rule fixed in advance: among 1-thread EfficientNet rows, the one
+with the lowest frame cost whose MAE is within +0.3 of the best. The MAEs it reads are inner K-fold
+cross-validation errors, never the LOOCV folds the chart reports, as `selected` picks its model
+(models.offline.evaluation.selection): the served pick is the rule on inner CV over every rated
+texture (`served_pick`), and the number reported for it is the procedure's own, the rule run inside
+every outer fold on that fold's training textures (`nested_rule_predictions`).
 """
 
 from __future__ import annotations
@@ -219,6 +220,55 @@ def config_accuracy(
     return preds, latency
 
 
+def inner_cv_mae(
+    datas: dict[str, TextureData], train: np.ndarray, spec: EstimatorSpec, folds: int, seed: int = 0
+) -> dict[str, float]:
+    """Per configuration, the mean per-texture MAE (0–100 scale) of `spec` by `folds`-fold CV over the
+    textures `train` (indices) alone: the numbers the rule reads. The same seeded folds for every
+    configuration (a paired comparison); nothing outside `train` is read, neither features nor ratings.
+
+    datas: label → the same textures with that configuration's visual features."""
+    from sklearn.model_selection import KFold
+
+    train = np.asarray(train, int)
+    first = next(iter(datas.values()))
+    for label, d in datas.items():
+        if d.textures != first.textures:
+            raise ValueError(f"configuration {label!r} holds other textures than {next(iter(datas))!r}")
+    if first.targets is None:
+        raise ValueError("the configurations' data carry no ratings to score the rule with")
+    if not 2 <= folds <= train.size:
+        raise ValueError(f"inner CV needs 2 ≤ folds ≤ {train.size} training textures, got {folds}")
+    splits = list(KFold(folds, shuffle=True, random_state=seed).split(train))
+    out = {}
+    for label, d in datas.items():
+        pred = np.zeros((train.size, 4))
+        for tr, va in splits:
+            est = spec.build().fit(d.take(train[tr]), seed)
+            pred[va] = np.clip(est.predict(d.take(train[va]).with_targets(None)), RATING_MIN, RATING_MAX)
+        out[label] = float(per_texture_error(pred, first.targets[train]).mean())
+    return out
+
+
+def served_pick(
+    datas: dict[str, TextureData], cost: dict[str, float], model: str, options: dict, folds: int, seed: int = 0
+) -> tuple[str, dict[str, float]]:
+    """The configuration to serve: the rule on inner `folds`-fold CV over every texture of `datas` (the
+    rated training textures), as `hapticlink train` runs `selected`'s own selection on all of them.
+    Returns (the label picked, the inner MAE per label)."""
+    n = len(next(iter(datas.values())))
+    inner = inner_cv_mae(datas, np.arange(n), EstimatorSpec(model, options), folds, seed)
+    return pick(inner, cost), inner
+
+
+def _fold_pick(
+    datas: dict[str, TextureData], cost: dict[str, float], spec: EstimatorSpec, folds: int, seed: int, held: int
+) -> str:
+    """The rule's pick in the outer fold that holds texture `held` out (a job of nested_rule_predictions)."""
+    n = len(next(iter(datas.values())))
+    return pick(inner_cv_mae(datas, np.delete(np.arange(n), held), spec, folds, seed), cost)
+
+
 def nested_rule_predictions(
     datas: dict[str, TextureData],
     loocv_preds: dict[str, np.ndarray],
@@ -227,30 +277,20 @@ def nested_rule_predictions(
     options: dict,
     folds: int,
     seed: int = 0,
+    workers: int | None = 1,
 ) -> tuple[np.ndarray, list[str]]:
     """The recommendation rule run inside every outer fold: inner `folds`-fold CV on the training
     textures ranks the configurations, the rule picks one, the outer prediction is that
-    configuration's LOOCV prediction. Returns ((T, 4) predictions, the label picked per fold)."""
-    from sklearn.model_selection import KFold
+    configuration's LOOCV prediction (a model that never saw the held-out texture). Outer folds run in
+    `workers` processes. Returns ((T, 4) predictions, the label picked per fold)."""
+    from functools import partial
 
-    labels = list(datas)
-    first = datas[labels[0]]
-    n = len(first)
-    spec = EstimatorSpec(model, options)
-    out, picked = np.zeros((n, 4)), []
-    for i in tqdm(range(n), desc="nested check of the rule", unit="fold"):
-        train = np.array([j for j in range(n) if j != i])
-        inner = {}
-        for label in labels:
-            pred = np.zeros((train.size, 4))
-            for tr, va in KFold(folds, shuffle=True, random_state=seed).split(train):
-                d = datas[label]
-                est = spec.build().fit(d.take(train[tr]), seed)
-                pred[va] = np.clip(est.predict(d.take(train[va]).with_targets(None)), RATING_MIN, RATING_MAX)
-            inner[label] = float(per_texture_error(pred, first.targets[train]).mean())
-        choice = pick(inner, cost)
-        picked.append(choice)
-        out[i] = loocv_preds[choice][i]
+    from models.offline.jobs import run_jobs
+
+    n = len(next(iter(datas.values())))
+    job = partial(_fold_pick, datas, cost, EstimatorSpec(model, options), folds, seed)
+    picked = list(run_jobs(job, range(n), workers, "nested check of the rule", unit="fold", threads=1))
+    out = np.stack([loocv_preds[choice][i] for i, choice in enumerate(picked)])
     return out, picked
 
 
@@ -420,43 +460,56 @@ def recommendation(
     options: dict,
     nested_folds: int,
     seed: int,
+    workers: int | None = 1,
 ) -> dict | None:
-    """The rule's pick among the scored 1-thread rows (None when none is scored), and, with nested_folds,
-    the MAE of the rule itself run inside every outer fold."""
+    """The configuration to serve and what the procedure that picks it scores; None when no 1-thread row is
+    scored or `nested_folds` is 0 (a table without a pick).
+
+    The pick is the rule on inner `nested_folds`-fold CV over every texture (served_pick), never on the
+    frontier's LOOCV MAEs; its headline MAE is the rule run inside every outer fold
+    (nested_rule_predictions), with a texture-level bootstrap interval. The LOOCV row of the picked
+    configuration stays in the table (`loocv_mae`)."""
     one = {r["label"]: r for r in frontier if r["threads"] == 1 and r["mae"] is not None}
-    if not one:
+    if not one or not nested_folds:
         return None
-    choice = pick({k: r["mae"] for k, r in one.items()}, {k: r["frame_ms"] for k, r in one.items()})
-    best = min(r["mae"] for r in one.values())
+    cost = {k: r["frame_ms"] for k, r in one.items()}
+    datas = {k: sweep.data[k] for k in one}
+    choice, inner = served_pick(datas, cost, model, options, nested_folds, seed)
+    nested, picked = nested_rule_predictions(
+        datas, sweep.predictions, cost, model, options, nested_folds, seed, workers=workers
+    )
+    headline = bootstrap_mean(per_texture_error(nested, targets))
     chosen = one[choice]
-    out = {
+    best = min(inner, key=lambda k: inner[k])
+    return {
         "config": choice,
         "backbone": chosen["backbone"],
         "visual_config": Patching(chosen["grid"], chosen["resize"], tuple(chosen["descriptors"]))
         .visual_config(glcm=chosen["glcm"])
         .computation(),
         "glcm": chosen["glcm"],
-        "mae": chosen["mae"],
-        "mae_ci": chosen["mae_ci"],
+        "chosen_by": f"inner {nested_folds}-fold CV over all {len(targets)} rated textures (seed {seed})",
+        "inner_mae": inner,
+        "pick_inner_mae": inner[choice],
+        "best_config": best,
+        "best_mae": inner[best],
+        # the headline: the procedure (the rule inside every outer fold), not the picked row's LOOCV
+        "mae": headline["mean"],
+        "mae_ci": headline,
+        "loocv_mae": chosen["mae"],
+        "loocv_mae_ci": chosen["mae_ci"],
         "frame_ms_1thread": chosen["frame_ms"],
-        "best_config": min(one, key=lambda k: one[k]["mae"]),
-        "best_mae": best,
         # as measured in this run (under load the milliseconds are inflated; the report also judges the
-        # target on a quiet-equivalent scale, see models.offline.tradeoffs.report.quiet_scale)
-        "target_met": bool(chosen["frame_ms"] <= TARGET_FRAME_MS and chosen["mae"] <= best + TARGET_MAE_MARGIN),
-        "rule": f"cheapest 1-thread EfficientNet configuration with MAE ≤ best + {TARGET_MAE_MARGIN}",
-    }
-    if nested_folds:
-        cost = {k: r["frame_ms"] for k, r in one.items()}
-        nested, picked = nested_rule_predictions(
-            {k: sweep.data[k] for k in one}, sweep.predictions, cost, model, options, nested_folds, seed
-        )
-        out["nested"] = {
+        # target on a quiet-equivalent scale, see models.offline.tradeoffs.report.quiet_scale); the margin holds
+        # by the rule's construction on the inner MAEs
+        "target_met": bool(chosen["frame_ms"] <= TARGET_FRAME_MS),
+        "rule": f"cheapest 1-thread EfficientNet configuration with inner-CV MAE ≤ best + {TARGET_MAE_MARGIN}",
+        "nested": {
             "folds": nested_folds,
-            "mae": bootstrap_mean(per_texture_error(nested, targets)),
+            "mae": headline,
             "picked": {k: picked.count(k) for k in sorted(set(picked))},
-        }
-    return out
+        },
+    }
 
 
 def run_frontier(
@@ -507,7 +560,14 @@ def run_frontier(
     )
     frontier = frontier_rows(timed["rows"], tactile_us, scored, data0.targets, glcm, threads)
     recommended = recommendation(
-        frontier, scored, data0.targets, model=model, options=options, nested_folds=nested_folds, seed=seeds[0]
+        frontier,
+        scored,
+        data0.targets,
+        model=model,
+        options=options,
+        nested_folds=nested_folds,
+        seed=seeds[0],
+        workers=workers,
     )
     return {
         "model": model,

@@ -232,7 +232,7 @@ def test_the_families_section_sets_each_run_beside_its_leave_one_texture_out_twi
     assert "families" not in page.split("## MAE")[1].split("## RMSE")[0]  # never a row of the main table
 
 
-def test_the_headline_says_when_the_served_image_features_were_picked_on_its_own_folds(reports, tmp_path):
+def test_the_headline_says_how_the_served_image_features_were_picked(reports, tmp_path):
     from models.offline.featurize import SERVED_VISUAL
 
     dataset, folder = reports
@@ -246,7 +246,7 @@ def test_the_headline_says_when_the_served_image_features_were_picked_on_its_own
     run["features"] = {**run["features"], "backbone": SERVED_VISUAL.backbone, "visual_config": served}
     (work / "selected" / "results.json").write_text(json.dumps(run))
     headline = build_report(dataset, work).read_text().split("## Headline")[1].split("\n## ")[0]
-    assert "picked by the frontier's fixed rule applied to leave-one-texture-out numbers of this model" in headline
+    assert "picked by the frontier's fixed rule on inner cross-validation over these textures" in headline
 
 
 def test_the_speed_section_names_the_hosts_its_latencies_were_timed_on():

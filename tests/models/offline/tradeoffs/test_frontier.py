@@ -1,4 +1,4 @@
-"""The frontier's pieces: the sweep, interleaved timing, the pick rule and its nested check."""
+"""The frontier's pieces: the sweep, interleaved timing, the pick rule, chosen inside the folds, and its nested run."""
 
 import numpy as np
 import pytest
@@ -7,8 +7,10 @@ from models.offline.tradeoffs.frontier import (
     Patching,
     backbone_paths,
     config_label,
+    inner_cv_mae,
     nested_rule_predictions,
     pick,
+    served_pick,
     sweep,
     time_frames,
 )
@@ -91,6 +93,8 @@ def test_nested_rule_uses_training_textures_only(linear_world_pair):
     datas, preds = linear_world_pair
     cost = {"good": 100.0, "noisy": 1.0}
     nested, picked = nested_rule_predictions(datas, preds, cost, "ridge-both", {}, folds=3)
+    _, in_workers = nested_rule_predictions(datas, preds, cost, "ridge-both", {}, folds=3, workers=2)
+    assert in_workers == picked  # outer folds in worker processes: the same picks
     assert nested.shape == preds["good"].shape and len(picked) == len(preds["good"])
     # the noisy configuration is far worse inside every fold: the rule keeps the good one
     assert set(picked) == {"good"}
@@ -148,7 +152,82 @@ def test_frontier_rows_join_timing_and_accuracy_and_the_rule_picks_among_them():
     assert by_label[config_label("efficientnet_lite0", small, False)]["mae"] == pytest.approx(5.2)
     assert by_label[config_label("efficientnet_lite0", small, False)]["window_us"] == 110.0
     assert all(r["pareto"] for r in frontier)  # one is cheaper, the other more accurate
-    rec = recommendation(frontier, scored, targets, model="ridge-both", options={}, nested_folds=0, seed=0)
-    assert rec is not None and rec["config"] == config_label("efficientnet_lite0", small, False)
-    assert rec["best_mae"] == pytest.approx(5.0) and "nested" not in rec
-    assert recommendation([], scored, targets, model="ridge-both", options={}, nested_folds=0, seed=0) is None
+    # no inner folds, no pick: the table alone (the rule never reads these LOOCV rows)
+    assert recommendation(frontier, scored, targets, model="ridge-both", options={}, nested_folds=0, seed=0) is None
+    assert recommendation([], scored, targets, model="ridge-both", options={}, nested_folds=5, seed=0) is None
+
+
+def test_inner_cv_reads_nothing_outside_its_training_textures(linear_world_pair):
+    from dataclasses import replace
+
+    from models.offline.evaluation.estimator_registry import EstimatorSpec
+
+    datas, _ = linear_world_pair
+    train = np.arange(1, 20)  # texture 0 held out
+    spec = EstimatorSpec("ridge-both")
+    before = inner_cv_mae(datas, train, spec, folds=3)
+    rng = np.random.default_rng(1)
+    spoiled = {}
+    for k, d in datas.items():  # the held-out texture's ratings, windows and image features replaced by noise
+        targets, visual = d.targets.copy(), d.visual.copy()
+        targets[0] = rng.uniform(-1, 1, 4)
+        visual[0] = rng.normal(size=visual[0].shape) * 100
+        tactile = [rng.normal(size=d.tactile[0].shape).astype(np.float32) * 100, *d.tactile[1:]]
+        spoiled[k] = replace(d, targets=targets, visual=visual, tactile=tactile)
+    assert inner_cv_mae(spoiled, train, spec, folds=3) == before
+    assert before["good"] < before["noisy"]
+    with pytest.raises(ValueError, match="2 ≤ folds"):
+        inner_cv_mae(datas, train, spec, folds=1)
+    other = {**datas, "noisy": datas["noisy"].take(np.arange(1, 20))}
+    with pytest.raises(ValueError, match="other textures"):
+        inner_cv_mae(other, train[:5], spec, folds=3)
+
+
+def test_the_served_pick_cannot_read_the_outer_folds(linear_world_pair):
+    """The pick comes from inner CV over the training textures: outer LOOCV predictions that would flip a rule
+    reading them (the cheap configuration perfect, the good one far off) leave the pick where it was."""
+    from models.offline.tradeoffs.frontier import Sweep, frontier_rows, recommendation
+
+    datas, preds = linear_world_pair
+    good = config_label("efficientnet_lite0", Patching(2, None), False)
+    cheap = config_label("efficientnet_lite0_int8", Patching(2, None), False)
+    data = {good: datas["good"], cheap: datas["noisy"]}
+    targets = datas["good"].targets
+    rows = [{"label": k, "grid": 2, "resize": None, "glcm": False, "model_us": 10.0} for k in data]
+    timing = [
+        {"backbone": b, "threads": 1, "grid": 2, "resize": None, "prep_ms": 0.1, "embed_ms": ms, "glcm_ms": 5.0}
+        for b, ms in (("efficientnet_lite0", 17.0), ("efficientnet_lite0_int8", 8.0))
+    ]
+
+    def recommend(outer: dict[str, np.ndarray]) -> tuple[dict, str]:
+        """The recommendation, and what the rule would pick on these outer LOOCV rows."""
+        scored = Sweep(rows, data, outer)
+        frontier = frontier_rows(timing, 100.0, scored, targets, glcm=(False,), threads=(1,))
+        rec = recommendation(frontier, scored, targets, model="ridge-both", options={}, nested_folds=3, seed=0)
+        assert rec is not None
+        return rec, pick({r["label"]: r["mae"] for r in frontier}, {r["label"]: r["frame_ms"] for r in frontier})
+
+    honest, on_outer = recommend({good: preds["good"], cheap: preds["noisy"]})
+    assert on_outer == good
+    rec, on_outer = recommend({good: np.clip(targets + 0.5, -1, 1), cheap: targets.copy()})
+    # a rule on these LOOCV rows would serve the cheap configuration; the pick inside the folds does not move
+    assert on_outer == cheap
+    assert honest["config"] == rec["config"] == good
+    assert honest["inner_mae"] == rec["inner_mae"] and rec["inner_mae"][good] < rec["inner_mae"][cheap]
+    assert rec["nested"]["picked"] == {good: len(targets)}
+    # the headline is the procedure's own score on the outer predictions it made: it moves with them
+    assert honest["mae"] == pytest.approx(honest["loocv_mae"]) and rec["mae"] == pytest.approx(rec["loocv_mae"])
+    assert rec["mae"] > honest["mae"] and rec["mae_ci"]["lo"] <= rec["mae"] <= rec["mae_ci"]["hi"]
+    assert rec["backbone"] == "efficientnet_lite0" and rec["visual_config"]["grid"] == 2
+
+
+def test_served_pick_is_the_rule_on_every_rated_texture(linear_world_pair):
+    from models.offline.evaluation.estimator_registry import EstimatorSpec
+
+    datas, _ = linear_world_pair
+    cost = {"good": 100.0, "noisy": 1.0}
+    choice, inner = served_pick(datas, cost, "ridge-both", {}, folds=3)
+    assert inner == inner_cv_mae(datas, np.arange(20), EstimatorSpec("ridge-both"), folds=3)
+    assert choice == pick(inner, cost) == "good"
+    # within the margin the cheaper one wins: the same inner numbers, the cost turned around
+    assert pick({"good": 5.0, "noisy": 5.2}, cost) == "noisy"

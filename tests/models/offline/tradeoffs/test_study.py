@@ -300,3 +300,38 @@ def test_detector_tables_in_worker_processes_equal_the_serial_ones(world):
             pairs = zip(a, b) if isinstance(a, list) else ((a[j], b[j]) for j in a) if isinstance(a, dict) else [(a, b)]
             for x, y in pairs:
                 np.testing.assert_array_equal(getattr(x, "distance", x), getattr(y, "distance", y))
+
+
+def test_a_pick_made_inside_the_folds_is_reported_with_the_procedures_mae(tmp_path):
+    from models.offline.tradeoffs.common import write_json
+    from models.offline.tradeoffs.report import build_tradeoffs_report
+
+    legacy = _frontier_rows()
+    inside = _frontier_rows()
+    a, b = inside["frontier"][0]["label"], inside["frontier"][1]["label"]
+    inside["recommendation"] = {
+        **legacy["recommendation"],
+        "chosen_by": "inner 5-fold CV over all 24 rated textures (seed 0)",
+        "inner_mae": {a: 5.8, b: 6.0},
+        "pick_inner_mae": 6.0,
+        "best_config": a,
+        "best_mae": 5.8,
+        "mae": 6.1,
+        "mae_ci": {"mean": 6.1, "lo": 5.6, "hi": 6.7},
+        "loocv_mae": 5.9,
+        "loocv_mae_ci": {"mean": 5.9, "lo": 5.4, "hi": 6.4},
+        "nested": {"folds": 5, "mae": {"mean": 6.1, "lo": 5.6, "hi": 6.7}, "picked": {b: 20, a: 4}},
+    }
+    write_json(tmp_path / "frontier-quant.json", inside)
+    write_json(tmp_path / "frontier-ridge-both.json", legacy)
+    page = build_tradeoffs_report(tmp_path).read_text()
+    new = page[page.index("(`frontier-quant.json`)") :]
+    new = new[: new.index("| configuration |")]
+    assert f"chosen inside the folds: `{b}`" in new
+    assert f"`{a}` 5.80, `{b}` 6.00 — never the LOOCV numbers" in new
+    assert "scores **MAE 6.10 [5.60, 6.70]**" in new and f"`{b}` ×20, `{a}` ×4" in new
+    assert "The picked row's own LOOCV MAE, 5.90 [5.40, 6.40]" in new
+    old = page[page.index("(`frontier-ridge-both.json`)") :]
+    assert "picked on the LOOCV table it reports" in old[: old.index("| configuration |")]
+    assert "picked inside the folds (inner-CV MAE 6.00 vs best 5.80); the procedure scores MAE 6.10" in page
+    assert "at MAE 5.90 vs best 5.70 (picked on its own LOOCV folds)" in page
