@@ -142,6 +142,13 @@ class SurfaceModelStatus(BaseModel):
     versions: int = Field(description="versions sent so far")
     fits: int = Field(description="fits run so far")
     segments: int = Field(description="128-sample contact segments the fitter holds")
+    held_gap_fits: int = Field(0, description="fits (ok, with a version out) the two figures below are taken over")
+    held_gap_db_mean: float | None = Field(
+        None,
+        description="mean over those fits of the log-spectral distance (dB, mean over the nine operating points) "
+        "between the version operators hold after the fit and the fit itself: what publishing less costs them",
+    )
+    held_gap_db_max: float | None = Field(None, description="the largest of those distances, dB")
     contact_s: float | None = Field(None, description="seconds of contact the served version was learnt from")
     prior: str | None = Field(None, description="the library entry it was blended with where data were thin")
     noise_source: str | None = Field(None, description="where its noise floor came from")

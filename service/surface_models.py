@@ -3,7 +3,8 @@
     accepted sample blocks ─(estimation job, window pool)─▶ SessionSurface.feed ─▶ SurfaceFitter.push
     tap blocks (event loop: queued) ────────────────────────────────────────────▶ SurfaceFitter.push_taps
     after a job, when due and no other session waits for the pool ─▶ SessionSurface.fit (window pool)
-        ─▶ SurfaceFitter.fit(prior = the library pick's model) ─▶ SurfacePublisher.offer ─▶ a new served version
+        ─▶ SurfaceFitter.fit(prior = the library pick's model, keep_orders = the last fit's) ─▶ SurfacePublisher.offer
+        ─▶ a new served version
 
 Both run while the session is in its estimation job (the batcher holds it there until the fit is done), so the
 fitter is never used by two threads at once; the event loop only queues taps and scene changes for the next job.
@@ -35,6 +36,7 @@ from models.tactile.surface_publish import SurfacePublisher
 from service.render_models import ServedRenderModel
 from texture_library import model_codec
 from texture_library.recording import Channel
+from texture_library.spectrum import spectral_distance_db
 from texture_library.vibration import RENDER_RATE_HZ, VibrationModel
 
 SESSION_PREFIX = "session:"
@@ -101,6 +103,12 @@ class SessionSurface:
         self.generation = 0  # surfaces seen (scene changes): an outcome of an earlier one is not served
         self._news: list[FitStatus] = []  # reasons found in the pool, for the event loop to tell
         self._told: set[FitStatus] = set()
+        self._orders: tuple[int, int] | None = None  # the last ok fit's (AR, MA) orders, kept while not clearly beaten
+        # what publishing less costs the operators: over ok fits with a version out, the spectral distance (dB) of
+        # the version they hold after the offer from the fit itself: count, sum, max
+        self._gaps = 0
+        self._gap_sum_db = 0.0
+        self._gap_max_db = 0.0
 
     # ---- event loop ------------------------------------------------------------------------------
     def queue_taps(self, speeds: np.ndarray, accel: np.ndarray, rate_hz: float) -> None:
@@ -147,6 +155,7 @@ class SessionSurface:
             self._told = set()  # a new surface: its bad input is told anew
             self._news.append(self._fitter.scene_change())
             self.publisher = SurfacePublisher(self.entry_id)
+            self._orders = None
             self._fed_s = 0.0
         return self._fitter
 
@@ -210,13 +219,21 @@ class SessionSurface:
         self._fed_s = 0.0
         self.fits += 1
         started = time.perf_counter()
-        fit = fitter.fit(prior, name=self.entry_id)
+        fit = fitter.fit(prior, name=self.entry_id, keep_orders=self._orders)
+        if fit.status is FitStatus.ok:
+            p, q = fit.extra["orders"]
+            self._orders = (int(p), int(q))
         self._next_fit_s = now_s + max(FIT_EVERY_S, FIT_COST_RATIO * (time.perf_counter() - started))
         if fit.status is not FitStatus.no_contact and not (fit.status is FitStatus.too_short and self._touching):
             self._news.append(fit.status)  # (a stroke still going on is not yet too short)
         if fit.status is not FitStatus.ok:
             return FitOutcome(fit.status, None, None, generation=generation)
         doc = self.publisher.offer(fit.model, now_s)
+        held = self.publisher.last
+        if held is not None:
+            gap = spectral_distance_db(held, fit.model)
+            self._gaps, self._gap_sum_db = self._gaps + 1, self._gap_sum_db + gap
+            self._gap_max_db = max(self._gap_max_db, gap)
         if doc is None:
             return FitOutcome(fit.status, None, self.publisher.last_refusal, generation=generation)
         learnt = {
@@ -237,6 +254,9 @@ class SessionSurface:
             "versions": self.publisher.published,
             "fits": self.fits,
             "segments": self.segments,
+            "held_gap_fits": self._gaps,
+            "held_gap_db_mean": round(self._gap_sum_db / self._gaps, 3) if self._gaps else None,
+            "held_gap_db_max": round(self._gap_max_db, 3) if self._gaps else None,
             **(self.learnt or {}),
         }
 

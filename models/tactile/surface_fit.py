@@ -29,6 +29,10 @@ are what explains all segments best:
      alone smooths over: AR(24) fitted to a HaTT ARMA(20, 18) spectrum stays ≈ 4 dB off), alternated. The
      orders, one pair for the whole grid (a VibrationModel's rows share them), minimise **AIC** under the
      Whittle likelihood summed over the grid points, with the samples behind each point (data and prior).
+     A caller that holds an earlier fit's pair (`keep_orders`: a session refitting as data accrue) keeps it
+     unless the best pair's AIC is lower by ORDER_MARGIN_NATS per sample behind the grid (`choose_orders`):
+     near-ties flip from fit to fit, and each flip redraws every grid point's spectrum by ≈ 1–4 dB, so it
+     would be a new version that moves the whole grid for no change of the surface.
      The polynomials become LSFs as every stored model keeps them.
 
 Why not Burg on the samples (librosa.lpc)? Burg fits one recording at one operating point and cannot take a
@@ -186,6 +190,11 @@ ORDERS: tuple[tuple[int, int], ...] = tuple(
     (p, q) for p in (4, 8, 12, 16, 20, 24) for q in sorted({0, p // 2, max(p - 2, 0)})
 )
 ARMA_ITERATIONS = 3
+#: an earlier fit's (AR, MA) orders stand unless the best pair lowers the AIC by this much per sample behind the
+#: grid (nats: the mean Whittle log-likelihood per sample; 0.02 ≈ 0.09 dB of innovation variance). Measured on
+#: HaTT strokes (python -m benchmarks.publish_policy): it removes most order flips for +0.03 dB from the truth,
+#: where 0.1 cost 0.24 dB
+ORDER_MARGIN_NATS = 0.02
 
 
 def _poly_power(poly: np.ndarray, n_fft: int) -> np.ndarray:
@@ -231,6 +240,23 @@ def arma_from_psd(
         whittle = n_band * float(np.mean(np.log(model[band]) + s[band] / model[band]))
         out.append((a, b, variance, whittle + 2.0 * (p + q + 1)))
     return out
+
+
+def choose_orders(aic: np.ndarray, n_samples: float, keep: int | None = None) -> int:
+    """The index of the (AR, MA) pair to use: the lowest AIC, or `keep` (an earlier fit's pair) while the best
+    beats it by less than ORDER_MARGIN_NATS × n_samples. aic: (len(ORDERS),) summed over the grid; n_samples:
+    the samples behind the grid (data and prior), > 0."""
+    aic = np.asarray(aic, float)
+    if aic.ndim != 1 or aic.size == 0 or not np.all(np.isfinite(aic)):
+        raise ValueError(f"aic must be a non-empty 1-D array of finite numbers, got shape {aic.shape}")
+    if not n_samples > 0:
+        raise ValueError(f"n_samples must be > 0, got {n_samples}")
+    best = int(np.argmin(aic))
+    if keep is None:
+        return best
+    if not 0 <= keep < aic.size:
+        raise ValueError(f"keep must index one of the {aic.size} order pairs, got {keep}")
+    return keep if aic[keep] - aic[best] < ORDER_MARGIN_NATS * n_samples else best
 
 
 def _pull_in(poly: np.ndarray) -> np.ndarray:
@@ -565,9 +591,17 @@ class SurfaceFitter:
             provenance=f"learnt online from {contact_s:.1f} s of contact, prior {prior.name!r}",
         )
 
-    def fit(self, prior: VibrationModel, name: str = "surface", prior_segments: float = PRIOR_SEGMENTS) -> SurfaceFit:
+    def fit(
+        self,
+        prior: VibrationModel,
+        name: str = "surface",
+        prior_segments: float = PRIOR_SEGMENTS,
+        keep_orders: tuple[int, int] | None = None,
+    ) -> SurfaceFit:
         """The surface's model: the data where they are, the prior where they are thin. prior_segments: how many
-        segments the prior counts as per grid point (> 0; near 0: the data alone wherever a segment fell)."""
+        segments the prior counts as per grid point (> 0; near 0: the data alone wherever a segment fell);
+        keep_orders: an earlier fit's (AR, MA) orders, kept unless clearly beaten (`choose_orders`; ignored when
+        not in ORDERS)."""
         if not prior_segments > 0:
             raise ValueError(f"prior_segments must be > 0, got {prior_segments}")
         m = self.grid_speeds.size
@@ -642,7 +676,8 @@ class SurfaceFitter:
         n_eff = (support + prior_segments) * HOP
         fits = [arma_from_psd(sp, self.rate_hz, float(n), band) for sp, n in zip(spectra, n_eff)]
         aic = np.sum([[f[3] for f in per] for per in fits], axis=0)
-        best = int(np.argmin(aic))
+        keep = ORDERS.index(keep_orders) if keep_orders in ORDERS else None
+        best = choose_orders(aic, float(np.sum(n_eff)), keep)
         p, q = ORDERS[best]
         ar_lsf, ma_lsf, variance = np.empty((m, p)), np.empty((m, q)), np.empty(m)
         for j, per in enumerate(fits):

@@ -149,6 +149,9 @@ def test_the_session_learns_its_surface_and_serves_it(kit, learnt, unseen, libra
     assert client.get(f"/library/{entry}/model", headers=kit.FLEET).content == r.content  # the fleet's key
     assert status["contact_s"] > 0.0 and status["prior"] in library.ids
     assert status["noise_source"] == "contact-free blocks"  # the robot's hovering
+    # every version came from an ok fit, each of which measured what the operators then held against it
+    assert status["held_gap_fits"] >= status["versions"]
+    assert 0 <= status["held_gap_db_mean"] <= status["held_gap_db_max"]
 
     # the surface's own model is closer to the stroked texture than the library entry it started from
     model, prior = doc.to_vibration_model(), library.model(status["prior"])

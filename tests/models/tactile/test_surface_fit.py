@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from models.tactile.surface_fit import FitStatus, SurfaceFitter, clipped, constant
+from models.tactile.surface_fit import ORDER_MARGIN_NATS, FitStatus, SurfaceFitter, choose_orders, clipped, constant
 from texture_library.lsf import poles_to_poly, poly_to_lsf
 from texture_library.spectrum import arma_psd, band_frequencies, log_spectral_distance_db
 from texture_library.stroke import GRAVITY, random_rotation, stroke
@@ -223,3 +223,20 @@ def test_prior_strength_sets_the_confidence(fitted):
     assert np.all(alone.confidence[touched] > 0.99)
     with pytest.raises(ValueError, match="prior_segments"):
         fitter.fit(PRIOR, prior_segments=0.0)
+
+
+def test_an_earlier_fits_orders_stand_unless_clearly_beaten():
+    aic = np.array([100.0, 40.0, 70.0])
+    n = 1000.0  # samples behind the grid: the margin is ORDER_MARGIN_NATS × n = 20
+    assert choose_orders(aic, n) == 1  # nothing held: the lowest AIC
+    assert choose_orders(aic, n, keep=1) == 1
+    near = aic[1] + 0.9 * ORDER_MARGIN_NATS * n
+    assert choose_orders(np.array([100.0, 40.0, near]), n, keep=2) == 2  # a near-tie: the held pair stays
+    far = aic[1] + 1.1 * ORDER_MARGIN_NATS * n
+    assert choose_orders(np.array([100.0, 40.0, far]), n, keep=2) == 1  # clearly beaten: the best
+    with pytest.raises(ValueError, match="keep"):
+        choose_orders(aic, n, keep=3)
+    with pytest.raises(ValueError, match="n_samples"):
+        choose_orders(aic, 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        choose_orders(np.array([1.0, np.nan]), n)
