@@ -18,8 +18,9 @@ from service.app import create_app, route_paths
 
 LONG = "x" * 300  # past every length FastAPI would refuse 422 (an entry id: 128, ?session=: 200)
 UNKNOWN = "test-a.no-such-session"
-#: paths anyone may read: liveness, readiness, the console page and its worklet, the API's description
-OPEN = {"/health", "/ready", "/console", "/console/render-worklet.js", "/console/model-codec.js", "/openapi.json", "/docs", "/redoc"}
+#: paths anyone may read: liveness, readiness, the console page and its two scripts, the API's description
+OPEN = {"/health", "/ready", "/console", "/console/render-worklet.js", "/console/model-codec.js"}
+OPEN |= {"/openapi.json", "/docs", "/redoc"}
 OPEN_PREFIXES = ("/docs/", "/{path:path}")
 
 #: (method, path, body, content type) for every route that opens or reads state, with what FastAPI or the route

@@ -79,14 +79,8 @@ def _windows(kit, server, source) -> list[dict]:
 def test_a_bag_replayed_through_the_service_gives_the_simulated_robots_estimates(
     kit, server, library_dir, tmp_path, storage
 ):
-    library = Library.load(library_dir)
-    model, photo = library.model("synth_002"), library.image("synth_002")
-    assert photo is not None
-    items = asyncio.run(_take(SimulatedSource(model, seed=5, realtime=False, duration_s=SECONDS)))
-    blocks = [i for i in items if isinstance(i, SampleBlock)]
-    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
     # IMU 1 kHz, wrench 500 Hz, twist 100 Hz and the texture's photo as a CompressedImage at 5 Hz
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0, photo), storage)
+    items, bag = _stroke_bag(library_dir, "synth_002", 5, SECONDS, tmp_path / "bag", storage, photo=True)
     sim = _windows(kit, server, _Items(items))
     got = _windows(kit, server, RosbagSource(bag, realtime=False))
     assert len(sim) >= 5
@@ -106,6 +100,19 @@ async def _take(source) -> list:
     return [item async for item in source]
 
 
+def _stroke_bag(library_dir, texture: str, seed: int, seconds: float, folder, storage: str, photo: bool = False):
+    """A simulated robot's stroke of a library texture (its items, as the source yields them) and the bag written
+    from it: IMU 1 kHz, wrench 500 Hz, twist 100 Hz, and with `photo` the texture's photo as a CompressedImage at
+    5 Hz. → (items, bag path)."""
+    library = Library.load(library_dir)
+    image = library.image(texture) if photo else None
+    assert image is not None or not photo
+    items = asyncio.run(_take(SimulatedSource(library.model(texture), seed=seed, realtime=False, duration_s=seconds)))
+    blocks = [i for i in items if isinstance(i, SampleBlock)]
+    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
+    return items, write_bag(folder, stroke_messages(accel, force, speed, 1000.0, image), storage)
+
+
 def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_clock(
     kit, server, library_dir, tmp_path
 ):
@@ -116,11 +123,7 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
 
     from drivers.estimates_mcap import CHANNELS, EstimatesMcap, SessionRecorder
 
-    model = Library.load(library_dir).model("synth_003")
-    items = asyncio.run(_take(SimulatedSource(model, seed=7, realtime=False, duration_s=SECONDS)))
-    blocks = [i for i in items if isinstance(i, SampleBlock)]
-    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "mcap")
+    _, bag = _stroke_bag(library_dir, "synth_003", 7, SECONDS, tmp_path / "bag", "mcap")
     out = tmp_path / "estimates.mcap"
     with httpx.Client(base_url=server.url, timeout=10) as client:
         session = kit.create_session(client, "record")
@@ -213,11 +216,7 @@ def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, serve
     from drivers.estimates_foxglove import FoxgloveLive
     from drivers.estimates_mcap import CHANNELS, SessionRecorder
 
-    model = Library.load(library_dir).model("synth_001")
-    items = asyncio.run(_take(SimulatedSource(model, seed=9, realtime=False, duration_s=SECONDS)))
-    blocks = [i for i in items if isinstance(i, SampleBlock)]
-    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "sqlite3")
+    _, bag = _stroke_bag(library_dir, "synth_001", 9, SECONDS, tmp_path / "bag", "sqlite3")
     with httpx.Client(base_url=server.url, timeout=10) as client:
         session = kit.create_session(client, "foxglove")
     received: list = []
@@ -364,11 +363,7 @@ def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, lib
 
     from drivers.estimates_mcap import CHANNELS
 
-    model = Library.load(library_dir).model("synth_004")
-    items = asyncio.run(_take(SimulatedSource(model, seed=11, realtime=False, duration_s=STALL_SECONDS)))
-    blocks = [i for i in items if isinstance(i, SampleBlock)]
-    accel, force, speed = (np.concatenate([b.channels[k].data for b in blocks]) for k in ("accel", "force", "speed"))
-    bag = write_bag(tmp_path / "bag", stroke_messages(accel, force, speed, 1000.0), "mcap")
+    _, bag = _stroke_bag(library_dir, "synth_004", 11, STALL_SECONDS, tmp_path / "bag", "mcap")
     with httpx.Client(base_url=server.url, timeout=10) as client:
         session = kit.create_session(client, "ctrl-c")
     port, out = _free_port(), tmp_path / "estimates.mcap"
