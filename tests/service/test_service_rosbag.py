@@ -100,6 +100,18 @@ async def _take(source) -> list:
     return [item async for item in source]
 
 
+async def _stream_bag(server, session: dict, bag) -> None:
+    """A robot streams the bag into the session as fast as it is taken, then QUIET_S passes: the last windows are
+    estimated and published."""
+    await RobotClient(
+        server.url,
+        RosbagSource(bag, realtime=False),
+        session_id=session["session_id"],
+        robot_token=session["robot_token"],
+    ).run()
+    await asyncio.sleep(QUIET_S)
+
+
 def _stroke_bag(library_dir, texture: str, seed: int, seconds: float, folder, storage: str, photo: bool = False):
     """A simulated robot's stroke of a library texture (its items, as the source yields them) and the bag written
     from it: IMU 1 kHz, wrench 500 Hz, twist 100 Hz, and with `photo` the texture's photo as a CompressedImage at
@@ -137,14 +149,7 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
             )
             task = asyncio.ensure_future(recorder.run())
             await asyncio.wait_for(recorder.subscribed.wait(), 10)
-            robot = RobotClient(
-                server.url,
-                RosbagSource(bag, realtime=False),
-                session_id=session["session_id"],
-                robot_token=session["robot_token"],
-            )
-            await robot.run()
-            await asyncio.sleep(QUIET_S)  # the last windows are estimated and published
+            await _stream_bag(server, session, bag)
             recorder.stop()
             written = await task
             fh.close()
@@ -232,14 +237,7 @@ def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, serve
             await asyncio.wait_for(ready.wait(), 10)
             task = asyncio.ensure_future(recorder.run())
             await asyncio.wait_for(recorder.subscribed.wait(), 10)
-            robot = RobotClient(
-                server.url,
-                RosbagSource(bag, realtime=False),
-                session_id=session["session_id"],
-                robot_token=session["robot_token"],
-            )
-            await robot.run()
-            await asyncio.sleep(QUIET_S)
+            await _stream_bag(server, session, bag)
             client_task.cancel()
             await asyncio.gather(client_task, return_exceptions=True)
             recorder.stop()
@@ -388,14 +386,7 @@ def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, lib
             assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
             time.sleep(5.0)  # the recorder subscribes to the feed right after its server listens
 
-            robot = RobotClient(
-                server.url,
-                RosbagSource(bag, realtime=False),
-                session_id=session["session_id"],
-                robot_token=session["robot_token"],
-            )
-            asyncio.run(robot.run())
-            time.sleep(QUIET_S)  # the last windows are published; the session stays open
+            asyncio.run(_stream_bag(server, session, bag))  # the session stays open
             feed = []
             while True:
                 try:
