@@ -5,7 +5,7 @@
 
 tests/models/offline/backbones/test_quantize.py quantizes EfficientNet-Lite0 with a small calibration (4 procedural
 photos of 448², seed 0) and compares it with fp32 on 6 others (seed 1). `build` makes that copy with recipe 1
-(every convolution int8) and recipe 2 (the first quantize.FP32_CONVS fp32) from the fp32 file in the backbone
+(every convolution int8) and the served recipe (the first quantize.FP32_CONVS fp32) from the fp32 file in the backbone
 cache, and saves the held-out patches; `run` needs only numpy and onnxruntime, so it runs under an emulator, where
 rendering and quantizing would take long. It prints the cpuid flags numpy sees, each copy's frame cosines and its
 load-time check.
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 DEFAULT_DIR = Path("artifacts") / "int8-test-set"
-COPIES = {"recipe 1 (all int8)": ("int8_r1.onnx", 0), "recipe 2": ("int8_r2.onnx", None)}
+COPIES = {"recipe 1 (all int8)": ("int8_r1.onnx", 0), "served recipe": ("int8_served.onnx", None)}
 
 
 def build(folder: Path) -> None:

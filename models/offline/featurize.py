@@ -61,13 +61,16 @@ class TactileTable:
 
 @dataclass(frozen=True)
 class VisualTable:
-    """Visual feature vectors: X (n_textures, n_views, dim) float32, in `textures` order."""
+    """Visual feature vectors: X (n_textures, n_views, dim) float32, in `textures` order; fingerprint: the weights
+    fingerprint of the backbone that computed them (an int8 copy's names its recipe; a fallback's is its fp32
+    source's), so a report records which numerics its features came from."""
 
     X: np.ndarray
     textures: list[str]
     backbone: str
     backbone_dim: int
     config_hash: str
+    fingerprint: str
 
 
 def dataset_fingerprint(ds: Dataset) -> str:
@@ -246,7 +249,9 @@ def visual_table(
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             if list(z["textures"]) == textures:
-                return VisualTable(z["X"], textures, configured or backbone.name, backbone.dim, cfg.hash())
+                return VisualTable(
+                    z["X"], textures, configured or backbone.name, backbone.dim, cfg.hash(), backbone.fingerprint
+                )
     images = []
     for t in textures:
         paths = ds.image_paths(t)
@@ -256,7 +261,9 @@ def visual_table(
     feats = batch_visual_features(
         images, cfg, backbone, n_views=n_views, seed=seed, cache=FeatureCache(cache_root() / "visual"), progress=True
     )
-    table = VisualTable(feats.values, textures, configured or feats.backbone, feats.backbone_dim, cfg.hash())
+    table = VisualTable(
+        feats.values, textures, configured or feats.backbone, feats.backbone_dim, cfg.hash(), backbone.fingerprint
+    )
     with atomic_path(cache) as tmp:
         np.savez(tmp, X=table.X, textures=np.array(textures))
     return table

@@ -48,11 +48,11 @@ SOURCE_NAME_KEY = META_PREFIX + "source_backbone"
 SOURCE_FINGERPRINT_KEY = META_PREFIX + "source_fingerprint"
 SOURCE_FILE_KEY = META_PREFIX + "source_file"
 # The least mean probe-frame cosine to the fp32 reference a backbone must reach to be served. The target for the
-# served image features is 0.97 on held-out photos, and the hardest held-out frame sits 0.017–0.025 below the probe
-# mean: the int8 copy's probes give 0.993 with VNNI (held-out worst 0.968) and 0.980 under qemu's Haswell (AVX2, where
-# onnxruntime's u8s8 kernels saturate a little in its int8 blocks; held-out worst 0.963). So the bound sits between
-# the two: a CPU without VNNI serves the fp32 source. Recipe 1, every convolution int8, gave 0.936 and 0.812; an fp32
-# file 1.000 (benchmarks/backbone_int8.py --recipes; docs/models.md).
+# served image features is 0.97 on held-out photos. The int8 copy (recipe 3: min-max ranges) gives probe means of
+# 0.994 with VNNI (held-out worst frame 0.986) and 0.978 under qemu's Haswell (AVX2, where onnxruntime's u8s8 kernels
+# saturate a little in its int8 blocks; held-out worst 0.964), so the bound sits between the two: a CPU without
+# VNNI serves the fp32 source. Recipe 1, every convolution int8, gave 0.936 and 0.812; an fp32 file 1.000
+# (benchmarks/backbone_int8.py --recipes; docs/models.md).
 MIN_PROBE_COSINE = 0.985
 
 

@@ -1,7 +1,9 @@
 """No committed report is stale: every input a report recorded (its SHA-256 under `provenance`) still hashes the
 same. Inputs in the repository are checked everywhere; the licensed sources under ../shared where ../shared is
 present; built files (data/, artifacts/) are recorded only (models/offline/provenance.py says why). Reports
-written before the rule are listed in reports/PREDATING.txt and must not grow in number."""
+written before the rule are listed in reports/PREDATING.txt and must not grow in number. The int8 backbone is
+made on each machine from code (its recipe), so a report on its features records the recipe's fingerprint, and a
+changed recipe makes the report stale here too."""
 
 from __future__ import annotations
 
@@ -32,6 +34,38 @@ def recorded() -> list[tuple[str, str, dict]]:
         for where, record in records(json.loads(path.read_text())):
             out.append((path.relative_to(ROOT).as_posix(), where, record))
     return out
+
+
+def feature_records(doc: object, where: str = "") -> list[tuple[str, dict]]:
+    """Every record of the features a report read (a mapping naming `backbone` and `backbone_dim`)."""
+    found: list[tuple[str, dict]] = []
+    if isinstance(doc, dict):
+        if "backbone" in doc and "backbone_dim" in doc:
+            found.append((where or "/", doc))
+        for key, value in doc.items():
+            found.extend(feature_records(value, f"{where}/{key}"))
+    elif isinstance(doc, list):
+        for k, value in enumerate(doc):
+            found.extend(feature_records(value, f"{where}/{k}"))
+    return found
+
+
+def test_every_report_on_int8_features_names_the_recipe_the_code_makes_now():
+    from models.offline.backbones.cnn import file_fingerprint
+    from models.offline.backbones.efficientnet import efficientnet_lite0_weights_path
+    from models.offline.backbones.quantize import INT8_SUFFIX, int8_fingerprint
+
+    now = int8_fingerprint(file_fingerprint(efficientnet_lite0_weights_path()))
+    int8_reports, stale = 0, []
+    for path in report_files():
+        for where, features in feature_records(json.loads(path.read_text())):
+            if not str(features["backbone"]).endswith(INT8_SUFFIX):
+                continue
+            int8_reports += 1
+            if features.get("backbone_fingerprint") != now:
+                stale.append(f"{path.relative_to(ROOT)} ({where}): {features.get('backbone_fingerprint')}")
+    assert int8_reports, "no committed report reads int8 features: the served configuration's reports are gone"
+    assert not stale, f"reports made from int8 features of another recipe than today's ({now}): {stale}"
 
 
 def test_every_report_records_its_inputs_or_predates_the_rule():

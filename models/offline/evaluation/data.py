@@ -108,6 +108,7 @@ def load_texture_data(
         meta.update(
             backbone=vt.backbone,
             backbone_dim=vt.backbone_dim,
+            backbone_fingerprint=vt.fingerprint,
             visual_hash=vt.config_hash,
             visual_config=vcfg.computation(),
             visual_part=visual_part,

@@ -40,6 +40,7 @@ def with_visual(
         **data.meta,
         "backbone": table.backbone,
         "backbone_dim": table.backbone_dim,
+        "backbone_fingerprint": table.fingerprint,
         "visual_hash": config.hash(),
         "visual_config": config.computation(),
         "visual_part": part,

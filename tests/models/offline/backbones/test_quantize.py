@@ -124,7 +124,8 @@ def test_synthetic_patches_are_seeded_and_in_range():
 
 
 def test_the_recipe_names_what_it_keeps_fp32_and_recipe_1_keeps_its_fingerprint():
-    assert recipe()["fp32_convs"] == FP32_CONVS and recipe()["version"] == 2
+    assert recipe()["fp32_convs"] == FP32_CONVS and recipe()["version"] == 3
+    assert recipe()["calibration"] == "min-max" and recipe("u8s8", 0)["calibration"] == "percentile 99.999"
     assert "fp32_convs" not in recipe("u8s8", 0) and recipe("u8s8", 0)["version"] == 1
     # recipe 1 (every convolution int8) names the same files as before the fp32 block was introduced
     assert int8_fingerprint("0" * 16, "u8s8", 0) == "fdd8d1044ff50d3a"  # what recipe 1's code gave
