@@ -335,3 +335,30 @@ def test_the_robot_client_waits_out_a_saturated_session_on_its_connection_and_lo
         with httpx.Client(base_url=srv.url, timeout=10) as client:
             status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 6 and s)
         assert status["counters"]["windows"] == 6 and status["counters"]["blocks_refused"] == 0
+
+
+# ---- fairness: no admitted robot starves behind the older ones -----------------------------------------------------
+def test_the_batcher_serves_a_session_whose_windows_waited_starving_s_before_the_older_sessions():
+    """Oldest first while the pool keeps up; a session whose windows have waited STARVING_S goes first (the
+    longest-waiting first), so a crowd's newest robots are not left without windows while the older ones are served
+    every hop."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.batcher import STARVING_S, WindowBatcher
+
+    batcher = WindowBatcher(ThreadPoolExecutor(1), max_jobs=1, spill_after_s=0, max_sessions_per_job=2)
+    taken: list[str] = []
+    now = time.monotonic()
+    for sid, opened, waited in (("old", 1.0, 0.0), ("mid", 2.0, 0.1), ("new", 3.0, STARVING_S + 0.5)):
+        s = SimpleNamespace(id=sid, opened_at=opened, in_job=False)
+        s.take_job = lambda max_windows=None, sid=sid: taken.append(sid) or SimpleNamespace(windows=1)
+        batcher._ready[sid] = (s, now - waited)  # type: ignore[assignment]  # ready since `waited` seconds
+    asyncio.run(batcher._gather())
+    assert taken == ["new", "old"]  # the starving one, then the oldest
+    taken.clear()
+    for sid in ("old", "new"):  # back, ready again now; mid still waits
+        s = SimpleNamespace(id=sid, opened_at={"old": 1.0, "new": 3.0}[sid], in_job=False)
+        s.take_job = lambda max_windows=None, sid=sid: taken.append(sid) or SimpleNamespace(windows=1)
+        batcher._ready[sid] = (s, time.monotonic())  # type: ignore[assignment]
+    asyncio.run(batcher._gather())
+    assert taken == ["old", "mid"]  # nobody starving: oldest first again
