@@ -6,8 +6,8 @@ One job estimates the windows of up to `max_sessions_per_job` sessions in a sing
 sessions are served first: admission (service/capacity.py) keeps the oldest sessions at full speed, so a newer
 session's backlog (a robot back from an outage resends seconds of blocks at once) must not queue ahead of them —
 until a session's windows have waited `STARVING_S`: then it goes first, the longest-waiting first, so that no
-session admitted goes without windows while the pool catches up (150 robots starting together, oldest first, left
-the newest without a window for 10–20 s while the older ones were served every hop).
+session admitted goes without windows while the pool catches up (a crowd of robots starting together, served
+strictly oldest first, would leave the newest without a window for as long as the pool is behind).
 Under light load a job holds one session and starts at once; under heavy load jobs grow, and each window gets
 cheaper — up to 8 sessions: a window then costs ≈ 0.8–1.1 ms against ≈ 0.7–0.8 at 32–64 and ≈ 2 alone
 (`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
