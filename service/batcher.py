@@ -4,7 +4,10 @@ One job estimates the windows of up to `max_sessions_per_job` sessions in a sing
 (pipeline.estimate_batch: one window_features and one model call for all of them). At most
 `max_jobs` jobs run at once (the pool's threads), a session is in at most one job, and the oldest
 sessions are served first: admission (service/capacity.py) keeps the oldest sessions at full speed, so a newer
-session's backlog (a robot back from an outage resends seconds of blocks at once) must not queue ahead of them.
+session's backlog (a robot back from an outage resends seconds of blocks at once) must not queue ahead of them —
+until a session's windows have waited `STARVING_S`: then it goes first, the longest-waiting first, so that no
+session admitted goes without windows while the pool catches up (a crowd of robots starting together, served
+strictly oldest first, would leave the newest without a window for as long as the pool is behind).
 Under light load a job holds one session and starts at once; under heavy load jobs grow, and each window gets
 cheaper — up to 8 sessions: a window then costs ≈ 0.8–1.1 ms against ≈ 0.7–0.8 at 32–64 and ≈ 2 alone
 (`python -m benchmarks.window_batch`, the demo's tactile model), while every session of a job waits for the whole
@@ -42,6 +45,11 @@ log = logging.getLogger(__name__)
 _surface_failures = LogThrottle(log)
 
 MAX_SESSIONS_PER_JOB = 8
+#: a session whose windows have waited this long (s) goes before the older sessions, the longest-waiting first: the
+#: oldest-first order keeps the oldest at full speed while the pool keeps up, but when it falls behind (a crowd's
+#: start, the backlogs robots resend) it would leave the newest sessions without a window for seconds while the
+#: older ones are served every hop
+STARVING_S = 1.0
 #: ≈ 20 ms of a pool thread (≈ 1.1–1.2 ms a window in jobs of 8 sessions)
 MAX_WINDOWS_PER_JOB = 16
 
@@ -149,11 +157,18 @@ class WindowBatcher:
         self._wake.set()  # a slot is free; sessions may have become ready meanwhile
 
     async def _gather(self) -> list[tuple[Session, SessionJob]]:
-        """Take up to max_sessions_per_job ready sessions that are not in a job, the oldest sessions first, with their
-        jobs, until the jobs hold max_windows_per_job windows."""
+        """Take up to max_sessions_per_job ready sessions that are not in a job, the oldest sessions first (but those
+        whose windows have waited STARVING_S before them, the longest-waiting first), with their jobs, until the jobs
+        hold max_windows_per_job windows."""
         batch: list[tuple[Session, SessionJob]] = []
         room = self.max_windows_per_job
-        for sid, (session, since) in sorted(self._ready.items(), key=lambda item: item[1][0].opened_at):
+        starving = time.monotonic() - STARVING_S
+        # the starving first, the longest-waiting first; then the rest, the oldest sessions first
+        order = sorted(
+            self._ready.items(),
+            key=lambda item: (0, item[1][1]) if item[1][1] <= starving else (1, item[1][0].opened_at),
+        )
+        for sid, (session, since) in order:
             if len(batch) >= self.max_sessions_per_job or room <= 0:
                 break
             if session.in_job:

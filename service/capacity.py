@@ -58,9 +58,17 @@ would hide the delay of each burst's last windows. From them:
   smaller step of the shed sessions (`READMIT_SHARE` of those served: each readmitted robot resends its backlog at
   once, and a step sized by the shed ones would, after a flood, readmit more at once than the process serves)
   streams again every `READMIT_EVERY_S`, oldest first — so the shed sessions are always the newest ones. The oldest
-  sessions keep streaming at full quality, and the refused robots back off and resend later from their oldest
-  unacknowledged block (nothing accepted is lost). A refused robot is told to come back (`retry_after`) after the
-  readmission steps of the refused sessions older than its own.
+  sessions keep streaming at full quality, and the refused robots resend from their oldest unacknowledged block
+  (nothing accepted is lost).
+
+**Readmission without polling.** A refused robot (shed, or not let start) whose credential was accepted is held
+(`hold`: its ingest handshake, or its block's request before the body is read) up to `readmit_hold_s`, waiting on an
+event: no CPU, at most one connection per session. It is let in the moment its turn comes — its shed session
+readmitted (above), or room for its start: the robots refused a start get room in the order they were first refused
+(`_line`, granted by `update` while there is room for one more), and a robot that has not asked yet queues behind
+them. Held past `readmit_hold_s` without room, it is answered 429 with `HELD_RETRY_AFTER_S` and keeps its place
+(`LINE_KEEP_S`). With `readmit_hold_s` 0 every refusal is answered at once, told to come back (`retry_after`) after
+the readmission steps of the refused sessions older than its own.
 
 **Pictures before robots.** Camera frames are degraded before any robot is refused. The frames' wait for the
 embedder (the **visual queue delay**, service/visual_queue.py) is measured apart from the window queue and never sheds
@@ -158,6 +166,12 @@ FRAME_SAMPLE_S = 5.0
 #: frames were taken this recently (s), or embeddings are queued: the camera path holds CPU that degrading frames
 #: gives back to the windows, so it is degraded before any session is shed
 FRAMES_WITHIN_S = 2.0
+#: the Retry-After (s) of a robot held readmit_hold_s in line and still without room: it keeps its place, so coming
+#: back soon costs it one handshake and loses it nothing (the place is kept LINE_KEEP_S after its last try)
+HELD_RETRY_AFTER_S = 0.5
+#: a robot refused a start keeps its place in line (and a start granted while it was away stays granted) this long
+#: after its last try (s): a robot told MAX_RETRY_AFTER_S comes back within half as much again
+LINE_KEEP_S = 1.5 * MAX_RETRY_AFTER_S
 #: the least Retry-After (s) of a refused frame: sooner, its robot's resent body costs the loop more than it gains
 MIN_FRAME_RETRY_S = 0.5
 
@@ -229,6 +243,14 @@ class CapacityGuard:
         self._room_since: float | None = None
         # session id → time.monotonic() it was let back (readmitted, or room to start), until its first block passes
         self._let_back: dict[str, float] = {}
+        # robots refused a start, in the order they were first refused (session id → that time.monotonic()): room
+        # goes to them in this order (`_grant_starts`), and a robot that has not asked yet queues behind them
+        self._line: dict[str, float] = {}
+        # session id → time.monotonic() its start was granted while its robot was not held: it starts when it is back
+        self._granted: dict[str, float] = {}
+        # session id → the event its held robot waits on (`hold`): one robot connection per session
+        self._held: dict[str, asyncio.Event] = {}
+        self._closed = False
         # ---- frames: degraded before sessions (module docstring) ----
         self.visual = EmbeddingQueue() if visual is None else visual
         self.visual_queue_s = 0.0  # the visual queue delay: frames' wait for the embedder, its peak held (QUEUE_HOLD_S)
@@ -244,6 +266,7 @@ class CapacityGuard:
         self._task = asyncio.create_task(self._sample(), name="capacity-guard")
 
     async def close(self) -> None:
+        self.release_held()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -322,6 +345,8 @@ class CapacityGuard:
         elif self._protected_late_since is None:
             self._protected_late_since = now
         self._track_room(now)
+        if self._line or self._granted:
+            self._grant_starts(now)
         if self._over():
             self._within.clear()  # within its limits again only after SETTLE_S more
             if self._over_since is None:
@@ -565,6 +590,7 @@ class CapacityGuard:
         self._readmitted.update(dict.fromkeys(back, now))
         self._let_back.update(dict.fromkeys(back, now))
         self._last_readmit = now
+        self._wake(back)
 
     @property
     def shedding(self) -> int:
@@ -667,23 +693,135 @@ class CapacityGuard:
     def _refuse_until_started(self, session: Session, then: str, start: bool = False) -> None:
         """Refuse a session whose robot has not streamed yet while there is no room for one more streaming session;
         `start`: when there is, it starts (counted in `starting` until the measures show its load)."""
-        if session.last_seq >= 0 or session.id in self._started:
+        if session.last_seq >= 0:
+            return
+        if session.id in self._started:  # let start (its turn came while it was away: it is back)
+            if start:
+                self._granted.pop(session.id, None)
             return
         now = time.monotonic()
-        # with nothing streaming there is no one to keep at full speed (and nothing measured): it starts
-        why = self._why_no_room(now) if self._streaming else None
+        why = None if session.id in self._granted else self._why_no_start(session, now)
         if why is not None:
             session.heard()  # its robot is there, waiting for room: not an abandoned session
             self._waiting[session.id] = now
+            self._line.setdefault(session.id, now)
             raise AtCapacity(
                 f"this replica is at capacity: {why}; session {session.id} has not streamed yet: {then}",
                 self.retry_after(session, now),
             )
         if start:
             self._started[session.id] = now
+            self._granted.pop(session.id, None)
+            self._line.pop(session.id, None)
             refused = self._waiting.pop(session.id, None)
-            if refused is not None:  # there was room for it since max(its refusal, the room's return)
-                self._let_back[session.id] = max(refused, self._room_since if self._room_since is not None else now)
+            if refused is not None and session.id not in self._let_back:
+                # there was room for it since max(its refusal, the room's return)
+                self._let_back[session.id] = self._room_for(refused, now)
+
+    def _why_no_start(self, session: Session, now: float) -> str | None:
+        """Why the robot of `session`, which has not streamed yet, may not start now (None: it may): no room for one
+        more streaming session, or robots refused before it wait in line (they start first, in arrival order)."""
+        # with nothing streaming there is no one to keep at full speed (and nothing measured): it starts
+        why = self._why_no_room(now) if self._streaming else None
+        if why is not None:
+            return why
+        ahead = next(iter(self._line), session.id) != session.id
+        if ahead:
+            before = len(self._line) if session.id not in self._line else list(self._line).index(session.id)
+            return f"{before} robot(s) refused a start before this one start first, in the order they came"
+        return None
+
+    def _room_for(self, refused: float, now: float) -> float:
+        """When there was room for a robot last refused at `refused`: since max(its refusal, the room's return)."""
+        return max(refused, self._room_since if self._room_since is not None else now)
+
+    def _grant_starts(self, now: float) -> None:
+        """While there is room for one more streaming session, the robot first in line may start (`_started`: its load
+        counted until the measures show it): its held connection is let in at once, or, away between tries, it starts
+        when it is back. Robots that stopped trying leave the line after LINE_KEEP_S."""
+        ids = {s.id: s for s in self._sessions()}
+        self._line = {
+            sid: t
+            for sid, t in self._line.items()
+            if sid in ids
+            and ids[sid].last_seq < 0
+            and (sid in self._held or now - self._waiting.get(sid, t) < LINE_KEEP_S)
+        }
+        self._granted = {sid: t for sid, t in self._granted.items() if sid in ids and now - t < LINE_KEEP_S}
+        granted = []
+        while self._line:
+            sid = next(iter(self._line))
+            if self._streaming and self._why_no_room(now) is not None:
+                break
+            refused = self._line.pop(sid)
+            self._started[sid] = now
+            self._let_back[sid] = self._room_for(self._waiting.pop(sid, refused), now)
+            if sid not in self._held:
+                self._granted[sid] = now
+            granted.append(sid)
+        self._wake(granted)
+
+    # ---- holding refused robots: readmitted the moment there is room, no polling ---------------------------------
+    def _wake(self, ids: Iterable[str]) -> None:
+        for sid in ids:
+            event = self._held.get(sid)
+            if event is not None:
+                event.set()
+
+    def release_held(self) -> None:
+        """Let every held robot go (the process shuts down): each is answered by what its route checks next."""
+        self._closed = True
+        self._wake(list(self._held))
+
+    async def hold(self, session: Session, hold_s: float) -> None:
+        """`admit_block(session)`, and while it refuses for capacity, hold the robot up to `hold_s` seconds: the
+        caller (an ingest socket's handshake, a block's request) waits on an event, costing no CPU, until the robot's
+        turn comes — its shed session readmitted, or room for its start, in arrival order — and is let in at once. At
+        most one robot connection per session waits (a newer one takes its place: the older is answered 429 at once),
+        so the line never holds more than the replica's sessions. AtCapacity (429 + Retry-After) when `hold_s` is 0,
+        when the hold ends without room (a short Retry-After: it keeps its place), or when a newer connection took its
+        place. The credential must have been checked before: nothing is held for an unknown client."""
+        try:
+            self.admit_block(session)
+            return
+        except AtCapacity as refused:
+            if hold_s <= 0 or self._closed:
+                raise
+            last = refused
+        sid = session.id
+        mine = asyncio.Event()
+        self._wake([sid])  # an older connection of this robot, held: answered now, this one waits in its place
+        self._held[sid] = mine
+        self.metrics.robots_held.set(len(self._held))
+        deadline = time.monotonic() + hold_s
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left > 0:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(mine.wait(), left)
+                mine.clear()
+                if self._held.get(sid) is not mine:
+                    raise AtCapacity(
+                        f"{last.detail}; a newer connection of session {sid} waits in this one's place",
+                        HELD_RETRY_AFTER_S,
+                    )
+                if self._closed or getattr(session, "closed", False):
+                    return  # the caller's next checks answer (shutting down: 503; the session ended: 404 / 410)
+                try:
+                    self.admit_block(session)
+                    return
+                except AtCapacity as refused:
+                    last = refused
+                if time.monotonic() >= deadline:
+                    raise AtCapacity(
+                        f"{last.detail} (held {hold_s:g} s in line; its place is kept: come back soon)",
+                        HELD_RETRY_AFTER_S,
+                    )
+        finally:
+            if self._held.get(sid) is mine:
+                del self._held[sid]
+            self.metrics.robots_held.set(len(self._held))
 
     def _refuse_if_shed(self, session: Session, then: str) -> None:
         if session.id in self._shed:

@@ -171,8 +171,10 @@ async def socket_session(
             local = await state.directory.local(session_id, token, roles)
             state.require_open()
             state.require_runtime()
-            # a shed session's robot reconnecting: refused before the upgrade, not after its first block
-            state.capacity.admit_block(local)
+            # a shed session's robot reconnecting, or one refused a start: held in line before the upgrade (its
+            # token accepted first) and let in the moment its turn comes, or refused with Retry-After
+            await state.capacity.hold(local, state.settings.readmit_hold_s)
+            state.require_open()  # it may have begun to shut down meanwhile
             return local
         if roles == OPERATOR_ONLY and state.api_keys.check(token):
             # a fleet key follows any session of the fleet (an operator following a robot across its sessions)

@@ -58,9 +58,7 @@ class BlockIntake:
         try:
             self.capacity.admit_block(session)
         except ServiceError:
-            self.metrics.block_outcome["refused"].inc()
-            self.metrics.block_refusal["capacity"].inc()
-            session.counters.blocks_refused += 1
+            self._refused_for_capacity(session)
             raise
         try:
             block = decode_block(payload, binary)
@@ -74,6 +72,20 @@ class BlockIntake:
             raise
         self.metrics.block_outcome["duplicate" if ack["duplicate"] else "accepted"].inc()
         return ack
+
+    async def hold(self, session: Session, hold_s: float) -> None:
+        """Before a block's body is read: a robot refused for capacity waits in line up to `hold_s` and goes on the
+        moment its turn comes (CapacityGuard.hold); AtCapacity (429, counted as `receive` counts one) otherwise."""
+        try:
+            await self.capacity.hold(session, hold_s)
+        except ServiceError:
+            self._refused_for_capacity(session)
+            raise
+
+    def _refused_for_capacity(self, session: Session) -> None:
+        self.metrics.block_outcome["refused"].inc()
+        self.metrics.block_refusal["capacity"].inc()
+        session.counters.blocks_refused += 1
 
     def rejected(self, session: Session) -> None:
         """Count an invalid block (also one refused before decoding, e.g. a wrong Content-Type)."""

@@ -167,6 +167,9 @@ class Session:
         self.in_job = False  # set by the batcher while the session's blocks are being estimated
         self.decoding_frame = False  # set by POST /frames while one of its frames is decoded (frame pool)
         self.closed = False
+        # set each time windows leave the backlog (a job's result) or the session closes: a robot's socket whose
+        # session is saturated waits on it instead of being closed (wait_for_room)
+        self._backlog_fell = asyncio.Event()
 
     # ---- ingest (event loop) ---------------------------------------------------------------------
     def touch(self) -> None:
@@ -273,6 +276,21 @@ class Session:
         """Complete windows admitted and not yet published (0 when the pipeline keeps up)."""
         return self._windows_admitted - self._windows_done
 
+    async def wait_for_room(self, timeout_s: float) -> bool:
+        """While the session is saturated by its own backlog of windows (which the pool drains by itself: nothing
+        waits for a frame or taps), wait up to `timeout_s` (s) for it to fall below the bound, costing no CPU; the
+        robot's next blocks wait unread in its connection meanwhile (its socket is not read: the bound on what is
+        held stays). True when a block completing a window would be admitted now (as far as the backlog says)."""
+        deadline = time.monotonic() + timeout_s
+        while self.saturated() and not self.closed and self.waiting_for() is None:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self._backlog_fell.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._backlog_fell.wait(), left)
+        return not self.closed and not self.saturated()
+
     def saturated(self) -> bool:
         """True when the next block that completes a window would be refused."""
         return (
@@ -357,6 +375,7 @@ class Session:
         """Publish a job's windows (yielding to the event loop every few events); after a failure the stream
         restarts cleanly at the next block."""
         self._windows_done += result.windows
+        self._backlog_fell.set()
         if self.closed:
             return
         if result.error is not None:
@@ -553,6 +572,7 @@ class Session:
     async def close(self) -> None:
         """Stop the embedder; an estimation job in flight finishes, but its windows are not published."""
         self.closed = True
+        self._backlog_fell.set()
         if self._embedder is not None and not self._embedder.done():
             self._embedder.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -139,6 +139,11 @@ class ServiceMetrics:
             buckets=(0.1, 0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 30.0),
             registry=registry,
         )
+        self.robots_held = Gauge(
+            "hapticlink_robots_held",
+            "Robots refused for capacity whose connection waits in line for room (readmit_hold_s).",
+            registry=registry,
+        )
         self.cpu_share = Gauge(
             "hapticlink_loop_cpu_share",
             "Share of one core the event-loop thread used (smoothed; 1 = always busy).",

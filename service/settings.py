@@ -265,6 +265,17 @@ class Settings(BaseSettings):
         description="window queue delay, s (its peak), above which, while the process is busy, sessions are shed as "
         "for shed_lag_s: the loop keeps up with the blocks but the window pool, sharing its GIL, does not",
     )
+    readmit_hold_s: float = Field(
+        5.0,
+        ge=0,
+        le=30,
+        description="a robot refused for capacity (its session shed, or it has not streamed yet and there is no room) "
+        "is held this long, s, before its ingest socket's handshake or its block is answered: once a token is "
+        "accepted it waits in line, arrival order, costing no CPU, one wait per session, and is let in the moment "
+        "room comes back; still no room then: 429 with a short Retry-After, and it keeps its place. A robot whose "
+        "session's own backlog of windows is full waits as long for the pool to drain it (its connection unread) "
+        "before 429 / close 4429. Below the robot client's request timeout (10 s); 0: answer 429 at once",
+    )
     shed_visual_queue_s: float = Field(
         1.0,
         gt=0,

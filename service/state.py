@@ -163,6 +163,7 @@ class ServiceState:
         (1000), waiting up to `flush_s` for them, before the server closes the connections (uvicorn closes every
         WebSocket 1012 before the lifespan shutdown)."""
         self.shutting_down = True
+        self.capacity.release_held()  # robots waiting in line for room: answered 503 now, not at the end of their wait
         deadline = time.monotonic() + estimate_s
         while time.monotonic() < deadline and any(
             s.backlog() and not s.waiting_for() for s in self.directory.sessions.values()

@@ -53,6 +53,11 @@ async def post_block(request: Request, state: State, session: RobotSession, runt
         raise ServiceError(
             415, f"blocks are application/json or {BINARY_CONTENT_TYPE}, got {kind or 'no Content-Type'}"
         )
+    # refused for capacity: held in line, its body unread, until its turn comes (or 429 with Retry-After); its own
+    # windows' backlog full: held until the pool drains it (or 429)
+    await state.blocks.hold(session, state.settings.readmit_hold_s)
+    await session.wait_for_room(state.settings.readmit_hold_s)
+    state.require_open()
     payload = await request.body()
     return state.blocks.receive(session, payload, kind == BINARY_CONTENT_TYPE, time.perf_counter_ns())
 
@@ -132,6 +137,13 @@ async def ingest_socket(websocket: WebSocket, session_id: str, token: str | None
                 why = getattr(websocket.state, "closed_why", why)  # its session ended, or a newer socket replaced it
                 return
             arrived = time.perf_counter_ns()
+            if session.saturated():
+                # its own windows' backlog is full: the robot keeps its connection and this block waits for the pool
+                # to drain it (no further message is read meanwhile), instead of a close, a reconnect and a resend
+                await session.wait_for_room(state.settings.readmit_hold_s)
+                if websocket.application_state is WebSocketState.DISCONNECTED:  # replaced, or its session ended
+                    why = getattr(websocket.state, "closed_why", why)
+                    return
             if state.shutting_down:  # not taken: the robot reconnects and resends it to its next session
                 why = "shutting down"
                 await websocket.close(int(Close.NOT_READY), "replica shutting down; reconnect and resend")

@@ -53,6 +53,7 @@ def over_budget(kit, base_settings):
             "shed_lag_s": 600,
             "session_queue_s": 600,
             "shed_queue_s": 600,
+            "readmit_hold_s": 0,  # refusals answered at once (tests/service/test_service_readmission.py: held)
         }
     )
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv:
@@ -519,7 +520,8 @@ def test_shed_robots_are_closed_4429_with_the_reason_and_come_back_oldest_first(
     clients cause is never an ERROR, and no log line carries a token."""
     caplog.set_level(logging.INFO)
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
-    settings = base_settings.model_copy(update={"instance_id": "shedding"})
+    # refusals answered at once (held in line: tests/service/test_service_readmission.py)
+    settings = base_settings.model_copy(update={"instance_id": "shedding", "readmit_hold_s": 0})
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         guard = srv.app.state.service.capacity
         sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]

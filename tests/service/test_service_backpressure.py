@@ -29,7 +29,8 @@ QUEUE_WINDOWS = 2
 @pytest.fixture
 def tight_server(kit, base_settings):
     settings = base_settings.model_copy(
-        update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS, "max_block_windows": 1}
+        # refused at once (a saturated session's robot held instead: tests/service/test_service_readmission.py)
+        update={"pool_threads": 1, "session_queue_windows": QUEUE_WINDOWS, "max_block_windows": 1, "readmit_hold_s": 0}
     )
     with kit.running(settings) as srv:
         yield srv

@@ -257,7 +257,8 @@ def test_shed_robots_come_back_in_the_order_they_came_told_when_and_the_wait_is_
     """Over capacity the newest robots are shed (429, Retry-After later the newer they are); once it has caught up
     they are let back oldest first, and the time from their readmission to their next block accepted is measured."""
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 1.0))
-    settings = base_settings.model_copy(update={"instance_id": "readmit"})
+    # refusals answered at once, told when (held in line instead: tests/service/test_service_readmission.py)
+    settings = base_settings.model_copy(update={"instance_id": "readmit", "readmit_hold_s": 0})
     # about capacity: the service's own CPU meter, the load set through the budget
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         guard = srv.app.state.service.capacity
