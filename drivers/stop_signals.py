@@ -1,4 +1,4 @@
-"""Ctrl-C and SIGTERM as a call on the running event loop, for the long-running commands (robot, demo)."""
+"""Ctrl-C and SIGTERM as a call on the running event loop, for the long-running commands (robot, operator, demo)."""
 
 from __future__ import annotations
 

@@ -315,9 +315,12 @@ class RobotClient:
             raise self._reader.exception()  # type: ignore[misc]
 
     async def _drain(self, sender: asyncio.Task, framer: asyncio.Task) -> None:
-        """Let the senders deliver what is buffered, for at most drain_timeout_s."""
+        """Let the senders deliver what is buffered, for at most drain_timeout_s; a sender's fatal error (a lost
+        session, a refused token) ends it at once: the other may wait for ever for an ingest that never opens again."""
         self.outbox.drain()
-        done, pending = await asyncio.wait([sender, framer], timeout=self.drain_timeout_s)
+        done, pending = await asyncio.wait(
+            [sender, framer], timeout=self.drain_timeout_s, return_when=asyncio.FIRST_EXCEPTION
+        )
         for task in done:
             task.result()
         if pending:

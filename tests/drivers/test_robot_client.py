@@ -244,6 +244,40 @@ def test_a_lost_session_stops_the_run_with_the_services_reason(kit, fake_service
     assert stats.acked == 5 and stats.unsent == stats.read - 5
 
 
+@pytest.mark.parametrize("transport", ["ws", "http"])
+def test_a_session_lost_while_draining_ends_the_run_at_once(kit, fake_service, transport):
+    """The source has ended (its blocks and a frame buffered) when the service says the session is lost: the run
+    raises the reason at once. It waited out the drain timeout before (30 s by default): the frame sender still waited
+    for an ingest that would never open again. The hang guard below is far under the drain timeout set here."""
+    fake_service.add_session("s-fixed", "robot-secret")
+    fake_service.lose_after = 0
+    server = kit.LoopbackServer(fake_service.app)
+    items = [Frame(0.0, b"\x89PNG\r\n\x1a\n", "image/png"), *blocks_from_arrays(kit.stroke_arrays(200, seed=3), 0.02)]
+
+    async def main():
+        await server.start()
+        try:
+            client = RobotClient(
+                server.url,
+                kit.ListSource(items),
+                session_id="s-fixed",
+                robot_token="robot-secret",
+                transport=transport,
+                drain_timeout_s=3600.0,
+                **FAST,
+            )
+            with pytest.raises(SessionLostError) as lost:
+                await asyncio.wait_for(client.run(), timeout=60.0)
+            return client.stats, lost.value
+        finally:
+            await server.stop()
+
+    stats, error = asyncio.run(main())
+    assert kit.LOST_DETAIL[:100] in str(error), str(error)
+    assert fake_service.lost_answers == 1 and stats.acked == 0 and stats.unsent == stats.read  # told once
+    assert stats.frames_sent == 0
+
+
 def test_duration_stops_reading_then_drains(kit, fake_service):
     server = kit.LoopbackServer(fake_service.app)
     source = kit.EndlessSource(speed=4.0)

@@ -7,6 +7,7 @@ dimensions, loud enough to hear and never silent on a slow stroke."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import re
@@ -817,9 +818,11 @@ def test_console_fits_1366x768_with_whole_labels(kit, server, client, library_di
 
 
 @pytest.mark.slow
-def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys, demo_small_assets):
+def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsys, monkeypatch, demo_small_assets):
     """`hapticlink demo` at a small size: the console URL it prints opens a page whose pad plays the entry the
-    demo's session has chosen, fetched from the demo's own service."""
+    demo's session has chosen, fetched from the demo's own service. Then the demo is stopped as Ctrl-C stops it (its
+    own handler: the demo runs in a thread here, where no signal reaches it; tests/demo/test_demo_run.py sends real
+    signals) and ends with its summary."""
     import asyncio
 
     from demo.run import run_demo
@@ -829,10 +832,18 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
     if not _serves_models(create_app(Settings())):
         pytest.skip("this branch's service does not serve rendering models (GET /library/{id}/model)")
     assets = demo_small_assets  # as test_demo_run.py builds them (prepare_assets), once per run
+    stop_handlers: list = []  # (the demo's loop, what it calls on SIGINT / SIGTERM)
+
+    @contextlib.contextmanager
+    def keep_stop_handler(handler):
+        stop_handlers.append((asyncio.get_running_loop(), handler))
+        yield []
+
+    monkeypatch.setattr("demo.run.on_stop_signals", keep_stop_handler)
     capsys.readouterr()
     demo = threading.Thread(
         target=lambda: asyncio.run(
-            run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=20.0, duration_s=30.0)
+            run_demo(assets, host="127.0.0.1", port=kit.free_port(), per_texture_s=20.0, duration_s=120.0)
         ),
         daemon=True,
     )
@@ -845,20 +856,25 @@ def test_demo_console_pad_plays_the_chosen_texture(tmp_path, kit, browser, capsy
         found = re.search(r"http://\S+/console\?session=\S+&token=\S+", printed)
         return found.group(0) if found else None
 
-    url = kit.wait_for(console_url, timeout_s=30)
-    browser.set_window_size(1366, 768)
-    browser.get(url)
-    _wait(browser, lambda d: _text(d, "conn") == "live")
-    _wait(browser, lambda d: _text(d, "chosen") not in ("", "—"))
-    browser.find_element("id", "audio-toggle").click()
-    _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == _text(d, "chosen"))
-    _stroke(browser, browser.find_element("id", "pad"))
-    stroke = browser.execute_script("return hapticlink.state().stroke")
-    assert stroke["peakRms"] > 1e-3 and stroke["topSpeed"] > 20, stroke
-    assert "Start sound" in _text(browser, "pad-hint") and "stroke this pad" in _text(browser, "pad-hint")
-    browser.save_screenshot(str(tmp_path / "demo-console.png"))
-    demo.join(timeout=60)
+    try:
+        url = kit.wait_for(console_url, timeout_s=30)
+        browser.set_window_size(1366, 768)
+        browser.get(url)
+        _wait(browser, lambda d: _text(d, "conn") == "live")
+        _wait(browser, lambda d: _text(d, "chosen") not in ("", "—"))
+        browser.find_element("id", "audio-toggle").click()
+        _wait(browser, lambda d: d.execute_script("return hapticlink.state().playing") == _text(d, "chosen"))
+        _stroke(browser, browser.find_element("id", "pad"))
+        stroke = browser.execute_script("return hapticlink.state().stroke")
+        assert stroke["peakRms"] > 1e-3 and stroke["topSpeed"] > 20, stroke
+        assert "Start sound" in _text(browser, "pad-hint") and "stroke this pad" in _text(browser, "pad-hint")
+        browser.save_screenshot(str(tmp_path / "demo-console.png"))
+    finally:
+        for loop, stop in stop_handlers:
+            loop.call_soon_threadsafe(stop)  # a Ctrl-C: robot, feed and service stop, the summary is printed
+        demo.join(timeout=60)
     assert not demo.is_alive()
+    assert "demo summary: " in printed + capsys.readouterr().out
 
 
 # the pad's own points, as its handlers take them: [event time, handling time, x, y] (ms, ms, CSS px, CSS px), the

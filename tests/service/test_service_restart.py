@@ -1,7 +1,8 @@
 """A restart of the service, with the real processes: `hapticlink serve`, `hapticlink robot` and `hapticlink operator`
 (following the robot by its id), a SIGTERM and a new process on the same port. The robot never exits because of
 the restart: it opens a new session and resends what was never acknowledged; the operator follows it there with no
-action; the old session is answered 410 with the reason; no ERROR line in the service's log."""
+action; the old session is answered 410 with the reason; no ERROR line in the service's log. Once the new session's
+windows flow, a Ctrl-C each ends the robot and the operator, as a user stops them."""
 
 from __future__ import annotations
 
@@ -111,6 +112,12 @@ class RobotFeed:
                 time.sleep(0.1)
 
 
+def _streamed_on(windows: list[tuple[str, float]], old: str, new: str) -> float:
+    """Seconds the new session's windows reach past the old session's last (-inf before both have one)."""
+    starts = {sid: [t for s, t in windows if s == sid] for sid in (old, new)}
+    return max(starts[new]) - max(starts[old]) if starts[old] and starts[new] else float("-inf")
+
+
 def _hapticlink(*argv: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "service.cli", *argv],
@@ -132,11 +139,11 @@ def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_
     first = _serve(kit, tactile_model, library_dir, port)
     source = f"simulated:{library_dir}:synth_000"
     robot = _hapticlink(
-        "robot", "--source", source, "--url", url, "--robot-id", ROBOT, "--transport", transport, "--duration", "40"
+        "robot", "--source", source, "--url", url, "--robot-id", ROBOT, "--transport", transport, "--duration", "90"
     )
     wav = f"wav:{tmp_path / 'out.wav'}"
     operator = _hapticlink(
-        "operator", "--url", url, "--robot", ROBOT, "--device", "simulated", "--out", wav, "--duration", "40"
+        "operator", "--url", url, "--robot", ROBOT, "--device", "simulated", "--out", wav, "--duration", "90"
     )
     robot_out, robot_err, operator_err = Lines(robot.stdout), Lines(robot.stderr), Lines(operator.stderr)
     operator_out = Lines(operator.stdout)
@@ -165,7 +172,12 @@ def test_a_restart_on_the_same_port_is_resumed_by_the_robot_and_followed_by_the_
             assert r.status_code == 410 and "replica-r restarted" in r.json()["detail"], r.text
             assert client.get(f"/sessions/{old}").status_code == 401  # the credential first
         _wait(lambda: operator_err.has(f"in its session {new}"), 30, "the operator did not follow the new session")
+        # both go on in the new session until its windows reach 2 s past the old one's last on the robot's feed (what
+        # was resent comes first); then a Ctrl-C each (the --duration above only bounds a run that goes wrong)
+        _wait(lambda: _streamed_on(feed.windows, old, new) >= 2.0, 30, "the new session's windows did not flow on")
+        robot.send_signal(signal.SIGINT)  # it stops reading, delivers what is buffered and exits
         robot.wait(timeout=90)
+        operator.send_signal(signal.SIGINT)  # it stops at the next block, finishes the WAV and says what it rendered
         operator.wait(timeout=90)
         time.sleep(1.0)  # the last windows reach the robot's feed
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import signal
 import socket
 import subprocess
@@ -350,6 +351,13 @@ class _Lines:
                 raise TimeoutError(f"{text!r} not seen in {timeout_s:g} s; seen {self.seen[-5:]}") from None
 
 
+def _subscribers(client: httpx.Client, kit) -> int:
+    """The operator event connections open on the server (its hapticlink_subscribers gauge)."""
+    found = re.search(r"^hapticlink_subscribers (\S+)$", client.get("/metrics", headers=kit.SCRAPER).text, re.M)
+    assert found is not None, "no hapticlink_subscribers gauge on /metrics"
+    return int(float(found.group(1)))
+
+
 def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, library_dir, tmp_path):
     """A real `hapticlink record --mcap OUT --foxglove PORT` process follows a live session with two Foxglove
     protocol clients (each its own process) subscribed: one keeps reading, one stalls (a viewer's laptop asleep:
@@ -364,6 +372,7 @@ def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, lib
     _, bag = _stroke_bag(library_dir, "synth_004", 11, STALL_SECONDS, tmp_path / "bag", "mcap")
     with httpx.Client(base_url=server.url, timeout=10) as client:
         session = kit.create_session(client, "ctrl-c")
+        before = _subscribers(client, kit)  # the recorder's feed and the test's own come on top
     port, out = _free_port(), tmp_path / "estimates.mcap"
     argv = [sys.executable, "-m", "service.cli", "record", "--url", server.url, "--session", session["session_id"]]
     argv += ["--token", session["operator_token"], "--mcap", str(out), "--foxglove", f"127.0.0.1:{port}"]
@@ -384,7 +393,9 @@ def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, lib
         procs[2].send_signal(signal.SIGSTOP)  # the stalled viewer
         with connect(kit.socket_url(server, session, "events")) as sub:
             assert json.loads(sub.recv(timeout=5))["event"] == "subscribed"
-            time.sleep(5.0)  # the recorder subscribes to the feed right after its server listens
+            # the recorder subscribes to the feed right after its Foxglove server listens: stream once it has
+            with httpx.Client(base_url=server.url, timeout=10) as client:
+                kit.wait_for(lambda: _subscribers(client, kit) >= before + 2, timeout_s=60)
 
             asyncio.run(_stream_bag(server, session, bag))  # the session stays open
             feed = []
