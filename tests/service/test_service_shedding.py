@@ -241,11 +241,13 @@ def test_a_slow_visual_pool_sheds_frames_not_tactile_windows_which_are_served_ta
         kit.wait_for(lambda: kit.session_status(client, first)["counters"]["frames_embedded"] == 1, timeout_s=60)
         # the embedder caught up: frames come back a level at a time, then the refused robot's frame is taken
         kit.wait_for(lambda: guard.frame_level == FRAMES_ALL, timeout_s=60)
+        # read before the next frame: on a busy host its own embedding may wait past the 50 ms bound and degrade again
+        assert "hapticlink_frame_level 0.0" in client.get("/metrics", headers=kit.SCRAPER).text
         assert _post_frame(client, second, image).status_code == 202
         kit.wait_for(lambda: kit.session_status(client, second)["counters"]["frames_embedded"] == 1, timeout_s=60)
         metrics = client.get("/metrics", headers=kit.SCRAPER).text
         assert 'hapticlink_windows_degraded_total{missing="frame"} 4.0' in metrics
-        assert "hapticlink_visual_queue_seconds" in metrics and "hapticlink_frame_level 0.0" in metrics
+        assert "hapticlink_visual_queue_seconds" in metrics
         assert "hapticlink_sessions_shed_total 0.0" in metrics
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert "camera frames" in caplog.text  # one WARNING says what was degraded and why
