@@ -56,8 +56,9 @@ model at 150 mm/s, 2 N): Burg's AR(16) on the samples is 0.34 dB from the truth 
 point lies between grid points, which share it with the prior's pull and the renderer's LSF interpolation).
 
 Friction μ: Σ F_t·F_n / Σ F_n² over contact samples (models.tactile.friction's estimator), blended with the
-prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else the
-prior's). Bad input keeps the prior and names one reason (`FitStatus`).
+prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else those of the
+first prior the surface was fitted with: the library pick may change from window to window, the surface does
+not). Bad input keeps the prior and names one reason (`FitStatus`).
 """
 
 from __future__ import annotations
@@ -484,6 +485,7 @@ class SurfaceFitter:
         self._mu_num = self._mu_den = 0.0
         self._contact_samples = 0
         self._taps: list[tuple[float, np.ndarray]] = []
+        self._fallback_taps: tuple[TapSet | None] | None = None  # (the first prior's taps,) once a fit used one
         self._last_reason: FitStatus | None = None
         del m
 
@@ -687,9 +689,14 @@ class SurfaceFitter:
         name: str,
         contact_s: float,
     ) -> VibrationModel:
-        """`vibration` with the stream's friction, bumps (once decided; else the prior's) and taps (else the
-        prior's), named and with its provenance."""
-        taps = prior.taps
+        """`vibration` with the stream's friction, bumps (once decided; else the prior's) and taps (else the taps
+        of the first prior this surface was fitted with), named and with its provenance."""
+        if self._fallback_taps is None:
+            # the library pick (the prior) can change window to window on one surface; each change would swap in
+            # another texture's recorded taps (≈ 2.8 kB on the operators' link, a different contact feel) with no
+            # new evidence about this surface, so its first prior's stand until the stream's own or a scene change
+            self._fallback_taps = (prior.taps,)
+        taps = self._fallback_taps[0]
         if self._taps:
             length = min(t.size for _, t in self._taps)
             taps = TapSet(np.array([s for s, _ in self._taps]), np.array([t[:length] for _, t in self._taps]))

@@ -164,6 +164,26 @@ def test_taps_from_tap_blocks_replace_the_priors():
     np.testing.assert_allclose(fit.model.taps.accel, traces)
 
 
+def test_a_surfaces_fallback_taps_are_its_first_priors_until_a_scene_change():
+    # the library pick (the prior) may change from window to window on one surface: its taps must not follow it
+    t = np.arange(100) / 1000.0
+    ring = np.exp(-t / 0.01) * np.sin(2 * np.pi * 150 * t)
+    first = _model("first", [40.0], [0.8], taps=TapSet(np.array([60.0]), ring[None]))
+    other = _model("other", [40.0], [0.8], taps=TapSet(np.array([90.0]), 2.0 * ring[None]))
+    _, sig, free = _stream(TRUTH, 1.0)
+    fitter = SurfaceFitter()
+    _feed(fitter, sig, free)
+    assert fitter.fit(first).model.taps is first.taps
+    assert fitter.fit(other).model.taps is first.taps
+    fitter.scene_change()
+    _feed(fitter, sig, free)
+    assert fitter.fit(other).model.taps is other.taps
+    # the stream's own taps replace them
+    assert fitter.push_taps(np.array([50.0]), 0.05 * ring[None] + 1e-3 * np.sin(np.arange(100))[None]) is None
+    fit = fitter.fit(first)
+    assert fit.model.taps is not None and fit.model.taps.speeds.tolist() == [50.0]
+
+
 def test_before_contact_the_prior_stands():
     fitter = SurfaceFitter()
     _, _, free = _stream(TRUTH, 1.0)
