@@ -638,6 +638,11 @@ class SurfaceFitter:
 
     # ---- estimates -------------------------------------------------------------------------------------
     @property
+    def holds_fallback_taps(self) -> bool:
+        """Whether a fit since the last reset fixed the surface's fallback taps (its first prior's)."""
+        return self._fallback_taps is not None
+
+    @property
     def segments(self) -> int:
         return min(self._count, self.max_segments)
 
