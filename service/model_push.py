@@ -3,8 +3,9 @@
 A connection with models pushed (`?models=push`; the render view's default, drivers/render_feed.py) gets, just
 before a choice that names a version it does not hold, that version itself, as the smallest of: the whole compact
 payload (texture_library.model_codec), a delta against the version of the same id it holds (a learnt
-`session:<id>` model's earlier version: what a refit did not move costs nothing), and, for a learnt model, a delta
-against the library entry chosen before it (its prior: the first version of a surface keeps the prior's taps).
+`session:<id>` model's earlier version: what a refit did not move costs nothing), and, for a learnt model, deltas
+against the library entry chosen before it (its prior) and against the entry whose recorded taps it carries (its
+surface's first prior, `ServedRenderModel.taps_from`: the taps are most of a model's bytes).
 A library entry the operator holds — the whole library, shared in advance and named by its digest on connect
 (`?library=`), or entries named in a hold message — is named, never sent.
 
@@ -83,7 +84,7 @@ class ModelPush:
         if served is None:
             return None
         message = render_feed.model_message(served.compact_body, delta=False)
-        for base in self._bases(chosen):  # the smallest of the whole model and the deltas against what it holds
+        for base in self._bases(chosen, served.taps_from):  # the smallest: whole, or a delta against what it holds
             delta = render_feed.model_message(model_codec.delta_between(served.body, base), delta=True)
             if len(delta) < len(message):
                 message = delta
@@ -132,12 +133,16 @@ class ModelPush:
             )
         return out, None
 
-    def _bases(self, chosen: str) -> list[bytes]:
+    def _bases(self, chosen: str, taps_from: str | None = None) -> list[bytes]:
         """Bodies the connection holds that a delta for `chosen` may be made against: its earlier version, and (a
-        learnt model) its prior (the window's library_pick, else the library entry chosen last), whose taps it
-        keeps."""
+        learnt model) its prior (the window's library_pick, else the library entry chosen last) and the entry whose
+        taps it carries (taps_from: its surface's first prior, which the window's pick may have moved on from)."""
         out = []
-        for ident in (chosen, self.last_library if chosen.startswith(SESSION_PREFIX) else None):
+        learnt = chosen.startswith(SESSION_PREFIX)
+        idents = (chosen, *((self.last_library, taps_from) if learnt else ()))
+        for k, ident in enumerate(idents):
+            if ident in idents[:k]:
+                continue
             held = None if ident is None else self.held.get(ident)
             if held is not None and ident is not None:
                 base = held.base or self._body(ident, held.version)

@@ -18,11 +18,13 @@ from texture_library.render_model import RenderModel, library_digest
 
 @dataclass(frozen=True)
 class ServedRenderModel:
-    """One entry's model: the document, its JSON body, its compact body."""
+    """One entry's model: the document, its JSON body, its compact body; taps_from: for a learnt model, the library
+    entry whose recorded taps it carries (a delta base an operator holding the library already has), else None."""
 
     model: RenderModel
     json_body: bytes
     compact_body: bytes
+    taps_from: str | None = None
 
     @property
     def version(self) -> str:

@@ -104,6 +104,7 @@ class SessionSurface:
         self._news: list[FitStatus] = []  # reasons found in the pool, for the event loop to tell
         self._told: set[FitStatus] = set()
         self._orders: tuple[int, int] | None = None  # the last ok fit's (AR, MA) orders, kept while not clearly beaten
+        self._taps_from: str | None = None  # the library entry whose taps the surface's versions carry (fitter's)
         # what publishing less costs the operators: over ok fits with a version out, the spectral distance (dB) of
         # the version they hold after the offer from the fit itself: count, sum, max
         self._gaps = 0
@@ -156,6 +157,7 @@ class SessionSurface:
             self._news.append(self._fitter.scene_change())
             self.publisher = SurfacePublisher(self.entry_id)
             self._orders = None
+            self._taps_from = None
             self._fed_s = 0.0
         return self._fitter
 
@@ -219,7 +221,10 @@ class SessionSurface:
         self._fed_s = 0.0
         self.fits += 1
         started = time.perf_counter()
+        held_taps = fitter.holds_fallback_taps
         fit = fitter.fit(prior, name=self.entry_id, keep_orders=self._orders)
+        if not held_taps and fitter.holds_fallback_taps:
+            self._taps_from = prior_id or None  # this fit fixed the surface's fallback taps: this prior's
         if fit.status is FitStatus.ok:
             p, q = fit.extra["orders"]
             self._orders = (int(p), int(q))
@@ -243,7 +248,7 @@ class SessionSurface:
             "noise_source": fit.noise_source,
             "learnt_at": round(time.time(), 3),
         }
-        served = ServedRenderModel(doc, doc.to_json_bytes(), model_codec.encode(doc))
+        served = ServedRenderModel(doc, doc.to_json_bytes(), model_codec.encode(doc), self._taps_from)
         return FitOutcome(fit.status, served, None, learnt, generation)
 
     def status(self) -> dict:

@@ -12,11 +12,20 @@ are what explains all segments best:
      tool in the air: the band-mean of their periodograms), else the noise density the robot declared,
      else unknown (taken as 0 and said so). Never a constant a simulator uses.
   3. **Bumps.** A bump train z = h(1 + cos 2π(x + x₀)/P)/2 accelerates the tip by z''v² + z'v̇ (texture_library
-     .surface): linear in (cos, sin) of the phase at each candidate period P. Least squares over the whole
-     stroke (positions are absolute, so the phase is one number per surface) give, per P, the energy the
-     bumps explain; the best P is kept when it explains BUMP_SIGNIFICANCE × its chance level and is at least
-     MIN_BUMP_MM high. The fitted bump train (phase and all) is subtracted from every segment, and the bins
-     its line swept (v_min/P … v_max/P Hz) are bridged, before the spectral fit.
+     .surface): linear in (cos, sin) of the phase at each candidate period P. Least squares over the whole stroke
+     (positions are absolute, so the phase is one number per surface) give, per P, the energy the bumps explain. A
+     bump profile is a claim that needs evidence: on a bump-free surface the texture's own vibration, coloured and
+     louder with speed (as the regressors are), explains energy at every period too — on HaTT strokes 4–7× what
+     white noise of the stroke's variance would, so a test against the variance passed 0.05–1 mm "bumps" whose
+     period wandered from fit to fit. So each period's explained energy is tested against its **local floor**
+     (`bump_floor`: the median over the periods around it, its own line's main lobe left out — a bump-free stroke's
+     explained energy is exponential about a mean that varies smoothly with the period), and a profile is reported
+     only when the best period (the one that explains most) is BUMP_SIGNIFICANCE times its floor (a chance of ≈
+     240·e⁻²⁰ per fit on a bump-free surface) and at least MIN_BUMP_MM high. The evidence of a real bump grows with
+     the distance stroked; the floor's does not. Once reported, a period stands (`choose_bump_period`) while it
+     keeps BUMP_KEEP_SIGNIFICANCE and the best explains less than BUMP_SWITCH × its floor more, so the profile
+     neither flickers in and out nor hops between periods. The fitted bump train (phase and all) is subtracted from
+     every segment, and the bins its line swept (v_min/P … v_max/P Hz) are bridged, before the spectral fit.
   4. **Grid spectra, blended with the prior.** Each segment's log periodogram (+ Euler's γ, its bias) is
      modelled as Σₖ wₖ ln(Sₖ(f) + N), wₖ the renderer's barycentric weights of the segment's (speed, force) on
      the grid, N the noise floor; the least-squares ln(Sₖ + N) with a ridge pulling each towards the prior's
@@ -26,9 +35,14 @@ are what explains all segments best:
   5. **ARMA orders and LSFs.** Each grid spectrum (below 20 Hz held at its 20 Hz value: the band the models
      are judged in starts there) → an ARMA fit per candidate (p, q) in ORDERS: poles by Yule–Walker on the
      spectrum over |B|², zeros by Yule–Walker on the inverse spectrum (whose peaks are the notches an AR
-     alone smooths over: AR(24) fitted to a HaTT ARMA(20, 18) spectrum stays ≈ 4 dB off), alternated. The
+     alone smooths over: AR(24) fitted to a HaTT ARMA(20, 18) spectrum stays ≈ 4 dB off), alternated, the
+     best iterate kept (the poles alone among them: an ARMA fit is never worse than its AR part). The
      orders, one pair for the whole grid (a VibrationModel's rows share them), minimise **AIC** under the
      Whittle likelihood summed over the grid points, with the samples behind each point (data and prior).
+     Each point's level and likelihood are taken over the bins it measured, above the noise floor: below it
+     a silent prior leaves holes tens of dB deep (HaTT's slowest rows), and one such point's likelihood,
+     thousands of nats per sample apart between orders, decided the whole grid's orders and flipped them
+     from fit to fit (pink_foam: 36 versions in 60 s, most of them whole).
      A caller that holds an earlier fit's pair (`keep_orders`: a session refitting as data accrue) keeps it
      unless the best pair's AIC is lower by ORDER_MARGIN_NATS per sample behind the grid (`choose_orders`):
      near-ties flip from fit to fit, and each flip redraws every grid point's spectrum by ≈ 1–4 dB, so it
@@ -42,8 +56,9 @@ model at 150 mm/s, 2 N): Burg's AR(16) on the samples is 0.34 dB from the truth 
 point lies between grid points, which share it with the prior's pull and the renderer's LSF interpolation).
 
 Friction μ: Σ F_t·F_n / Σ F_n² over contact samples (models.tactile.friction's estimator), blended with the
-prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else the
-prior's). Bad input keeps the prior and names one reason (`FitStatus`).
+prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else those of the
+first prior the surface was fitted with: the library pick may change from window to window, the surface does
+not). Bad input keeps the prior and names one reason (`FitStatus`).
 """
 
 from __future__ import annotations
@@ -84,11 +99,27 @@ MIN_SEGMENTS = 7
 MIN_SNR = 2.0
 #: estimated spectra are floored at this fraction of the noise floor (what lies below it is not measured)
 NOISE_CLIP = 0.1
-#: candidate bump periods, mm
-BUMP_PERIODS_MM = np.geomspace(2.0, 40.0, 240)
-#: the best period must explain this many times the energy a period explains by chance (2 dof per period;
-#: ≈ 2 ln(240 periods / 1e-3))
-BUMP_SIGNIFICANCE = 25.0
+#: a period's local floor (bump_floor): the median explained energy over BUMP_FLOOR_HALF periods either side
+#: (a factor ≈ 1.65 in period), leaving out BUMP_GUARD either side (± 5 %: the main lobe of a bump's own line once
+#: a few hundred mm are stroked)
+BUMP_FLOOR_HALF = 40
+BUMP_GUARD = 4
+#: candidate bump periods, mm: 2–40 mm in 240 geometric steps (BUMP_PERIODS_MM, the ones reported), within a grid
+#: that goes on BUMP_FLOOR_HALF + BUMP_GUARD steps either side (BUMP_GRID_MM, 1.2–69 mm), so that every reported
+#: period's floor is two-sided: the long periods ring at the lowest frequencies (v/P), where a texture's vibration
+#: often rises, and a floor taken from shorter periods alone would pass it as bumps
+_BUMP_PAD = BUMP_FLOOR_HALF + BUMP_GUARD
+BUMP_GRID_MM = 2.0 * (40.0 / 2.0) ** (np.arange(-_BUMP_PAD, 240 + _BUMP_PAD) / 239.0)
+BUMP_PERIODS_MM = BUMP_GRID_MM[_BUMP_PAD:-_BUMP_PAD]
+#: a bump profile is reported when its period's explained energy is this many times its local floor's mean (under
+#: no bumps the ratio is exponential with mean 1: a chance of ≈ 240 periods × e⁻²⁰ ≈ 5e-7 per fit); a bump-free
+#: HaTT stroke reaches 4–7 at its best period, the test module's 0.6 mm bumps ≈ 100 after 5 s
+BUMP_SIGNIFICANCE = 20.0
+#: a reported period stands while it keeps this significance (hysteresis: a profile does not flicker in and out)
+BUMP_KEEP_SIGNIFICANCE = 10.0
+#: … and until the best period explains this many of its floor's means more (evidence: a chance of ≈ e⁻¹⁰ under no
+#: bumps; a real bump's true period soon outgrows an early, slightly wrong one by far more)
+BUMP_SWITCH = 10.0
 #: a bump decision needs this much contact path, mm
 MIN_BUMP_PATH_MM = 100.0
 #: bumps lower than this are no bumps, mm: the texture's own (coloured) vibration leaks into the regression a
@@ -190,6 +221,8 @@ ORDERS: tuple[tuple[int, int], ...] = tuple(
     (p, q) for p in (4, 8, 12, 16, 20, 24) for q in sorted({0, p // 2, max(p - 2, 0)})
 )
 ARMA_ITERATIONS = 3
+#: an ARMA fit is judged on a grid point's measured bins when it has at least this many (else on the whole band)
+MIN_JUDGED_BINS = 8
 #: an earlier fit's (AR, MA) orders stand unless the best pair lowers the AIC by this much per sample behind the
 #: grid (nats: the mean Whittle log-likelihood per sample; 0.02 ≈ 0.09 dB of innovation variance). Measured on
 #: HaTT strokes (python -m benchmarks.publish_policy): it removes most order flips for +0.03 dB from the truth,
@@ -203,42 +236,67 @@ def _poly_power(poly: np.ndarray, n_fft: int) -> np.ndarray:
 
 
 def arma_from_psd(
-    psd: np.ndarray, rate_hz: float, n_eff: float, band: np.ndarray, orders: tuple[tuple[int, int], ...] = ORDERS
+    psd: np.ndarray,
+    rate_hz: float,
+    n_eff: float,
+    band: np.ndarray,
+    orders: tuple[tuple[int, int], ...] = ORDERS,
+    judged: np.ndarray | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
     """ARMA fits of a spectrum, one per (p, q) in `orders`: (a (p+1,), b (q+1,), variance, AIC).
 
-    psd: (n//2 + 1,) one-sided density on rfft bins, (m/s²)²/Hz; band: (n//2 + 1,) bool, the bins judged;
-    n_eff: samples behind the spectrum. Poles from Yule–Walker on S/|B|², zeros from Yule–Walker on the
-    inverse spectrum 1/(S|A|²) (whose peaks are S's notches), alternated ARMA_ITERATIONS times; the
-    variance matches the model to S in mean log power over the band (the log-spectral optimum). AIC under
-    the Whittle likelihood: n_band·mean_band(ln Ŝ + S/Ŝ) + 2(p + q + 1), n_band = n_eff · (band share) the
-    independent bins behind the band."""
+    psd: (n//2 + 1,) one-sided density on rfft bins, (m/s²)²/Hz; band: (n//2 + 1,) bool, the bins judged; n_eff:
+    samples behind the spectrum. Poles from Yule–Walker on S/|B|², zeros from Yule–Walker on the inverse spectrum
+    1/(S|A|²) (whose peaks are S's notches), alternated ARMA_ITERATIONS times, the iterate (B = 1, the poles alone,
+    included) with the best Whittle likelihood kept; the variance matches the model to S in mean log power over the
+    band (the log-spectral optimum). AIC under the Whittle likelihood: n_band·mean_band(ln Ŝ + S/Ŝ) + 2(p + q + 1),
+    n_band = n_eff · (band share) the independent bins behind the band. judged: (n//2 + 1,) bool within band, the
+    bins measured (above the noise floor: `SurfaceFitter.fit`), where the variance is matched and the likelihood
+    taken (None, or fewer than MIN_JUDGED_BINS: the band) — bins below the noise floor say nothing about the
+    surface, and a hole there (the prior's, tens of dB deep) would otherwise decide the level and the orders."""
     s = np.maximum(np.asarray(psd, float), 1e-300)
     n_fft = 2 * (s.size - 1)
+    if judged is not None and int(np.count_nonzero(judged & band)) >= MIN_JUDGED_BINS:
+        band = judged & band
     n_band = n_eff * band.mean()
+
+    def whittle(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+        # (the Whittle term per band bin, the variance) of the pair, variance at the log-spectral optimum
+        shape = 2.0 * _poly_power(b, n_fft) / (rate_hz * _poly_power(a, n_fft))
+        variance = float(np.exp(np.mean(np.log(s[band] / shape[band]))))
+        model = variance * shape
+        return float(np.mean(np.log(model[band]) + s[band] / model[band])), variance
+
     out = []
     for p, q in orders:
-        b = np.array([1.0])
-        a = np.array([1.0])
+        b = np.concatenate([[1.0], np.zeros(q)])
+        best: tuple[float, np.ndarray, np.ndarray] | None = None
         # Levinson's polynomials are minimum-phase: only the final pair needs its LSFs checked (root finding is
-        # most of a fit's cost)
+        # most of a fit's cost). The alternation is not monotone: on a spectrum with a deep hole (tens of dB below
+        # the noise floor, where the prior stands) the zeros fitted to the inverse spectrum can put notches where
+        # there are none and leave the pair thousands of nats per sample worse than its own poles alone (b = 1),
+        # which then decided the whole grid's orders and flipped them from fit to fit. So every iterate is scored
+        # and the best kept, the first being the poles alone: an ARMA(p, q) fit is never worse than AR(p).
         for _ in range(ARMA_ITERATIONS if q else 1):
             polys, _, _ = ar_from_psd(s / _poly_power(b, n_fft), rate_hz, 1.0, max_order=p)
             a = polys[p - 1]
+            score = whittle(a, b)[0]
+            if best is None or score < best[0]:
+                best = (score, a, b)
             if not q:
                 break
             inverse = 1.0 / (s * _poly_power(a, n_fft))
             inverse /= inverse[band].mean()
             polys, _, _ = ar_from_psd(inverse, rate_hz, 1.0, max_order=q)
             b = polys[q - 1]
-        a = _pull_in(a)
-        if q:
-            b = _pull_in(b)
-        shape = 2.0 * _poly_power(b, n_fft) / (rate_hz * _poly_power(a, n_fft))
-        variance = float(np.exp(np.mean(np.log(s[band] / shape[band]))))
-        model = variance * shape
-        whittle = n_band * float(np.mean(np.log(model[band]) + s[band] / model[band]))
-        out.append((a, b, variance, whittle + 2.0 * (p + q + 1)))
+            score = whittle(a, b)[0]
+            if score < best[0]:
+                best = (score, a, b)
+        assert best is not None
+        a = _pull_in(best[1])
+        b = _pull_in(best[2]) if q else best[2]
+        score, variance = whittle(a, b)
+        out.append((a, b, variance, n_band * score + 2.0 * (p + q + 1)))
     return out
 
 
@@ -307,14 +365,63 @@ def bump_regressors(x: np.ndarray, v: np.ndarray, dv: np.ndarray, periods_mm: np
     return -1e-3 * np.stack([kv2 * c + kdv * s, -kv2 * s + kdv * c], axis=-1)
 
 
+def bump_floor(explained: np.ndarray, half: int = BUMP_FLOOR_HALF, guard: int = BUMP_GUARD) -> np.ndarray:
+    """(P,) the energy each candidate bump period would explain on a bump-free surface (its mean), same unit.
+
+    explained: (P,) energy the least-squares bump train of each period explains, on periods in geometric order;
+    half, guard: periods (indices). Without bumps, a period's explained energy is exponential (two regressors'
+    worth of the texture's coloured, speed-dependent vibration) about a mean that varies smoothly with the period;
+    that mean is the median of the 2·half periods around it, its own guard either side left out (the window slides
+    inwards at the ends), over ln 2 (an exponential's median). explained / floor is then ≈ exponential with mean 1
+    under no bumps; a real bump train's grows with the distance stroked."""
+    e = np.asarray(explained, float)
+    if e.ndim != 1 or e.size < 2 * (half + guard) + 1 or not np.all(np.isfinite(e)) or np.any(e < 0):
+        raise ValueError(
+            f"explained must be 1-D, finite, ≥ 0 and longer than 2·(half + guard) = {2 * (half + guard)}, "
+            f"got shape {e.shape}"
+        )
+    if half < 1 or guard < 0:
+        raise ValueError(f"half must be ≥ 1 and guard ≥ 0, got {half} and {guard}")
+    n, width = e.size, 2 * (half + guard) + 1
+    out = np.empty(n)
+    for i in range(n):
+        lo = min(max(i - half - guard, 0), n - width)
+        window = np.concatenate([e[lo : max(i - guard, lo)], e[min(i + guard + 1, lo + width) : lo + width]])
+        out[i] = float(np.median(window)) / math.log(2.0)
+    return out
+
+
+def choose_bump_period(explained: np.ndarray, floor: np.ndarray, kept: int | None = None) -> int | None:
+    """The index of the bump period to report, or None (no bumps).
+
+    explained: (P,) the energy each period's bump train explains; floor: (P,) its mean under no bumps (bump_floor);
+    kept: the period reported by the previous decision (None: none). The period is the one that explains most (the
+    least-squares estimate). The kept period stands while its significance (explained / floor) is at least
+    BUMP_KEEP_SIGNIFICANCE and the best explains less than BUMP_SWITCH of its floor more; otherwise the best, when
+    its significance reaches BUMP_SIGNIFICANCE."""
+    e = np.asarray(explained, float)
+    fl = np.asarray(floor, float)
+    if e.ndim != 1 or e.shape != fl.shape or e.size == 0 or np.isnan(e).any() or np.isnan(fl).any():
+        raise ValueError(
+            f"explained and floor must be 1-D of one non-zero length without NaN, got {e.shape}, {fl.shape}"
+        )
+    if kept is not None and not 0 <= kept < e.size:
+        raise ValueError(f"kept must index one of the {e.size} periods, got {kept}")
+    z = np.divide(e, fl, out=np.where(e > 0, math.inf, 0.0), where=fl > 0)
+    best = int(np.argmax(e))
+    if kept is not None and z[kept] >= BUMP_KEEP_SIGNIFICANCE and e[best] - e[kept] < BUMP_SWITCH * fl[kept]:
+        return kept
+    return best if z[best] >= BUMP_SIGNIFICANCE else None
+
+
 # ---- the streaming fitter --------------------------------------------------------------------------------
 class SurfaceFitter:
     """Accumulates a session's accepted blocks into bounded statistics; `fit(prior)` makes the model.
 
     Memory: at most max_segments (default MAX_SEGMENTS) segments (normal acceleration, velocity and position,
     128 float32 each: 3 MB at the default; kept raw so that bumps found later come off every segment before its
-    spectrum is taken), the bump normal equations (240 periods × 5 numbers), MAX_TAPS taps, a few running sums;
-    CPU per block: one FFT per 64 samples and 240 × n trigonometric terms. `fit` costs a (30 × 30) solve and 30
+    spectrum is taken), the bump normal equations (328 periods × 5 numbers), MAX_TAPS taps, a few running sums;
+    CPU per block: one FFT per 64 samples and 328 × n trigonometric terms. `fit` costs a (30 × 30) solve and 30
     Levinson recursions.
     """
 
@@ -368,15 +475,17 @@ class SurfaceFitter:
         self._slow = 0
         self._free_sum, self._free_n = 0.0, 0
         self._free_pending = np.zeros((0, 3))
-        nper = BUMP_PERIODS_MM.size
+        nper = BUMP_GRID_MM.size
         self._bump_g = np.zeros((nper, 2, 2))
         self._bump_b = np.zeros((nper, 2))
         self._bump_ss = 0.0
         self._bump_n = 0
+        self._bump_kept: int | None = None  # the period last reported (choose_bump_period's hysteresis)
         self._path_mm = 0.0
         self._mu_num = self._mu_den = 0.0
         self._contact_samples = 0
         self._taps: list[tuple[float, np.ndarray]] = []
+        self._fallback_taps: tuple[TapSet | None] | None = None  # (the first prior's taps,) once a fit used one
         self._last_reason: FitStatus | None = None
         del m
 
@@ -521,13 +630,18 @@ class SurfaceFitter:
         dv = (np.gradient(v) * self.rate_hz)[-HOP:]
         an, v, x = an[-HOP:], v[-HOP:], x[-HOP:]
         y = an - float(np.linalg.norm(self._gravity)) / max(self._gravity_n, 1)
-        r = bump_regressors(x, v, dv, BUMP_PERIODS_MM)  # (P, n, 2)
+        r = bump_regressors(x, v, dv, BUMP_GRID_MM)  # (P, n, 2)
         self._bump_g += np.einsum("pni,pnj->pij", r, r)
         self._bump_b += np.einsum("pni,n->pi", r, y)
         self._bump_ss += float(y @ y)
         self._bump_n += y.size
 
     # ---- estimates -------------------------------------------------------------------------------------
+    @property
+    def holds_fallback_taps(self) -> bool:
+        """Whether a fit since the last reset fixed the surface's fallback taps (its first prior's)."""
+        return self._fallback_taps is not None
+
     @property
     def segments(self) -> int:
         return min(self._count, self.max_segments)
@@ -549,7 +663,8 @@ class SurfaceFitter:
 
     def bumps(self) -> tuple[SurfaceProfile | None, bool]:
         """(the bump profile, whether the stream has decided): decided once MIN_BUMP_PATH_MM of contact; a
-        profile only when the best period explains BUMP_SIGNIFICANCE × its chance share."""
+        profile only when a period stands out of its local floor (bump_floor, choose_bump_period: the
+        fitter remembers the period it last reported)."""
         profile, decided, _ = self._bump_fit()
         return profile, decided
 
@@ -559,13 +674,16 @@ class SurfaceFitter:
             return None, False, np.zeros(2)
         g = self._bump_g + 1e-12 * np.eye(2)[None]
         beta = np.linalg.solve(g, self._bump_b[..., None])[..., 0]  # (P, 2)
-        explained = np.einsum("pi,pi->p", beta, self._bump_b)
-        best = int(np.argmax(explained))
-        residual = max(self._bump_ss - explained[best], 1e-300) / max(self._bump_n - 2, 1)
-        height = 2.0 * float(np.hypot(*beta[best]))  # β = (h/2)(cos, sin) of the phase
-        if explained[best] < BUMP_SIGNIFICANCE * 2 * residual or height < MIN_BUMP_MM:
+        explained = np.maximum(np.einsum("pi,pi->p", beta, self._bump_b), 0.0)
+        floor = bump_floor(explained)[_BUMP_PAD:-_BUMP_PAD]  # the reported periods' (BUMP_PERIODS_MM)
+        beta, explained = beta[_BUMP_PAD:-_BUMP_PAD], explained[_BUMP_PAD:-_BUMP_PAD]
+        chosen = choose_bump_period(explained, floor, self._bump_kept)
+        height = 0.0 if chosen is None else 2.0 * float(np.hypot(*beta[chosen]))  # β = (h/2)(cos, sin) of the phase
+        if chosen is None or height < MIN_BUMP_MM:
+            self._bump_kept = None
             return None, True, np.zeros(2)
-        return SurfaceProfile(height, float(BUMP_PERIODS_MM[best])), True, beta[best]
+        self._bump_kept = chosen
+        return SurfaceProfile(height, float(BUMP_PERIODS_MM[chosen])), True, beta[chosen]
 
     def _with_other_dimensions(
         self,
@@ -576,9 +694,14 @@ class SurfaceFitter:
         name: str,
         contact_s: float,
     ) -> VibrationModel:
-        """`vibration` with the stream's friction, bumps (once decided; else the prior's) and taps (else the
-        prior's), named and with its provenance."""
-        taps = prior.taps
+        """`vibration` with the stream's friction, bumps (once decided; else the prior's) and taps (else the taps
+        of the first prior this surface was fitted with), named and with its provenance."""
+        if self._fallback_taps is None:
+            # the library pick (the prior) can change window to window on one surface; each change would swap in
+            # another texture's recorded taps (≈ 2.8 kB on the operators' link, a different contact feel) with no
+            # new evidence about this surface, so its first prior's stand until the stream's own or a scene change
+            self._fallback_taps = (prior.taps,)
+        taps = self._fallback_taps[0]
         if self._taps:
             length = min(t.size for _, t in self._taps)
             taps = TapSet(np.array([s for s, _ in self._taps]), np.array([t[:length] for _, t in self._taps]))
@@ -674,7 +797,9 @@ class SurfaceFitter:
         support = weights.sum(axis=0)
         confidence = support / (support + prior_segments)
         n_eff = (support + prior_segments) * HOP
-        fits = [arma_from_psd(sp, self.rate_hz, float(n), band) for sp, n in zip(spectra, n_eff)]
+        # each grid point's fits are judged (level, likelihood, orders) where it was measured: above the noise floor
+        judged = band[None, :] & ~hidden
+        fits = [arma_from_psd(sp, self.rate_hz, float(n), band, judged=jb) for sp, n, jb in zip(spectra, n_eff, judged)]
         aic = np.sum([[f[3] for f in per] for per in fits], axis=0)
         keep = ORDERS.index(keep_orders) if keep_orders in ORDERS else None
         best = choose_orders(aic, float(np.sum(n_eff)), keep)

@@ -271,3 +271,21 @@ def test_a_learnt_model_goes_as_a_delta_against_its_prior_the_window_names(catal
     source, doc, _ = model_codec.decode_delta(message[1:], catalog.models["synth_003"].body)
     assert source == learnt[0].version and doc == model_codec.decode(learnt[0].compact_body)[1]
     assert len(message) < len(learnt[0].compact_body) / 4  # it is synth_003's model under another id
+
+
+def test_a_learnt_model_goes_as_a_delta_against_the_entry_whose_taps_it_carries(catalog, learnt):
+    """The surface's versions keep its first prior's taps (models.tactile.surface_fit) while the window's pick moves
+    on: that entry (taps_from), held with the library, is a base too."""
+    push = _push(catalog, learnt)
+    push.hold_library(catalog.digest)
+    version = dataclasses.replace(learnt[0], taps_from="synth_003")
+    push.resolve = lambda chosen, v: version if chosen == SESSION else catalog.models.get(chosen)
+    message = push.bring(SESSION, version.version, prior="synth_000")  # the window's pick is another entry now
+    assert message is not None and message[:1] == render_feed.DELTA_TAG
+    assert model_codec.delta_base(message[1:]) == model_codec.body_digest(catalog.models["synth_003"].body)
+    assert len(message) < len(learnt[0].compact_body) / 4
+    # without it the same version goes whole or against the pick, larger
+    other = _push(catalog, learnt)
+    other.hold_library(catalog.digest)
+    plain = other.bring(SESSION, learnt[0].version, prior="synth_000")
+    assert plain is not None and len(plain) > 2 * len(message)
