@@ -346,6 +346,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     import logging
 
     from drivers.robot import RobotClient, ServiceRefused
+    from drivers.stop_signals import run_until_stopped
 
     if (args.session is None) != (args.token is None):
         raise ValueError("--session and --token go together (stream into that session), or give neither (create one)")
@@ -390,7 +391,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         robot_id=args.robot_id,
     )
     try:
-        stats = asyncio.run(_stream(client, args.duration))
+        stats = asyncio.run(run_until_stopped(client, args.duration, "delivering buffered blocks"))
     except asyncio.CancelledError:
         return 130
     except (ServiceRefused, OSError, LookupError) as exc:
@@ -404,26 +405,3 @@ def _run_robot(args: argparse.Namespace) -> int:
 def _print_session(info) -> None:
     """The session the robot opened, once its source gave something: where its operators watch."""
     print(f"session {info.session_id}\noperator token {info.operator_token}\nconsole {info.console_url}", flush=True)
-
-
-async def _stream(client, duration_s: float | None):
-    """Run (the client opens the session once its source gives something); first Ctrl-C drains, second quits."""
-    import asyncio
-
-    from drivers.stop_signals import on_stop_signals
-
-    main = asyncio.current_task()
-    interrupted = False
-
-    def on_signal() -> None:
-        nonlocal interrupted
-        if interrupted:
-            if main is not None:
-                main.cancel()
-            return
-        interrupted = True
-        print("stopping: delivering buffered blocks (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
-        client.stop()
-
-    with on_stop_signals(on_signal):
-        return await client.run(duration_s)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
+import sys
 from collections.abc import Callable, Iterator
+from typing import Any, Protocol
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -30,3 +32,31 @@ def on_stop_signals(handler: Callable[[], None]) -> Iterator[list[signal.Signals
     finally:
         for sig in installed:
             loop.remove_signal_handler(sig)
+
+
+class Stoppable(Protocol):
+    """A client that runs until its source ends or `duration_s` passes, and winds down when told to stop."""
+
+    def stop(self) -> None: ...
+
+    async def run(self, duration_s: float | None) -> Any: ...
+
+
+async def run_until_stopped(client: Stoppable, duration_s: float | None, stopping: str) -> Any:
+    """`client.run(duration_s)`; the first Ctrl-C (or SIGTERM) says `stopping` on stderr and stops the client the way
+    its duration's end does (what it holds is finished), a second quits at once (the run is cancelled)."""
+    main = asyncio.current_task()
+    interrupted = False
+
+    def on_signal() -> None:
+        nonlocal interrupted
+        if interrupted:
+            if main is not None:
+                main.cancel()
+            return
+        interrupted = True
+        print(f"stopping: {stopping} (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
+        client.stop()
+
+    with on_stop_signals(on_signal):
+        return await client.run(duration_s)

@@ -98,28 +98,6 @@ def output_from_spec(spec: str, *, full_scale: float):
     raise ValueError(f"output spec {spec!r} must be one of: {', '.join(OUTPUT_SPECS)}")
 
 
-async def _render(client, duration_s: float | None):
-    """Run the client until the device ends, duration_s passes, or Ctrl-C (or SIGTERM): the first stops it at the next
-    block as the duration's end does (the outputs finished, the summary printed); a second quits at once."""
-    from drivers.stop_signals import on_stop_signals
-
-    main = asyncio.current_task()
-    interrupted = False
-
-    def on_signal() -> None:
-        nonlocal interrupted
-        if interrupted:
-            if main is not None:
-                main.cancel()
-            return
-        interrupted = True
-        print("stopping: finishing the output (Ctrl-C again to quit now)", file=sys.stderr, flush=True)
-        client.stop()
-
-    with on_stop_signals(on_signal):
-        return await client.run(duration_s)
-
-
 def _port_baud(rest: str) -> tuple[str, int]:
     head, _, tail = rest.rpartition(":")
     if head and tail.isdigit():
@@ -132,6 +110,7 @@ def _port_baud(rest: str) -> tuple[str, int]:
 def run(args: argparse.Namespace) -> int:
     from drivers.operator.client import OperatorClient, Switch
     from drivers.protocol import API_KEY_ENV, check_service_url
+    from drivers.stop_signals import run_until_stopped
 
     # checked before anything connects: found later (or never), they cost a session's worth of retries
     check_service_url(args.url)
@@ -206,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
         library=library,
     )
     try:
-        stats = asyncio.run(_render(client, args.duration))
+        stats = asyncio.run(run_until_stopped(client, args.duration, "finishing the output"))
     except (KeyboardInterrupt, asyncio.CancelledError):  # a Ctrl-C before the loop took the signals over, or a second
         return 130
     finally:

@@ -23,7 +23,7 @@ import uvicorn
 from PIL import Image
 
 from drivers.blocks import BINARY_CONTENT_TYPE, SampleBlock, encode_binary, encode_json
-from drivers.source import blocks_from_arrays
+from drivers.source import blocks_from_arrays, paced
 from service.app import create_app, server_options
 from service.launcher import free_port
 from service.server import SessionEndingServer
@@ -341,11 +341,27 @@ def client(server) -> Iterator[httpx.Client]:
         yield c
 
 
+class BlockList:
+    """A SensorSource over prepared blocks (as fast as the client takes them)."""
+
+    name = "blocks"
+
+    def __init__(self, blocks) -> None:
+        self.blocks = blocks
+
+    def __aiter__(self):
+        return paced(self.blocks, False).__aiter__()
+
+    async def aclose(self) -> None:
+        pass
+
+
 @pytest.fixture(scope="session")
 def kit() -> SimpleNamespace:
     return SimpleNamespace(
         ServerThread=ServerThread,
         running=running,
+        BlockList=BlockList,
         stroke_recording=stroke_recording,
         recording_blocks=recording_blocks,
         wait_for=wait_for,

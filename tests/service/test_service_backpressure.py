@@ -21,7 +21,6 @@ from websockets.sync.client import connect
 from drivers.blocks import encode_binary
 from drivers.protocol import Close
 from drivers.robot import RobotClient
-from drivers.source import paced
 
 QUEUE_WINDOWS = 2
 
@@ -103,28 +102,18 @@ def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_
         kit.wait_for(lambda: kit.session_status(client, session)["counters"]["windows"] == 4)
 
 
-class BlockList:
-    """A SensorSource over prepared blocks (as fast as the client takes them)."""
-
-    name = "blocks"
-
-    def __init__(self, blocks) -> None:
-        self.blocks = blocks
-
-    def __aiter__(self):
-        return paced(self.blocks, False).__aiter__()
-
-    async def aclose(self) -> None:
-        pass
-
-
 @pytest.mark.parametrize("transport", ["ws", "http"])
 def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_server, library_dir, transport):
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_004", 3.0))
 
     async def main():
         robot = RobotClient(
-            tight_server.url, BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
+            tight_server.url,
+            kit.BlockList(blocks),
+            transport=transport,
+            backoff=(0.05, 0.2),
+            seed=1,
+            api_key=kit.API_KEY,
         )
         stall = PoolStall(tight_server)
 

@@ -23,7 +23,6 @@ from websockets.sync.client import connect
 from drivers.blocks import encode_binary
 from drivers.protocol import Close
 from drivers.robot import RobotClient
-from drivers.source import paced
 from service.capacity import HELD_RETRY_AFTER_S, SAMPLE_EVERY_S, AtCapacity, CapacityGuard
 from service.metrics import ServiceMetrics
 from service.settings import Settings
@@ -271,21 +270,6 @@ def test_a_robot_whose_session_is_saturated_keeps_its_socket_and_its_blocks_wait
         assert status["counters"]["windows"] == 4 and status["counters"]["blocks_refused"] == 0
 
 
-class _Blocks:
-    """A SensorSource over prepared blocks (as fast as the client takes them)."""
-
-    name = "blocks"
-
-    def __init__(self, blocks) -> None:
-        self.blocks = blocks
-
-    def __aiter__(self):
-        return paced(self.blocks, False).__aiter__()
-
-    async def aclose(self) -> None:
-        pass
-
-
 @pytest.mark.parametrize("transport", ["ws", "http"])
 def test_the_robot_client_waits_out_a_saturated_session_on_its_connection_and_loses_nothing(
     kit, base_settings, library_dir, transport
@@ -307,7 +291,7 @@ def test_the_robot_client_waits_out_a_saturated_session_on_its_connection_and_lo
 
         async def main():
             robot = RobotClient(
-                srv.url, _Blocks(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
+                srv.url, kit.BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
             )
             stall = PoolStall(srv)
 
