@@ -39,10 +39,12 @@ are what explains all segments best:
      best iterate kept (the poles alone among them: an ARMA fit is never worse than its AR part). The
      orders, one pair for the whole grid (a VibrationModel's rows share them), minimise **AIC** under the
      Whittle likelihood summed over the grid points, with the samples behind each point (data and prior).
-     Each point's level and likelihood are taken over the bins it measured, above the noise floor: below it
-     a silent prior leaves holes tens of dB deep (HaTT's slowest rows), and one such point's likelihood,
-     thousands of nats per sample apart between orders, decided the whole grid's orders and flipped them
-     from fit to fit (pink_foam: 36 versions in 60 s, most of them whole).
+     Each point's likelihood for the choice of orders is taken over the bins it measured, above the noise
+     floor: below it a silent prior leaves holes tens of dB deep (HaTT's slowest rows), and one such point's
+     likelihood, thousands of nats per sample apart between orders, decided the whole grid's orders and
+     flipped them from fit to fit (pink_foam: 36 versions in 60 s, most of them whole). The fit itself reads
+     the whole band, so where nothing was measured the prior's values stand (judged on the measured bins
+     alone, the model spectra strayed there: 2–3 dB further from the true surface in the online study).
      A caller that holds an earlier fit's pair (`keep_orders`: a session refitting as data accrue) keeps it
      unless the best pair's AIC is lower by ORDER_MARGIN_NATS per sample behind the grid (`choose_orders`):
      near-ties flip from fit to fit, and each flip redraws every grid point's spectrum by ≈ 1–4 dB, so it
@@ -221,7 +223,7 @@ ORDERS: tuple[tuple[int, int], ...] = tuple(
     (p, q) for p in (4, 8, 12, 16, 20, 24) for q in sorted({0, p // 2, max(p - 2, 0)})
 )
 ARMA_ITERATIONS = 3
-#: an ARMA fit is judged on a grid point's measured bins when it has at least this many (else on the whole band)
+#: a grid point's orders are judged on its measured bins when it has at least this many (else on the whole band)
 MIN_JUDGED_BINS = 8
 #: an earlier fit's (AR, MA) orders stand unless the best pair lowers the AIC by this much per sample behind the
 #: grid (nats: the mean Whittle log-likelihood per sample; 0.02 ≈ 0.09 dB of innovation variance). Measured on
@@ -251,21 +253,22 @@ def arma_from_psd(
     included) with the best Whittle likelihood kept; the variance matches the model to S in mean log power over the
     band (the log-spectral optimum). AIC under the Whittle likelihood: n_band·mean_band(ln Ŝ + S/Ŝ) + 2(p + q + 1),
     n_band = n_eff · (band share) the independent bins behind the band. judged: (n//2 + 1,) bool within band, the
-    bins measured (above the noise floor: `SurfaceFitter.fit`), where the variance is matched and the likelihood
-    taken (None, or fewer than MIN_JUDGED_BINS: the band) — bins below the noise floor say nothing about the
-    surface, and a hole there (the prior's, tens of dB deep) would otherwise decide the level and the orders."""
+    bins measured (above the noise floor: `SurfaceFitter.fit`), where the AIC's likelihood is taken (None, or fewer
+    than MIN_JUDGED_BINS: the band) — a hole below the noise floor (the prior's, tens of dB deep) would otherwise
+    decide the orders; the fit (poles, zeros, level) reads the whole band either way."""
     s = np.maximum(np.asarray(psd, float), 1e-300)
     n_fft = 2 * (s.size - 1)
+    orders_band = band
     if judged is not None and int(np.count_nonzero(judged & band)) >= MIN_JUDGED_BINS:
-        band = judged & band
-    n_band = n_eff * band.mean()
+        orders_band = judged & band
+    n_band = n_eff * orders_band.mean()
 
-    def whittle(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    def whittle(a: np.ndarray, b: np.ndarray, on: np.ndarray = band) -> tuple[float, float]:
         # (the Whittle term per band bin, the variance) of the pair, variance at the log-spectral optimum
         shape = 2.0 * _poly_power(b, n_fft) / (rate_hz * _poly_power(a, n_fft))
-        variance = float(np.exp(np.mean(np.log(s[band] / shape[band]))))
+        variance = float(np.exp(np.mean(np.log(s[on] / shape[on]))))
         model = variance * shape
-        return float(np.mean(np.log(model[band]) + s[band] / model[band])), variance
+        return float(np.mean(np.log(model[on]) + s[on] / model[on])), variance
 
     out = []
     for p, q in orders:
@@ -295,7 +298,8 @@ def arma_from_psd(
         assert best is not None
         a = _pull_in(best[1])
         b = _pull_in(best[2]) if q else best[2]
-        score, variance = whittle(a, b)
+        variance = whittle(a, b)[1]
+        score = whittle(a, b, orders_band)[0]
         out.append((a, b, variance, n_band * score + 2.0 * (p + q + 1)))
     return out
 
@@ -797,7 +801,7 @@ class SurfaceFitter:
         support = weights.sum(axis=0)
         confidence = support / (support + prior_segments)
         n_eff = (support + prior_segments) * HOP
-        # each grid point's fits are judged (level, likelihood, orders) where it was measured: above the noise floor
+        # each grid point's orders are judged where it was measured: above the noise floor
         judged = band[None, :] & ~hidden
         fits = [arma_from_psd(sp, self.rate_hz, float(n), band, judged=jb) for sp, n, jb in zip(spectra, n_eff, judged)]
         aic = np.sum([[f[3] for f in per] for per in fits], axis=0)
