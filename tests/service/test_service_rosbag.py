@@ -101,6 +101,16 @@ async def _take(source) -> list:
     return [item async for item in source]
 
 
+def _events_until_quiet(sub) -> list[dict]:
+    """Every event the feed socket `sub` still sends, until it stays quiet for 1 s."""
+    feed = []
+    while True:
+        try:
+            feed.append(json.loads(sub.recv(timeout=1.0)))
+        except TimeoutError:
+            return feed
+
+
 async def _stream_bag(server, session: dict, bag) -> None:
     """A robot streams the bag into the session as fast as it is taken, then QUIET_S passes: the last windows are
     estimated and published."""
@@ -157,12 +167,7 @@ def test_hapticlink_record_writes_every_event_of_the_feed_as_mcap_on_the_robots_
             return written
 
         written = asyncio.run(main())
-        feed = []
-        while True:
-            try:
-                feed.append(json.loads(sub.recv(timeout=1.0)))
-            except TimeoutError:
-                break
+        feed = _events_until_quiet(sub)
     with out.open("rb") as fh:
         reader = make_reader(fh)
         summary = reader.get_summary()
@@ -245,12 +250,7 @@ def test_record_publishes_the_same_channels_live_to_a_foxglove_client(kit, serve
             await task
 
         asyncio.run(main())
-        feed = []
-        while True:
-            try:
-                feed.append(json.loads(sub.recv(timeout=1.0)))
-            except TimeoutError:
-                break
+        feed = _events_until_quiet(sub)
     assert {c["topic"]: c["schemaName"] for c in channels.values()} == {t: n for t, (n, _, _) in CHANNELS.items()}
     assert all(c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema" for c in channels.values())
     assert all(json.loads(c["schema"]) == CHANNELS[c["topic"]][1] for c in channels.values())
@@ -398,12 +398,7 @@ def test_record_stops_on_ctrl_c_with_foxglove_clients_connected(kit, server, lib
                 kit.wait_for(lambda: _subscribers(client, kit) >= before + 2, timeout_s=60)
 
             asyncio.run(_stream_bag(server, session, bag))  # the session stays open
-            feed = []
-            while True:
-                try:
-                    feed.append(json.loads(sub.recv(timeout=1.0)))
-                except TimeoutError:
-                    break
+            feed = _events_until_quiet(sub)
         reading.wait_for("/hapticlink/window", 10)
         assert recorder.poll() is None, "only Ctrl-C ends the recorder here"
         t0 = time.monotonic()
