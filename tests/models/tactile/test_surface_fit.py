@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 from scipy.spatial import Delaunay
 
 from models.tactile.surface_fit import (
@@ -15,9 +16,11 @@ from models.tactile.surface_fit import (
     BUMP_SWITCH,
     ORDER_MARGIN_NATS,
     ORDERS,
+    SEGMENT,
     FitStatus,
     SurfaceFitter,
     arma_from_psd,
+    autocorrelation_from_psd,
     bump_floor,
     choose_bump_period,
     choose_orders,
@@ -428,3 +431,33 @@ def test_the_orders_are_judged_where_the_spectrum_was_measured_and_the_fit_reads
     # the hole's values (tens of dB deep) no longer move the orders' likelihoods: spread over < 1 nat per sample
     # where it was measured, against several on the whole band (one such grid point decided the grid's orders)
     assert np.ptp([f[3] for f in judged]) / 500.0 < 1.0 < np.ptp([f[3] for f in whole]) / 500.0
+
+
+def test_a_segments_padded_periodogram_gives_back_its_own_autocorrelation():
+    # the AR fit reads the inverse transform of the periodograms: zero-padded to twice the segment, that is the
+    # segment's biased autocorrelation at every lag; unpadded, the lags past half the segment wrap onto the short ones
+    fitter = SurfaceFitter()
+    # a resonance (100 Hz, pole radius 0.97): its autocorrelation rings past half a segment
+    a = [1.0, -2 * 0.97 * np.cos(2 * np.pi * 0.1), 0.97**2]
+    x = lfilter([1.0], a, np.random.default_rng(3).standard_normal(SEGMENT + 400))[400:]
+    p = fitter._periodogram(x)
+    taper = np.hanning(SEGMENT + 1)[:-1]
+    y = (x - x.mean()) * taper
+    direct = np.correlate(y, y, "full")[SEGMENT - 1 :] / np.sum(taper**2)  # lags 0 … SEGMENT − 1, (m/s²)²
+    r = autocorrelation_from_psd(p, fitter.rate_hz)
+    assert p.shape == fitter.freqs.shape == (SEGMENT + 1,)
+    np.testing.assert_allclose(r[:SEGMENT], direct, rtol=1e-9, atol=1e-12)
+    unpadded = autocorrelation_from_psd(p[::2], fitter.rate_hz)  # the same bins a SEGMENT-point FFT gives
+    assert np.max(np.abs(unpadded[1 : SEGMENT // 2] - direct[1 : SEGMENT // 2])) > 0.005 * direct[0]
+
+
+def test_grid_model_renders_the_spectra_it_is_given():
+    fitter = SurfaceFitter()
+    spectra = arma_psd(TRUTH, fitter.grid_speeds, fitter.grid_forces, fitter.freqs)
+    model, orders = fitter.grid_model(spectra, np.full(fitter.grid_speeds.size, 1e5), name="t", mu=0.3)
+    assert orders in ORDERS and model.name == "t" and model.mu == 0.3
+    got = arma_psd(model, fitter.grid_speeds, fitter.grid_forces, band_frequencies())
+    want = arma_psd(TRUTH, fitter.grid_speeds, fitter.grid_forces, band_frequencies())
+    assert float(np.max(log_spectral_distance_db(got, want))) < 1.0
+    with pytest.raises(ValueError, match="spectra must be"):
+        fitter.grid_model(spectra[:, :10], np.ones(fitter.grid_speeds.size))

@@ -52,9 +52,18 @@ def test_curve_moves_from_the_prior_towards_the_surface():
     assert run.signal_db[0] == run.hybrid_signal[0]
     assert run.signal_db[CHECKPOINTS_S.index(10.0)] < 0.5 * run.hybrid_signal[0]
     assert run.floor_signal[0] < run.signal_db[CHECKPOINTS_S.index(10.0)] + 1.0
+    # as served: the prior until the first version (the first fit is a second in), then versions that follow the fit
+    ten = CHECKPOINTS_S.index(10.0)
+    assert run.served[0, 1] == run.hybrid_visited_db[0] and run.served[CHECKPOINTS_S.index(0.5), 2] == run.signal_db[0]
+    assert 1 <= run.versions <= max(CHECKPOINTS_S)
+    assert run.served[ten, 1] < 0.5 * run.hybrid_visited_db[ten]
+    # the representation floor: perfect data through the fit's grid and ARMA step reproduce this smooth model
+    assert run.floor_visited_db < 1.0 and run.floor_visited_db < run.visited_db[ten]
     entry = summarise_online([run, run], {})
     scopes = {(c["seconds"], c["scope"]) for c in entry["curve"]}
     assert scopes == {(t, s) for t in CHECKPOINTS_S for s in ("grid", "visited", "signal")}
+    assert {c["rule"] for c in entry["curve"]} == {"online+prior", "online", "served"}
+    assert entry["baseline_signal"]["floor"]["minus_hybrid_db"]["mean"] < 0
     assert all(set(c) >= {"seconds", "scope", "spectral_distance_db", "ci95", "st_sim", "spqi"} for c in entry["curve"])
 
 
