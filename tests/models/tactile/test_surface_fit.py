@@ -26,6 +26,7 @@ from models.tactile.surface_fit import (
     choose_orders,
     clipped,
     constant,
+    match_levels,
 )
 from texture_library import procedural
 from texture_library.lsf import poles_to_poly, poly_to_lsf
@@ -461,3 +462,27 @@ def test_grid_model_renders_the_spectra_it_is_given():
     assert float(np.max(log_spectral_distance_db(got, want))) < 1.0
     with pytest.raises(ValueError, match="spectra must be"):
         fitter.grid_model(spectra[:, :10], np.ones(fitter.grid_speeds.size))
+
+
+def test_match_levels_gives_back_the_variances_the_segments_were_played_at():
+    # segments between grid points (barycentric weights over three of four points), each spectrum a fixed shape;
+    # data at the loudness the renderer plays under the true variances (20 dB apart): matched from the wrong ones,
+    # the variances come back where the segments stand, and the played loudness with them
+    rng = np.random.default_rng(5)
+    true_var = np.array([0.01, 0.1, 1.0, 0.3])
+    weights = np.zeros((200, 4))
+    for row in weights:
+        pick = rng.choice(4, 3, replace=False)
+        row[pick] = rng.dirichlet(np.ones(3))
+    unit = np.exp(rng.normal(0.0, 0.5, (200, 50)))
+    noise = 1e-4
+    level = np.log((weights @ true_var)[:, None] * unit + noise).mean(axis=1)
+    got = match_levels(np.full(4, 0.2), weights, unit, level, noise, prior_segments=1e-6)
+    np.testing.assert_allclose(got, true_var, rtol=0.02)
+    # a grid point no segment touches keeps its variance
+    weights[:, 3] = 0.0
+    weights /= weights.sum(axis=1, keepdims=True)
+    level = np.log((weights @ true_var)[:, None] * unit + noise).mean(axis=1)
+    assert match_levels(np.full(4, 0.2), weights, unit, level, noise, prior_segments=1e-6)[3] == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="need variance"):
+        match_levels(np.ones(3), weights, unit, level, noise, 1.0)

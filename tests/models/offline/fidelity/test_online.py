@@ -3,10 +3,19 @@ prior, and the world entry's shape (the `online` object of reports/fidelity/resu
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import Delaunay
 
-from models.offline.fidelity.online import CHECKPOINTS_S, pick_textures, run_texture, summarise_online
+from models.offline.fidelity.online import (
+    CHECKPOINTS_S,
+    VISITED_POINTS,
+    pick_textures,
+    run_texture,
+    summarise_online,
+    visited_distances,
+)
 from texture_library.lsf import poles_to_poly, poly_to_lsf
 from texture_library.surface import SurfaceProfile
 from texture_library.vibration import VibrationModel
@@ -81,3 +90,19 @@ def test_tap_scores_known_answers():
     other = np.exp(-t / 0.002) * np.sin(2 * np.pi * 400 * t)
     assert tap_distance_db(ring, other) > 10.0
     assert np.isnan(tap_spread(TapSet(np.array([20.0]), ring[None])))
+
+
+def test_visited_leaves_out_the_points_where_the_surface_is_silent():
+    truth = _model("truth", [90.0, 260.0], [0.93, 0.9], 0.05, 0.35)
+    other = _model("other", [40.0, 380.0], [0.8, 0.95], 0.2, 0.8)
+    # the slowest row silent (zero variance), as HaTT's slowest corners are: a stroke that dwells there
+    quiet = replace(truth, variance=np.where(truth.speeds == 0.0, 0.0, truth.variance))
+    speed = np.concatenate([np.zeros(50), np.linspace(100.0, 300.0, 50)])
+    force = np.full(100, 2.0)
+    d = visited_distances(other, quiet, speed, force)
+    assert d.shape == (VISITED_POINTS,)
+    silent = np.isnan(d)
+    assert 0 < silent.sum() < VISITED_POINTS and np.all(np.isfinite(d[~silent]))
+    # where the surface is audible, the distance is the plain one: the same model scores 0 there
+    np.testing.assert_allclose(visited_distances(quiet, quiet, speed, force)[~silent], 0.0, atol=1e-9)
+    assert np.isnan(visited_distances(other, replace(truth, variance=0.0 * truth.variance), speed, force)).all()
