@@ -51,7 +51,13 @@ from models.tactile.surface_fit import FitStatus, SurfaceFitter
 from models.tactile.surface_publish import MIN_INTERVAL_S, SurfacePublisher
 from texture_library.atomic_file import write_text
 from texture_library.selection import band_mask, welch_frequencies, window_psd
-from texture_library.spectrum import arma_psd, band_frequencies, log_spectral_distance_db, spectral_distance_db
+from texture_library.spectrum import (
+    PSD_FLOOR,
+    arma_psd,
+    band_frequencies,
+    log_spectral_distance_db,
+    spectral_distance_db,
+)
 from texture_library.stroke import GRAVITY, random_rotation, stroke
 from texture_library.taps import TapSet
 from texture_library.trajectory import freehand, model_ranges
@@ -63,6 +69,8 @@ NOISE_STD = 0.05
 FREE_S = 0.5
 BLOCK = 100
 NOISE_SECONDS = 10.0
+#: that noise's one-sided density, (m/s²)²/Hz at 1 kHz
+NOISE_PSD = 2.0 * NOISE_STD**2 / 1000.0
 VISITED_POINTS = 60
 #: the `online` rule: the prior counts as this many segments (the data alone wherever a segment fell; the prior
 #: only where none did), against `online+prior`'s surface_fit.PRIOR_SEGMENTS
@@ -82,7 +90,9 @@ class TextureRun:
     the version the operator holds (`served`); versions: how many were published in max(CHECKPOINTS_S) seconds;
     floor_visited_db: the representation floor (`representation_floor`) over the visited points of the first
     NOISE_SECONDS; visited_with_silent_db: (len(CHECKPOINTS_S),) visited with the silent points in (at the PSD
-    floor); silent_points: how many of the first NOISE_SECONDS' visited points are silent (visited_distances)."""
+    floor); silent_points: how many of the first NOISE_SECONDS' visited points are silent (visited_distances);
+    visited_measured_db: (online+prior at NOISE_SECONDS, hybrid) visited over the bins where the truth reaches the
+    sensor's noise (what a stream can measure)."""
 
     texture: str
     prior: str
@@ -107,6 +117,7 @@ class TextureRun:
     floor_visited_db: float
     visited_with_silent_db: np.ndarray
     silent_points: int
+    visited_measured_db: tuple[float, float]
     taps_db: float
     hybrid_taps_db: float
     taps_spread_db: float
@@ -133,16 +144,28 @@ def hybrid_picks(world: World) -> list[int]:
     return picks
 
 
-def visited_distances(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, force: np.ndarray) -> np.ndarray:
+def visited_distances(
+    model: VibrationModel,
+    truth: VibrationModel,
+    speed: np.ndarray,
+    force: np.ndarray,
+    measured_above: float | None = None,
+) -> np.ndarray:
     """(VISITED_POINTS,) log-spectral distance of model from truth, dB, at evenly spaced points of the (speed, force)
     trajectory (mm/s, N; (n,) each); NaN where the true model is silent (zero variance over the band: HaTT's slowest
     corners). There a log distance has no value: any audible model is "infinitely" far, and the number is the
-    PSD floor's (≈ 75 dB at texture_library.spectrum's), one such point of 60 adding ≈ 1.3 dB to the mean."""
+    PSD floor's (≈ 75 dB at texture_library.spectrum's), one such point of 60 adding ≈ 1.3 dB to the mean.
+    measured_above: a PSD, (m/s²)²/Hz: only the bins where the truth reaches it count (NaN where none does)."""
     keep = np.linspace(0, speed.size - 1, VISITED_POINTS).round().astype(int)
     freqs = band_frequencies()
     a = arma_psd(model, speed[keep], force[keep], freqs)
     b = arma_psd(truth, speed[keep], force[keep], freqs)
-    return np.where(b.max(axis=-1) > 0, log_spectral_distance_db(a, b), np.nan)
+    if measured_above is None:
+        return np.where(b.max(axis=-1) > 0, log_spectral_distance_db(a, b), np.nan)
+    seen = b >= measured_above
+    diff = 10.0 * np.log10(np.maximum(a, PSD_FLOOR) / np.maximum(b, PSD_FLOOR))
+    sums = np.where(seen, diff**2, 0.0).sum(axis=-1)
+    return np.where(seen.any(axis=-1), np.sqrt(sums / np.maximum(seen.sum(axis=-1), 1)), np.nan)
 
 
 def _visited(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, force: np.ndarray) -> float:
@@ -317,10 +340,9 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
             fit = model
     first = int(NOISE_SECONDS * 1000)
     noise = []
-    true_psd = 2.0 * NOISE_STD**2 / 1000.0
     for factor in (0.5, 2.0):
         traj_n, sig_n, _ = _robot(truth, NOISE_SECONDS, seed, 0.0)
-        told = SurfaceFitter(declared_noise_psd=factor * true_psd)
+        told = SurfaceFitter(declared_noise_psd=factor * NOISE_PSD)
         _feed(told, sig_n, 0, sig_n.speed.size)
         noise.append(_visited(told.fit(prior, name).model, truth, traj_n.speed, traj_n.force))
     bump_h = bump_p = float("nan")
@@ -355,6 +377,10 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
         floor_visited_db=_visited(representation_floor(truth), truth, traj.speed[:first], traj.force[:first]),
         visited_with_silent_db=np.array(with_silent),
         silent_points=int(np.isnan(visited_distances(prior, truth, traj.speed[:first], traj.force[:first])).sum()),
+        visited_measured_db=tuple(
+            float(np.nanmean(visited_distances(m, truth, traj.speed[:first], traj.force[:first], NOISE_PSD)))
+            for m in (fit if fit is not None else prior, prior)
+        ),
         taps_db=float("nan") if held is None or fit is None else tap_scores(fit.taps, held),
         hybrid_taps_db=float("nan") if held is None else tap_scores(prior.taps, held),
         taps_spread_db=float("nan") if held is None else tap_spread(held),
@@ -463,6 +489,11 @@ def summarise_online(runs: list[TextureRun], models_by_name: dict[str, Vibration
             if t in (2.0, 10.0)
         },
         "silent_points_of_visited": [r.silent_points for r in runs],
+        "visited_measured_bins_db": {
+            "seconds": NOISE_SECONDS,
+            "online+prior": _ci(np.array([r.visited_measured_db[0] for r in runs])),
+            "hybrid": _ci(np.array([r.visited_measured_db[1] for r in runs])),
+        },
         "versions": [r.versions for r in runs],
         "baseline_signal": {
             "hybrid": {
@@ -600,6 +631,12 @@ def write_online(out: Path, command: str, entries: dict[str, dict], made_from: d
                 for k in ("2.0", "10.0")
             )
             + " dB.",
+            "",
+            f"Over the bins where the true spectrum reaches the sensor's noise (what a stream can measure), visited at "
+            f"{NOISE_SECONDS:g} s: `online+prior` {e['visited_measured_bins_db']['online+prior']['mean']:.2f} "
+            f"{e['visited_measured_bins_db']['online+prior']['ci95']}, `hybrid` "
+            f"{e['visited_measured_bins_db']['hybrid']['mean']:.2f} {e['visited_measured_bins_db']['hybrid']['ci95']} "
+            "dB.",
             "",
             f"Representation floor (the true spectra at the fit's grid points, through its ARMA step, as if without "
             f"limit of data), visited over the first {NOISE_SECONDS:g} s: "

@@ -17,6 +17,7 @@ from models.offline.fidelity.online import (
     visited_distances,
 )
 from texture_library.lsf import poles_to_poly, poly_to_lsf
+from texture_library.spectrum import arma_psd, band_frequencies
 from texture_library.surface import SurfaceProfile
 from texture_library.vibration import VibrationModel
 
@@ -106,3 +107,15 @@ def test_visited_leaves_out_the_points_where_the_surface_is_silent():
     # where the surface is audible, the distance is the plain one: the same model scores 0 there
     np.testing.assert_allclose(visited_distances(quiet, quiet, speed, force)[~silent], 0.0, atol=1e-9)
     assert np.isnan(visited_distances(other, replace(truth, variance=0.0 * truth.variance), speed, force)).all()
+    # over the measured bins only (where the truth reaches a given density): the same distance where they are, NaN
+    # at the points with none
+    freqs = band_frequencies()
+    loud = arma_psd(quiet, speed, force, freqs)
+    threshold = float(np.quantile(loud[loud > 0], 0.5))
+    quieter = replace(quiet, variance=quiet.variance * 1e-3)
+    far = visited_distances(quieter, quiet, speed, force)
+    near = visited_distances(quieter, quiet, speed, force, measured_above=threshold)
+    np.testing.assert_allclose(far[~silent], 30.0, atol=1e-6)  # a uniform 30 dB
+    np.testing.assert_allclose(near[np.isfinite(near)], 30.0, atol=1e-6)
+    assert np.isnan(near[silent]).all()
+    assert np.isnan(visited_distances(quieter, quiet, speed, force, measured_above=10.0 * loud.max())).all()
