@@ -144,6 +144,14 @@ def hybrid_picks(world: World) -> list[int]:
     return picks
 
 
+def _visited_spectra(
+    model: VibrationModel, truth: VibrationModel, speed: np.ndarray, force: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    keep = np.linspace(0, speed.size - 1, VISITED_POINTS).round().astype(int)
+    freqs = band_frequencies()
+    return arma_psd(model, speed[keep], force[keep], freqs), arma_psd(truth, speed[keep], force[keep], freqs)
+
+
 def visited_distances(
     model: VibrationModel,
     truth: VibrationModel,
@@ -156,10 +164,7 @@ def visited_distances(
     corners). There a log distance has no value: any audible model is "infinitely" far, and the number is the
     PSD floor's (≈ 75 dB at texture_library.spectrum's), one such point of 60 adding ≈ 1.3 dB to the mean.
     measured_above: a PSD, (m/s²)²/Hz: only the bins where the truth reaches it count (NaN where none does)."""
-    keep = np.linspace(0, speed.size - 1, VISITED_POINTS).round().astype(int)
-    freqs = band_frequencies()
-    a = arma_psd(model, speed[keep], force[keep], freqs)
-    b = arma_psd(truth, speed[keep], force[keep], freqs)
+    a, b = _visited_spectra(model, truth, speed, force)
     if measured_above is None:
         return np.where(b.max(axis=-1) > 0, log_spectral_distance_db(a, b), np.nan)
     seen = b >= measured_above
@@ -176,10 +181,7 @@ def _visited(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, fo
 
 def _visited_with_silent(model: VibrationModel, truth: VibrationModel, speed: np.ndarray, force: np.ndarray) -> float:
     """The mean over every visited point, the silent ones at texture_library.spectrum's PSD floor."""
-    keep = np.linspace(0, speed.size - 1, VISITED_POINTS).round().astype(int)
-    freqs = band_frequencies()
-    a = arma_psd(model, speed[keep], force[keep], freqs)
-    return float(np.mean(log_spectral_distance_db(a, arma_psd(truth, speed[keep], force[keep], freqs))))
+    return float(np.mean(log_spectral_distance_db(*_visited_spectra(model, truth, speed, force))))
 
 
 def _normal_stroke(model: VibrationModel, traj, seed: int, noise_std: float) -> np.ndarray:
@@ -327,12 +329,13 @@ def run_texture(truth: VibrationModel, prior: VibrationModel, seed: int, name: s
             continue
         model = prior if t == 0 else fitter.fit(prior, name).model
         upto = max(stop, 2000)
-        grid.append(spectral_distance_db(model, truth))
-        visited.append(_visited(model, truth, traj.speed[:upto], traj.force[:upto]))
+        at = scores(model, upto)
+        grid.append(at[0])
+        visited.append(at[1])
+        signal.append(at[2:])
         with_silent.append(_visited_with_silent(model, truth, traj.speed[:upto], traj.force[:upto]))
         hybrid_visited.append(_visited(prior, truth, traj.speed[:upto], traj.force[:upto]))
         mu.append(abs(model.mu - truth.mu))
-        signal.append(signal_scores(_normal_stroke(model, operator, seed + 300_000, NOISE_STD), real))
         alone = prior if t == 0 else fitter.fit(prior, name, prior_segments=DATA_ONLY_SEGMENTS).model
         data_only.append(scores(alone, upto))
         served.append(scores(publisher.last or prior, upto))
