@@ -68,7 +68,8 @@ before the levels were matched; the point lies between grid points, which share 
 renderer's LSF interpolation).
 
 Friction μ: Σ F_t·F_n / Σ F_n² over contact samples (models.tactile.friction's estimator), blended with the
-prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients (else those of the
+prior's μ by contact seconds (MU_PRIOR_S). Taps: the last MAX_TAPS accepted tap transients, each the local mean of
+its neighbours in speed (models.tactile.taps.local_mean_taps: a recording carries its sensor's noise) (else those of the
 first prior the surface was fitted with: the library pick may change from window to window, the surface does
 not). Bad input keeps the prior and names one reason (`FitStatus`).
 """
@@ -82,6 +83,7 @@ from enum import StrEnum
 import numpy as np
 from scipy.spatial import Delaunay
 
+from models.tactile.taps import local_mean_taps
 from texture_library.lsf import poly_to_lsf
 from texture_library.spectrum import BAND_HZ, arma_psd
 from texture_library.surface import SurfaceProfile
@@ -832,7 +834,8 @@ class SurfaceFitter:
         taps = self._fallback_taps[0]
         if self._taps:
             length = min(t.size for _, t in self._taps)
-            taps = TapSet(np.array([s for s, _ in self._taps]), np.array([t[:length] for _, t in self._taps]))
+            speeds = np.array([s for s, _ in self._taps])
+            taps = TapSet(speeds, local_mean_taps(speeds, np.array([t[:length] for _, t in self._taps])))
         return replace(
             vibration,
             name=name,

@@ -165,7 +165,9 @@ def test_taps_from_tap_blocks_replace_the_priors():
     fit = fitter.fit(prior)
     assert fit.model.taps is not None
     np.testing.assert_allclose(fit.model.taps.speeds, [50.0, 80.0, 120.0])
-    np.testing.assert_allclose(fit.model.taps.accel, traces)
+    # each kept tap is the local mean of the recordings nearest in speed (models.tactile.taps.local_mean_taps): one
+    # ringing scaled by speed here, so the kept taps are the recordings to within their noise
+    np.testing.assert_allclose(fit.model.taps.accel, traces, atol=5e-3)
 
 
 def test_a_surfaces_fallback_taps_are_its_first_priors_until_a_scene_change():

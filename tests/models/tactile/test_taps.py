@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.tactile.taps import MIN_TAP_SAMPLES, TAP_NAMES, tap_features
+from models.tactile.taps import MIN_TAP_SAMPLES, TAP_NAMES, local_mean_taps, tap_features
 
 RATE = 1000.0
 HATT_TAPS = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "hatt-texnet" / "taps"
@@ -95,3 +95,28 @@ def test_hatt_taps_give_finite_features_that_separate_metal_from_foam():
     hard = [feats[n][0] for n in ("aluminum", "brick_1") if n in feats]
     soft = [feats[n][0] for n in ("styrofoam", "epdm_foam", "blanket", "bubble_envelope") if n in feats]
     assert hard and soft and min(hard) > max(soft)  # peak per unit tap speed
+
+
+def test_local_mean_taps_lines_up_and_averages_the_neighbours_in_speed():
+    t = np.arange(100) / 1000.0
+    ring = np.where(t >= 0.005, np.exp(-(t - 0.005) / 0.01) * np.sin(2 * np.pi * 150 * (t - 0.005)), 0.0)
+    speeds = np.array([10.0, 12.0, 14.0, 60.0, 70.0, 80.0])
+    rng = np.random.default_rng(0)
+    clean = speeds[:, None] * ring[None, :]
+    # the third tap came 2 ms late: lined up before it counts
+    clean[2] = speeds[2] * np.concatenate([np.zeros(2), ring[:-2]])
+    noisy = clean + 0.5 * rng.standard_normal(clean.shape)
+    got = local_mean_taps(speeds, noisy)
+    assert got.shape == noisy.shape
+    truth = speeds[:, None] * ring[None, :]
+    # each tap averages three (itself and its two nearest in speed), so the noise falls by about √3
+    for i in (0, 1, 3, 4, 5):
+        err_in = np.sqrt(np.mean((noisy[i] - clean[i]) ** 2))
+        err_out = np.sqrt(np.mean((got[i] - truth[i]) ** 2))
+        assert err_out < 0.8 * err_in, (i, err_in, err_out)
+    # one neighbour (itself): the recordings as they were
+    np.testing.assert_allclose(local_mean_taps(speeds, noisy, neighbours=1), noisy)
+    with pytest.raises(ValueError, match="speeds"):
+        local_mean_taps(speeds[:3], noisy)
+    with pytest.raises(ValueError, match="> 0"):
+        local_mean_taps(np.where(speeds == 10.0, 0.0, speeds), noisy)
