@@ -6,13 +6,14 @@ Helpers are handed out through the `kit` fixture (conftest is not importable und
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import io
 import json
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -356,12 +357,56 @@ class BlockList:
         pass
 
 
+class PoolStall:
+    """Occupies one of the server's pools (default: the window pool) until released; the session's jobs queue up
+    behind it."""
+
+    def __init__(self, server, pool: str = "window_pool") -> None:
+        self.release = threading.Event()
+        self.future = getattr(server.app.state.service, pool).submit(self.release.wait, 60)
+
+    def __enter__(self) -> PoolStall:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release.set()
+        self.future.result(timeout=10)
+
+    async def release_when(self, done: Callable[[], bool], then_s: float = 0.5, guard_s: float = 60.0) -> None:
+        """Releases the pool then_s after done() first holds (not after a fixed time: on a busy host a robot may take
+        longer to fill its session's queue), or after guard_s (a hang guard)."""
+        deadline = time.monotonic() + guard_s
+        while not done() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(then_s)
+        self.release.set()
+
+
+def robot_session(robot) -> dict:
+    """The session a RobotClient opened, as the session helpers take it (id and operator token)."""
+    return {"session_id": robot.session.session_id, "operator_token": robot.session.operator_token}
+
+
+def overload(client: httpx.Client, server, settings: Settings, first_block, robots: int):
+    """`robots` sessions opened oldest first, each streaming (its first block accepted), then the service over
+    capacity from now on (its CPU budget set to nothing): (the capacity guard, the sessions)."""
+    guard = server.app.state.service.capacity
+    sessions = [create_session(client, f"robot{i}") for i in range(robots)]
+    for s in sessions:
+        assert post_block(client, s, first_block).status_code == 202
+    guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})
+    return guard, sessions
+
+
 @pytest.fixture(scope="session")
 def kit() -> SimpleNamespace:
     return SimpleNamespace(
         ServerThread=ServerThread,
         running=running,
         BlockList=BlockList,
+        PoolStall=PoolStall,
+        robot_session=robot_session,
+        overload=overload,
         stroke_recording=stroke_recording,
         recording_blocks=recording_blocks,
         wait_for=wait_for,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import json
-import threading
 import time
 
 import httpx
@@ -35,26 +34,11 @@ def tight_server(kit, base_settings):
         yield srv
 
 
-class PoolStall:
-    """Occupies the server's window pool until released (the session's jobs queue up behind it)."""
-
-    def __init__(self, server, pool: str = "window_pool") -> None:
-        self.release = threading.Event()
-        self.future = getattr(server.app.state.service, pool).submit(self.release.wait, 60)
-
-    def __enter__(self) -> PoolStall:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release.set()
-        self.future.result(timeout=10)
-
-
 def test_http_ingest_answers_429_when_saturated_and_a_resend_succeeds(kit, tight_server, library_dir):
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 4.0))  # 200 blocks, 8 windows
     with httpx.Client(base_url=tight_server.url, timeout=10) as client:
         session = kit.create_session(client)
-        with PoolStall(tight_server):
+        with kit.PoolStall(tight_server):
             sent = 0
             for block in blocks:
                 r = kit.post_block(client, session, block)
@@ -84,7 +68,7 @@ def test_websocket_ingest_closes_4429_when_saturated(kit, tight_server, library_
     with httpx.Client(base_url=tight_server.url, timeout=10) as client:
         session = kit.create_session(client)
         url = kit.socket_url(tight_server, session, "ingest")
-        with PoolStall(tight_server), connect(url) as ws:
+        with kit.PoolStall(tight_server), connect(url) as ws:
             acked = 0
             with pytest.raises(ConnectionClosed):
                 for block in blocks:
@@ -115,18 +99,9 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
             seed=1,
             api_key=kit.API_KEY,
         )
-        stall = PoolStall(tight_server)
-
-        async def slow_spell() -> None:
-            """The slow spell lasts until the robot has been refused, and half a second more of its retries (not a
-            fixed second: on a busy host the robot may not fill the session's queue in a second)."""
-            deadline = time.monotonic() + 60  # hang guard
-            while robot.stats.saturated == 0 and time.monotonic() < deadline:
-                await asyncio.sleep(0.01)
-            await asyncio.sleep(0.5)
-            stall.release.set()
-
-        spell = asyncio.create_task(slow_spell())
+        stall = kit.PoolStall(tight_server)
+        # the slow spell lasts until the robot has been refused, and half a second more of its retries
+        spell = asyncio.create_task(stall.release_when(lambda: robot.stats.saturated > 0))
         stats = await robot.run()
         await spell
         return robot, stats
@@ -134,7 +109,7 @@ def test_the_robot_client_rides_out_saturation_and_loses_nothing(kit, tight_serv
     robot, stats = asyncio.run(main())
     assert stats.saturated >= 1, "the client never saw the session saturated"
     assert stats.acked == len(blocks) and stats.lost == 0 and stats.rejected == 0 and stats.unsent == 0
-    session = {"session_id": robot.session.session_id, "operator_token": robot.session.operator_token}
+    session = kit.robot_session(robot)
     with httpx.Client(base_url=tight_server.url, timeout=10) as client:
         status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 6 and s)
     assert status["counters"]["windows"] == 6
@@ -170,7 +145,7 @@ def test_a_frame_sent_while_the_previous_one_is_decoded_is_refused(kit, tight_se
         headers = {"Authorization": f"Bearer {session['robot_token']}", "Content-Type": "image/png"}
         state = tight_server.app.state.service.sessions[session["session_id"]]
         with concurrent.futures.ThreadPoolExecutor(1) as sender:
-            with PoolStall(tight_server, "frame_pool"):  # frames are decoded in the frame pool
+            with kit.PoolStall(tight_server, "frame_pool"):  # frames are decoded in the frame pool
                 first = sender.submit(other.post, url, content=kit.png(), headers=headers)  # waits behind the stall
                 kit.wait_for(lambda: state.decoding_frame)
                 second = client.post(url, content=kit.png(), headers=headers)

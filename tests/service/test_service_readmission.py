@@ -57,14 +57,6 @@ def _update(guard: CapacityGuard, sessions: list[_Robot], now: float) -> None:
     guard.update(now)
 
 
-class PoolStall:
-    """Occupies the server's window pool until released (the session's jobs queue up behind it)."""
-
-    def __init__(self, server) -> None:
-        self.release = threading.Event()
-        self.future = server.app.state.service.window_pool.submit(self.release.wait, 60)
-
-
 class HeldRobot(threading.Thread):
     """A robot that opens its ingest socket once (a long handshake timeout: it never polls) and, once in, sends its
     next blocks; records when its handshake completed and every acknowledgement."""
@@ -98,11 +90,7 @@ def test_shed_robots_wait_in_line_on_one_connection_and_are_let_in_in_arrival_or
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))
     settings = base_settings.model_copy(update={"instance_id": "held", "readmit_hold_s": 30.0})
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
-        guard = srv.app.state.service.capacity
-        sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
-        for s in sessions:
-            assert kit.post_block(client, s, blocks[0]).status_code == 202  # all three stream
-        guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})  # over capacity from now on
+        guard, sessions = kit.overload(client, srv, settings, blocks[0], robots=3)  # all three stream, then too many
         assert kit.wait_for(lambda: guard.shedding == 2, timeout_s=10)
         # a wrong token is refused at once, never held: the credential comes first
         bad = kit.socket_url(srv, sessions[1], "ingest").replace(sessions[1]["robot_token"], "x" * 43)
@@ -146,11 +134,7 @@ def test_a_robot_held_past_readmit_hold_s_is_told_to_come_back_soon_and_keeps_it
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 1.0))
     settings = base_settings.model_copy(update={"instance_id": "held-out", "readmit_hold_s": 0.5})
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
-        guard = srv.app.state.service.capacity
-        sessions = [kit.create_session(client, f"robot{i}") for i in range(2)]
-        for s in sessions:
-            assert kit.post_block(client, s, blocks[0]).status_code == 202
-        guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})
+        guard, sessions = kit.overload(client, srv, settings, blocks[0], robots=2)
         assert kit.wait_for(lambda: guard.shedding == 1, timeout_s=10)
         with pytest.raises(InvalidStatus) as refused:
             connect(kit.socket_url(srv, sessions[1], "ingest"), open_timeout=30)
@@ -251,7 +235,7 @@ def test_a_robot_whose_session_is_saturated_keeps_its_socket_and_its_blocks_wait
     blocks = kit.recording_blocks(kit.stroke_recording(library_dir, "synth_002", 2.0))  # 100 blocks, 4 windows
     with kit.running(settings) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
         session = kit.create_session(client)
-        stall = PoolStall(srv)
+        stall = kit.PoolStall(srv)
         acks: list[dict] = []
         with connect(kit.socket_url(srv, session, "ingest")) as ws:
             for block in blocks:
@@ -293,21 +277,14 @@ def test_the_robot_client_waits_out_a_saturated_session_on_its_connection_and_lo
             robot = RobotClient(
                 srv.url, kit.BlockList(blocks), transport=transport, backoff=(0.05, 0.2), seed=1, api_key=kit.API_KEY
             )
-            stall = PoolStall(srv)
+            stall = kit.PoolStall(srv)
 
-            async def slow_spell() -> None:
-                """Held until the session is saturated, and half a second of its robot waiting more."""
-                deadline = time.monotonic() + 60  # hang guard
-                while time.monotonic() < deadline and not (
-                    robot.session is not None
-                    and (s := sessions.get(robot.session.session_id)) is not None
-                    and s.saturated()
-                ):
-                    await asyncio.sleep(0.01)
-                await asyncio.sleep(0.5)
-                stall.release.set()
+            def saturated() -> bool:
+                s = sessions.get(robot.session.session_id) if robot.session is not None else None
+                return s is not None and s.saturated()
 
-            spell = asyncio.create_task(slow_spell())
+            # held until the session is saturated, and half a second of its robot waiting more
+            spell = asyncio.create_task(stall.release_when(saturated))
             stats = await robot.run()
             await spell
             return robot, stats
@@ -315,7 +292,7 @@ def test_the_robot_client_waits_out_a_saturated_session_on_its_connection_and_lo
         robot, stats = asyncio.run(main())
         assert stats.saturated == 0 and stats.reconnects == 0
         assert stats.acked == len(blocks) and stats.lost == 0 and stats.rejected == 0 and stats.unsent == 0
-        session = {"session_id": robot.session.session_id, "operator_token": robot.session.operator_token}
+        session = kit.robot_session(robot)
         with httpx.Client(base_url=srv.url, timeout=10) as client:
             status = kit.wait_for(lambda: (s := kit.session_status(client, session))["counters"]["windows"] >= 6 and s)
         assert status["counters"]["windows"] == 6 and status["counters"]["blocks_refused"] == 0

@@ -263,11 +263,7 @@ def test_shed_robots_come_back_in_the_order_they_came_told_when_and_the_wait_is_
     settings = base_settings.model_copy(update={"instance_id": "readmit", "readmit_hold_s": 0})
     # about capacity: the service's own CPU meter, the load set through the budget
     with kit.running(settings, cpu_meter=ThreadCpu()) as srv, httpx.Client(base_url=srv.url, timeout=10) as client:
-        guard = srv.app.state.service.capacity
-        sessions = [kit.create_session(client, f"robot{i}") for i in range(3)]
-        for s in sessions:
-            assert kit.post_block(client, s, blocks[0]).status_code == 202
-        guard.settings = settings.model_copy(update={"cpu_budget": 1e-6})  # over capacity from now on
+        guard, sessions = kit.overload(client, srv, settings, blocks[0], robots=3)  # over capacity from now on
         kit.wait_for(lambda: guard.shedding == 2, timeout_s=10)
         retry = []
         for s in sessions[1:]:
